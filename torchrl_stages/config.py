@@ -1,0 +1,135 @@
+"""Configuration schemas, registered in Hydra's ConfigStore.
+
+The YAML files in ``conf/`` only pick groups and override these defaults; the dataclasses are the
+single source of truth for what a key means and what it defaults to. Every stage of a task is one
+entry of ``task.stages`` holding an algorithm schema (:class:`DQNConfig`, :class:`DDPGConfig` or
+:class:`TD3Config`), so ``task.stages.s3.lr=3e-4`` and ``algo@task.stages.s0=td3`` work from the
+command line and a typo fails at composition.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING
+
+
+@dataclass
+class StageConfig:
+    """Hyper-parameters shared by every stage learner.
+
+    Budgets are counted in env frames (summed over the stage env's batch).
+    """
+
+    algo: str = MISSING
+    gamma: float = 0.99  # this stage's discount (also used for its transition reward)
+    lr: float = 1e-3  # learning rate (the critic's, for actor-critic algorithms)
+    num_cells: list[int] = field(default_factory=lambda: [64, 64])  # hidden layers of each MLP
+    num_envs: int = 64  # batch size of the stage's training env
+    frames: int = 100_000  # env-frame budget of the stage
+    frames_per_batch: int = 256  # frames per collector batch
+    init_random_frames: int = 1_000  # uniformly random actions before learning starts
+    buffer_size: int = 100_000  # replay-buffer capacity (transitions)
+    batch_size: int = 256  # replay samples per gradient step
+    updates_per_batch: int = 4  # gradient steps per collected batch
+    tau: float = 0.005  # soft target-network update rate
+    eval_every: int = 5_000  # frames between greedy evaluations of the stage (0: never)
+    eval_episodes: int = 64  # greedy episodes per stage evaluation (random starts in the stage)
+    success_threshold: float | None = None  # early stop once stage success >= this (null: off)
+    patience: int = 1  # consecutive evaluations that must meet success_threshold
+    min_frames: int = 0  # no early stop before this many frames
+
+
+@dataclass
+class DQNConfig(StageConfig):
+    """DQN stage (discrete actions): torchrl's ``DQNLoss`` with an epsilon-greedy collector."""
+
+    algo: str = "dqn"
+    double_dqn: bool = False
+    loss_function: str = "l2"  # l1 | l2 | smooth_l1
+    eps_init: float = 1.0
+    eps_end: float = 0.05
+    annealing_frames: int = 20_000  # frames over which epsilon decays linearly
+
+
+@dataclass
+class DDPGConfig(StageConfig):
+    """DDPG stage (continuous, bounded actions): ``DDPGLoss`` with Gaussian exploration."""
+
+    algo: str = "ddpg"
+    actor_lr: float = 1e-3
+    loss_function: str = "l2"
+    sigma_init: float = 0.5  # exploration noise std (in action units) at the start
+    sigma_end: float = 0.1
+    annealing_frames: int = 20_000
+
+
+@dataclass
+class TD3Config(DDPGConfig):
+    """TD3 stage: twin critics, target policy smoothing and delayed actor updates."""
+
+    algo: str = "td3"
+    policy_noise: float = 0.2
+    noise_clip: float = 0.5
+    policy_update_delay: int = 2
+
+
+ALGO_SCHEMAS: dict[str, type[StageConfig]] = {
+    "dqn": DQNConfig,
+    "ddpg": DDPGConfig,
+    "td3": TD3Config,
+}
+
+
+@dataclass
+class TaskConfig:
+    """A multi-stage task: its env and one learner config per stage, in stage order."""
+
+    name: str = MISSING
+    # Keyword arguments of the multi-stage env; `_target_` names its class. The schedule adds
+    # `batch_size` and `start_stage` when it builds per-stage envs.
+    env: dict[str, Any] = field(default_factory=dict)
+    # Whole-task starts used for the final evaluation (passed to the env on top of `env`).
+    eval_env: dict[str, Any] = field(default_factory=dict)
+    stages: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class LoggerConfig:
+    """Where metrics go, through ``torchrl.record.loggers.get_logger``."""
+
+    backend: str = "csv"  # csv | tensorboard | wandb | mlflow | none
+    exp_name: str = "${task.name}"
+    project: str = "torchrl-stages"  # wandb project / mlflow experiment
+
+
+@dataclass
+class EvalConfig:
+    """Whole-task evaluation of the stacked greedy policy after training."""
+
+    episodes: int = 100
+    plots: bool = True
+
+
+@dataclass
+class TrainConfig:
+    """Root config of ``stages-train``."""
+
+    task: TaskConfig = field(default_factory=TaskConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    seed: int = 0
+    device: str = "cpu"
+    threads: int = 1  # torch intra-op threads; small nets train fastest with 1
+    progress: bool = True  # tqdm bar per stage (hidden anyway when stderr is not a TTY)
+
+
+def register_configs() -> None:
+    """Registers the schemas in Hydra's ConfigStore (YAML files extend them by name)."""
+    cs = ConfigStore.instance()
+    cs.store(name="train_schema", node=TrainConfig)
+    cs.store(group="logger", name="logger_schema", node=LoggerConfig)
+    for name, schema in ALGO_SCHEMAS.items():
+        cs.store(group="algo", name=f"{name}_schema", node=schema)

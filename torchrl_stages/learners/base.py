@@ -1,0 +1,116 @@
+"""What every per-stage learner provides to the shared stage-training loop."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
+
+from torchrl_stages.config import StageConfig
+
+
+@dataclass
+class StageSpecs:
+    """The slice of an env a stage learner is built from.
+
+    Attributes:
+        observation_keys: the entries its networks read (flat float vectors, concatenated).
+        observation_dim: the summed size of their last dimension.
+        action_key: the entry its policy writes.
+        action_spec: the unbatched spec of that entry.
+    """
+
+    observation_keys: list[NestedKey]
+    observation_dim: int
+    action_key: NestedKey
+    action_spec: TensorSpec
+
+
+def is_discrete(spec: TensorSpec) -> bool:
+    return isinstance(spec, (Categorical, OneHot))
+
+
+def is_continuous(spec: TensorSpec) -> bool:
+    return isinstance(spec, Bounded) and spec.dtype.is_floating_point
+
+
+def linear_schedule(start: float, end: float, frames: int, horizon: int) -> float:
+    """Linear annealing from ``start`` to ``end`` over ``horizon`` frames, then constant."""
+    if horizon <= 0:
+        return end
+    return end + (start - end) * max(0.0, 1.0 - frames / horizon)
+
+
+class Learner(nn.Module, ABC):
+    """One stage's algorithm: networks, exploration, loss, optimizers and target updater.
+
+    Subclasses build these from a :class:`~torchrl_stages.config.StageConfig` and
+    :class:`StageSpecs` and implement :meth:`update`, :meth:`anneal` and :meth:`value`. The loop in
+    :mod:`torchrl_stages.stage` only talks to this interface, so all algorithms share it.
+
+    Attributes:
+        policy: the greedy (deterministic) policy, used for evaluation and the stacked policy.
+        exploration_policy: the policy the collector runs (policy + exploration module).
+        optimizers: named optimizers, saved with checkpoints.
+    """
+
+    #: the algorithm's name in configs (``algo: dqn``)
+    algo: str = ""
+
+    def __init__(self, cfg: StageConfig, specs: StageSpecs) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.specs = specs
+        self.policy: TensorDictModuleBase
+        self.exploration_policy: TensorDictModuleBase
+        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.num_updates = 0
+
+    @classmethod
+    def check_action_spec(cls, spec: TensorSpec) -> str | None:
+        """Why this algorithm cannot act on ``spec`` (``None`` when it can)."""
+        return None
+
+    @abstractmethod
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        """One gradient step on a replay batch, target update included; returns detached losses."""
+
+    @abstractmethod
+    def anneal(self, frames: int) -> None:
+        """Sets the exploration noise for ``frames`` collected frames."""
+
+    @abstractmethod
+    def value(self) -> TensorDictModuleBase:
+        """This stage's state-value module ``V(s)`` from its target networks.
+
+        The caller freezes it (:func:`torchrl_stages.transforms.freeze`).
+        """
+
+    def _step(self, loss: torch.Tensor, *names: str) -> None:
+        """Backward ``loss`` and step the named optimizers (all when none are named)."""
+        optimizers = [self.optimizers[n] for n in names] if names else self.optimizers.values()
+        loss.backward()
+        for optimizer in optimizers:
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+
+    def checkpoint(self) -> dict[str, Any]:
+        """Weights (target networks included), exploration state and optimizer states."""
+        return {
+            "model": self.state_dict(),
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "num_updates": self.num_updates,
+        }
+
+    def load_checkpoint(self, state: dict[str, Any]) -> None:
+        self.load_state_dict(state["model"])
+        for name, optimizer in self.optimizers.items():
+            optimizer.load_state_dict(state["optimizers"][name])
+        self.num_updates = int(state.get("num_updates", 0))

@@ -1,0 +1,57 @@
+"""Loggers: torchrl's, plus one tidy ``metrics.csv`` per run for the CSV backend."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from omegaconf import DictConfig
+from torchrl.record.loggers import CSVLogger, Logger, get_logger
+
+
+class MetricsCSVLogger(CSVLogger):
+    """torchrl's ``CSVLogger`` that also appends every scalar to one ``name,step,value`` file.
+
+    Names carry the namespace (``train/stage_3/loss``, ``eval/stage_3/success_rate``,
+    ``eval/task/success_rate``); ``step`` counts the frames of that stage.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> logger = MetricsCSVLogger("csv", log_dir=str(d), metrics_file=d / "metrics.csv")
+        >>> logger.log_scalar("train/stage_0/loss", 0.5, step=10)
+        >>> (d / "metrics.csv").read_text().splitlines()
+        ['name,step,value', 'train/stage_0/loss,10,0.5']
+    """
+
+    def __init__(self, exp_name: str, log_dir: str, metrics_file: str | Path) -> None:
+        super().__init__(exp_name=exp_name, log_dir=log_dir)
+        path = Path(metrics_file)
+        new = not path.exists()
+        self._file = path.open("a", newline="")
+        self._writer = csv.writer(self._file)
+        if new:
+            self._writer.writerow(["name", "step", "value"])
+            self._file.flush()
+
+    def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
+        super().log_scalar(name, value, step=step)
+        self._writer.writerow([name, step, float(value)])
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
+    """The logger of ``cfg.logger`` writing inside ``run_dir`` (``None`` for backend ``none``)."""
+    backend = cfg.logger.backend
+    if backend == "none":
+        return None
+    if backend == "csv":
+        return MetricsCSVLogger("csv", log_dir=str(run_dir), metrics_file=run_dir / "metrics.csv")
+    kwargs = {}
+    if backend == "wandb":
+        kwargs = {"project": cfg.logger.project}
+    return get_logger(backend, logger_name=str(run_dir), experiment_name=cfg.logger.exp_name,
+                      wandb_kwargs=kwargs)

@@ -1,0 +1,69 @@
+"""The stacked policy: one policy per stage, each batch element routed by its stage tag."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+
+
+class StackedPolicy(TensorDictModuleBase):
+    """Runs, for every batch element, the policy of the stage it is in.
+
+    Each stage policy runs on the whole batch and its outputs are kept where ``stage_key`` names
+    that stage; an output written by some stages only (e.g. a per-stage action key) is zero
+    where another stage acts. Stage policies are small, so this costs N forward passes and needs
+    no masking of the batch.
+
+    Args:
+        policies: one greedy policy per stage, in stage order.
+
+    Keyword Args:
+        stage_key: the stage tag written by :class:`~torchrl_stages.transforms.StageTransform`.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> p0 = TensorDictModule(lambda o: o[..., :1] * 0, ["observation"], ["action"])
+        >>> p1 = TensorDictModule(lambda o: o[..., :1] * 0 + 1, ["observation"], ["action"])
+        >>> td = TensorDict(observation=torch.zeros(3, 2), stage=torch.tensor([[0], [1], [0]]),
+        ...                 batch_size=[3])
+        >>> StackedPolicy([p0, p1])(td)["action"].squeeze(-1)
+        tensor([0., 1., 0.])
+    """
+
+    def __init__(
+        self, policies: Sequence[TensorDictModuleBase], *, stage_key: NestedKey = "stage"
+    ) -> None:
+        super().__init__()
+        self.policies = nn.ModuleList(policies)
+        self.stage_key = stage_key
+        in_keys: list[NestedKey] = [stage_key]
+        out_keys: list[NestedKey] = []
+        for policy in policies:
+            in_keys += [k for k in policy.in_keys if k not in in_keys]
+            out_keys += [k for k in policy.out_keys if k not in out_keys]
+        self.in_keys = in_keys
+        self.out_keys = out_keys
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        stage = tensordict.get(self.stage_key).squeeze(-1)
+        merged: dict[NestedKey, torch.Tensor] = {}
+        for k, policy in enumerate(self.policies):
+            rows = stage == k
+            if not rows.any():
+                continue
+            out = policy(tensordict.select(*policy.in_keys).clone(False))
+            for key in policy.out_keys:
+                value = out.get(key)
+                mask = rows.reshape(*rows.shape, *([1] * (value.ndim - rows.ndim)))
+                base = merged.get(key, torch.zeros_like(value))
+                merged[key] = torch.where(mask, value, base)
+        for key, value in merged.items():
+            tensordict.set(key, value)
+        return tensordict

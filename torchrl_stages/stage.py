@@ -1,0 +1,147 @@
+"""The one training loop of one stage, shared by every algorithm."""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+
+import torch
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import EnvBase
+from torchrl.record.loggers import Logger
+from tqdm.auto import tqdm
+
+from torchrl_stages.config import StageConfig
+from torchrl_stages.evaluate import evaluate_policy
+from torchrl_stages.learners import Learner
+
+
+@dataclass
+class StageResult:
+    """What training one stage did."""
+
+    stage: int
+    frames: int
+    updates: int
+    seconds: float
+    success_rate: float | None  # last greedy stage evaluation (None: never evaluated)
+    early_stopped: bool
+
+
+class StageTrainer:
+    """Trains stage ``stage``: collector -> replay buffer -> learner updates -> evaluation.
+
+    ``env`` is the stage's training env (starts inside the stage, transitions terminal, rewards
+    rewritten by :class:`~torchrl_stages.transforms.StageTransform`); ``eval_env`` is the same
+    kind of env used for greedy evaluations and the early stop on ``cfg.success_threshold``.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.config import DQNConfig
+        >>> from torchrl_stages.learners import DQNLearner
+        >>> from torchrl_stages.task import StagedTask
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {}, "b": {}},
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2}}))
+        >>> cfg = OmegaConf.structured(DQNConfig(frames=512, frames_per_batch=64, num_envs=8,
+        ...                                      init_random_frames=64, eval_every=0))
+        >>> learner = DQNLearner(cfg, task.specs(1))
+        >>> trainer = StageTrainer(1, learner, task.stage_env(1, 8), task.stage_env(1, 8), cfg)
+        >>> trainer.train().frames
+        512
+    """
+
+    def __init__(
+        self,
+        stage: int,
+        learner: Learner,
+        env: EnvBase,
+        eval_env: EnvBase,
+        cfg: StageConfig,
+        *,
+        logger: Logger | None = None,
+        progress: bool = False,
+        name: str | None = None,
+    ) -> None:
+        self.stage = stage
+        self.learner = learner
+        self.env = env
+        self.eval_env = eval_env
+        self.cfg = cfg
+        self.logger = logger
+        self.progress = progress
+        self.name = name or str(stage)
+        self.prefix = f"train/stage_{stage}"
+
+    def train(self) -> StageResult:
+        cfg, learner = self.cfg, self.learner
+        collector = Collector(
+            self.env,
+            learner.exploration_policy,
+            frames_per_batch=cfg.frames_per_batch,
+            total_frames=cfg.frames,
+            init_random_frames=cfg.init_random_frames,
+            auto_register_policy_transforms=False,
+        )
+        buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(cfg.buffer_size), batch_size=cfg.batch_size
+        )
+        start, frames, streak, success = time.perf_counter(), 0, 0, None
+        next_eval = cfg.eval_every if cfg.eval_every > 0 else None
+        early_stopped = False
+        bar = tqdm(total=cfg.frames, desc=f"stage {self.stage} ({self.name})", unit="frame",
+                   disable=not (self.progress and sys.stderr.isatty()), leave=False)
+        for batch in collector:
+            buffer.extend(batch.reshape(-1))
+            frames += batch.numel()
+            learner.anneal(frames)
+            losses = []
+            if frames >= cfg.init_random_frames:
+                losses = [learner.update(buffer.sample()) for _ in range(cfg.updates_per_batch)]
+            self._log_batch(batch, losses, frames)
+            bar.update(batch.numel())
+            if next_eval is not None and frames >= next_eval:
+                next_eval += cfg.eval_every
+                success = self.evaluate(frames)
+                bar.set_postfix(success=f"{success:.2f}")
+                met = cfg.success_threshold is not None and success >= cfg.success_threshold
+                streak = streak + 1 if met else 0
+                if streak >= cfg.patience and frames >= cfg.min_frames:
+                    early_stopped = True
+                    break
+        bar.close()
+        collector.shutdown()
+        return StageResult(self.stage, frames, learner.num_updates,
+                           time.perf_counter() - start, success, early_stopped)
+
+    def evaluate(self, frames: int) -> float:
+        """Greedy episodes from random starts in the stage; logs and returns the success rate.
+
+        An episode succeeds when it terminates (leaves the stage or ends the task) before the
+        time limit.
+        """
+        max_steps = int(getattr(self.eval_env, "max_steps", 1000))
+        stats, _ = evaluate_policy(self.eval_env, self.learner.policy, max_steps)
+        summary = stats.summary()
+        self._log({f"eval/stage_{self.stage}/{k}": v for k, v in summary.items()}, frames)
+        return summary["success_rate"]
+
+    def _log_batch(self, batch, losses: list[dict[str, torch.Tensor]], frames: int) -> None:
+        if self.logger is None:
+            return
+        done = batch["next", "done"].squeeze(-1)
+        metrics = {}
+        if done.any():
+            metrics["episode_return"] = batch["next", "episode_reward"][done].mean().item()
+            metrics["episode_success"] = batch["next", "terminated"][done].float().mean().item()
+        for key in {k for loss in losses for k in loss}:
+            metrics[key] = torch.stack([loss[key] for loss in losses if key in loss]).mean().item()
+        metrics["updates"] = self.learner.num_updates
+        self._log({f"{self.prefix}/{k}": v for k, v in metrics.items()}, frames)
+
+    def _log(self, metrics: dict[str, float], step: int) -> None:
+        if self.logger is not None:
+            for key, value in metrics.items():
+                self.logger.log_scalar(key, value, step=step)

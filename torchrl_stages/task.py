@@ -1,0 +1,100 @@
+"""A multi-stage task built from its config: envs for each stage, specs for each learner."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import Compose, EnvBase, RewardSum, TransformedEnv
+
+from torchrl_stages.learners import StageSpecs
+from torchrl_stages.transforms import StageTransform
+
+
+class StagedTask:
+    """Makes the envs of a task config (``cfg.task``) for training and evaluation.
+
+    The env named by ``task.env._target_`` must be a batched TorchRL ``EnvBase`` that accepts
+    ``batch_size``, ``start_stage`` (``None``: whole-task starts) and ``device`` keyword
+    arguments and has ``num_stages`` and ``stage_fn(tensordict)``. Optional hooks for tasks whose
+    stages differ: ``stage_action_key(k)`` and ``stage_observation_keys(k)``.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {}, "b": {}},
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2}}))
+        >>> task.stage_env(1, batch_size=4).rollout(2)["stage"].shape
+        torch.Size([4, 2, 1])
+    """
+
+    def __init__(self, cfg: DictConfig, device: str | torch.device = "cpu") -> None:
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.stage_names: list[str] = list(cfg.stages.keys())
+        self._probe = self.base_env(batch_size=1)
+
+    @property
+    def name(self) -> str:
+        return str(self.cfg.name)
+
+    @property
+    def num_stages(self) -> int:
+        return int(self._probe.num_stages)
+
+    def stage_cfg(self, stage: int) -> DictConfig:
+        return self.cfg.stages[self.stage_names[stage]]
+
+    def base_env(
+        self, batch_size: int | Sequence[int], start_stage: int | None = None, **overrides: Any
+    ) -> EnvBase:
+        """The task's env without stage transform (``overrides`` go to its constructor)."""
+        batch = (batch_size,) if isinstance(batch_size, int) else tuple(batch_size)
+        kwargs = OmegaConf.to_container(self.cfg.env, resolve=True)
+        kwargs.update(overrides)
+        return instantiate(kwargs, batch_size=batch, start_stage=start_stage, device=self.device)
+
+    def stage_env(
+        self,
+        stage: int,
+        batch_size: int,
+        next_value: TensorDictModuleBase | None = None,
+    ) -> TransformedEnv:
+        """Stage ``stage``'s training env: starts inside the stage, its learner's view of rewards.
+
+        Episodes end when they leave the stage; the transition reward adds
+        ``gamma_stage * next_value(s_{t+1})``. ``RewardSum`` tracks episode returns.
+        """
+        base = self.base_env(batch_size, start_stage=stage)
+        transform = StageTransform(
+            base.stage_fn,
+            base.num_stages,
+            train_stage=stage,
+            next_value=next_value,
+            gamma=float(self.stage_cfg(stage).gamma),
+        )
+        return TransformedEnv(base, Compose(transform, RewardSum()))
+
+    def task_env(self, batch_size: int, **overrides: Any) -> TransformedEnv:
+        """Whole-task env (stage tags only), with ``task.eval_env`` starts unless overridden."""
+        kwargs = {**OmegaConf.to_container(self.cfg.eval_env, resolve=True), **overrides}
+        base = self.base_env(batch_size, **kwargs)
+        return TransformedEnv(base, StageTransform(base.stage_fn, base.num_stages))
+
+    def specs(self, stage: int) -> StageSpecs:
+        """Observation and action entries of ``stage``'s learner, read from the env's specs."""
+        env = self._probe
+        if hasattr(env, "stage_observation_keys"):
+            obs_keys = list(env.stage_observation_keys(stage))
+        else:
+            obs_keys = list(env.observation_spec.keys(True, True))
+        action_key = env.stage_action_key(stage) if hasattr(env, "stage_action_key") else (
+            env.action_key
+        )
+        obs_dim = sum(int(env.observation_spec[k].shape[-1]) for k in obs_keys)
+        action_spec = env.full_action_spec_unbatched[action_key]
+        return StageSpecs(obs_keys, obs_dim, action_key, action_spec)
