@@ -168,8 +168,9 @@ class GridWorldEnv(EnvBase):
             c0 = self._start_stage * w
             tr, tc = self.target
             has_target = c0 <= tc < c0 + w
-            idx = torch.randint(self.size * w - int(has_target), (n,), device=dev,
-                                generator=self.rng)
+            idx = torch.randint(
+                self.size * w - int(has_target), (n,), device=dev, generator=self.rng
+            )
             if has_target:  # skip the target: uniform over the other cells of the strip
                 idx = idx + (idx >= tr * w + (tc - c0)).long()
             return (idx // w) * self.size + c0 + idx % w
@@ -190,9 +191,12 @@ class GridWorldEnv(EnvBase):
             self._steps.masked_fill_(mask, 0)
         zeros = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return TensorDict(
-            observation=self._cell_obs[self._cell].reshape(*self.batch_size, 2), done=zeros,
-            terminated=zeros.clone(), truncated=zeros.clone(),
-            batch_size=self.batch_size, device=self.device,
+            observation=self._cell_obs[self._cell].reshape(*self.batch_size, 2),
+            done=zeros,
+            terminated=zeros.clone(),
+            truncated=zeros.clone(),
+            batch_size=self.batch_size,
+            device=self.device,
         )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -204,9 +208,12 @@ class GridWorldEnv(EnvBase):
         truncated = (self._steps >= self.max_steps).reshape(*self.batch_size, 1)
         return TensorDict(
             observation=self._cell_obs[self._cell].reshape(*self.batch_size, 2),
-            reward=terminated.to(torch.float32), done=terminated | truncated,
-            terminated=terminated, truncated=truncated,
-            batch_size=self.batch_size, device=self.device,
+            reward=terminated.to(torch.float32),
+            done=terminated | truncated,
+            terminated=terminated,
+            truncated=truncated,
+            batch_size=self.batch_size,
+            device=self.device,
         )
 
     def _set_seed(self, seed: int | None) -> None:
@@ -248,8 +255,13 @@ def _transitions(
 
 
 def gridworld_optimal_values(
-    gammas: Sequence[float], *, size: int = 25, num_stages: int = 5,
-    target: Sequence[int] | None = None, tol: float = 1e-12, max_iter: int = 100_000,
+    gammas: Sequence[float],
+    *,
+    size: int = 25,
+    num_stages: int = 5,
+    target: Sequence[int] | None = None,
+    tol: float = 1e-12,
+    max_iter: int = 100_000,
 ) -> np.ndarray:
     """Optimal values ``(size, size)`` (float64, row 0 on top) by value iteration.
 
@@ -277,8 +289,12 @@ def gridworld_optimal_values(
 
 
 def greedy_path_from_values(
-    values: np.ndarray, start: tuple[int, int], *, num_stages: int = 5,
-    target: Sequence[int] | None = None, max_steps: int = 200,
+    values: np.ndarray,
+    start: tuple[int, int],
+    *,
+    num_stages: int = 5,
+    target: Sequence[int] | None = None,
+    max_steps: int = 200,
     gammas: Sequence[float] | None = None,
 ) -> list[tuple[int, int]]:
     """Greedy path (visited cells, start included) following ``argmax_a r + gamma * V(s')``.

@@ -54,15 +54,23 @@ def run_training(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     def on_stage_end(k: int, learner: Learner, result: StageResult) -> None:
         save_stage(run_dir, k, task.stage_names[k], learner, result)
         success = "-" if result.success_rate is None else f"{result.success_rate:.2f}"
-        log.info("stage %d (%s, %s): %d frames, %d updates, %.1fs, stage success %s%s", k,
-                 task.stage_names[k], learner.algo, result.frames, result.updates,
-                 result.seconds, success, " (early stop)" if result.early_stopped else "")
+        log.info(
+            "stage %d (%s, %s): %d frames, %d updates, %.1fs, stage success %s%s",
+            k,
+            task.stage_names[k],
+            learner.algo,
+            result.frames,
+            result.updates,
+            result.seconds,
+            success,
+            " (early stop)" if result.early_stopped else "",
+        )
 
     start = time.perf_counter()
-    learners, results = train_backward(task, seed=cfg.seed, logger=logger,
-                                       progress=cfg.progress, on_stage_end=on_stage_end)
-    training = {"seconds": time.perf_counter() - start,
-                "stages": [asdict(r) for r in results]}
+    learners, results = train_backward(
+        task, seed=cfg.seed, logger=logger, progress=cfg.progress, on_stage_end=on_stage_end
+    )
+    training = {"seconds": time.perf_counter() - start, "stages": [asdict(r) for r in results]}
     result = evaluate_run(cfg, task, learners, run_dir, training=training)
     if logger is not None:
         for key in ("success_rate", "mean_return", "mean_steps"):
@@ -92,8 +100,12 @@ def evaluate(argv: list[str] | None = None) -> None:
     """``stages-eval RUN_DIR``: re-evaluate a finished run and rewrite its ``eval.json``."""
     parser = argparse.ArgumentParser(prog="stages-eval", description=evaluate.__doc__)
     parser.add_argument("run_dir", type=Path, help="a run directory written by stages-train")
-    parser.add_argument("--episodes", type=int, default=None,
-                        help="whole-task episodes (default: the run's eval.episodes)")
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        help="whole-task episodes (default: the run's eval.episodes)",
+    )
     parser.add_argument("--no-plots", action="store_true", help="skip the figures")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)

@@ -27,6 +27,7 @@ class StageConfig:
     gamma: float = 0.99  # this stage's discount (also used for its transition reward)
     lr: float = 1e-3  # learning rate (the critic's, for actor-critic algorithms)
     num_cells: list[int] = field(default_factory=lambda: [64, 64])  # hidden layers of each MLP
+    fourier_features: int = 0  # octaves of sin/cos input encoding before each MLP (0: raw input)
     num_envs: int = 64  # batch size of the stage's training env
     frames: int = 100_000  # env-frame budget of the stage
     frames_per_batch: int = 256  # frames per collector batch
@@ -48,6 +49,7 @@ class DQNConfig(StageConfig):
 
     algo: str = "dqn"
     double_dqn: bool = False
+    dueling: bool = False  # dueling Q-network: separate state-value and advantage heads
     loss_function: str = "l2"  # l1 | l2 | smooth_l1
     eps_init: float = 1.0
     eps_end: float = 0.05

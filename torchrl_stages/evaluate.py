@@ -49,7 +49,9 @@ class EpisodeStats:
             "success_rate": ok.float().mean().item(),
             "mean_return": self.ret.mean().item(),
             "mean_steps": self.length.float().mean().item(),
-            "mean_steps_success": self.length[ok].float().mean().item() if ok.any() else float("nan"),
+            "mean_steps_success": self.length[ok].float().mean().item()
+            if ok.any()
+            else float("nan"),
         }
 
     def as_dict(self) -> dict[str, list]:
@@ -64,7 +66,9 @@ def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
     T = done.shape[-1]
     steps = torch.arange(T, device=done.device)
     any_done = done.any(-1)
-    first = torch.where(any_done, done.float().argmax(-1), torch.full_like(any_done, T - 1, dtype=torch.long))
+    first = torch.where(
+        any_done, done.float().argmax(-1), torch.full_like(any_done, T - 1, dtype=torch.long)
+    )
     in_first = steps <= first.unsqueeze(-1)
     success = any_done & terminated.gather(-1, first.unsqueeze(-1)).squeeze(-1)
     length = torch.where(any_done, first + 1, torch.full_like(first, T))

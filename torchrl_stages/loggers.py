@@ -53,5 +53,6 @@ def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
     kwargs = {}
     if backend == "wandb":
         kwargs = {"project": cfg.logger.project}
-    return get_logger(backend, logger_name=str(run_dir), experiment_name=cfg.logger.exp_name,
-                      wandb_kwargs=kwargs)
+    return get_logger(
+        backend, logger_name=str(run_dir), experiment_name=cfg.logger.exp_name, wandb_kwargs=kwargs
+    )

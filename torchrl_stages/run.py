@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -55,8 +55,11 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> LoadedR
         )
     cfg = OmegaConf.load(config)
     task = StagedTask(cfg.task, device=device)
-    missing = [stage_file(run_dir, k).name for k in range(task.num_stages)
-               if not stage_file(run_dir, k).is_file()]
+    missing = [
+        stage_file(run_dir, k).name
+        for k in range(task.num_stages)
+        if not stage_file(run_dir, k).is_file()
+    ]
     if missing:
         raise FileNotFoundError(
             f"{run_dir} lacks {', '.join(missing)}: those stages never finished training. "

@@ -40,8 +40,16 @@ def train_backward(
         eval_env = task.stage_env(k, cfg.eval_episodes, next_value)
         eval_env.set_seed(seed + 10_000 + k)
         learner = make_learner(cfg, task.specs(k))
-        trainer = StageTrainer(k, learner, env, eval_env, cfg, logger=logger, progress=progress,
-                               name=task.stage_names[k])
+        trainer = StageTrainer(
+            k,
+            learner,
+            env,
+            eval_env,
+            cfg,
+            logger=logger,
+            progress=progress,
+            name=task.stage_names[k],
+        )
         results[k] = trainer.train()
         learners[k] = learner
         if on_stage_end is not None:

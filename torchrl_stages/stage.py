@@ -91,8 +91,13 @@ class StageTrainer:
         start, frames, streak, success = time.perf_counter(), 0, 0, None
         next_eval = cfg.eval_every if cfg.eval_every > 0 else None
         early_stopped = False
-        bar = tqdm(total=cfg.frames, desc=f"stage {self.stage} ({self.name})", unit="frame",
-                   disable=not (self.progress and sys.stderr.isatty()), leave=False)
+        bar = tqdm(
+            total=cfg.frames,
+            desc=f"stage {self.stage} ({self.name})",
+            unit="frame",
+            disable=not (self.progress and sys.stderr.isatty()),
+            leave=False,
+        )
         for batch in collector:
             buffer.extend(batch.reshape(-1))
             frames += batch.numel()
@@ -113,8 +118,14 @@ class StageTrainer:
                     break
         bar.close()
         collector.shutdown()
-        return StageResult(self.stage, frames, learner.num_updates,
-                           time.perf_counter() - start, success, early_stopped)
+        return StageResult(
+            self.stage,
+            frames,
+            learner.num_updates,
+            time.perf_counter() - start,
+            success,
+            early_stopped,
+        )
 
     def evaluate(self, frames: int) -> float:
         """Greedy episodes from random starts in the stage; logs and returns the success rate.

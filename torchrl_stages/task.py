@@ -92,8 +92,8 @@ class StagedTask:
             obs_keys = list(env.stage_observation_keys(stage))
         else:
             obs_keys = list(env.observation_spec.keys(True, True))
-        action_key = env.stage_action_key(stage) if hasattr(env, "stage_action_key") else (
-            env.action_key
+        action_key = (
+            env.stage_action_key(stage) if hasattr(env, "stage_action_key") else (env.action_key)
         )
         obs_dim = sum(int(env.observation_spec[k].shape[-1]) for k in obs_keys)
         action_spec = env.full_action_spec_unbatched[action_key]

@@ -152,11 +152,15 @@ class StageTransform(Transform):
             bootstrap = leaving & ~task_terminated
             reward = next_td.get(self.reward_key)
             value = self._value(next_td).to(reward.dtype).reshape(reward.shape)
-            next_td.set(self.reward_key, torch.where(bootstrap, reward + self.gamma * value, reward))
+            next_td.set(
+                self.reward_key, torch.where(bootstrap, reward + self.gamma * value, reward)
+            )
         next_td.set(self.terminated_key, task_terminated | leaving)
 
     # ------------------------------------------------------------------ env path
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
         # Rows that are not reset get their previous values back in EnvBase.reset.
         stage = self._stage(tensordict_reset)
         tensordict_reset.set(self.stage_key, stage)

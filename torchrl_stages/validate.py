@@ -36,29 +36,63 @@ def _check_stage(key: str, s: DictConfig) -> None:
         rule = "must be in (0, 1]" if low_open else "must be in [0, 1]"
         _check(ok, f"{key}.{field}", v, rule, f"set {key}.{field} to a value in that range")
 
-    _check(s.algo in LEARNERS, f"{key}.algo", s.algo, f"unknown algorithm (known: "
-           f"{', '.join(LEARNERS)})", f"select one with algo@{key}=dqn|ddpg|td3")
+    _check(
+        s.algo in LEARNERS,
+        f"{key}.algo",
+        s.algo,
+        f"unknown algorithm (known: {', '.join(LEARNERS)})",
+        f"select one with algo@{key}=dqn|ddpg|td3",
+    )
     fraction("gamma", low_open=True)
     fraction("tau", low_open=True)
-    for field, example in [("lr", 1e-3), ("num_envs", 64), ("frames", 50_000),
-                           ("frames_per_batch", 256), ("buffer_size", 100_000),
-                           ("batch_size", 256), ("eval_episodes", 64), ("patience", 1)]:
+    for field, example in [
+        ("lr", 1e-3),
+        ("num_envs", 64),
+        ("frames", 50_000),
+        ("frames_per_batch", 256),
+        ("buffer_size", 100_000),
+        ("batch_size", 256),
+        ("eval_episodes", 64),
+        ("patience", 1),
+    ]:
         positive(field, example)
     for field in ("init_random_frames", "updates_per_batch", "eval_every", "min_frames"):
         non_negative(field)
-    _check(len(s.num_cells) > 0 and all(c > 0 for c in s.num_cells), f"{key}.num_cells",
-           list(s.num_cells), "needs at least one positive layer width",
-           f"set {key}.num_cells=[64,64]")
-    _check(s.frames_per_batch % s.num_envs == 0, f"{key}.frames_per_batch", s.frames_per_batch,
-           f"must be a multiple of {key}.num_envs={s.num_envs}",
-           f"set {key}.frames_per_batch={max(1, s.frames_per_batch // s.num_envs) * s.num_envs}")
-    _check(s.frames >= s.frames_per_batch, f"{key}.frames", s.frames,
-           f"is smaller than one collector batch ({key}.frames_per_batch={s.frames_per_batch})",
-           f"raise {key}.frames or lower {key}.frames_per_batch")
-    _check(s.batch_size <= s.buffer_size, f"{key}.batch_size", s.batch_size,
-           f"exceeds {key}.buffer_size={s.buffer_size}", f"lower {key}.batch_size")
-    _check(s.loss_function in LOSS_FUNCTIONS, f"{key}.loss_function", s.loss_function,
-           f"unknown (known: {', '.join(LOSS_FUNCTIONS)})", f"set {key}.loss_function=l2")
+    _check(
+        len(s.num_cells) > 0 and all(c > 0 for c in s.num_cells),
+        f"{key}.num_cells",
+        list(s.num_cells),
+        "needs at least one positive layer width",
+        f"set {key}.num_cells=[64,64]",
+    )
+    _check(
+        s.frames_per_batch % s.num_envs == 0,
+        f"{key}.frames_per_batch",
+        s.frames_per_batch,
+        f"must be a multiple of {key}.num_envs={s.num_envs}",
+        f"set {key}.frames_per_batch={max(1, s.frames_per_batch // s.num_envs) * s.num_envs}",
+    )
+    _check(
+        s.frames >= s.frames_per_batch,
+        f"{key}.frames",
+        s.frames,
+        f"is smaller than one collector batch ({key}.frames_per_batch={s.frames_per_batch})",
+        f"raise {key}.frames or lower {key}.frames_per_batch",
+    )
+    _check(
+        s.batch_size <= s.buffer_size,
+        f"{key}.batch_size",
+        s.batch_size,
+        f"exceeds {key}.buffer_size={s.buffer_size}",
+        f"lower {key}.batch_size",
+    )
+    _check(
+        s.loss_function in LOSS_FUNCTIONS,
+        f"{key}.loss_function",
+        s.loss_function,
+        f"unknown (known: {', '.join(LOSS_FUNCTIONS)})",
+        f"set {key}.loss_function=l2",
+    )
     if s.success_threshold is not None:
         fraction("success_threshold")
     if s.algo == "dqn":
@@ -78,28 +112,57 @@ def _check_stage(key: str, s: DictConfig) -> None:
 
 def validate_config(cfg: DictConfig) -> None:
     """Checks what can be checked without building the env."""
-    _check(cfg.logger.backend in LOGGER_BACKENDS, "logger.backend", cfg.logger.backend,
-           f"unknown (known: {', '.join(LOGGER_BACKENDS)})", "select one with logger=csv")
+    _check(
+        cfg.logger.backend in LOGGER_BACKENDS,
+        "logger.backend",
+        cfg.logger.backend,
+        f"unknown (known: {', '.join(LOGGER_BACKENDS)})",
+        "select one with logger=csv",
+    )
     _check(cfg.threads >= 1, "threads", cfg.threads, "must be >= 1", "set threads=1")
-    _check(cfg.eval.episodes >= 1, "eval.episodes", cfg.eval.episodes, "must be >= 1",
-           "set eval.episodes=100")
-    _check(len(cfg.task.stages) > 0, "task.stages", dict(cfg.task.stages), "lists no stage",
-           "pick a task with stages, e.g. task=gridworld")
+    _check(
+        cfg.eval.episodes >= 1,
+        "eval.episodes",
+        cfg.eval.episodes,
+        "must be >= 1",
+        "set eval.episodes=100",
+    )
+    _check(
+        len(cfg.task.stages) > 0,
+        "task.stages",
+        dict(cfg.task.stages),
+        "lists no stage",
+        "pick a task with stages, e.g. task=gridworld",
+    )
     for name, stage in cfg.task.stages.items():
-        _check(isinstance(stage, DictConfig) and "algo" in stage, f"task.stages.{name}", stage,
-               "is not a stage learner config", f"select one with algo@task.stages.{name}=dqn")
+        _check(
+            isinstance(stage, DictConfig) and "algo" in stage,
+            f"task.stages.{name}",
+            stage,
+            "is not a stage learner config",
+            f"select one with algo@task.stages.{name}=dqn",
+        )
         _check_stage(f"task.stages.{name}", stage)
 
 
 def validate_task(cfg: DictConfig, task) -> None:
     """Checks the stage list and each stage's algorithm against the built env's specs."""
     names = list(cfg.task.stages)
-    _check(len(names) == task.num_stages, "task.stages", names,
-           f"task '{cfg.task.name}' has {task.num_stages} stages but {len(names)} are configured",
-           f"configure exactly {task.num_stages} stages (add them with "
-           f"+algo@task.stages.NAME=dqn or remove extra ones with ~task.stages.NAME)")
+    _check(
+        len(names) == task.num_stages,
+        "task.stages",
+        names,
+        f"task '{cfg.task.name}' has {task.num_stages} stages but {len(names)} are configured",
+        f"configure exactly {task.num_stages} stages (add them with "
+        f"+algo@task.stages.NAME=dqn or remove extra ones with ~task.stages.NAME)",
+    )
     for k, name in enumerate(names):
         algo = cfg.task.stages[name].algo
         problem = LEARNERS[algo].check_action_spec(task.specs(k).action_spec)
-        _check(problem is None, f"task.stages.{name}.algo", algo, str(problem),
-               f"override it with algo@task.stages.{name}=<algo>")
+        _check(
+            problem is None,
+            f"task.stages.{name}.algo",
+            algo,
+            str(problem),
+            f"override it with algo@task.stages.{name}=<algo>",
+        )

@@ -5,11 +5,12 @@ from __future__ import annotations
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.data import TensorSpec
-from torchrl.modules import MLP, AdditiveGaussianModule, TanhModule, ValueOperator
+from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
 from torchrl.objectives import LossModule, SoftUpdate, ValueEstimators
 
 from torchrl_stages.config import DDPGConfig
 from torchrl_stages.learners.base import Learner, StageSpecs, is_continuous, linear_schedule
+from torchrl_stages.learners.networks import mlp
 
 
 class ActorCriticLearner(Learner):
@@ -26,14 +27,14 @@ class ActorCriticLearner(Learner):
         action_dim = spec.shape[-1]
         self.actor = TensorDictSequential(
             TensorDictModule(
-                MLP(specs.observation_dim, action_dim, num_cells=list(cfg.num_cells)),
+                mlp(specs.observation_dim, action_dim, list(cfg.num_cells), cfg.fourier_features),
                 in_keys=specs.observation_keys,
                 out_keys=["_actor_param"],
             ),
             TanhModule(in_keys=["_actor_param"], out_keys=[specs.action_key], spec=spec),
         )
         self.critic = ValueOperator(
-            MLP(specs.observation_dim + action_dim, 1, num_cells=list(cfg.num_cells)),
+            mlp(specs.observation_dim + action_dim, 1, list(cfg.num_cells), cfg.fourier_features),
             in_keys=[*specs.observation_keys, specs.action_key],
             out_keys=["state_action_value"],
         )

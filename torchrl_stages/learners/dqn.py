@@ -6,11 +6,12 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.data import TensorSpec
-from torchrl.modules import MLP, EGreedyModule, QValueActor
+from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, SoftUpdate, ValueEstimators
 
 from torchrl_stages.config import DQNConfig
 from torchrl_stages.learners.base import Learner, StageSpecs, is_discrete, linear_schedule
+from torchrl_stages.learners.networks import qvalue_net
 from torchrl_stages.values import QMaxValue, with_params
 
 
@@ -32,13 +33,17 @@ class DQNLearner(Learner):
     def __init__(self, cfg: DQNConfig, specs: StageSpecs) -> None:
         super().__init__(cfg, specs)
         spec = specs.action_spec
-        mlp = MLP(
-            in_features=specs.observation_dim,
-            out_features=spec.space.n,
-            num_cells=list(cfg.num_cells),
-        )
         self.qnet = QValueActor(
-            mlp, in_keys=specs.observation_keys, spec=spec, action_key=specs.action_key
+            qvalue_net(
+                specs.observation_dim,
+                spec.space.n,
+                list(cfg.num_cells),
+                dueling=cfg.dueling,
+                fourier=cfg.fourier_features,
+            ),
+            in_keys=specs.observation_keys,
+            spec=spec,
+            action_key=specs.action_key,
         )
         self.egreedy = EGreedyModule(
             spec,

@@ -27,8 +27,9 @@ def greedy_path(task: StagedTask, policy: StackedPolicy, start: Sequence[int]) -
     return torch.cat([cells, last]).tolist()
 
 
-def vertical_moves_per_stage(path: Sequence[Sequence[int]], stage_width: int,
-                             num_stages: int) -> list[int]:
+def vertical_moves_per_stage(
+    path: Sequence[Sequence[int]], stage_width: int, num_stages: int
+) -> list[int]:
     """How many row changes happen from a cell of each stage."""
     counts = [0] * num_stages
     for (r0, c0), (r1, _) in zip(path[:-1], path[1:], strict=True):
@@ -45,14 +46,16 @@ def merged_value_map(task: StagedTask, learners: Sequence[Learner]) -> np.ndarra
     rows, cols = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
     obs = torch.stack([rows, cols], -1).reshape(-1, 2).float() / 5.0
     td = TensorDict(observation=obs, batch_size=[size * size])
-    values = torch.stack([learner.value()(td.clone())["state_value"].squeeze(-1)
-                          for learner in learners])  # [N, S]
+    values = torch.stack(
+        [learner.value()(td.clone())["state_value"].squeeze(-1) for learner in learners]
+    )  # [N, S]
     stage = (cols.reshape(-1) // width).clamp(max=len(learners) - 1)
     return values.gather(0, stage.unsqueeze(0)).squeeze(0).reshape(size, size).numpy()
 
 
-def report(task: StagedTask, learners: Sequence[Learner], run_dir: Path,
-           plots: bool = True) -> dict[str, Any]:
+def report(
+    task: StagedTask, learners: Sequence[Learner], run_dir: Path, plots: bool = True
+) -> dict[str, Any]:
     """Grid-world metrics for ``eval.json`` (and the Fig. 2 panels when ``plots``)."""
     env = task.base_env(1)
     size, width, n = env.size, env.stage_width, env.num_stages
@@ -72,12 +75,22 @@ def report(task: StagedTask, learners: Sequence[Learner], run_dir: Path,
         from torchrl_stages.plots import plot_grid_trajectories, plot_value_map
 
         paths = [greedy_path(task, policy, s) for s in ([0, 0], [12, 0], [24, 0])]
-        plot_grid_trajectories(paths, size=size, stage_width=width, target=env.target,
-                               out=run_dir / "trajectories.png", labels=["(0,0)", "(12,0)",
-                                                                          "(24,0)"],
-                               title=f"greedy stacked policy, gammas={gammas}")
-        plot_value_map(values, stage_width=width, target=env.target,
-                       out=run_dir / "value_map.png", title="merged value V(s) = V_stage(s)(s)")
+        plot_grid_trajectories(
+            paths,
+            size=size,
+            stage_width=width,
+            target=env.target,
+            out=run_dir / "trajectories.png",
+            labels=["(0,0)", "(12,0)", "(24,0)"],
+            title=f"greedy stacked policy, gammas={gammas}",
+        )
+        plot_value_map(
+            values,
+            stage_width=width,
+            target=env.target,
+            out=run_dir / "value_map.png",
+            title="merged value V(s) = V_stage(s)(s)",
+        )
     return {
         "column0_success_rate": stats.summary()["success_rate"],
         "column0_all_succeed": bool(stats.success.all()),
