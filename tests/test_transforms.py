@@ -11,11 +11,12 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
+from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
+from torchrl.envs import Compose, RewardSum, SerialEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
-
 from torchrl_stages.envs import GridWorldEnv
+
 from torchrl_stages.transforms import StageTransform, freeze
 
 UP, DOWN, LEFT, RIGHT = 0, 1, 2, 3
@@ -148,6 +149,32 @@ def test_partial_reset_keeps_tags_of_rows_that_are_not_reset():
     td = env.reset(td)
     assert col(td["stage"]) == [0, 1, 0]
     assert base.cells_of(td["observation"]).tolist() == [[0, 3], [0, 5], [0, 3]]
+
+
+def test_collector_and_serial_env_carry_the_tag():
+    def make():
+        base = GridWorldEnv(size=10, num_stages=2, max_steps=8, start_cell=(2, 3))
+        return TransformedEnv(base, StageTransform(base.stage_fn, base.num_stages))
+
+    serial = SerialEnv(2, make)
+    check_env_specs(serial, seed=0)
+    policy = TensorDictModule(
+        lambda obs: torch.full(obs.shape[:-1], RIGHT, dtype=torch.int64), ["observation"],
+        ["action"],
+    )
+    collector = Collector(
+        serial, policy, frames_per_batch=8, total_frames=8,
+        auto_register_policy_transforms=False,
+    )
+    batch = next(iter(collector))
+    collector.shutdown()
+    assert batch.shape == (2, 4)
+    assert batch["stage"].dtype == torch.int64 and batch["stage"].shape == (2, 4, 1)
+    # (2, 3) -> (2, 4) -> (2, 5) -> ...: the transition is the second step of each env
+    assert batch["stage"].squeeze(-1).tolist() == [[0, 0, 1, 1]] * 2
+    assert batch["next", "stage"].squeeze(-1).tolist() == [[0, 1, 1, 1]] * 2
+    assert batch["next", "stage_transition"].squeeze(-1).tolist() == [[False, True, False,
+                                                                         False]] * 2
 
 
 # ---------------------------------------------------------------------- monotonicity

@@ -26,21 +26,18 @@ class MetricsCSVLogger(CSVLogger):
 
     def __init__(self, exp_name: str, log_dir: str, metrics_file: str | Path) -> None:
         super().__init__(exp_name=exp_name, log_dir=log_dir)
-        path = Path(metrics_file)
-        new = not path.exists()
-        self._file = path.open("a", newline="")
-        self._writer = csv.writer(self._file)
-        if new:
-            self._writer.writerow(["name", "step", "value"])
-            self._file.flush()
+        self.metrics_file = Path(metrics_file)
+        if not self.metrics_file.exists():
+            self._append(["name", "step", "value"])
+
+    def _append(self, row: list) -> None:
+        # Open per row: nothing stays open, and a crashed run keeps every row written so far.
+        with self.metrics_file.open("a", newline="") as f:
+            csv.writer(f).writerow(row)
 
     def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
         super().log_scalar(name, value, step=step)
-        self._writer.writerow([name, step, float(value)])
-        self._file.flush()
-
-    def close(self) -> None:
-        self._file.close()
+        self._append([name, step, float(value)])
 
 
 def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:

@@ -42,7 +42,7 @@ class StageTrainer:
         >>> from torchrl_stages.config import DQNConfig
         >>> from torchrl_stages.learners import DQNLearner
         >>> from torchrl_stages.task import StagedTask
-        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {}, "b": {}},
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
         ...             "num_stages": 2}}))
         >>> cfg = OmegaConf.structured(DQNConfig(frames=512, frames_per_batch=64, num_envs=8,
@@ -88,6 +88,7 @@ class StageTrainer:
         buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(cfg.buffer_size), batch_size=cfg.batch_size
         )
+        keep = learner.loss.in_keys  # store only what the loss reads
         start, frames, streak, success = time.perf_counter(), 0, 0, None
         next_eval = cfg.eval_every if cfg.eval_every > 0 else None
         early_stopped = False
@@ -99,7 +100,7 @@ class StageTrainer:
             leave=False,
         )
         for batch in collector:
-            buffer.extend(batch.reshape(-1))
+            buffer.extend(batch.reshape(-1).select(*keep, strict=False))
             frames += batch.numel()
             learner.anneal(frames)
             losses = []

@@ -25,7 +25,7 @@ class StagedTask:
 
     Examples:
         >>> from omegaconf import OmegaConf
-        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {}, "b": {}},
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
         ...             "num_stages": 2}}))
         >>> task.stage_env(1, batch_size=4).rollout(2)["stage"].shape

@@ -1,0 +1,327 @@
+"""Composition of the shipped Hydra configs, the typed schemas, and validation before training.
+
+Everything here runs in-process through Hydra's compose API (no training, no subprocess).
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import importlib.resources
+
+import pytest
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from hydra.errors import ConfigCompositionException
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_stages.cli import build_task
+from torchrl_stages.config import (
+    ALGO_SCHEMAS,
+    DDPGConfig,
+    DQNConfig,
+    LoggerConfig,
+    TD3Config,
+    register_configs,
+)
+from torchrl_stages.validate import ConfigError, validate_config
+
+CONF = importlib.resources.files("torchrl_stages.conf")
+STAGES = [f"s{k}" for k in range(5)]
+
+
+def _options(group: str) -> list[str]:
+    """Names of the YAML options shipped in ``conf/<group>/`` (listed, not hard-coded)."""
+    names = sorted(
+        p.name.removesuffix(".yaml")
+        for p in CONF.joinpath(group).iterdir()
+        if p.is_file() and p.name.endswith(".yaml")
+    )
+    assert names, f"no options found in conf/{group}"
+    return names
+
+
+TASKS = _options("task")
+GAMMAS = _options("task/gammas")
+ALGOS = _options("algo")
+LOGGERS = _options("logger")
+
+
+@pytest.fixture(scope="module")
+def hydra_compose():
+    """``compose(*overrides)`` of the root config (cached: treat the configs as read-only).
+
+    Hydra is initialised once for the module (a compose costs ~0.2 s) from a cleared global
+    state, and cleared again afterwards.
+    """
+    GlobalHydra.instance().clear()
+    register_configs()
+
+    @functools.cache
+    def _compose(*overrides: str) -> DictConfig:
+        return compose("config", overrides=list(overrides))
+
+    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
+        yield _compose
+    GlobalHydra.instance().clear()
+
+
+def _gammas(cfg: DictConfig) -> list[float]:
+    return [float(cfg.task.stages[name].gamma) for name in cfg.task.stages]
+
+
+def _error_text(err: BaseException) -> str:
+    """The message of ``err`` and of every exception in its ``__cause__``/``__context__`` chain."""
+    parts = []
+    seen: set[int] = set()
+    while err is not None and id(err) not in seen:
+        seen.add(id(err))
+        parts.append(str(err))
+        err = err.__cause__ or err.__context__
+    return "\n".join(parts)
+
+
+# ------------------------------------------------------------------ shipped configs compose
+def test_shipped_groups_are_found():
+    assert "gridworld" in TASKS
+    assert {"homo", "hetero"} <= set(GAMMAS)
+    assert {"dqn", "ddpg", "td3"} <= set(ALGOS)
+    assert {"csv", "none"} <= set(LOGGERS)
+    assert set(ALGOS) == set(ALGO_SCHEMAS)
+
+
+def test_default_config(hydra_compose):
+    cfg = hydra_compose()
+    assert cfg.task.name == "gridworld"
+    assert list(cfg.task.stages) == STAGES
+    assert cfg.logger.backend == "csv"
+    assert cfg.logger.exp_name == "gridworld"  # ${task.name} resolves
+    assert _gammas(cfg) == [0.99] * 5  # the default gammas preset is homo
+    assert cfg.seed == 0 and cfg.device == "cpu"
+    # the task's YAML values land on top of the schema defaults
+    assert cfg.task.stages.s2.frames == 24576 and cfg.task.stages.s2.fourier_features == 3
+    validate_config(cfg)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_every_task_composes_and_builds(hydra_compose, task):
+    cfg = hydra_compose(f"task={task}")
+    assert cfg.task.name
+    assert len(cfg.task.stages) > 0
+    built = build_task(cfg)  # validates, builds the env, checks stages against its specs
+    assert built.num_stages == len(cfg.task.stages)
+
+
+@pytest.mark.parametrize("gammas", GAMMAS)
+def test_every_gammas_preset_composes(hydra_compose, gammas):
+    cfg = hydra_compose(f"task/gammas={gammas}")
+    gs = _gammas(cfg)
+    assert len(gs) == 5 and all(0 < g <= 1 for g in gs)
+    validate_config(cfg)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_every_algo_option_composes_on_a_stage(hydra_compose, algo):
+    # The action-space mismatch (DDPG/TD3 on the grid world) is found at validation, not here.
+    stage = "s0"
+    cfg = hydra_compose(f"algo@task.stages.{stage}={algo}", "task/gammas=hetero")
+    node = cfg.task.stages[stage]
+    assert node.algo == algo
+    assert OmegaConf.get_type(node) is ALGO_SCHEMAS[algo]
+    # the task's per-stage values and the gammas preset still apply on top of the new schema
+    assert node.frames == 24576
+    assert node.gamma == 0.9  # hetero
+    others = [OmegaConf.get_type(cfg.task.stages[s]) for s in STAGES if s != stage]
+    assert others == [DQNConfig] * 4
+    validate_config(cfg)  # ranges are fine; only the env check rejects continuous algos
+
+
+@pytest.mark.parametrize("logger", LOGGERS)
+def test_every_logger_option_composes(hydra_compose, logger):
+    cfg = hydra_compose(f"logger={logger}")
+    assert cfg.logger.backend == logger
+    assert OmegaConf.get_type(cfg.logger) is LoggerConfig
+    validate_config(cfg)
+
+
+# ------------------------------------------------------------------ gammas presets
+def test_hetero_gammas(hydra_compose):
+    assert _gammas(hydra_compose("task/gammas=hetero")) == [0.9, 0.9, 0.9, 0.99, 0.9]
+
+
+def test_homo_gammas(hydra_compose):
+    assert _gammas(hydra_compose("task/gammas=homo")) == [0.99] * 5
+
+
+@pytest.mark.parametrize("preset", ["homo", "hetero"])
+def test_gamma_override_after_preset_wins(hydra_compose, preset):
+    cfg = hydra_compose(f"task/gammas={preset}", "task.stages.s3.gamma=0.95")
+    assert cfg.task.stages.s3.gamma == 0.95
+    expected = {"homo": 0.99, "hetero": 0.9}[preset]
+    assert [cfg.task.stages[s].gamma for s in ("s0", "s1", "s2", "s4")] == [expected] * 4
+
+
+def test_gamma_override_wins_regardless_of_order(hydra_compose):
+    cfg = hydra_compose("task.stages.s3.gamma=0.95", "task/gammas=hetero")
+    assert _gammas(cfg) == [0.9, 0.9, 0.9, 0.95, 0.9]
+
+
+# ------------------------------------------------------------------ typed schema
+def test_stage_nodes_are_typed(hydra_compose):
+    cfg = hydra_compose()
+    for name in STAGES:
+        assert OmegaConf.get_type(cfg.task.stages[name]) is DQNConfig
+    assert OmegaConf.get_type(hydra_compose("algo@task.stages.s1=ddpg").task.stages.s1) is (
+        DDPGConfig
+    )
+    assert OmegaConf.get_type(hydra_compose("algo@task.stages.s1=td3").task.stages.s1) is (
+        TD3Config
+    )
+
+
+def test_unknown_stage_key_fails_at_composition(hydra_compose):
+    with pytest.raises(ConfigCompositionException) as info:
+        hydra_compose("task.stages.s0.lrr=1")
+    assert "lrr" in _error_text(info.value)
+
+
+def test_unknown_root_key_fails_at_composition(hydra_compose):
+    with pytest.raises(ConfigCompositionException) as info:
+        hydra_compose("sed=1")
+    assert "sed" in _error_text(info.value)
+
+
+@pytest.mark.parametrize(
+    "override",
+    ["task.stages.s0.gamma=abc", "task.stages.s4.frames=many", "seed=zero"],
+)
+def test_wrong_type_fails_at_composition(hydra_compose, override):
+    key = override.split("=")[0]
+    with pytest.raises(ConfigCompositionException) as info:
+        hydra_compose(override)
+    assert key.split(".")[-1] in _error_text(info.value)
+
+
+def test_typed_values_are_converted(hydra_compose):
+    cfg = hydra_compose("task.stages.s0.gamma=1", "task.stages.s0.frames=4096")
+    assert isinstance(cfg.task.stages.s0.gamma, float) and cfg.task.stages.s0.gamma == 1.0
+    assert isinstance(cfg.task.stages.s0.frames, int)
+
+
+# ------------------------------------------------------------------ validation
+# Command-line overrides -> substrings the ConfigError message must contain.
+INVALID = {
+    "gamma_zero": (["task.stages.s2.gamma=0"], ["task.stages.s2.gamma", "(0, 1]"]),
+    "gamma_above_one": (["task.stages.s2.gamma=1.5"], ["task.stages.s2.gamma", "(0, 1]"]),
+    "ddpg_on_discrete": (["algo@task.stages.s1=ddpg"], ["task.stages.s1.algo", "continuous"]),
+    "td3_on_discrete": (["algo@task.stages.s4=td3"], ["task.stages.s4.algo", "continuous"]),
+    "stage_removed": (["~task.stages.s4"], ["task.stages", "5 stages"]),
+    "stage_added": (["+algo@task.stages.s5=dqn"], ["task.stages", "5 stages"]),
+    "frames_per_batch": (
+        ["task.stages.s3.frames_per_batch=100"],  # the grid world's num_envs is 64
+        ["task.stages.s3.frames_per_batch", "multiple", "num_envs"],
+    ),
+    "batch_over_buffer": (
+        ["task.stages.s1.buffer_size=512"],  # the grid world's batch_size is 1024
+        ["task.stages.s1.batch_size", "task.stages.s1.buffer_size"],
+    ),
+    "logger_backend": (["logger.backend=neptune"], ["logger.backend", "csv"]),
+    "env_size": (["task.env.size=24"], ["task.env"]),  # 24 is no multiple of 5 stages
+    "env_target": (["task.env._target_=torchrl_stages.envs.NoSuchEnv"], ["task.env"]),
+}
+
+
+@pytest.mark.parametrize("case", list(INVALID))
+def test_invalid_config_raises_config_error(hydra_compose, case):
+    overrides, needles = INVALID[case]
+    cfg = hydra_compose(*overrides)
+    with pytest.raises(ConfigError) as info:
+        build_task(cfg)
+    message = str(info.value)
+    for needle in needles:
+        assert needle in message, f"{needle!r} not in {message!r}"
+    assert "Fix:" in message
+
+
+@pytest.mark.parametrize(
+    "case", ["gamma_zero", "gamma_above_one", "frames_per_batch", "batch_over_buffer"]
+)
+def test_range_errors_are_found_without_building_the_env(hydra_compose, case):
+    overrides, needles = INVALID[case]
+    with pytest.raises(ConfigError, match="Fix:") as info:
+        validate_config(hydra_compose(*overrides))
+    assert needles[0] in str(info.value)
+
+
+# More range rules, set on a copy of the default config (a compose per case costs ~0.2 s).
+OUT_OF_RANGE = [
+    ("task.stages.s0.gamma", -0.5),
+    ("task.stages.s1.tau", 0.0),
+    ("task.stages.s1.tau", 1.5),
+    ("task.stages.s2.lr", 0.0),
+    ("task.stages.s2.num_envs", 0),
+    ("task.stages.s3.frames", 128),  # smaller than one collector batch (256)
+    ("task.stages.s3.batch_size", 0),
+    ("task.stages.s3.init_random_frames", -1),
+    ("task.stages.s4.num_cells", []),
+    ("task.stages.s4.loss_function", "huber"),
+    ("task.stages.s4.eps_init", 2.0),
+    ("task.stages.s4.eps_end", -0.1),
+    ("task.stages.s0.success_threshold", 1.5),
+    ("task.stages.s0.patience", 0),
+    ("eval.episodes", 0),
+    ("threads", 0),
+]
+
+
+@pytest.mark.parametrize(("key", "value"), OUT_OF_RANGE)
+def test_out_of_range_value_raises_config_error(hydra_compose, key, value):
+    cfg = copy.deepcopy(hydra_compose())
+    OmegaConf.update(cfg, key, value, merge=False)
+    with pytest.raises(ConfigError) as info:
+        validate_config(cfg)
+    message = str(info.value)
+    assert message.startswith(f"{key}="), message
+    assert "Fix:" in message
+
+
+def test_out_of_range_values_of_actor_critic_stages(hydra_compose):
+    base = hydra_compose("algo@task.stages.s2=td3")
+    for key, value in [
+        ("task.stages.s2.actor_lr", 0.0),
+        ("task.stages.s2.sigma_init", -1.0),
+        ("task.stages.s2.policy_update_delay", 0),
+        ("task.stages.s2.noise_clip", -0.5),
+    ]:
+        cfg = copy.deepcopy(base)
+        OmegaConf.update(cfg, key, value, merge=False)
+        with pytest.raises(ConfigError, match="Fix:") as info:
+            validate_config(cfg)
+        assert str(info.value).startswith(f"{key}=")
+
+
+def test_config_error_is_a_value_error():
+    assert issubclass(ConfigError, ValueError)
+
+
+@pytest.mark.parametrize("gamma", ["1.0", "1e-3"])
+def test_gamma_in_range_is_accepted(hydra_compose, gamma):
+    cfg = hydra_compose(f"task.stages.s2.gamma={gamma}")
+    task = build_task(cfg)
+    assert task.stage_cfg(2).gamma == float(gamma)
+
+
+def test_valid_variants_build(hydra_compose):
+    cfg = hydra_compose(
+        "task/gammas=hetero",
+        "task.stages.s0.double_dqn=true",
+        "task.stages.s1.dueling=true",
+        "task.stages.s2.success_threshold=null",
+        "task.stages.s3.frames_per_batch=128",
+        "task.stages.s3.num_envs=16",
+        "logger=none",
+    )
+    task = build_task(cfg)
+    assert task.num_stages == 5
+    assert task.stage_names == STAGES
+    assert [task.stage_cfg(k).gamma for k in range(5)] == [0.9, 0.9, 0.9, 0.99, 0.9]
