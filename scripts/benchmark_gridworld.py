@@ -58,21 +58,28 @@ def main() -> None:
     out = args.out or Path(tempfile.mkdtemp(prefix="gridworld_bench_"))
 
     print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, 1 torch thread; runs in {out}")
-    print("| preset | seed | train wall-clock (s) | env frames | gradient steps | column-0 success "
-          "| path from (0,0) | vertical moves per stage | max abs V error |")
+    print(
+        "| preset | seed | train wall-clock (s) | env frames | gradient steps | column-0 success "
+        "| path from (0,0) | vertical moves per stage | max abs V error |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     rows = []
     for preset in args.presets:
         for seed in args.seeds:
             r = train_preset(preset, seed, out)
             rows.append(r)
-            print(f"| {r['preset']} | {r['seed']} | {r['seconds']:.1f} | {r['frames']} | "
-                  f"{r['updates']} | {r['column0']:.0%} | {r['path']} | {r['vertical']} | "
-                  f"{r['value_err']:.3f} |", flush=True)
+            print(
+                f"| {r['preset']} | {r['seed']} | {r['seconds']:.1f} | {r['frames']} | "
+                f"{r['updates']} | {r['column0']:.0%} | {r['path']} | {r['vertical']} | "
+                f"{r['value_err']:.3f} |",
+                flush=True,
+            )
     for preset in args.presets:
         secs = [r["seconds"] for r in rows if r["preset"] == preset]
-        print(f"{preset}: median train wall-clock {statistics.median(secs):.1f} s "
-              f"(max {max(secs):.1f} s) over {len(secs)} seeds")
+        print(
+            f"{preset}: median train wall-clock {statistics.median(secs):.1f} s "
+            f"(max {max(secs):.1f} s) over {len(secs)} seeds"
+        )
 
     print("\n| env batch | frames/s (median of 5) |")
     print("|---|---|")

@@ -31,6 +31,7 @@ NUM_STAGES = 5
 FRAMES = 256
 EVAL_EPISODES = 8
 TIMEOUT_S = 300
+MAX_STEPS = 30  # episode cap (the grid world's default is 200): evaluations stay cheap
 HETERO = [0.9, 0.9, 0.9, 0.99, 0.9]
 HOMO = [0.99] * NUM_STAGES
 
@@ -41,7 +42,7 @@ def tiny_overrides(
     eval_every: int = 256,
     episodes: int = EVAL_EPISODES,
 ) -> list[str]:
-    """Budgets that train each grid-world stage s0..s4 in well under a second."""
+    """Budgets that train each grid-world stage s0..s4 in well under a second, short episodes."""
     per_stage = {
         "frames": frames,
         "frames_per_batch": 128,
@@ -57,7 +58,7 @@ def tiny_overrides(
         for k in range(NUM_STAGES)
         for key, value in per_stage.items()
     ]
-    return [*overrides, f"eval.episodes={episodes}"]
+    return [*overrides, f"eval.episodes={episodes}", f"task.env.max_steps={MAX_STEPS}"]
 
 
 def script(name: str) -> str:
@@ -86,38 +87,36 @@ class Result:
 
 
 class Launched:
-    """A command started in the background; :meth:`result` waits for it (once)."""
+    """A command started in the background; :meth:`result` waits for it (once).
 
-    def __init__(self, argv: list[str], cwd: Path, background: bool = False) -> None:
+    Its output goes to files (a full pipe would stall a command nobody is reading yet).
+    """
+
+    def __init__(self, argv: list[str], cwd: Path, log_stem: Path) -> None:
         self.argv = [str(a) for a in argv]
-        # background commands yield the CPU to the run that most tests wait for
-        lower_priority = background and hasattr(os, "nice")
-        self.proc = subprocess.Popen(
-            self.argv,
-            cwd=cwd,
-            env=_env(),
-            preexec_fn=(lambda: os.nice(5)) if lower_priority else None,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            stdin=subprocess.DEVNULL,
-            text=True,
-        )
+        self._out, self._err = log_stem.with_suffix(".out"), log_stem.with_suffix(".err")
+        with self._out.open("w") as out, self._err.open("w") as err:
+            self.proc = subprocess.Popen(
+                self.argv, cwd=cwd, env=_env(), stdout=out, stderr=err, stdin=subprocess.DEVNULL
+            )
         self._result: Result | None = None
 
     def result(self) -> Result:
         if self._result is None:
             try:
-                out, err = self.proc.communicate(timeout=TIMEOUT_S)
+                self.proc.wait(timeout=TIMEOUT_S)
             except subprocess.TimeoutExpired:
                 self.stop()
                 raise
-            self._result = Result(self.proc.returncode, out, err)
+            self._result = Result(
+                self.proc.returncode, self._out.read_text(), self._err.read_text()
+            )
         return self._result
 
     def stop(self) -> None:
         if self.proc.poll() is None:
             self.proc.kill()
-            self.proc.communicate()
+            self.proc.wait()
 
 
 class Commands:
@@ -147,17 +146,19 @@ class Commands:
             shutil.copytree(root / "run", directory)
             for png in directory.glob("*.png"):
                 png.unlink()
-            return [script("stages-eval"), directory, "--no-plots"]
+            return [script("stages-eval"), directory, "--no-plots", "--episodes", REEVAL_EPISODES]
         if name.startswith("bad:"):
             override, _ = BAD_OVERRIDES[name.removeprefix("bad:")]
             run_dir = root / "bad" / name.removeprefix("bad:")
             return [train, *tiny_overrides(), override, f"hydra.run.dir={run_dir}"]
         raise KeyError(name)
 
-    def start(self, name: str, argv: list[str] | None = None) -> Launched:
+    def start(self, name: str) -> Launched:
         if name not in self.launched:
-            background = name not in ("smoke", "reeval")
-            self.launched[name] = Launched(argv or self.argv(name), self.root, background)
+            logs = self.root / "logs"
+            logs.mkdir(exist_ok=True)
+            stem = logs / name.replace(":", "_")
+            self.launched[name] = Launched(self.argv(name), cwd=self.root, log_stem=stem)
         return self.launched[name]
 
     def result(self, name: str) -> Result:
@@ -167,6 +168,8 @@ class Commands:
         for launched in self.launched.values():
             launched.stop()
 
+
+REEVAL_EPISODES = 3
 
 # name -> (override, what stderr must name)
 BAD_OVERRIDES = {
@@ -223,7 +226,7 @@ def eval_json(run_dir) -> dict:
 
 @pytest.fixture(scope="module")
 def reeval(commands, run_dir) -> tuple[Result, Path]:
-    """``stages-eval --no-plots`` on a copy of the finished run (figures deleted)."""
+    """``stages-eval --no-plots --episodes 3`` on a copy of the finished run (figures deleted)."""
     return commands.result("reeval"), commands.root / "reeval"
 
 
@@ -325,7 +328,7 @@ def test_eval_json(eval_json):
     assert eval_json["task"] == "gridworld"
     assert eval_json["episodes"] == EVAL_EPISODES
     assert 0.0 <= eval_json["success_rate"] <= 1.0
-    assert 1 <= eval_json["mean_steps"] <= 200
+    assert 1 <= eval_json["mean_steps"] <= MAX_STEPS
     metrics = eval_json["task_metrics"]
     path = metrics["path_from_origin"]
     assert path[0] == [0, 0]
@@ -391,9 +394,10 @@ def test_eval_reevaluates_a_run(reeval, eval_json):
     assert result.returncode == 0, result.output[-4000:]
     assert f"Run directory: {directory}" in result.stdout
     again = json.loads((directory / "eval.json").read_text())
-    # the greedy evaluation of the reloaded run is the one made right after training
-    for key in ("success_rate", "mean_return", "mean_steps", "episodes"):
-        assert again[key] == eval_json[key], key
+    assert again["episodes"] == REEVAL_EPISODES  # --episodes
+    assert 0.0 <= again["success_rate"] <= 1.0
+    # the grid-world report of the reloaded run (column-0 starts, greedy path, value map) is the
+    # one made right after training: the checkpoints restore the greedy policies exactly
     assert again["task_metrics"] == eval_json["task_metrics"]
     assert not list(directory.glob("*.png"))  # --no-plots
 
@@ -405,7 +409,7 @@ def _eval_fails(argv: list[str], capsys) -> str:
         stages_eval_main([str(a) for a in argv])
     assert info.value.code not in (0, None)
     err = capsys.readouterr().err
-    assert err.startswith("stages-eval: ")
+    assert "stages-eval" in err  # its own message (or argparse's usage error)
     return err
 
 
@@ -433,12 +437,11 @@ def test_eval_of_a_missing_directory_fails(tmp_path, capsys):
     assert "no_such_run" in err
 
 
-def test_eval_episodes_option(run_dir, tmp_path, capsys):
+def test_eval_rejects_zero_episodes(run_dir, tmp_path, capsys):
     copy = tmp_path / "run"
     shutil.copytree(run_dir, copy)
-    stages_eval_main([str(copy), "--episodes", "3", "--no-plots"])
-    assert f"Run directory: {copy}" in capsys.readouterr().out
-    assert json.loads((copy / "eval.json").read_text())["episodes"] == 3
+    err = _eval_fails([copy, "--episodes", "0", "--no-plots"], capsys)
+    assert "episodes" in err
 
 
 # ------------------------------------------------------------------ invalid configs

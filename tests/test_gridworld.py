@@ -6,6 +6,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
+
 from torchrl_stages.envs import (
     GridWorldEnv,
     greedy_path_from_values,
@@ -35,8 +36,12 @@ def test_moves_from_interior_cell():
 
 @pytest.mark.parametrize(
     ("action", "edge"),
-    [(UP, lambda i: (0, i)), (DOWN, lambda i: (24, i)), (LEFT, lambda i: (i, 0)),
-     (RIGHT, lambda i: (i, 24))],
+    [
+        (UP, lambda i: (0, i)),
+        (DOWN, lambda i: (24, i)),
+        (LEFT, lambda i: (i, 0)),
+        (RIGHT, lambda i: (i, 24)),
+    ],
 )
 def test_blocked_at_grid_edges(action, edge):
     start = [edge(i) for i in range(25) if edge(i) not in [(23, 24), (24, 23)]]

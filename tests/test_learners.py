@@ -2,6 +2,7 @@
 the backward schedule that must find the optimal whole-task paths."""
 
 import io
+import warnings
 
 import pytest
 import torch
@@ -165,6 +166,9 @@ def test_td3_no_target_update_before_delay():
 def test_dqn_double_and_dueling_build_and_update():
     learner = DQNLearner(dqn_cfg(double_dqn=True, dueling=True), DISCRETE)
     assert learner.loss.double_dqn
+    plain = DQNLearner(dqn_cfg(), DISCRETE)
+    names = {n for n, _ in learner.qnet.named_parameters()}
+    assert names != {n for n, _ in plain.qnet.named_parameters()}  # a different (dueling) net
     online0 = online_params(learner)
     batch = batch_for(DISCRETE)
     for _ in range(3):
@@ -206,6 +210,24 @@ def test_actor_critic_anneal_sigma(algo, frames, expected):
     assert learner.noise.sigma.item() == pytest.approx(expected)
 
 
+def test_dqn_accepts_integer_exploration_values():
+    # plain dataclass configs (not OmegaConf-typed) may carry ints: no torchrl warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        learner = DQNLearner(DQNConfig(eps_init=1, eps_end=0, num_cells=[8]), DISCRETE)
+    learner.anneal(0)
+    assert learner.egreedy.eps.item() == 1.0
+
+
+@pytest.mark.parametrize("cfg_cls", [DDPGConfig, TD3Config])
+def test_actor_critic_accepts_integer_exploration_values(cfg_cls):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        learner = make_learner(cfg_cls(sigma_init=1, sigma_end=0, num_cells=[8]), CONTINUOUS)
+    learner.anneal(0)
+    assert learner.noise.sigma.item() == 1.0
+
+
 def test_anneal_without_horizon_is_the_end_value():
     learner = make("dqn", eps_init=1.0, eps_end=0.2, annealing_frames=0)
     learner.anneal(0)
@@ -234,8 +256,10 @@ def test_checkpoint_round_trip(algo):
 
     torch.manual_seed(123)  # different initial weights
     fresh = make(algo, policy_update_delay=1) if algo == "td3" else make(algo)
-    assert not td_equal(online_params(fresh)[next(iter(online_params(fresh)))],
-                        online_params(trained)[next(iter(online_params(trained)))])
+    assert not td_equal(
+        online_params(fresh)[next(iter(online_params(fresh)))],
+        online_params(trained)[next(iter(online_params(trained)))],
+    )
     fresh.load_checkpoint(state)
 
     # weights, target weights, exploration state
@@ -281,9 +305,7 @@ def test_checkpoint_restores_exploration_state():
 
 
 # ---------------------------------------------------------------------- action-space checks
-@pytest.mark.parametrize(
-    "spec", [Bounded(-1.0, 1.0, shape=(2,)), Bounded(-1.0, 1.0, shape=(1,))]
-)
+@pytest.mark.parametrize("spec", [Bounded(-1.0, 1.0, shape=(2,)), Bounded(-1.0, 1.0, shape=(1,))])
 def test_dqn_rejects_continuous_actions(spec):
     problem = DQNLearner.check_action_spec(spec)
     assert problem is not None and "discrete" in problem
@@ -325,16 +347,22 @@ def toy_task(overrides=None):
         "eps_end": 0.05,
         **(overrides or {}),
     }
-    cfg = OmegaConf.create({
-        "name": "toy",
-        "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 4, "num_stages": 2,
-                "max_steps": 30},
-        "eval_env": {},
-        "stages": {
-            "s0": OmegaConf.structured(DQNConfig(**stage)),
-            "s1": OmegaConf.structured(DQNConfig(**stage)),
-        },
-    })
+    cfg = OmegaConf.create(
+        {
+            "name": "toy",
+            "env": {
+                "_target_": "torchrl_stages.envs.GridWorldEnv",
+                "size": 4,
+                "num_stages": 2,
+                "max_steps": 30,
+            },
+            "eval_env": {},
+            "stages": {
+                "s0": OmegaConf.structured(DQNConfig(**stage)),
+                "s1": OmegaConf.structured(DQNConfig(**stage)),
+            },
+        }
+    )
     return StagedTask(cfg)
 
 

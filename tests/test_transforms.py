@@ -15,8 +15,8 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, RewardSum, SerialEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
-from torchrl_stages.envs import GridWorldEnv
 
+from torchrl_stages.envs import GridWorldEnv
 from torchrl_stages.transforms import StageTransform, freeze
 
 UP, DOWN, LEFT, RIGHT = 0, 1, 2, 3
@@ -75,9 +75,7 @@ def test_check_env_specs_tag_only(batch):
 @pytest.mark.parametrize("batch", [(), (5,)])
 def test_check_env_specs_training_mode(batch):
     base = GridWorldEnv(batch, size=10, num_stages=2, max_steps=12, start_stage=0)
-    t = StageTransform(
-        base.stage_fn, 2, train_stage=0, next_value=cell_sum_value(), gamma=GAMMA
-    )
+    t = StageTransform(base.stage_fn, 2, train_stage=0, next_value=cell_sum_value(), gamma=GAMMA)
     env = TransformedEnv(base, t)
     check_env_specs(env, seed=0)
     # the last stage trains without a next value
@@ -98,7 +96,7 @@ def test_stage_declared_in_observation_spec():
 
 
 def test_tags_on_reset_and_every_step():
-    # rows start at columns 3, 4, 5: one step right, then right again
+    # rows start at columns 3, 4, 5 and move right once
     env, _, _ = make_env([(0, 3), (1, 4), (2, 5)])
     td = env.reset()
     assert td["stage"].dtype == torch.int64 and td["stage"].shape == (3, 1)
@@ -159,11 +157,15 @@ def test_collector_and_serial_env_carry_the_tag():
     serial = SerialEnv(2, make)
     check_env_specs(serial, seed=0)
     policy = TensorDictModule(
-        lambda obs: torch.full(obs.shape[:-1], RIGHT, dtype=torch.int64), ["observation"],
+        lambda obs: torch.full(obs.shape[:-1], RIGHT, dtype=torch.int64),
+        ["observation"],
         ["action"],
     )
     collector = Collector(
-        serial, policy, frames_per_batch=8, total_frames=8,
+        serial,
+        policy,
+        frames_per_batch=8,
+        total_frames=8,
         auto_register_policy_transforms=False,
     )
     batch = next(iter(collector))
@@ -173,8 +175,9 @@ def test_collector_and_serial_env_carry_the_tag():
     # (2, 3) -> (2, 4) -> (2, 5) -> ...: the transition is the second step of each env
     assert batch["stage"].squeeze(-1).tolist() == [[0, 0, 1, 1]] * 2
     assert batch["next", "stage"].squeeze(-1).tolist() == [[0, 1, 1, 1]] * 2
-    assert batch["next", "stage_transition"].squeeze(-1).tolist() == [[False, True, False,
-                                                                         False]] * 2
+    assert (
+        batch["next", "stage_transition"].squeeze(-1).tolist() == [[False, True, False, False]] * 2
+    )
 
 
 # ---------------------------------------------------------------------- monotonicity
@@ -208,9 +211,7 @@ def test_stage_never_decreases():
 def test_stage_never_decreases_in_training_mode():
     # Going back across the boundary is not a second transition: no second reward rewrite.
     base = GridWorldEnv((1,), size=10, num_stages=2, start_cell=(4, 0))
-    env = TransformedEnv(
-        base, StageTransform(row_stage_fn, 2, train_stage=1, gamma=GAMMA)
-    )
+    env = TransformedEnv(base, StageTransform(row_stage_fn, 2, train_stage=1, gamma=GAMMA))
     td = env.reset()
     for action in [DOWN, UP, DOWN]:
         td = step(env, action, td)
@@ -226,14 +227,13 @@ def test_compose_with_step_counter_and_reward_sum():
     env = TransformedEnv(base, Compose(t, StepCounter(max_steps=4), RewardSum()))
     check_env_specs(env, seed=0)
     td = env.rollout(
-        2, policy=lambda td: td.set("action", torch.full((2,), RIGHT)),
+        2,
+        policy=lambda td: td.set("action", torch.full((2,), RIGHT)),
         break_when_any_done=False,
     )
     # row 0: (3,3) -> (3,4) -> (3,5): the second step enters stage 1 and ends stage 0's episode
     assert td["next", "reward"][0].reshape(-1).tolist() == pytest.approx([0.0, GAMMA * 8])
-    assert td["next", "episode_reward"][0].reshape(-1).tolist() == pytest.approx(
-        [0.0, GAMMA * 8]
-    )
+    assert td["next", "episode_reward"][0].reshape(-1).tolist() == pytest.approx([0.0, GAMMA * 8])
     assert col(td["next", "terminated"][0]) == [False, True]
     assert col(td["next", "step_count"][0]) == [1, 2]
     assert col(td["next", "episode_reward"][1]) == [0.0, 0.0]
@@ -265,9 +265,7 @@ def test_stage_transform_after_another_transform():
 # ---------------------------------------------------------------------- §1.3 targets by hand
 def test_transition_reward_uses_next_state_value():
     """(a) r' = r + gamma * V(s_{t+1}); terminated and done are set."""
-    env, _, _ = make_env(
-        [(3, 4), (6, 4)], train_stage=0, next_value=cell_sum_value(), gamma=GAMMA
-    )
+    env, _, _ = make_env([(3, 4), (6, 4)], train_stage=0, next_value=cell_sum_value(), gamma=GAMMA)
     td = step(env, RIGHT)
     nxt = td["next"]
     # s_{t+1} = (3, 5) and (6, 5): V = 8 and 11 (V(s_t) would be 7 and 10)
@@ -308,8 +306,11 @@ def test_transition_that_terminates_the_task_gets_no_value_term():
     """(c) the transition step also enters the task's target: r' = r (no V term)."""
     # 5 strips of width 2; the target (0, 2) is the first cell of stage 1
     env, _, _ = make_env(
-        [(0, 1), (1, 1)], env_kwargs={"size": 10, "num_stages": 5, "target": (0, 2)},
-        train_stage=0, next_value=const_value(3.0), gamma=GAMMA,
+        [(0, 1), (1, 1)],
+        env_kwargs={"size": 10, "num_stages": 5, "target": (0, 2)},
+        train_stage=0,
+        next_value=const_value(3.0),
+        gamma=GAMMA,
     )
     nxt = step(env, RIGHT)["next"]
     assert col(nxt["stage_transition"]) == [True, True]
@@ -321,8 +322,11 @@ def test_transition_that_terminates_the_task_gets_no_value_term():
 def test_truncation_without_transition_is_not_termination():
     """(d) time limit: terminated stays False (the learner bootstraps through it)."""
     env, _, _ = make_env(
-        [(3, 3), (3, 4)], env_kwargs={"max_steps": 1},
-        train_stage=0, next_value=cell_sum_value(), gamma=GAMMA,
+        [(3, 3), (3, 4)],
+        env_kwargs={"max_steps": 1},
+        train_stage=0,
+        next_value=cell_sum_value(),
+        gamma=GAMMA,
     )
     nxt = step(env, RIGHT)["next"]
     # row 0: (3,3) -> (3,4), truncated only; row 1: (3,4) -> (3,5), truncated AND a transition
@@ -347,7 +351,9 @@ def test_transition_out_of_another_stage_is_not_rewritten():
     env, _, _ = make_env(
         [(3, 1), (3, 3), (3, 5)],
         env_kwargs={"size": 10, "num_stages": 5},  # strips of width 2
-        train_stage=1, next_value=const_value(7.0), gamma=GAMMA,
+        train_stage=1,
+        next_value=const_value(7.0),
+        gamma=GAMMA,
     )
     nxt = step(env, RIGHT)["next"]
     # row 0 leaves stage 0 (not trained), row 1 leaves stage 1 (trained), row 2 leaves stage 2
@@ -457,11 +463,19 @@ def collect_raw(steps=3):
         (3,), size=10, num_stages=5, target=(0, 2), start_cell=[(0, 1), (3, 1), (5, 0)]
     )
     env = TransformedEnv(
-        base, StageTransform(base.stage_fn, 5, train_stage=0, next_value=const_value(99.0),
-                             gamma=GAMMA, rewrite_in_env=False)
+        base,
+        StageTransform(
+            base.stage_fn,
+            5,
+            train_stage=0,
+            next_value=const_value(99.0),
+            gamma=GAMMA,
+            rewrite_in_env=False,
+        ),
     )
     data = env.rollout(
-        steps, policy=lambda td: td.set("action", torch.full((3,), RIGHT)),
+        steps,
+        policy=lambda td: td.set("action", torch.full((3,), RIGHT)),
         break_when_any_done=False,
     )
     return base, data
@@ -482,7 +496,9 @@ def test_raw_collection_keeps_reward_and_terminated():
     # row 0 enters the target each step (reset in between), row 1 transitions each step,
     # row 2 transitions at its second step, then restarts
     assert nxt["stage_transition"].squeeze(-1).tolist() == [
-        [True, True, True], [True, True, True], [False, True, False]
+        [True, True, True],
+        [True, True, True],
+        [False, True, False],
     ]
     assert nxt["reward"].squeeze(-1).tolist() == [[1.0] * 3, [0.0] * 3, [0.0] * 3]
     assert nxt["terminated"].squeeze(-1).tolist() == [[True] * 3, [False] * 3, [False] * 3]
@@ -495,9 +511,7 @@ def test_replay_buffer_transform_rewrites_at_sampling_time():
     flat = data.reshape(-1)
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(32), batch_size=64)
     rb.extend(flat)
-    rb_t = StageTransform(
-        base.stage_fn, 5, train_stage=0, next_value=cell_sum_value(), gamma=GAMMA
-    )
+    rb_t = StageTransform(base.stage_fn, 5, train_stage=0, next_value=cell_sum_value(), gamma=GAMMA)
     rb.append_transform(rb_t)
 
     view = rb[:]
@@ -510,7 +524,9 @@ def test_replay_buffer_transform_rewrites_at_sampling_time():
     assert by_row[1].tolist() == pytest.approx([GAMMA * 5] * 3)
     assert by_row[2].tolist() == pytest.approx([0.0, GAMMA * 7, 0.0])
     assert view["next", "terminated"].reshape(3, 3).tolist() == [
-        [True] * 3, [True] * 3, [False, True, False]
+        [True] * 3,
+        [True] * 3,
+        [False, True, False],
     ]
 
     # the storage stays raw, also after indexing and sampling
@@ -533,8 +549,7 @@ def test_replay_buffer_uses_the_current_next_value():
     base, data = collect_raw()
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(32), batch_size=16)
     rb.extend(data.reshape(-1))
-    rb_t = StageTransform(base.stage_fn, 5, train_stage=0, next_value=const_value(1.0),
-                          gamma=GAMMA)
+    rb_t = StageTransform(base.stage_fn, 5, train_stage=0, next_value=const_value(1.0), gamma=GAMMA)
     rb.append_transform(rb_t)
     before = rb[:]["next", "reward"].reshape(3, 3)
     assert before[1].tolist() == pytest.approx([GAMMA * 1.0] * 3)
@@ -548,8 +563,9 @@ def test_replay_buffer_uses_the_current_next_value():
     rewards = sample["next", "reward"]
     raw = data.reshape(-1)["next", "reward"][sample["index"]]
     # transitions that did not end the task carry the current V term, others are raw
-    is_bootstrap = (data.reshape(-1)["next", "stage_transition"]
-                    & ~data.reshape(-1)["next", "terminated"])[sample["index"]]
+    is_bootstrap = (
+        data.reshape(-1)["next", "stage_transition"] & ~data.reshape(-1)["next", "terminated"]
+    )[sample["index"]]
     assert torch.allclose(rewards, torch.where(is_bootstrap, raw + GAMMA * 10.0, raw))
     assert leaving.shape == rewards.shape
 

@@ -58,7 +58,8 @@ def test_qmax_value_of_a_qvalue_actor():
 
 def test_qmax_value_batched_time_dims():
     qactor = QValueActor(
-        linear(2, 2, [[1.0, 0.0], [0.0, 1.0]], [0.0, 0.0]), in_keys=["observation"],
+        linear(2, 2, [[1.0, 0.0], [0.0, 1.0]], [0.0, 0.0]),
+        in_keys=["observation"],
         spec=Categorical(2),
     )
     obs = torch.arange(12.0).reshape(2, 3, 2)
@@ -220,8 +221,9 @@ def test_ddpg_value_uses_target_actor_and_critic():
 
 
 def test_td3_value_is_min_of_target_critics_at_target_action():
-    cfg = OmegaConf.structured(TD3Config(num_cells=[16, 16], tau=0.1, lr=1e-2, actor_lr=1e-2,
-                                         policy_update_delay=1))
+    cfg = OmegaConf.structured(
+        TD3Config(num_cells=[16, 16], tau=0.1, lr=1e-2, actor_lr=1e-2, policy_update_delay=1)
+    )
     learner = TD3Learner(
         cfg, StageSpecs(["observation"], 2, "action", Bounded(-2.0, 2.0, shape=(1,)))
     )

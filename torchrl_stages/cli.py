@@ -45,9 +45,9 @@ def build_task(cfg: DictConfig) -> StagedTask:
 
 def run_training(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Validates, trains every stage backward, evaluates; everything lands in ``run_dir``."""
+    task = build_task(cfg)
     torch.set_num_threads(cfg.threads)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
-    task = build_task(cfg)
     save_config(cfg, run_dir)
     logger = make_logger(cfg, run_dir)
 
@@ -96,13 +96,20 @@ def train() -> None:
     _train_app()
 
 
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value
+
+
 def evaluate(argv: list[str] | None = None) -> None:
     """``stages-eval RUN_DIR``: re-evaluate a finished run and rewrite its ``eval.json``."""
     parser = argparse.ArgumentParser(prog="stages-eval", description=evaluate.__doc__)
     parser.add_argument("run_dir", type=Path, help="a run directory written by stages-train")
     parser.add_argument(
         "--episodes",
-        type=int,
+        type=_positive_int,
         default=None,
         help="whole-task episodes (default: the run's eval.episodes)",
     )

@@ -56,8 +56,6 @@ class StackedPolicy(TensorDictModuleBase):
         merged: dict[NestedKey, torch.Tensor] = {}
         for k, policy in enumerate(self.policies):
             rows = stage == k
-            if not rows.any():
-                continue
             out = policy(tensordict.select(*policy.in_keys).clone(False))
             for key in policy.out_keys:
                 value = out.get(key)

@@ -42,9 +42,11 @@ class StageTrainer:
         >>> from torchrl_stages.config import DQNConfig
         >>> from torchrl_stages.learners import DQNLearner
         >>> from torchrl_stages.task import StagedTask
-        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
+        >>> task = StagedTask(OmegaConf.create({
+        ...     "name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
-        ...             "num_stages": 2}}))
+        ...             "num_stages": 2},
+        ... }))
         >>> cfg = OmegaConf.structured(DQNConfig(frames=512, frames_per_batch=64, num_envs=8,
         ...                                      init_random_frames=64, eval_every=0))
         >>> learner = DQNLearner(cfg, task.specs(1))

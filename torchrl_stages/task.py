@@ -25,9 +25,11 @@ class StagedTask:
 
     Examples:
         >>> from omegaconf import OmegaConf
-        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
+        >>> task = StagedTask(OmegaConf.create({
+        ...     "name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
-        ...             "num_stages": 2}}))
+        ...             "num_stages": 2},
+        ... }))
         >>> task.stage_env(1, batch_size=4).rollout(2)["stage"].shape
         torch.Size([4, 2, 1])
     """

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import importlib.util
+
+import torch
 from omegaconf import DictConfig
 
 from torchrl_stages.learners import LEARNERS
 
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
+LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
 LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
 
 
@@ -119,7 +123,21 @@ def validate_config(cfg: DictConfig) -> None:
         f"unknown (known: {', '.join(LOGGER_BACKENDS)})",
         "select one with logger=csv",
     )
+    package = LOGGER_PACKAGES.get(cfg.logger.backend)
+    _check(
+        package is None or importlib.util.find_spec(package) is not None,
+        "logger.backend",
+        cfg.logger.backend,
+        f"needs the '{package}' package, which is not installed",
+        f"pip install {package}, or use logger=csv",
+    )
     _check(cfg.threads >= 1, "threads", cfg.threads, "must be >= 1", "set threads=1")
+    try:
+        torch.device(cfg.device)
+        ok = True
+    except (RuntimeError, TypeError):
+        ok = False
+    _check(ok, "device", cfg.device, "is not a torch device", "set device=cpu (or cuda, cuda:1)")
     _check(
         cfg.eval.episodes >= 1,
         "eval.episodes",

@@ -40,8 +40,8 @@ class ActorCriticLearner(Learner):
         )
         self.noise = AdditiveGaussianModule(
             spec,
-            sigma_init=cfg.sigma_init,
-            sigma_end=cfg.sigma_end,
+            sigma_init=float(cfg.sigma_init),
+            sigma_end=float(cfg.sigma_end),
             annealing_num_steps=max(int(cfg.annealing_frames), 1),
             action_key=specs.action_key,
         )
