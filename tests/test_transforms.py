@@ -12,7 +12,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import Categorical, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, RewardSum, SerialEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
@@ -600,3 +600,32 @@ def test_forward_on_a_tensordict_directly():
     out = t(td)
     assert col(out["next", "reward"]) == pytest.approx([4.0, 0.0, 0.0])
     assert col(out["next", "terminated"]) == [True, False, False]
+
+
+class _SelfTaggedGrid(GridWorldEnv):
+    """A grid world whose own output carries its stage (like envs that track it in dynamics)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.observation_spec["stage"] = Categorical(
+            self.num_stages, shape=(*self.batch_size, 1), dtype=torch.int64
+        )
+
+    def _reset(self, tensordict, **kwargs):
+        out = super()._reset(tensordict, **kwargs)
+        return out.set("stage", self.stage_fn(out))
+
+    def _step(self, tensordict):
+        out = super()._step(tensordict)
+        return out.set("stage", self.stage_fn(out))
+
+
+def test_stage_fn_none_reads_the_envs_own_stage_entry():
+    base = _SelfTaggedGrid((3,), start_cell=(2, 4))
+    env = TransformedEnv(base, StageTransform(None, base.num_stages))
+    check_env_specs(env)
+    td = env.reset()
+    td["action"] = torch.tensor([3, 1, 3])  # right (into stage 1), down, right
+    td = env.step(td)
+    assert td["next", "stage"].squeeze(-1).tolist() == [1, 0, 1]
+    assert td["next", "stage_transition"].squeeze(-1).tolist() == [True, False, True]

@@ -44,7 +44,8 @@ class StageTransform(Transform):
 
     Args:
         stage_fn: maps a TensorDict (a reset output or the ``"next"`` content of a step) to its
-            stage index, int64 ``[*batch, 1]``.
+            stage index, int64 ``[*batch, 1]``. ``None`` reads the env's own ``stage_key`` entry
+            (for envs whose dynamics track the stage themselves).
         num_stages: number of stages N; stage indices are ``0..N-1``.
 
     Keyword Args:
@@ -72,7 +73,7 @@ class StageTransform(Transform):
 
     def __init__(
         self,
-        stage_fn: StageFn,
+        stage_fn: StageFn | None,
         num_stages: int,
         *,
         train_stage: int | None = None,
@@ -125,7 +126,7 @@ class StageTransform(Transform):
 
     # ------------------------------------------------------------------ helpers
     def _stage(self, td: TensorDictBase) -> torch.Tensor:
-        stage = self.stage_fn(td)
+        stage = td.get(self.stage_key) if self.stage_fn is None else self.stage_fn(td)
         return stage.to(torch.int64).reshape(*td.batch_size, 1)
 
     @torch.no_grad()
