@@ -6,10 +6,15 @@ from .gridworld import (
     gridworld_optimal_values,
     measure_throughput,
 )
+from .manipulator import ManipulatorEnv, forward_kinematics, inverse_kinematics, wrap_angle
 
 __all__ = [
     "GridWorldEnv",
     "greedy_path_from_values",
     "gridworld_optimal_values",
     "measure_throughput",
+    "ManipulatorEnv",
+    "forward_kinematics",
+    "inverse_kinematics",
+    "wrap_angle",
 ]

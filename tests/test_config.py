@@ -30,6 +30,8 @@ from torchrl_stages.config import (
 from torchrl_stages.validate import ConfigError, validate_config
 
 CONF = importlib.resources.files("torchrl_stages.conf")
+# the grid world's per-stage frame budget, as its YAML sets it
+GRID_FRAMES = OmegaConf.create(CONF.joinpath("task/gridworld.yaml").read_text()).stages.s0.frames
 STAGES = [f"s{k}" for k in range(5)]
 
 
@@ -102,7 +104,7 @@ def test_default_config(hydra_compose):
     assert _gammas(cfg) == [0.99] * 5  # the default gammas preset is homo
     assert cfg.seed == 0 and cfg.device == "cpu"
     # the task's YAML values land on top of the schema defaults
-    assert cfg.task.stages.s2.frames == 24576 and cfg.task.stages.s2.fourier_features == 3
+    assert cfg.task.stages.s2.frames == GRID_FRAMES and cfg.task.stages.s2.fourier_features == 3
     validate_config(cfg)
 
 
@@ -132,7 +134,7 @@ def test_every_algo_option_composes_on_a_stage(hydra_compose, algo):
     assert node.algo == algo
     assert OmegaConf.get_type(node) is ALGO_SCHEMAS[algo]
     # the task's per-stage values and the gammas preset still apply on top of the new schema
-    assert node.frames == 24576
+    assert node.frames == GRID_FRAMES
     assert node.gamma == 0.9  # hetero
     others = [OmegaConf.get_type(cfg.task.stages[s]) for s in STAGES if s != stage]
     assert others == [DQNConfig] * 4

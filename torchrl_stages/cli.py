@@ -53,16 +53,21 @@ def run_training(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
     def on_stage_end(k: int, learner: Learner, result: StageResult) -> None:
         save_stage(run_dir, k, task.stage_names[k], learner, result)
-        success = "-" if result.success_rate is None else f"{result.success_rate:.2f}"
+        evaluated = result.success_rate is not None
+        quality = (
+            f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
+            if evaluated
+            else "not evaluated"
+        )
         log.info(
-            "stage %d (%s, %s): %d frames, %d updates, %.1fs, stage success %s%s",
+            "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s",
             k,
             task.stage_names[k],
             learner.algo,
             result.frames,
             result.updates,
             result.seconds,
-            success,
+            quality,
             " (early stop)" if result.early_stopped else "",
         )
 

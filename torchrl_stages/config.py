@@ -39,7 +39,9 @@ class StageConfig:
     eval_every: int = 5_000  # frames between greedy evaluations of the stage (0: never)
     eval_episodes: int = 64  # greedy episodes per stage evaluation (random starts in the stage)
     success_threshold: float | None = None  # early stop once stage success >= this (null: off)
-    patience: int = 1  # consecutive evaluations that must meet success_threshold
+    # ... and mean |V(s_0) - discounted greedy return| <= this (null: not checked)
+    value_tolerance: float | None = None
+    patience: int = 1  # consecutive evaluations that must meet the early-stop criterion
     min_frames: int = 0  # no early stop before this many frames
 
 
@@ -48,7 +50,7 @@ class DQNConfig(StageConfig):
     """DQN stage (discrete actions): torchrl's ``DQNLoss`` with an epsilon-greedy collector."""
 
     algo: str = "dqn"
-    double_dqn: bool = False
+    double_dqn: bool = True  # double-DQN targets (torchrl's DQNLoss(double_dqn=...))
     dueling: bool = False  # dueling Q-network: separate state-value and advantage heads
     loss_function: str = "l2"  # l1 | l2 | smooth_l1
     eps_init: float = 1.0

@@ -75,6 +75,14 @@ def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
     return EpisodeStats(success=success, length=length, ret=(reward * in_first).sum(-1))
 
 
+def discounted_return(rollout: TensorDictBase, length: torch.Tensor, gamma: float) -> torch.Tensor:
+    """``sum_t gamma^t r_t`` over each row's first episode (``length``: its episode lengths)."""
+    reward = rollout.get(("next", "reward")).squeeze(-1)  # [B, T]
+    steps = torch.arange(reward.shape[-1], device=reward.device)
+    weights = torch.where(steps < length.unsqueeze(-1), gamma**steps, 0.0)
+    return (reward * weights).sum(-1)
+
+
 def evaluate_policy(
     env: EnvBase, policy: TensorDictModuleBase, max_steps: int
 ) -> tuple[EpisodeStats, TensorDictBase]:

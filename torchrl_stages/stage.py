@@ -14,7 +14,7 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from torchrl_stages.config import StageConfig
-from torchrl_stages.evaluate import evaluate_policy
+from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner
 
 
@@ -27,6 +27,7 @@ class StageResult:
     updates: int
     seconds: float
     success_rate: float | None  # last greedy stage evaluation (None: never evaluated)
+    value_error: float | None  # mean |V(s_0) - greedy discounted return| at that evaluation
     early_stopped: bool
 
 
@@ -91,7 +92,8 @@ class StageTrainer:
             storage=LazyTensorStorage(cfg.buffer_size), batch_size=cfg.batch_size
         )
         keep = learner.loss.in_keys  # store only what the loss reads
-        start, frames, streak, success = time.perf_counter(), 0, 0, None
+        start, frames, streak = time.perf_counter(), 0, 0
+        success = value_error = None
         next_eval = cfg.eval_every if cfg.eval_every > 0 else None
         early_stopped = False
         bar = tqdm(
@@ -112,9 +114,13 @@ class StageTrainer:
             bar.update(batch.numel())
             if next_eval is not None and frames >= next_eval:
                 next_eval += cfg.eval_every
-                success = self.evaluate(frames)
-                bar.set_postfix(success=f"{success:.2f}")
-                met = cfg.success_threshold is not None and success >= cfg.success_threshold
+                success, value_error = self.evaluate(frames)
+                bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
+                met = (
+                    cfg.success_threshold is not None
+                    and success >= cfg.success_threshold
+                    and (cfg.value_tolerance is None or value_error <= cfg.value_tolerance)
+                )
                 streak = streak + 1 if met else 0
                 if streak >= cfg.patience and frames >= cfg.min_frames:
                     early_stopped = True
@@ -127,20 +133,27 @@ class StageTrainer:
             learner.num_updates,
             time.perf_counter() - start,
             success,
+            value_error,
             early_stopped,
         )
 
-    def evaluate(self, frames: int) -> float:
-        """Greedy episodes from random starts in the stage; logs and returns the success rate.
+    def evaluate(self, frames: int) -> tuple[float, float]:
+        """Greedy episodes from random starts in the stage; logs and returns two numbers.
 
-        An episode succeeds when it terminates (leaves the stage or ends the task) before the
-        time limit.
+        ``success_rate``: episodes that terminate (leave the stage or end the task) before the
+        time limit. ``value_error``: mean ``|V(s_0) - G|`` between the stage's value estimate at
+        the start and the discounted return the greedy policy actually got, a check that the
+        values handed to the previous stage have converged.
         """
         max_steps = int(getattr(self.eval_env, "max_steps", 1000))
-        stats, _ = evaluate_policy(self.eval_env, self.learner.policy, max_steps)
+        stats, rollout = evaluate_policy(self.eval_env, self.learner.policy, max_steps)
         summary = stats.summary()
+        returns = discounted_return(rollout, stats.length, self.cfg.gamma)
+        with torch.no_grad():
+            v0 = self.learner.value()(rollout[:, 0].clone()).get("state_value").reshape(-1)
+        summary["value_error"] = (v0 - returns).abs().mean().item()
         self._log({f"eval/stage_{self.stage}/{k}": v for k, v in summary.items()}, frames)
-        return summary["success_rate"]
+        return summary["success_rate"], summary["value_error"]
 
     def _log_batch(self, batch, losses: list[dict[str, torch.Tensor]], frames: int) -> None:
         if self.logger is None:

@@ -99,6 +99,14 @@ def _check_stage(key: str, s: DictConfig) -> None:
     )
     if s.success_threshold is not None:
         fraction("success_threshold")
+    if s.value_tolerance is not None:
+        _check(
+            s.value_tolerance >= 0,
+            f"{key}.value_tolerance",
+            s.value_tolerance,
+            "must be >= 0 (or null)",
+            f"set {key}.value_tolerance=0.02 or null",
+        )
     if s.algo == "dqn":
         fraction("eps_init")
         fraction("eps_end")

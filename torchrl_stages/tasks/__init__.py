@@ -9,8 +9,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from torchrl_stages.tasks import gridworld
+from torchrl_stages.tasks import gridworld, manipulator
 
 Report = Callable[..., dict[str, Any]]
 
-REPORTS: dict[str, Report] = {"gridworld": gridworld.report}
+REPORTS: dict[str, Report] = {"gridworld": gridworld.report, "manipulator": manipulator.report}

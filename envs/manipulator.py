@@ -1,0 +1,391 @@
+"""Two-link precision manipulator (batched, torch-native): a coarse and a fine control stage."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+__all__ = [
+    "ManipulatorEnv",
+    "forward_kinematics",
+    "inverse_kinematics",
+    "wrap_angle",
+]
+
+REACH = 2.0  # L1 + L2: radius of the reachable disk
+MIN_RADIUS = 1e-3  # fine-stage starts closer than this to the base are rejected (IK singularity)
+MAX_ATTEMPTS = 100  # bound on the vectorized rejection-sampling loop
+
+
+def wrap_angle(theta: torch.Tensor) -> torch.Tensor:
+    """Wraps angles to ``(-pi, pi]`` (elementwise, any shape, keeps the dtype)."""
+    wrapped = math.pi - torch.remainder(math.pi - theta, 2.0 * math.pi)
+    return torch.where(wrapped <= -math.pi, wrapped + 2.0 * math.pi, wrapped)
+
+
+def forward_kinematics(theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Elbow and effector positions ``([..., 2], [..., 2])`` of joint angles ``theta [..., 2]``.
+
+    Both links have length 1: ``elbow = (cos t1, sin t1)`` and
+    ``effector = elbow + (cos(t1 + t2), sin(t1 + t2))``.
+
+    Examples:
+        >>> import math, torch
+        >>> from torchrl_stages.envs import forward_kinematics
+        >>> elbow, effector = forward_kinematics(torch.tensor([0.0, math.pi / 2]))
+        >>> elbow.tolist(), [round(v, 6) for v in effector.tolist()]
+        ([1.0, 0.0], [1.0, 1.0])
+    """
+    t1 = theta[..., 0]
+    t12 = t1 + theta[..., 1]
+    elbow = torch.stack([torch.cos(t1), torch.sin(t1)], -1)
+    effector = elbow + torch.stack([torch.cos(t12), torch.sin(t12)], -1)
+    return elbow, effector
+
+
+def inverse_kinematics(points: torch.Tensor, elbow_up: bool | torch.Tensor = True) -> torch.Tensor:
+    """Joint angles ``[..., 2]`` (wrapped to ``(-pi, pi]``) placing the effector at ``points``.
+
+    ``elbow_up`` (a bool, or a bool tensor broadcastable to ``points.shape[:-1]``) picks the
+    solution with ``theta2 <= 0``, whose elbow lies counter-clockwise of the base-to-effector
+    line; ``False`` picks the mirrored one (``theta2 >= 0``). Points outside the reachable annulus
+    ``|p| <= 2`` are not rejected: the elbow cosine is clamped (the arm points at them, fully
+    stretched). The point ``(0, 0)`` is singular (any ``theta1`` with ``theta2 = pi``).
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_stages.envs import forward_kinematics, inverse_kinematics
+        >>> theta = inverse_kinematics(torch.tensor([[1.0, 1.0], [1.0, 1.0]]),
+        ...                            torch.tensor([True, False]))
+        >>> [[round(v, 4) for v in row] for row in theta.tolist()]
+        [[1.5708, -1.5708], [0.0, 1.5708]]
+        >>> (forward_kinematics(theta)[1] - 1.0).abs().max().item() < 1e-6
+        True
+    """
+    x, y = points[..., 0], points[..., 1]
+    c2 = ((x * x + y * y - 2.0) / 2.0).clamp(-1.0, 1.0)
+    s2 = torch.sqrt((1.0 - c2 * c2).clamp_min(0.0))
+    up = torch.as_tensor(elbow_up, dtype=torch.bool, device=points.device)
+    s2 = torch.where(up, -s2, s2)
+    theta2 = torch.atan2(s2, c2)
+    theta1 = torch.atan2(y, x) - torch.atan2(s2, 1.0 + c2)
+    return wrap_angle(torch.stack(torch.broadcast_tensors(theta1, theta2), -1))
+
+
+def _pair(name: str, value: Sequence[float]) -> tuple[float, float]:
+    """Validates a pair of positive floats (one per stage)."""
+    pair = tuple(float(v) for v in value)
+    if len(pair) != 2 or not all(v > 0 for v in pair):
+        raise ValueError(f"{name} must be two positive numbers (coarse, fine), got {value!r}.")
+    return pair[0], pair[1]
+
+
+class ManipulatorEnv(EnvBase):
+    """Two-link planar arm (links of length 1) steering its effector onto a target.
+
+    The state is the pair of joint angles ``theta`` (wrapped to ``(-pi, pi]`` after every step);
+    the action ``a in [-1, 1]^2`` (``Bounded``, clamped) moves them by ``u_max[stage] * a``,
+    where ``stage`` is the element's stage *before* the step. Stage 0 (coarse) holds while the
+    effector-target distance ``d >= switch_distance``; the step that brings ``d`` below it moves
+    the element to stage 1 (fine) for the rest of its episode, even if ``d`` grows again.
+    ``d <= success_distance`` gives reward 1 and ``terminated=True``; after ``max_steps`` steps
+    an element is ``truncated``.
+
+    The observation (float32, ``[*B, 6]``) is ``(x1, y1, x2, y2, (target - effector) /
+    scales[stage])``: elbow, effector and the scaled target offset, scaled for the stage of the
+    state it describes (on the switching step the next observation is already fine-scaled). The
+    env writes its stage as ``"stage"`` (int64 ``[*B, 1]``, in the observation spec), so
+    :class:`~torchrl_stages.transforms.StageTransform` is used with ``stage_fn=None``.
+    Partial resets through ``"_reset"`` are supported.
+
+    Args:
+        batch_size: batch shape of the env; any shape, e.g. ``()``, ``(64,)``, ``(2, 3)``.
+
+    Keyword Args:
+        target: fixed target ``(x, y)`` (``|target| <= 2``), used unless ``random_target``.
+        random_target: draw a new target per element at every reset, area-uniform in the
+            reachable disk of radius 2 (the current ones are in :attr:`targets`).
+        u_max: joint step per unit action, ``(coarse, fine)``.
+        scales: divisor of the target offset in the observation, ``(coarse, fine)``.
+        switch_distance: distance below which the fine stage starts.
+        success_distance: distance at or below which the task is solved.
+        max_steps: per-element time limit.
+        start_stage: ``None`` or ``0``: whole-task starts, joint angles uniform on
+            ``(-pi, pi]^2`` conditioned on ``d >= switch_distance``. ``1``: fine-stage starts,
+            an effector position area-uniform in the disk of radius ``switch_distance`` around
+            the target (restricted to ``1e-3 <= |p| <= 2`` and ``d > success_distance``, so no
+            start is already solved), reached by inverse kinematics with a random elbow.
+        device: torch device.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_stages.envs import ManipulatorEnv, wrap_angle
+        >>> env = ManipulatorEnv((4,), start_stage=1)
+        >>> td = env.reset()
+        >>> td["stage"].squeeze(-1).tolist(), bool((env.distance < 0.2).all())
+        ([1, 1, 1, 1], True)
+        >>> td["action"] = torch.tensor([[1.0, 0.0]]).expand(4, 2)
+        >>> theta = env.theta
+        >>> td = env.step(td)
+        >>> delta = wrap_angle(env.theta - theta)  # the fine stage moves by 0.05 per unit action
+        >>> torch.allclose(delta, torch.tensor([0.05, 0.0]).expand(4, 2), atol=1e-6)
+        True
+        >>> td["next", "observation"].shape, td["next", "stage"].dtype
+        (torch.Size([4, 6]), torch.int64)
+    """
+
+    num_stages = 2
+    stage_fn = None  # the env tracks its stage itself: StageTransform(None, 2) reads "stage"
+
+    def __init__(
+        self,
+        batch_size: Sequence[int] | torch.Size = (),
+        *,
+        target: Sequence[float] = (1.0, 1.0),
+        random_target: bool = False,
+        u_max: Sequence[float] = (0.25, 0.05),
+        scales: Sequence[float] = (0.5, 0.05),
+        switch_distance: float = 0.2,
+        success_distance: float = 0.01,
+        max_steps: int = 50,
+        start_stage: int | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__(device=device, batch_size=torch.Size(batch_size))
+        tgt = tuple(float(v) for v in target)
+        if len(tgt) != 2 or math.hypot(*tgt) > REACH:
+            raise ValueError(f"target must be a point (x, y) with |target| <= 2, got {target!r}.")
+        self.target = tgt
+        self.random_target = bool(random_target)
+        self.u_max = _pair("u_max", u_max)
+        self.scales = _pair("scales", scales)
+        self.switch_distance = float(switch_distance)
+        self.success_distance = float(success_distance)
+        if not 0.0 < self.success_distance < self.switch_distance:
+            raise ValueError(
+                "need 0 < success_distance < switch_distance, got "
+                f"success_distance={success_distance}, switch_distance={switch_distance}."
+            )
+        if max_steps <= 0:
+            raise ValueError(f"max_steps must be positive, got {max_steps}.")
+        self.max_steps = int(max_steps)
+        bs, dev, f32 = self.batch_size, self.device, torch.float32
+        self._n = n = bs.numel()
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(*bs, 6), dtype=f32, device=dev),
+            stage=Categorical(2, shape=(*bs, 1), dtype=torch.int64, device=dev),
+            shape=bs,
+        )
+        self.action_spec = Bounded(-1.0, 1.0, shape=(*bs, 2), dtype=f32, device=dev)
+        self.reward_spec = Unbounded(shape=(*bs, 1), dtype=f32, device=dev)
+        flag = Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(
+            done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=bs
+        )
+        buffers = {  # non-persistent buffers: follow env.to(device), stay out of state_dict
+            "_u_max_t": torch.tensor(self.u_max, dtype=f32, device=dev),
+            "_scales_t": torch.tensor(self.scales, dtype=f32, device=dev),
+            "_theta": torch.zeros(n, 2, dtype=f32, device=dev),  # flat internal state
+            "_target": torch.tensor(tgt, dtype=f32, device=dev).expand(n, 2).clone(),
+            "_stage": torch.zeros(n, dtype=torch.int64, device=dev),
+            "_steps": torch.zeros(n, dtype=torch.int64, device=dev),
+        }
+        for name, buf in buffers.items():
+            self.register_buffer(name, buf, persistent=False)
+        self.rng: torch.Generator | None = None
+        self.start_stage = start_stage
+
+    # ------------------------------------------------------------------ start distribution
+    @property
+    def start_stage(self) -> int | None:
+        """Stage the starts are drawn in (``None`` or ``0``: whole task, ``1``: fine stage)."""
+        return self._start_stage
+
+    @start_stage.setter
+    def start_stage(self, value: int | None) -> None:
+        if value is not None:
+            if isinstance(value, bool) or int(value) != value:
+                raise ValueError(f"start_stage must be an int or None, got {value!r}.")
+            value = int(value)
+            if not 0 <= value < self.num_stages:
+                raise ValueError(
+                    f"start_stage={value} is out of range [0, num_stages={self.num_stages})."
+                )
+        self._start_stage = value
+
+    def _rand(self, *shape: int) -> torch.Tensor:
+        return torch.rand(shape, device=self.device, generator=self.rng)
+
+    def _sample_targets(self) -> torch.Tensor:
+        """One target per element, ``[n, 2]``: area-uniform in the disk of radius 2."""
+        if not self.random_target:
+            return self._target.new_tensor(self.target).expand(self._n, 2)
+        r = REACH * torch.sqrt(self._rand(self._n))
+        phi = 2.0 * math.pi * self._rand(self._n)
+        return torch.stack([r * torch.cos(phi), r * torch.sin(phi)], -1)
+
+    def _candidates(self, targets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Candidate start angles ``[n, 2]`` and whether each one is acceptable ``[n]``."""
+        n = self._n
+        if self._start_stage == 1:
+            rho = self.switch_distance * torch.sqrt(self._rand(n))
+            phi = 2.0 * math.pi * self._rand(n)
+            points = targets + rho.unsqueeze(-1) * torch.stack([torch.cos(phi), torch.sin(phi)], -1)
+            theta = inverse_kinematics(points, self._rand(n) < 0.5)
+            radius = points.norm(dim=-1)
+            d = (targets - forward_kinematics(theta)[1]).norm(dim=-1)
+            ok = (radius <= REACH) & (radius >= MIN_RADIUS) & (d < self.switch_distance)
+            return theta, ok & (d > self.success_distance)
+        theta = math.pi - 2.0 * math.pi * self._rand(n, 2)  # uniform on (-pi, pi]
+        d = (targets - forward_kinematics(theta)[1]).norm(dim=-1)
+        return theta, d >= self.switch_distance
+
+    def _sample_starts(self, targets: torch.Tensor, pending: torch.Tensor) -> torch.Tensor:
+        """Start angles for the ``pending`` elements (the others keep their current angles)."""
+        theta = self._theta.clone()
+        for _ in range(MAX_ATTEMPTS):
+            cand, ok = self._candidates(targets)
+            take = pending & ok
+            theta = torch.where(take.unsqueeze(-1), cand, theta)
+            pending = pending & ~take
+            if not pending.any():
+                return theta
+        raise RuntimeError(
+            f"could not draw start states in {MAX_ATTEMPTS} attempts (start_stage="
+            f"{self._start_stage}); is the target reachable and switch_distance sensible?"
+        )
+
+    # ------------------------------------------------------------------ EnvBase API
+    def _observe(self) -> TensorDict:
+        """Observation and stage of the current internal state (reset-style TensorDict)."""
+        elbow, eff = forward_kinematics(self._theta)
+        diff = (self._target - eff) / self._scales_t[self._stage].unsqueeze(-1)
+        bs = self.batch_size
+        zeros = torch.zeros((*bs, 1), dtype=torch.bool, device=self.device)
+        return TensorDict(
+            observation=torch.cat([elbow, eff, diff], -1).reshape(*bs, 6),
+            stage=self._stage.reshape(*bs, 1).clone(),
+            done=zeros,
+            terminated=zeros.clone(),
+            truncated=zeros.clone(),
+            batch_size=bs,
+            device=self.device,
+        )
+
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
+        reset = tensordict.get("_reset", None) if tensordict is not None else None
+        if reset is None:
+            mask = torch.ones(self._n, dtype=torch.bool, device=self.device)
+        else:
+            mask = reset.reshape(self._n)
+        targets = torch.where(mask.unsqueeze(-1), self._sample_targets(), self._target)
+        self._theta.copy_(self._sample_starts(targets, mask))
+        self._target.copy_(targets)
+        self._stage.masked_fill_(mask, 1 if self._start_stage == 1 else 0)
+        self._steps.masked_fill_(mask, 0)
+        return self._observe()
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        # hot path: a handful of vectorized ops, no spec checks, state updated in place
+        action = tensordict.get("action").reshape(self._n, 2).to(self._theta.dtype)
+        step = self._u_max_t[self._stage].unsqueeze(-1) * action.clamp(-1.0, 1.0)
+        self._theta.copy_(wrap_angle(self._theta + step))
+        elbow, eff = forward_kinematics(self._theta)
+        offset = self._target - eff
+        d = offset.norm(dim=-1)
+        self._stage.copy_(torch.where(d < self.switch_distance, 1, self._stage))
+        self._steps.add_(1)
+        bs = self.batch_size
+        terminated = (d <= self.success_distance).reshape(*bs, 1)
+        truncated = (self._steps >= self.max_steps).reshape(*bs, 1)
+        diff = offset / self._scales_t[self._stage].unsqueeze(-1)
+        return TensorDict(
+            observation=torch.cat([elbow, eff, diff], -1).reshape(*bs, 6),
+            stage=self._stage.reshape(*bs, 1).clone(),
+            reward=terminated.to(torch.float32),
+            done=terminated | truncated,
+            terminated=terminated,
+            truncated=truncated,
+            batch_size=bs,
+            device=self.device,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            self.rng = None
+            return
+        self.rng = torch.Generator(device=self.device or "cpu").manual_seed(int(seed))
+
+    def stage_observation_keys(self, stage: int) -> list[str]:
+        """Network inputs of every stage: only ``"observation"`` (``"stage"`` is a tag)."""
+        return ["observation"]
+
+    # ------------------------------------------------------------------ state access
+    def set_state(
+        self,
+        theta: Sequence[float] | torch.Tensor,
+        *,
+        target: Sequence[float] | torch.Tensor | None = None,
+        stage: int | torch.Tensor | None = None,
+    ) -> TensorDictBase:
+        """Puts every element in a given state, like a reset (step counters restart at 0).
+
+        ``theta`` (and ``target``) are a pair or one per element (``[*B, 2]``); ``target``
+        defaults to the current targets. ``stage`` defaults to 0 where ``d >= switch_distance``
+        and 1 elsewhere. Returns the matching reset-style TensorDict (observation, stage, flags),
+        ready for ``td["action"] = ...; env.step(td)``.
+        """
+        self._theta.copy_(wrap_angle(self._per_element("theta", theta)))
+        if target is not None:
+            self._target.copy_(self._per_element("target", target))
+        if stage is None:
+            d = (self._target - forward_kinematics(self._theta)[1]).norm(dim=-1)
+            self._stage.copy_((d < self.switch_distance).long())
+        else:
+            stage = torch.as_tensor(stage, dtype=torch.int64, device=self.device)
+            if ((stage < 0) | (stage >= self.num_stages)).any():
+                raise ValueError(f"stage must be 0 or 1, got {stage.tolist()}.")
+            self._stage.copy_(stage.expand(*self.batch_size, 1).reshape(self._n))
+        self._steps.zero_()
+        return self._observe()
+
+    def _per_element(self, name: str, value: Sequence[float] | torch.Tensor) -> torch.Tensor:
+        v = torch.as_tensor(value, dtype=self._theta.dtype, device=self.device)
+        if v.shape == (2,):
+            return v.expand(self._n, 2)
+        if v.shape == (*self.batch_size, 2):
+            return v.reshape(self._n, 2)
+        raise ValueError(
+            f"{name} must be a pair or have shape {[*self.batch_size, 2]}, got {list(v.shape)}."
+        )
+
+    @property
+    def theta(self) -> torch.Tensor:
+        """Current joint angles, ``[*B, 2]`` (a copy)."""
+        return self._theta.reshape(*self.batch_size, 2).clone()
+
+    @property
+    def targets(self) -> torch.Tensor:
+        """Current per-element targets, ``[*B, 2]`` (a copy)."""
+        return self._target.reshape(*self.batch_size, 2).clone()
+
+    @property
+    def stage(self) -> torch.Tensor:
+        """Current stage per element, int64 ``[*B, 1]`` (a copy)."""
+        return self._stage.reshape(*self.batch_size, 1).clone()
+
+    @property
+    def effector(self) -> torch.Tensor:
+        """Current effector positions, ``[*B, 2]``."""
+        return forward_kinematics(self._theta)[1].reshape(*self.batch_size, 2)
+
+    @property
+    def distance(self) -> torch.Tensor:
+        """Current effector-target distances, ``[*B, 1]``."""
+        d = (self._target - forward_kinematics(self._theta)[1]).norm(dim=-1)
+        return d.reshape(*self.batch_size, 1)
