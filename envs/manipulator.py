@@ -77,12 +77,15 @@ def inverse_kinematics(points: torch.Tensor, elbow_up: bool | torch.Tensor = Tru
     return wrap_angle(torch.stack(torch.broadcast_tensors(theta1, theta2), -1))
 
 
-def _pair(name: str, value: Sequence[float]) -> tuple[float, float]:
-    """Validates a pair of positive floats (one per stage)."""
-    pair = tuple(float(v) for v in value)
-    if len(pair) != 2 or not all(v > 0 for v in pair):
-        raise ValueError(f"{name} must be two positive numbers (coarse, fine), got {value!r}.")
-    return pair[0], pair[1]
+def _per_stage(name: str, value: Sequence[float]) -> tuple[float, ...]:
+    """Validates one positive float per stage: ``(coarse, fine)``, or ``(single,)``."""
+    values = tuple(float(v) for v in value)
+    if len(values) not in (1, 2) or not all(v > 0 for v in values):
+        raise ValueError(
+            f"{name} must be one positive number per stage, (coarse, fine) or (single,); "
+            f"got {value!r}."
+        )
+    return values
 
 
 class ManipulatorEnv(EnvBase):
@@ -139,7 +142,6 @@ class ManipulatorEnv(EnvBase):
         (torch.Size([4, 6]), torch.int64)
     """
 
-    num_stages = 2
     stage_fn = None  # the env tracks its stage itself: StageTransform(None, 2) reads "stage"
 
     def __init__(
@@ -162,8 +164,13 @@ class ManipulatorEnv(EnvBase):
             raise ValueError(f"target must be a point (x, y) with |target| <= 2, got {target!r}.")
         self.target = tgt
         self.random_target = bool(random_target)
-        self.u_max = _pair("u_max", u_max)
-        self.scales = _pair("scales", scales)
+        self.u_max = _per_stage("u_max", u_max)
+        self.scales = _per_stage("scales", scales)
+        if len(self.u_max) != len(self.scales):
+            raise ValueError(f"u_max {u_max!r} and scales {scales!r} must have the same length.")
+        # Two stages (coarse, fine); one value each makes a single-stage baseline task that
+        # never switches (same starts, reward and observation layout).
+        self.num_stages = len(self.u_max)
         self.switch_distance = float(switch_distance)
         self.success_distance = float(success_distance)
         if not 0.0 < self.success_distance < self.switch_distance:
@@ -178,7 +185,7 @@ class ManipulatorEnv(EnvBase):
         self._n = n = bs.numel()
         self.observation_spec = Composite(
             observation=Unbounded(shape=(*bs, 6), dtype=f32, device=dev),
-            stage=Categorical(2, shape=(*bs, 1), dtype=torch.int64, device=dev),
+            stage=Categorical(self.num_stages, shape=(*bs, 1), dtype=torch.int64, device=dev),
             shape=bs,
         )
         self.action_spec = Bounded(-1.0, 1.0, shape=(*bs, 2), dtype=f32, device=dev)
@@ -298,7 +305,8 @@ class ManipulatorEnv(EnvBase):
         elbow, eff = forward_kinematics(self._theta)
         offset = self._target - eff
         d = offset.norm(dim=-1)
-        self._stage.copy_(torch.where(d < self.switch_distance, 1, self._stage))
+        if self.num_stages > 1:
+            self._stage.copy_(torch.where(d < self.switch_distance, 1, self._stage))
         self._steps.add_(1)
         bs = self.batch_size
         terminated = (d <= self.success_distance).reshape(*bs, 1)
@@ -345,11 +353,11 @@ class ManipulatorEnv(EnvBase):
             self._target.copy_(self._per_element("target", target))
         if stage is None:
             d = (self._target - forward_kinematics(self._theta)[1]).norm(dim=-1)
-            self._stage.copy_((d < self.switch_distance).long())
+            self._stage.copy_((d < self.switch_distance).long() * (self.num_stages - 1))
         else:
             stage = torch.as_tensor(stage, dtype=torch.int64, device=self.device)
             if ((stage < 0) | (stage >= self.num_stages)).any():
-                raise ValueError(f"stage must be 0 or 1, got {stage.tolist()}.")
+                raise ValueError(f"stage must be in [0, {self.num_stages}), got {stage.tolist()}.")
             self._stage.copy_(stage.expand(*self.batch_size, 1).reshape(self._n))
         self._steps.zero_()
         return self._observe()

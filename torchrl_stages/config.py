@@ -38,6 +38,7 @@ class StageConfig:
     tau: float = 0.005  # soft target-network update rate
     eval_every: int = 5_000  # frames between greedy evaluations of the stage (0: never)
     eval_episodes: int = 64  # greedy episodes per stage evaluation (random starts in the stage)
+    eval_max_steps: int | None = None  # longer greedy stage episodes fail (null: env time limit)
     success_threshold: float | None = None  # early stop once stage success >= this (null: off)
     # ... and mean |V(s_0) - discounted greedy return| <= this (null: not checked)
     value_tolerance: float | None = None

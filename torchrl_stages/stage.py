@@ -145,7 +145,7 @@ class StageTrainer:
         the start and the discounted return the greedy policy actually got, a check that the
         values handed to the previous stage have converged.
         """
-        max_steps = int(getattr(self.eval_env, "max_steps", 1000))
+        max_steps = self.cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
         stats, rollout = evaluate_policy(self.eval_env, self.learner.policy, max_steps)
         summary = stats.summary()
         returns = discounted_return(rollout, stats.length, self.cfg.gamma)

@@ -99,6 +99,8 @@ def _check_stage(key: str, s: DictConfig) -> None:
     )
     if s.success_threshold is not None:
         fraction("success_threshold")
+    if s.eval_max_steps is not None:
+        positive("eval_max_steps", 100)
     if s.value_tolerance is not None:
         _check(
             s.value_tolerance >= 0,

@@ -67,7 +67,7 @@ def report(
         "mean_steps_success": stats.summary()["mean_steps_success"],
         "final_distance_p50_p90_p99": torch.quantile(dist, q).tolist(),
     }
-    if plots and not env.base_env.random_target:
+    if plots and not env.base_env.random_target and len(learners) == 2:
         from torchrl_stages.plots import plot_arm_figure
 
         target = [float(v) for v in env.base_env.targets.reshape(-1, 2)[0]]

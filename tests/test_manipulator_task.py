@@ -1,0 +1,110 @@
+"""The manipulator task end to end: config, the stage-switch reward, a tiny CLI run."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from tensordict.nn import TensorDictModule
+
+from torchrl_stages.cli import build_task
+from torchrl_stages.config import register_configs
+from torchrl_stages.envs.manipulator import inverse_kinematics
+
+
+@pytest.fixture(scope="module")
+def compose_cfg():
+    register_configs()
+    GlobalHydra.instance().clear()
+    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
+        yield lambda *overrides: compose("config", overrides=["task=manipulator", *overrides])
+    GlobalHydra.instance().clear()
+
+
+def test_two_ddpg_stages_and_td3_override(compose_cfg):
+    cfg = compose_cfg()
+    assert list(cfg.task.stages) == ["coarse", "fine"]
+    assert [cfg.task.stages[k].algo for k in ("coarse", "fine")] == ["ddpg", "ddpg"]
+    cfg = compose_cfg("algo@task.stages.fine=td3")
+    assert cfg.task.stages.fine.algo == "td3"
+    task = build_task(cfg)
+    assert task.num_stages == 2 and task.specs(1).observation_dim == 6
+
+
+def test_single_stage_baseline_config(compose_cfg):
+    cfg = compose_cfg("task.env.u_max=[0.05]", "task.env.scales=[0.5]", "~task.stages.fine")
+    task = build_task(cfg)
+    assert task.num_stages == 1
+    assert task.stage_env(0, 4).rollout(60)["stage"].max() == 0  # never switches
+
+
+def test_transition_reward_uses_fine_value_of_post_switch_observation(compose_cfg):
+    cfg = compose_cfg()
+    task = build_task(cfg)
+    gamma = float(cfg.task.stages.coarse.gamma)
+    # V_fine reads the fine encoding of the target offset: (target - effector) / 0.05
+    v_fine = TensorDictModule(lambda obs: obs[..., 4:5] + 10.0, ["observation"], ["state_value"])
+    env = task.stage_env(0, batch_size=1, next_value=v_fine)
+    base = env.base_env
+    target = torch.tensor(base.target)
+    # effector 0.21 below the target; one step of theta1 brings it inside 0.2
+    start = target + torch.tensor([0.0, -0.21])
+    theta = inverse_kinematics(start.unsqueeze(0), True)
+    env.reset()
+    td = base.set_state(theta)  # carries the env's own "stage" (0: coarse)
+    td.set("episode_reward", torch.zeros(1, 1))
+    best = None
+    for a in ([1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]):
+        base.set_state(theta)
+        td["action"] = torch.tensor([a])
+        out = env.step(td.clone())["next"]
+        if out["stage_transition"].item():
+            best = out
+            break
+    assert best is not None, "no coarse step crossed the switch distance"
+    obs = best["observation"][0]
+    effector = obs[2:4]
+    fine_offset = (target - effector) / 0.05
+    assert torch.allclose(obs[4:6], fine_offset, atol=1e-4)  # already in the fine encoding
+    expected = gamma * (fine_offset[0].item() + 10.0)  # r = 0 (not solved), + gamma * V_fine(s')
+    assert best["reward"].item() == pytest.approx(expected, rel=1e-5)
+    assert best["terminated"].item() and best["done"].item()
+
+
+def _cli(name: str) -> str:
+    return shutil.which(name) or str(Path(sys.executable).parent / name)
+
+
+def test_tiny_cli_run(tmp_path):
+    tiny = []
+    for stage in ("coarse", "fine"):
+        tiny += [
+            f"task.stages.{stage}.{k}={v}"
+            for k, v in dict(frames=256, frames_per_batch=128, num_envs=16,
+                             init_random_frames=128, batch_size=64, updates_per_batch=1,
+                             eval_every=128, eval_episodes=8, min_frames=0).items()
+        ]
+    run_dir = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(
+        [_cli("stages-train"), "task=manipulator", f"hydra.run.dir={run_dir}",
+         "eval.episodes=8", *tiny],
+        capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert f"Run directory: {run_dir}" in result.stdout
+    metrics = json.loads((run_dir / "eval.json").read_text())["task_metrics"]
+    assert 0.0 <= metrics["success_rate"] <= 1.0
+    p50, p90, p99 = metrics["final_distance_p50_p90_p99"]
+    assert 0.0 <= p50 <= p90 <= p99 <= 4.0 and not math.isnan(p99)
+    assert (run_dir / "manipulator.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (run_dir / "stage_0.pt").is_file() and (run_dir / "stage_1.pt").is_file()
