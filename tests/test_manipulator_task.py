@@ -89,16 +89,33 @@ def test_tiny_cli_run(tmp_path):
     for stage in ("coarse", "fine"):
         tiny += [
             f"task.stages.{stage}.{k}={v}"
-            for k, v in dict(frames=256, frames_per_batch=128, num_envs=16,
-                             init_random_frames=128, batch_size=64, updates_per_batch=1,
-                             eval_every=128, eval_episodes=8, min_frames=0).items()
+            for k, v in dict(
+                frames=256,
+                frames_per_batch=128,
+                num_envs=16,
+                init_random_frames=128,
+                batch_size=64,
+                updates_per_batch=1,
+                eval_every=128,
+                eval_episodes=8,
+                min_frames=0,
+            ).items()
         ]
     run_dir = tmp_path / "run"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     result = subprocess.run(
-        [_cli("stages-train"), "task=manipulator", f"hydra.run.dir={run_dir}",
-         "eval.episodes=8", *tiny],
-        capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300,
+        [
+            _cli("stages-train"),
+            "task=manipulator",
+            f"hydra.run.dir={run_dir}",
+            "eval.episodes=8",
+            *tiny,
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+        timeout=300,
     )
     assert result.returncode == 0, result.stderr[-2000:]
     assert f"Run directory: {run_dir}" in result.stdout

@@ -60,7 +60,7 @@ def run_training(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             else "not evaluated"
         )
         log.info(
-            "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s",
+            "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s%s",
             k,
             task.stage_names[k],
             learner.algo,
@@ -69,6 +69,7 @@ def run_training(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             result.seconds,
             quality,
             " (early stop)" if result.early_stopped else "",
+            " (best evaluation restored)" if result.restored_best else "",
         )
 
     start = time.perf_counter()

@@ -44,6 +44,7 @@ class StageConfig:
     value_tolerance: float | None = None
     patience: int = 1  # consecutive evaluations that must meet the early-stop criterion
     min_frames: int = 0  # no early stop before this many frames
+    keep_best: bool = True  # budget exhausted: restore the best evaluated weights
 
 
 @dataclass

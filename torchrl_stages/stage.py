@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import sys
 import time
 from dataclasses import dataclass
@@ -29,6 +30,55 @@ class StageResult:
     success_rate: float | None  # last greedy stage evaluation (None: never evaluated)
     value_error: float | None  # mean |V(s_0) - greedy discounted return| at that evaluation
     early_stopped: bool
+    restored_best: bool = False  # budget ran out; the best evaluated weights were restored
+
+
+class _EvalMonitor:
+    """Early stop and best-weights bookkeeping over a stage's greedy evaluations.
+
+    The early-stop criterion must hold for ``patience`` consecutive evaluations after
+    ``min_frames``. When the budget runs out first, :meth:`restore_best` puts back the weights of
+    the best evaluation (highest success, then lowest value error), if ``keep_best``.
+    """
+
+    def __init__(self, cfg: StageConfig) -> None:
+        self.cfg = cfg
+        self.streak = 0
+        self.stopped = False
+        self.best: tuple[float, float] | None = None
+        self.best_state: dict | None = None
+        self.last: tuple[float, float] | None = None
+
+    def record(self, learner: Learner, success: float, value_error: float, frames: int) -> bool:
+        """Records one evaluation; returns whether the stage should stop now."""
+        cfg = self.cfg
+        self.last = (success, value_error)
+        if cfg.keep_best and (self.best is None or (success, -value_error) > self.best):
+            self.best = (success, -value_error)
+            self.best_state = copy.deepcopy(learner.state_dict())
+        met = (
+            cfg.success_threshold is not None
+            and success >= cfg.success_threshold
+            and (cfg.value_tolerance is None or value_error <= cfg.value_tolerance)
+        )
+        self.streak = self.streak + 1 if met else 0
+        self.stopped = self.streak >= cfg.patience and frames >= cfg.min_frames
+        return self.stopped
+
+    def restore_best(self, learner: Learner) -> bool:
+        if self.stopped or self.best_state is None or self.last == (self.best[0], -self.best[1]):
+            return False
+        learner.load_state_dict(self.best_state)
+        return True
+
+    @property
+    def final(self) -> tuple[float | None, float | None]:
+        """Evaluation of the weights the stage ends with."""
+        if self.last is None:
+            return None, None
+        if self.stopped or self.best is None:
+            return self.last
+        return self.best[0], -self.best[1]
 
 
 class StageTrainer:
@@ -92,10 +142,8 @@ class StageTrainer:
             storage=LazyTensorStorage(cfg.buffer_size), batch_size=cfg.batch_size
         )
         keep = learner.loss.in_keys  # store only what the loss reads
-        start, frames, streak = time.perf_counter(), 0, 0
-        success = value_error = None
-        next_eval = cfg.eval_every if cfg.eval_every > 0 else None
-        early_stopped = False
+        monitor = _EvalMonitor(cfg)
+        start, frames, next_eval = time.perf_counter(), 0, cfg.eval_every
         bar = tqdm(
             total=cfg.frames,
             desc=f"stage {self.stage} ({self.name})",
@@ -112,21 +160,16 @@ class StageTrainer:
                 losses = [learner.update(buffer.sample()) for _ in range(cfg.updates_per_batch)]
             self._log_batch(batch, losses, frames)
             bar.update(batch.numel())
-            if next_eval is not None and frames >= next_eval:
+            if cfg.eval_every > 0 and frames >= next_eval:
                 next_eval += cfg.eval_every
                 success, value_error = self.evaluate(frames)
                 bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
-                met = (
-                    cfg.success_threshold is not None
-                    and success >= cfg.success_threshold
-                    and (cfg.value_tolerance is None or value_error <= cfg.value_tolerance)
-                )
-                streak = streak + 1 if met else 0
-                if streak >= cfg.patience and frames >= cfg.min_frames:
-                    early_stopped = True
+                if monitor.record(learner, success, value_error, frames):
                     break
         bar.close()
         collector.shutdown()
+        restored = monitor.restore_best(learner)
+        success, value_error = monitor.final
         return StageResult(
             self.stage,
             frames,
@@ -134,7 +177,8 @@ class StageTrainer:
             time.perf_counter() - start,
             success,
             value_error,
-            early_stopped,
+            monitor.stopped,
+            restored,
         )
 
     def evaluate(self, frames: int) -> tuple[float, float]:

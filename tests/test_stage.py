@@ -1,0 +1,63 @@
+"""Early stop and best-weights restoration of the stage loop."""
+
+import torch
+from omegaconf import OmegaConf
+from torch import nn
+
+from torchrl_stages.config import DQNConfig
+from torchrl_stages.stage import _EvalMonitor
+
+
+def _cfg(**kw):
+    return OmegaConf.structured(DQNConfig(**kw))
+
+
+def _learner(value: float) -> nn.Module:
+    module = nn.Linear(1, 1)
+    module.weight.data.fill_(value)
+    return module
+
+
+def test_early_stop_needs_patience_tolerance_and_min_frames():
+    monitor = _EvalMonitor(
+        _cfg(success_threshold=1.0, value_tolerance=0.05, patience=2, min_frames=300)
+    )
+    learner = _learner(0.0)
+    assert not monitor.record(learner, 1.0, 0.01, 100)
+    assert not monitor.record(learner, 1.0, 0.20, 200)  # values not calibrated: streak resets
+    assert not monitor.record(learner, 1.0, 0.01, 300)
+    assert monitor.record(learner, 1.0, 0.01, 400)
+    assert monitor.stopped and not monitor.restore_best(learner)
+    assert monitor.final == (1.0, 0.01)
+
+
+def test_budget_exhausted_restores_best_evaluation():
+    monitor = _EvalMonitor(_cfg(success_threshold=1.0, patience=3))
+    learner = _learner(0.0)
+    for value, success, error in [(1.0, 0.5, 0.3), (2.0, 1.0, 0.02), (3.0, 0.8, 0.1)]:
+        learner.weight.data.fill_(value)
+        assert not monitor.record(learner, success, error, 0)
+    assert monitor.restore_best(learner)
+    assert learner.weight.item() == 2.0
+    assert monitor.final == (1.0, 0.02)
+
+
+def test_ties_prefer_lower_value_error_and_last_best_is_kept():
+    monitor = _EvalMonitor(_cfg(success_threshold=None))
+    learner = _learner(0.0)
+    for value, error in [(1.0, 0.1), (2.0, 0.05)]:
+        learner.weight.data.fill_(value)
+        monitor.record(learner, 1.0, error, 0)
+    assert not monitor.restore_best(learner)  # the last evaluation is the best one
+    assert learner.weight.item() == 2.0
+
+
+def test_keep_best_off_keeps_last_weights():
+    monitor = _EvalMonitor(_cfg(keep_best=False))
+    learner = _learner(5.0)
+    monitor.record(learner, 1.0, 0.0, 0)
+    learner.weight.data.fill_(6.0)
+    monitor.record(learner, 0.0, 1.0, 0)
+    assert not monitor.restore_best(learner)
+    assert torch.equal(learner.weight, torch.full((1, 1), 6.0))
+    assert monitor.final == (0.0, 1.0)
