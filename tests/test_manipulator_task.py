@@ -19,6 +19,7 @@ from tensordict.nn import TensorDictModule
 from torchrl_stages.cli import build_task
 from torchrl_stages.config import register_configs
 from torchrl_stages.envs.manipulator import inverse_kinematics
+from torchrl_stages.validate import ConfigError
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +39,19 @@ def test_two_ddpg_stages_and_td3_override(compose_cfg):
     assert cfg.task.stages.fine.algo == "td3"
     task = build_task(cfg)
     assert task.num_stages == 2 and task.specs(1).observation_dim == 6
+
+
+def test_dqn_stage_on_continuous_actions_is_refused(compose_cfg):
+    with pytest.raises(ConfigError, match=r"task\.stages\.fine\.algo.*discrete.*Fix:"):
+        build_task(compose_cfg("algo@task.stages.fine=dqn"))
+
+
+def test_random_target_preset_is_one_override(compose_cfg):
+    task = build_task(compose_cfg("task.env.random_target=true"))
+    env = task.task_env(64)
+    env.reset()  # targets are drawn at reset
+    targets = env.base_env.targets
+    assert targets.norm(dim=-1).max() <= 2.0 and targets.unique(dim=0).shape[0] > 1
 
 
 def test_single_stage_baseline_config(compose_cfg):
