@@ -11,6 +11,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from ._common import check_start_stage
+
 __all__ = [
     "GridWorldEnv",
     "greedy_path_from_values",
@@ -124,15 +126,7 @@ class GridWorldEnv(EnvBase):
 
     @start_stage.setter
     def start_stage(self, value: int | None) -> None:
-        if value is not None:
-            if isinstance(value, bool) or int(value) != value:
-                raise ValueError(f"start_stage must be an int or None, got {value!r}.")
-            value = int(value)
-            if not 0 <= value < self.num_stages:
-                raise ValueError(
-                    f"start_stage={value} is out of range [0, num_stages={self.num_stages})."
-                )
-        self._start_stage = value
+        self._start_stage = check_start_stage(value, self.num_stages)
 
     @property
     def start_cell(self) -> torch.Tensor | None:
