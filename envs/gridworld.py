@@ -11,7 +11,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ._common import check_start_stage
+from ._common import StageStarts
 
 __all__ = [
     "GridWorldEnv",
@@ -37,7 +37,7 @@ def _check_grid(size: int, num_stages: int, target: Sequence[int] | None) -> tup
     return tr, tc
 
 
-class GridWorldEnv(EnvBase):
+class GridWorldEnv(StageStarts, EnvBase):
     """A ``size x size`` grid split into ``num_stages`` vertical strips (stages).
 
     Row 0 is the top, column 0 the left. Actions (``Categorical(4)``): 0 row-1, 1 row+1,
@@ -114,20 +114,11 @@ class GridWorldEnv(EnvBase):
         }
         for name, buf in buffers.items():
             self.register_buffer(name, buf, persistent=False)
-        self.rng: torch.Generator | None = None
+        self.rng = None
         self.start_cell = start_cell
         self.start_stage = start_stage
 
     # ------------------------------------------------------------------ start distribution
-    @property
-    def start_stage(self) -> int | None:
-        """Stage whose strip the starts are drawn from (``None``: use ``start_cell``/default)."""
-        return self._start_stage
-
-    @start_stage.setter
-    def start_stage(self, value: int | None) -> None:
-        self._start_stage = check_start_stage(value, self.num_stages)
-
     @property
     def start_cell(self) -> torch.Tensor | None:
         """Fixed start cells as a ``[*B, 2]`` int64 tensor (``None`` if unset)."""
@@ -209,12 +200,6 @@ class GridWorldEnv(EnvBase):
             batch_size=self.batch_size,
             device=self.device,
         )
-
-    def _set_seed(self, seed: int | None) -> None:
-        if seed is None:
-            self.rng = None
-            return
-        self.rng = torch.Generator(device=self.device or "cpu").manual_seed(int(seed))
 
     # ------------------------------------------------------------------ helpers
     def cells_of(self, observation: torch.Tensor) -> torch.Tensor:

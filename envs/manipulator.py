@@ -10,7 +10,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ._common import check_start_stage
+from ._common import StageStarts
 
 __all__ = [
     "ManipulatorEnv",
@@ -90,7 +90,7 @@ def _per_stage(name: str, value: Sequence[float]) -> tuple[float, ...]:
     return values
 
 
-class ManipulatorEnv(EnvBase):
+class ManipulatorEnv(StageStarts, EnvBase):
     """Two-link planar arm (links of length 1) steering its effector onto a target.
 
     The state is the pair of joint angles ``theta`` (wrapped to ``(-pi, pi]`` after every step);
@@ -206,19 +206,10 @@ class ManipulatorEnv(EnvBase):
         }
         for name, buf in buffers.items():
             self.register_buffer(name, buf, persistent=False)
-        self.rng: torch.Generator | None = None
+        self.rng = None
         self.start_stage = start_stage
 
     # ------------------------------------------------------------------ start distribution
-    @property
-    def start_stage(self) -> int | None:
-        """Stage the starts are drawn in (``None`` or ``0``: whole task, ``1``: fine stage)."""
-        return self._start_stage
-
-    @start_stage.setter
-    def start_stage(self, value: int | None) -> None:
-        self._start_stage = check_start_stage(value, self.num_stages)
-
     def _rand(self, *shape: int) -> torch.Tensor:
         return torch.rand(shape, device=self.device, generator=self.rng)
 
@@ -316,12 +307,6 @@ class ManipulatorEnv(EnvBase):
             batch_size=bs,
             device=self.device,
         )
-
-    def _set_seed(self, seed: int | None) -> None:
-        if seed is None:
-            self.rng = None
-            return
-        self.rng = torch.Generator(device=self.device or "cpu").manual_seed(int(seed))
 
     def stage_observation_keys(self, stage: int) -> list[str]:
         """Network inputs of every stage: only ``"observation"`` (``"stage"`` is a tag)."""
