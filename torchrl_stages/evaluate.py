@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -53,9 +53,6 @@ class EpisodeStats:
             if ok.any()
             else float("nan"),
         }
-
-    def as_dict(self) -> dict[str, list]:
-        return {k: v.tolist() for k, v in asdict(self).items()}
 
 
 def episode_stats(rollout: TensorDictBase) -> EpisodeStats:

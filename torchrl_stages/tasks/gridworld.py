@@ -74,7 +74,7 @@ def report(
     if plots:
         from torchrl_stages.plots import plot_grid_trajectories, plot_value_map
 
-        paths = [greedy_path(task, policy, s) for s in ([0, 0], [12, 0], [24, 0])]
+        paths = [path] + [greedy_path(task, policy, s) for s in ([12, 0], [24, 0])]
         plot_grid_trajectories(
             paths,
             size=size,
