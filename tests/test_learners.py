@@ -163,6 +163,41 @@ def test_td3_no_target_update_before_delay():
     assert td_equal(actor0, learner.loss.actor_network_params.detach())
 
 
+def saturate(learner, bias: float) -> None:
+    """Pushes every pre-tanh actor output to about ``bias`` (deep saturation for |bias| >> 2)."""
+    last = [m for m in learner.actor.modules() if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.fill_(bias)
+
+
+@pytest.mark.parametrize("algo", ["ddpg", "td3"])
+def test_saturation_penalty_is_zero_inside_the_bound(algo):
+    learner = make(algo, saturation_penalty=1.0)
+    saturate(learner, 1.5)
+    _, penalty = learner.with_saturation_penalty(learner.loss, batch_for(learner.specs))
+    assert penalty.item() == 0.0
+    _, off = make(algo).with_saturation_penalty(learner.loss, batch_for(learner.specs))
+    assert off == 0.0  # the default (0) adds nothing and skips the hook
+
+
+@pytest.mark.parametrize("algo", ["ddpg", "td3"])
+def test_saturation_penalty_pulls_a_saturated_actor_back(algo):
+    learner = (
+        make(algo, saturation_penalty=1.0, policy_update_delay=1)
+        if algo == "td3"
+        else (make(algo, saturation_penalty=1.0))
+    )
+    saturate(learner, 6.0)  # tanh'(6) = 2.5e-5: the actor loss alone barely moves it
+    batch = batch_for(learner.specs)
+    _, penalty = learner.with_saturation_penalty(learner.loss, batch)
+    assert penalty.item() == pytest.approx((6.0 - 2.0) ** 2, rel=1e-5)
+    last = [m for m in learner.actor.modules() if isinstance(m, torch.nn.Linear)][-1]
+    for _ in range(20):
+        learner.update(batch)
+    assert (last.bias < 6.0 - 20 * 1e-2 * 0.5).all()  # Adam steps of ~lr towards the bound
+
+
 def test_dqn_double_and_dueling_build_and_update():
     learner = DQNLearner(dqn_cfg(double_dqn=True, dueling=True), DISCRETE)
     assert learner.loss.double_dqn

@@ -61,3 +61,13 @@ def test_keep_best_off_keeps_last_weights():
     assert not monitor.restore_best(learner)
     assert torch.equal(learner.weight, torch.full((1, 1), 6.0))
     assert monitor.final == (0.0, 1.0)
+
+
+def test_keep_best_by_return_prefers_the_highest_discounted_return():
+    monitor = _EvalMonitor(_cfg(success_threshold=None, keep_best_by="return"))
+    learner = _learner(0.0)
+    for value, success, ret in [(1.0, 0.9, 0.5), (2.0, 1.0, 0.2), (3.0, 1.0, 0.4)]:
+        learner.weight.data.fill_(value)
+        monitor.record(learner, success, 0.1, 0, ret)
+    assert monitor.restore_best(learner)  # a faster policy beats a more reliable, slower one
+    assert learner.weight.item() == 1.0 and monitor.final == (0.9, 0.1)

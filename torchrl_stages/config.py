@@ -28,6 +28,11 @@ class StageConfig:
     lr: float = 1e-3  # learning rate (the critic's, for actor-critic algorithms)
     num_cells: list[int] = field(default_factory=lambda: [64, 64])  # hidden layers of each MLP
     fourier_features: int = 0  # octaves of sin/cos input encoding before each MLP (0: raw input)
+    # CNN over image observations (C, H, W), one entry per conv layer (padding kernel // 2); its
+    # flattened features join the vector observations before the MLP. Unused without images.
+    cnn_channels: list[int] = field(default_factory=lambda: [16, 32])
+    cnn_kernels: list[int] = field(default_factory=lambda: [3, 3])
+    cnn_strides: list[int] = field(default_factory=lambda: [1, 2])
     num_envs: int = 64  # batch size of the stage's training env
     frames: int = 100_000  # env-frame budget of the stage
     frames_per_batch: int = 256  # frames per collector batch
@@ -45,6 +50,9 @@ class StageConfig:
     patience: int = 1  # consecutive evaluations that must meet the early-stop criterion
     min_frames: int = 0  # no early stop before this many frames
     keep_best: bool = True  # budget exhausted: restore the best evaluated weights
+    # "best": value_error = highest success, then lowest value error; return = highest mean
+    # discounted return of the greedy evaluation episodes (the stage's objective)
+    keep_best_by: str = "value_error"
 
 
 @dataclass
@@ -70,6 +78,9 @@ class DDPGConfig(StageConfig):
     sigma_init: float = 0.5  # exploration noise std (in action units) at the start
     sigma_end: float = 0.1
     annealing_frames: int = 20_000
+    # weight of mean(relu(|pre-tanh actor output| - 2)^2) in the actor loss: keeps the actor out
+    # of deep tanh saturation, where its gradient vanishes (0: off)
+    saturation_penalty: float = 0.0
 
 
 @dataclass

@@ -38,7 +38,8 @@ class _EvalMonitor:
 
     The early-stop criterion must hold for ``patience`` consecutive evaluations after
     ``min_frames``. When the budget runs out first, :meth:`restore_best` puts back the weights of
-    the best evaluation (highest success, then lowest value error), if ``keep_best``.
+    the best evaluation, if ``keep_best``: highest success, then lowest value error (``keep_best_by
+    = "value_error"``), or highest mean discounted return, the stage's objective (``"return"``).
     """
 
     def __init__(self, cfg: StageConfig) -> None:
@@ -46,15 +47,21 @@ class _EvalMonitor:
         self.streak = 0
         self.stopped = False
         self.best: tuple[float, float] | None = None
+        self.best_score: tuple[float, float] | None = None
+        self.best_is_last = False
         self.best_state: dict | None = None
         self.last: tuple[float, float] | None = None
 
-    def record(self, learner: Learner, success: float, value_error: float, frames: int) -> bool:
+    def record(
+        self, learner: Learner, success: float, value_error: float, frames: int, ret: float = 0.0
+    ) -> bool:
         """Records one evaluation; returns whether the stage should stop now."""
         cfg = self.cfg
         self.last = (success, value_error)
-        if cfg.keep_best and (self.best is None or (success, -value_error) > self.best):
-            self.best = (success, -value_error)
+        score = (ret, success) if cfg.keep_best_by == "return" else (success, -value_error)
+        self.best_is_last = cfg.keep_best and (self.best_score is None or score > self.best_score)
+        if self.best_is_last:
+            self.best_score, self.best = score, (success, -value_error)
             self.best_state = copy.deepcopy(learner.state_dict())
         met = (
             cfg.success_threshold is not None
@@ -66,7 +73,7 @@ class _EvalMonitor:
         return self.stopped
 
     def restore_best(self, learner: Learner) -> bool:
-        if self.stopped or self.best_state is None or self.last == (self.best[0], -self.best[1]):
+        if self.stopped or self.best_state is None or self.best_is_last:
             return False
         learner.load_state_dict(self.best_state)
         return True
@@ -162,9 +169,9 @@ class StageTrainer:
             bar.update(batch.numel())
             if cfg.eval_every > 0 and frames >= next_eval:
                 next_eval += cfg.eval_every
-                success, value_error = self.evaluate(frames)
+                success, value_error, ret = self.evaluate(frames)
                 bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
-                if monitor.record(learner, success, value_error, frames):
+                if monitor.record(learner, success, value_error, frames, ret):
                     break
         bar.close()
         collector.shutdown()
@@ -181,13 +188,14 @@ class StageTrainer:
             restored,
         )
 
-    def evaluate(self, frames: int) -> tuple[float, float]:
-        """Greedy episodes from random starts in the stage; logs and returns two numbers.
+    def evaluate(self, frames: int) -> tuple[float, float, float]:
+        """Greedy episodes from random starts in the stage; logs and returns three numbers.
 
         ``success_rate``: episodes that terminate (leave the stage or end the task) before the
         time limit. ``value_error``: mean ``|V(s_0) - G|`` between the stage's value estimate at
         the start and the discounted return the greedy policy actually got, a check that the
-        values handed to the previous stage have converged.
+        values handed to the previous stage have converged. ``discounted_return``: the mean of
+        those returns, the stage's objective.
         """
         max_steps = self.cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
         stats, rollout = evaluate_policy(self.eval_env, self.learner.policy, max_steps)
@@ -196,8 +204,9 @@ class StageTrainer:
         with torch.no_grad():
             v0 = self.learner.value()(rollout[:, 0].clone()).get("state_value").reshape(-1)
         summary["value_error"] = (v0 - returns).abs().mean().item()
+        summary["discounted_return"] = returns.mean().item()
         self._log({f"eval/stage_{self.stage}/{k}": v for k, v in summary.items()}, frames)
-        return summary["success_rate"], summary["value_error"]
+        return summary["success_rate"], summary["value_error"], summary["discounted_return"]
 
     def _log_batch(self, batch, losses: list[dict[str, torch.Tensor]], frames: int) -> None:
         if self.logger is None:

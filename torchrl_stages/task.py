@@ -97,6 +97,8 @@ class StagedTask:
         action_key = (
             env.stage_action_key(stage) if hasattr(env, "stage_action_key") else (env.action_key)
         )
-        obs_dim = sum(int(env.observation_spec[k].shape[-1]) for k in obs_keys)
+        obs_spec = env.observation_spec_unbatched
+        shapes = [tuple(obs_spec[k].shape) for k in obs_keys]
+        obs_dim = sum(s[-1] for s in shapes if len(s) == 1)
         action_spec = env.full_action_spec_unbatched[action_key]
-        return StageSpecs(obs_keys, obs_dim, action_key, action_spec)
+        return StageSpecs(obs_keys, obs_dim, action_key, action_spec, shapes)

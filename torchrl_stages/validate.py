@@ -69,6 +69,24 @@ def _check_stage(key: str, s: DictConfig) -> None:
         "needs at least one positive layer width",
         f"set {key}.num_cells=[64,64]",
     )
+    defaults = {"cnn_channels": "[16,32]", "cnn_kernels": "[3,3]", "cnn_strides": "[1,2]"}
+    cnn = {field: list(s[field]) for field in defaults}
+    for field, values in cnn.items():
+        _check(
+            len(values) > 0 and all(v > 0 for v in values),
+            f"{key}.{field}",
+            values,
+            "must hold positive integers (one per conv layer)",
+            f"set {key}.{field}={defaults[field]}",
+        )
+    _check(
+        len(set(map(len, cnn.values()))) == 1,
+        f"{key}.cnn_channels",
+        cnn["cnn_channels"],
+        f"needs one entry per conv layer, like {key}.cnn_kernels={cnn['cnn_kernels']} and "
+        f"{key}.cnn_strides={cnn['cnn_strides']}",
+        "give cnn_channels, cnn_kernels and cnn_strides the same length",
+    )
     _check(
         s.frames_per_batch % s.num_envs == 0,
         f"{key}.frames_per_batch",
@@ -97,6 +115,13 @@ def _check_stage(key: str, s: DictConfig) -> None:
         f"unknown (known: {', '.join(LOSS_FUNCTIONS)})",
         f"set {key}.loss_function=l2",
     )
+    _check(
+        s.keep_best_by in ("value_error", "return"),
+        f"{key}.keep_best_by",
+        s.keep_best_by,
+        "unknown (known: value_error, return)",
+        f"set {key}.keep_best_by=value_error",
+    )
     if s.success_threshold is not None:
         fraction("success_threshold")
     if s.eval_max_steps is not None:
@@ -115,6 +140,7 @@ def _check_stage(key: str, s: DictConfig) -> None:
         non_negative("annealing_frames")
     else:
         positive("actor_lr", 1e-3)
+        non_negative("saturation_penalty")
         non_negative("sigma_init")
         non_negative("sigma_end")
         non_negative("annealing_frames")

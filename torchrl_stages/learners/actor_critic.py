@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TypeVar
+
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.data import TensorSpec
 from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
@@ -11,6 +15,9 @@ from torchrl.objectives import LossModule, SoftUpdate, ValueEstimators
 from torchrl_stages.config import DDPGConfig
 from torchrl_stages.learners.base import Learner, StageSpecs, is_continuous, linear_schedule
 from torchrl_stages.learners.networks import mlp
+
+T = TypeVar("T")
+SATURATION = 2.0  # pre-tanh magnitude beyond which `saturation_penalty` applies (tanh(2) = 0.96)
 
 
 class ActorCriticLearner(Learner):
@@ -25,16 +32,17 @@ class ActorCriticLearner(Learner):
         super().__init__(cfg, specs)
         spec = specs.action_spec
         action_dim = spec.shape[-1]
+        inputs, cells, fourier = specs.input_shapes, list(cfg.num_cells), cfg.fourier_features
         self.actor = TensorDictSequential(
             TensorDictModule(
-                mlp(specs.observation_dim, action_dim, list(cfg.num_cells), cfg.fourier_features),
+                mlp(inputs, action_dim, cells, fourier, self.cnn),
                 in_keys=specs.observation_keys,
                 out_keys=["_actor_param"],
             ),
             TanhModule(in_keys=["_actor_param"], out_keys=[specs.action_key], spec=spec),
         )
         self.critic = ValueOperator(
-            mlp(specs.observation_dim + action_dim, 1, list(cfg.num_cells), cfg.fourier_features),
+            mlp([*inputs, (action_dim,)], 1, cells, fourier, self.cnn),
             in_keys=[*specs.observation_keys, specs.action_key],
             out_keys=["state_action_value"],
         )
@@ -71,6 +79,32 @@ class ActorCriticLearner(Learner):
     def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """The loss module's trainable (actor, critic) parameters."""
         raise NotImplementedError
+
+    def with_saturation_penalty(
+        self, loss_fn: Callable[[TensorDictBase], T], batch: TensorDictBase
+    ) -> tuple[T, torch.Tensor | float]:
+        """``loss_fn(batch)`` and ``cfg.saturation_penalty`` times the mean of
+        ``relu(|u| - SATURATION)^2`` over the pre-tanh outputs ``u`` of the trained actor in it.
+
+        Without the penalty an actor can drive ``u`` deep into tanh saturation, where its gradient
+        vanishes and the policy stays at an action bound for good (e.g. a robot that only turns
+        one way). Inside ``|u| <= SATURATION`` (``|action| <= 0.96`` of the bound) it is zero.
+        """
+        if self.cfg.saturation_penalty <= 0:
+            return loss_fn(batch), 0.0
+        captured: list[torch.Tensor] = []
+
+        def keep(module, args, out) -> None:
+            if out.get("_actor_param").requires_grad:  # the trained actor, not the target one
+                captured.append(out.get("_actor_param"))
+
+        handle = self.actor[0].register_forward_hook(keep)
+        try:
+            out = loss_fn(batch)
+        finally:
+            handle.remove()
+        excess = (captured[-1].abs() - SATURATION).clamp_min(0.0)
+        return out, self.cfg.saturation_penalty * excess.pow(2).mean()
 
     def anneal(self, frames: int) -> None:
         cfg = self.cfg

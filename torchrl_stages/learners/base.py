@@ -14,6 +14,7 @@ from torch import nn
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
 
 from torchrl_stages.config import StageConfig
+from torchrl_stages.learners.networks import ConvSpec
 
 
 @dataclass
@@ -21,16 +22,26 @@ class StageSpecs:
     """The slice of an env a stage learner is built from.
 
     Attributes:
-        observation_keys: the entries its networks read (flat float vectors, concatenated).
-        observation_dim: the summed size of their last dimension.
+        observation_keys: the entries its networks read.
+        observation_dim: the summed size of the vector entries (concatenated).
         action_key: the entry its policy writes.
         action_spec: the unbatched spec of that entry.
+        observation_shapes: unbatched shape of each observation entry, ``(d,)`` for vectors and
+            ``(C, H, W)`` for images (which go through a CNN); ``None``: all are vectors.
     """
 
     observation_keys: list[NestedKey]
     observation_dim: int
     action_key: NestedKey
     action_spec: TensorSpec
+    observation_shapes: list[tuple[int, ...]] | None = None
+
+    @property
+    def input_shapes(self) -> list[tuple[int, ...]]:
+        """The shapes network builders take (one flat vector unless shapes are given)."""
+        if self.observation_shapes is None:
+            return [(self.observation_dim,)]
+        return [tuple(s) for s in self.observation_shapes]
 
 
 def is_discrete(spec: TensorSpec) -> bool:
@@ -72,6 +83,12 @@ class Learner(nn.Module, ABC):
         self.exploration_policy: TensorDictModuleBase
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.num_updates = 0
+
+    @property
+    def cnn(self) -> ConvSpec:
+        """The CNN applied to image observations, from ``cfg.cnn_*``."""
+        cfg = self.cfg
+        return ConvSpec(tuple(cfg.cnn_channels), tuple(cfg.cnn_kernels), tuple(cfg.cnn_strides))
 
     @classmethod
     def check_action_spec(cls, spec: TensorSpec) -> str | None:

@@ -44,9 +44,9 @@ class DDPGLearner(ActorCriticLearner):
         )
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        out = self.loss(batch)
+        out, penalty = self.with_saturation_penalty(self.loss, batch)
         # Sum only the loss terms: other entries (pred_value, ...) are not detached.
-        self._step(out["loss_actor"] + out["loss_value"])
+        self._step(out["loss_actor"] + out["loss_value"] + penalty)
         self.target_updater.step()
         self.num_updates += 1
         return {"loss_actor": out["loss_actor"].detach(), "loss_value": out["loss_value"].detach()}

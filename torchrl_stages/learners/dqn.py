@@ -35,11 +35,12 @@ class DQNLearner(Learner):
         spec = specs.action_spec
         self.qnet = QValueActor(
             qvalue_net(
-                specs.observation_dim,
+                specs.input_shapes,
                 spec.space.n,
                 list(cfg.num_cells),
                 dueling=cfg.dueling,
                 fourier=cfg.fourier_features,
+                cnn=self.cnn,
             ),
             in_keys=specs.observation_keys,
             spec=spec,

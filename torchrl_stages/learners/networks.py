@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -35,6 +37,89 @@ class FourierFeatures(nn.Module):
         return torch.cat([x, angles.sin(), angles.cos()], -1)
 
 
+Shape = tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class ConvSpec:
+    """Layers of the CNN applied to image inputs ``(C, H, W)``: one entry per conv layer.
+
+    Each layer is ``Conv2d(kernel, stride, padding=kernel // 2)`` + ReLU; the output is flattened.
+    """
+
+    channels: tuple[int, ...] = (16, 32)
+    kernels: tuple[int, ...] = (3, 3)
+    strides: tuple[int, ...] = (1, 2)
+
+
+class ConvEncoder(nn.Module):
+    """A small CNN over ``[*batch, C, H, W]`` images (any dtype, e.g. uint8 occupancy windows),
+    flattened to ``[*batch, out_features]``.
+
+    Examples:
+        >>> ConvEncoder((1, 10, 10), ConvSpec())(torch.zeros(4, 7, 1, 10, 10)).shape
+        torch.Size([4, 7, 800])
+    """
+
+    def __init__(self, shape: Shape, spec: ConvSpec) -> None:
+        super().__init__()
+        if not len(spec.channels) == len(spec.kernels) == len(spec.strides):
+            raise ValueError(f"ConvSpec fields must have equal lengths, got {spec}.")
+        self.shape = tuple(shape)
+        layers: list[nn.Module] = []
+        in_channels = self.shape[0]
+        for channels, kernel, stride in zip(spec.channels, spec.kernels, spec.strides, strict=True):
+            layers += [nn.Conv2d(in_channels, channels, kernel, stride, kernel // 2), nn.ReLU()]
+            in_channels = channels
+        self.net = nn.Sequential(*layers, nn.Flatten())
+        with torch.no_grad():
+            self.out_features = int(self.net(torch.zeros(1, *self.shape)).shape[-1])
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        lead = image.shape[: image.ndim - 3]
+        out = self.net(image.reshape(-1, *self.shape).to(torch.get_default_dtype()))
+        return out.reshape(*lead, self.out_features)
+
+
+class InputEncoder(nn.Module):
+    """Features of a network's inputs: CNN features of each image input, concatenated with the
+    vector inputs (after :class:`FourierFeatures` when ``fourier > 0``).
+
+    Args:
+        inputs: unbatched shape of each input, in call order: ``(C, H, W)`` images, ``(d,)``
+            vectors.
+
+    Examples:
+        >>> enc = InputEncoder([(1, 10, 10), (2,)], cnn=ConvSpec(channels=(4,), kernels=(3,),
+        ...                    strides=(2,)))
+        >>> enc.out_features, enc(torch.zeros(5, 1, 10, 10), torch.zeros(5, 2)).shape
+        (102, torch.Size([5, 102]))
+    """
+
+    def __init__(
+        self, inputs: Sequence[Shape], *, fourier: int = 0, cnn: ConvSpec | None = None
+    ) -> None:
+        super().__init__()
+        self.is_image = [len(shape) == 3 for shape in inputs]
+        if any(len(shape) not in (1, 3) for shape in inputs):
+            raise ValueError(f"inputs must be vectors (d,) or images (C, H, W), got {inputs}.")
+        cnn = cnn or ConvSpec()
+        self.convs = nn.ModuleList(ConvEncoder(s, cnn) for s in inputs if len(s) == 3)
+        vector_dim = sum(s[0] for s in inputs if len(s) == 1)
+        self.fourier = FourierFeatures(fourier) if fourier > 0 and vector_dim else None
+        self.out_features = sum(conv.out_features for conv in self.convs) + (
+            self.fourier.out_features(vector_dim) if self.fourier is not None else vector_dim
+        )
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        images = iter(self.convs)
+        features = [next(images)(x) for x, img in zip(inputs, self.is_image, strict=True) if img]
+        vectors = [x for x, img in zip(inputs, self.is_image, strict=True) if not img]
+        if vectors:
+            features.append(self.fourier(*vectors) if self.fourier else torch.cat(vectors, -1))
+        return torch.cat(features, -1)
+
+
 class _Encoded(nn.Module):
     def __init__(self, encoder: nn.Module, body: nn.Module) -> None:
         super().__init__()
@@ -44,33 +129,46 @@ class _Encoded(nn.Module):
         return self.body(self.encoder(*inputs))
 
 
-def mlp(in_features: int, out_features: int, num_cells: list[int], fourier: int = 0) -> nn.Module:
-    """An MLP over the concatenated inputs, optionally after :class:`FourierFeatures`."""
-    if fourier <= 0:
-        return MLP(in_features=in_features, out_features=out_features, num_cells=num_cells)
-    features = FourierFeatures(fourier)
-    body = MLP(
-        in_features=features.out_features(in_features),
-        out_features=out_features,
-        num_cells=num_cells,
-    )
-    return _Encoded(features, body)
+def _encoder(
+    inputs: int | Sequence[Shape], fourier: int, cnn: ConvSpec | None
+) -> tuple[nn.Module | None, int]:
+    """The input encoder (``None``: raw concatenated vectors) and its number of features."""
+    shapes = [(inputs,)] if isinstance(inputs, int) else [tuple(s) for s in inputs]
+    if fourier <= 0 and all(len(s) == 1 for s in shapes):
+        return None, sum(s[0] for s in shapes)
+    encoder = InputEncoder(shapes, fourier=fourier, cnn=cnn)
+    return encoder, encoder.out_features
+
+
+def mlp(
+    inputs: int | Sequence[Shape],
+    out_features: int,
+    num_cells: list[int],
+    fourier: int = 0,
+    cnn: ConvSpec | None = None,
+) -> nn.Module:
+    """An MLP over the inputs: ``inputs`` is a vector size, or the shape of each input (see
+    :class:`InputEncoder`: images go through a CNN, vectors optionally through Fourier features).
+    """
+    encoder, width = _encoder(inputs, fourier, cnn)
+    body = MLP(in_features=width, out_features=out_features, num_cells=num_cells)
+    return body if encoder is None else _Encoded(encoder, body)
 
 
 def qvalue_net(
-    in_features: int,
+    inputs: int | Sequence[Shape],
     num_actions: int,
     num_cells: list[int],
     *,
     dueling: bool = False,
     fourier: int = 0,
+    cnn: ConvSpec | None = None,
 ) -> nn.Module:
     """Q-values of every action: an MLP, or a dueling one (``Q = V + A - mean(A)``, the last
-    hidden width feeding separate value and advantage heads)."""
+    hidden width feeding separate value and advantage heads). ``inputs`` as in :func:`mlp`."""
     if not dueling:
-        return mlp(in_features, num_actions, num_cells, fourier)
-    encoder = FourierFeatures(fourier) if fourier > 0 else None
-    width_in = encoder.out_features(in_features) if encoder is not None else in_features
+        return mlp(inputs, num_actions, num_cells, fourier, cnn)
+    encoder, width_in = _encoder(inputs, fourier, cnn)
     *trunk, width = num_cells
     net = DuelingMlpDQNet(
         num_actions,

@@ -55,8 +55,8 @@ class TD3Learner(ActorCriticLearner):
         out = {"loss_qvalue": loss_q.detach()}
         self.num_updates += 1
         if self.num_updates % self.cfg.policy_update_delay == 0:
-            loss_actor, _ = self.loss.actor_loss(batch)
-            self._step(loss_actor, "actor")
+            (loss_actor, _), penalty = self.with_saturation_penalty(self.loss.actor_loss, batch)
+            self._step(loss_actor + penalty, "actor")
             self.optimizers["critic"].zero_grad(set_to_none=True)
             self.target_updater.step()
             out["loss_actor"] = loss_actor.detach()
