@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+from torchrl.data import Categorical, Composite, Unbounded
 
 
 def check_start_stage(value: int | None, num_stages: int) -> int | None:
@@ -15,6 +16,19 @@ def check_start_stage(value: int | None, num_stages: int) -> int | None:
     if not 0 <= value < num_stages:
         raise ValueError(f"start_stage={value} is out of range [0, num_stages={num_stages}).")
     return value
+
+
+def sparse_reward_and_done_specs(
+    batch_size: torch.Size, device: torch.device | None
+) -> tuple[Unbounded, Composite]:
+    """The reward spec (float ``[*B, 1]``) and the ``done``/``terminated``/``truncated`` flags
+    (bool ``[*B, 1]``) shared by the multi-stage envs."""
+    reward = Unbounded(shape=(*batch_size, 1), dtype=torch.float32, device=device)
+    flag = Categorical(2, shape=(*batch_size, 1), dtype=torch.bool, device=device)
+    done = Composite(
+        done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=batch_size
+    )
+    return reward, done
 
 
 class StageStarts:

@@ -11,7 +11,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ._common import StageStarts
+from ._common import StageStarts, sparse_reward_and_done_specs
 
 __all__ = [
     "GridWorldEnv",
@@ -96,11 +96,7 @@ class GridWorldEnv(StageStarts, EnvBase):
             observation=Unbounded(shape=(*bs, 2), dtype=torch.float32, device=dev), shape=bs
         )
         self.action_spec = Categorical(4, shape=bs, dtype=torch.int64, device=dev)
-        self.reward_spec = Unbounded(shape=(*bs, 1), dtype=torch.float32, device=dev)
-        flag = Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=dev)
-        self.done_spec = Composite(
-            done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=bs
-        )
+        self.reward_spec, self.done_spec = sparse_reward_and_done_specs(bs, dev)
         # dynamics as lookup tables indexed by cell * 4 + action (cell = row * size + col)
         nxt, enters, _, _ = _transitions(self.size, self.num_stages, self.target)
         rc = np.stack(np.divmod(np.arange(self.size**2), self.size), -1)

@@ -10,7 +10,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ._common import StageStarts
+from ._common import StageStarts, sparse_reward_and_done_specs
 
 __all__ = [
     "ManipulatorEnv",
@@ -191,11 +191,7 @@ class ManipulatorEnv(StageStarts, EnvBase):
             shape=bs,
         )
         self.action_spec = Bounded(-1.0, 1.0, shape=(*bs, 2), dtype=f32, device=dev)
-        self.reward_spec = Unbounded(shape=(*bs, 1), dtype=f32, device=dev)
-        flag = Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=dev)
-        self.done_spec = Composite(
-            done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=bs
-        )
+        self.reward_spec, self.done_spec = sparse_reward_and_done_specs(bs, dev)
         buffers = {  # non-persistent buffers: follow env.to(device), stay out of state_dict
             "_u_max_t": torch.tensor(self.u_max, dtype=f32, device=dev),
             "_scales_t": torch.tensor(self.scales, dtype=f32, device=dev),

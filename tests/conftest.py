@@ -1,5 +1,11 @@
 """Shared setup for the test-suite: one intra-op thread (small nets) and a fixed seed."""
 
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -9,3 +15,39 @@ torch.set_num_threads(1)
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
+
+
+TINY_STAGE = {  # per-stage budgets that train any stage in about a second
+    "frames": 256,
+    "frames_per_batch": 128,
+    "num_envs": 16,
+    "init_random_frames": 128,
+    "batch_size": 32,
+    "updates_per_batch": 1,
+    "eval_every": 128,
+    "eval_episodes": 4,
+    "min_frames": 0,
+}
+
+
+@pytest.fixture
+def train_tiny(tmp_path):
+    """``train_tiny(task, stages, *overrides)`` runs ``stages-train task=<task>`` as a
+    subprocess in ``tmp_path`` with tiny budgets for the named stages; returns the completed
+    process and the run directory."""
+
+    def run(task: str, stages: list[str], *overrides: str):
+        tiny = [f"task.stages.{s}.{k}={v}" for s in stages for k, v in TINY_STAGE.items()]
+        run_dir = tmp_path / "run"
+        script = shutil.which("stages-train") or str(Path(sys.executable).parent / "stages-train")
+        result = subprocess.run(
+            [script, f"task={task}", f"hydra.run.dir={run_dir}", *tiny, *overrides],
+            capture_output=True,
+            text=True,
+            cwd=tmp_path,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+            timeout=300,
+        )
+        return result, run_dir
+
+    return run
