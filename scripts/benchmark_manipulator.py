@@ -14,16 +14,10 @@ percentiles, training wall-clock and frames.
 
 from __future__ import annotations
 
-import argparse
 import statistics
-import tempfile
 from pathlib import Path
 
-import torch
-from hydra import compose, initialize_config_module
-
-from torchrl_stages.cli import run_training
-from torchrl_stages.config import register_configs
+from _benchmark import parse_args, train
 
 SINGLE = ["~task.stages.fine", "task.env.scales=[0.5]"]
 VARIANTS = {
@@ -40,14 +34,9 @@ def run(variant: str, seed: int, frames: int, out: Path) -> dict:
     budget = [f"task.stages.coarse.frames={2 * frames if single else frames}"]
     if not single:
         budget.append(f"task.stages.fine.frames={frames}")
-    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-        cfg = compose(
-            "config",
-            overrides=["task=manipulator", f"seed={seed}", "logger=csv", *overrides, *budget],
-        )
-    run_dir = out / f"{variant}_seed{seed}"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    result = run_training(cfg, run_dir)
+    result = train(
+        "manipulator", out / f"{variant}_seed{seed}", f"seed={seed}", *overrides, *budget
+    )
     m = result["task_metrics"]
     return {
         "variant": variant,
@@ -62,30 +51,7 @@ def run(variant: str, seed: int, frames: int, out: Path) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
-    parser.add_argument(
-        "--frames",
-        type=int,
-        default=None,
-        help="frame budget per SDQL stage (single learners get twice this); "
-        "default: the task config's",
-    )
-    parser.add_argument("--out", type=Path, default=None)
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-    register_configs()
-    out = args.out or Path(tempfile.mkdtemp(prefix="manipulator_bench_"))
-    if args.frames is None:
-        with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-            args.frames = int(
-                compose("config", overrides=["task=manipulator"]).task.stages.fine.frames
-            )
-    print(
-        f"runs in {out}; budget {args.frames} frames per SDQL stage, "
-        f"{2 * args.frames} for single learners"
-    )
+    args = parse_args(__doc__, list(VARIANTS), "manipulator", "fine")
     print(
         "| variant | seed | success (1000 eps) | mean steps (successes) "
         "| final distance p50 / p90 / p99 | train wall-clock (s) | env frames |"
@@ -94,7 +60,7 @@ def main() -> None:
     rows = []
     for variant in args.variants:
         for seed in args.seeds:
-            r = run(variant, seed, args.frames, out)
+            r = run(variant, seed, args.frames, args.out)
             rows.append(r)
             dist = " / ".join(f"{d:.3f}" for d in r["dist"])
             print(

@@ -4,11 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -94,43 +89,8 @@ def test_transition_reward_uses_fine_value_of_post_switch_observation(compose_cf
     assert best["terminated"].item() and best["done"].item()
 
 
-def _cli(name: str) -> str:
-    return shutil.which(name) or str(Path(sys.executable).parent / name)
-
-
-def test_tiny_cli_run(tmp_path):
-    tiny = []
-    for stage in ("coarse", "fine"):
-        tiny += [
-            f"task.stages.{stage}.{k}={v}"
-            for k, v in dict(
-                frames=256,
-                frames_per_batch=128,
-                num_envs=16,
-                init_random_frames=128,
-                batch_size=64,
-                updates_per_batch=1,
-                eval_every=128,
-                eval_episodes=8,
-                min_frames=0,
-            ).items()
-        ]
-    run_dir = tmp_path / "run"
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    result = subprocess.run(
-        [
-            _cli("stages-train"),
-            "task=manipulator",
-            f"hydra.run.dir={run_dir}",
-            "eval.episodes=8",
-            *tiny,
-        ],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        env=env,
-        timeout=300,
-    )
+def test_tiny_cli_run(train_tiny):
+    result, run_dir = train_tiny("manipulator", ["coarse", "fine"], "eval.episodes=8")
     assert result.returncode == 0, result.stderr[-2000:]
     assert f"Run directory: {run_dir}" in result.stdout
     metrics = json.loads((run_dir / "eval.json").read_text())["task_metrics"]

@@ -6,7 +6,12 @@ import sys
 import numpy as np
 import pytest
 
-from torchrl_stages.plots import plot_grid_trajectories, plot_learning_curves, plot_value_map
+from torchrl_stages.plots import (
+    plot_cargo_figure,
+    plot_grid_trajectories,
+    plot_learning_curves,
+    plot_value_map,
+)
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SIZE, WIDTH, TARGET = 25, 5, (24, 24)
@@ -102,6 +107,28 @@ def test_learning_curves_only_unmatched_rows(tmp_path):
     csv_path = tmp_path / "metrics.csv"
     csv_path.write_text("name,step,value\neval/task/success_rate,0,1.0\n")
     assert plot_learning_curves(csv_path, tmp_path / "c.png", names=("success_rate",)) is None
+
+
+@pytest.mark.parametrize(
+    "robots, stages",
+    [(("slider", "propelled"), [0, 0, 1, 1, 0, 1]), (("propelled",), [0] * 6)],
+)
+def test_cargo_figure_png(tmp_path, robots, stages):
+    occupancy = np.zeros((50, 70), dtype=bool)
+    occupancy[10:20, 40:46] = True
+    # segments are drawn in runs per stage; non-contiguous runs of one stage are split
+    path = [[30.0, 10.0], [33.0, 10.0], [36.0, 11.0], [40.0, 25.0], [34.5, 25.0], [36.0, 26.0]]
+    out = tmp_path / "cargo.png"
+    got = plot_cargo_figure(
+        occupancy,
+        [(path, stages), ([[5.0, 5.0]], [0])],
+        robots=robots,
+        stage_line=35.0,
+        target=(62.0, 36.0),
+        success_radius=2.0,
+        out=out,
+    )
+    assert_png(got, out)
 
 
 def test_module_does_not_load_pyplot():

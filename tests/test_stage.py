@@ -66,8 +66,14 @@ def test_keep_best_off_keeps_last_weights():
 def test_keep_best_by_return_prefers_the_highest_discounted_return():
     monitor = _EvalMonitor(_cfg(success_threshold=None, keep_best_by="return"))
     learner = _learner(0.0)
-    for value, success, ret in [(1.0, 0.9, 0.5), (2.0, 1.0, 0.2), (3.0, 1.0, 0.4)]:
+    evals = [
+        (1.0, 0.9, 0.01, 0.5),
+        (2.0, 1.0, 0.3, 0.2),
+        (3.0, 1.0, 0.2, 0.4),
+        (4.0, 1.0, 0.1, 0.3),
+    ]
+    for value, success, error, ret in evals:
         learner.weight.data.fill_(value)
-        monitor.record(learner, success, 0.1, 0, ret)
-    assert monitor.restore_best(learner)  # a faster policy beats a more reliable, slower one
-    assert learner.weight.item() == 1.0 and monitor.final == (0.9, 0.1)
+        monitor.record(learner, success, error, 0, ret)
+    assert monitor.restore_best(learner)  # success first, then return (not value error)
+    assert learner.weight.item() == 3.0 and monitor.final == (1.0, 0.2)

@@ -50,8 +50,7 @@ class StageConfig:
     patience: int = 1  # consecutive evaluations that must meet the early-stop criterion
     min_frames: int = 0  # no early stop before this many frames
     keep_best: bool = True  # budget exhausted: restore the best evaluated weights
-    # "best": value_error = highest success, then lowest value error; return = highest mean
-    # discounted return of the greedy evaluation episodes (the stage's objective)
+    # "best" = highest success, then: value_error (lowest) | return (highest mean discounted)
     keep_best_by: str = "value_error"
 
 

@@ -39,7 +39,7 @@ class _EvalMonitor:
     The early-stop criterion must hold for ``patience`` consecutive evaluations after
     ``min_frames``. When the budget runs out first, :meth:`restore_best` puts back the weights of
     the best evaluation, if ``keep_best``: highest success, then lowest value error (``keep_best_by
-    = "value_error"``), or highest mean discounted return, the stage's objective (``"return"``).
+    = "value_error"``) or highest mean discounted return (``"return"``).
     """
 
     def __init__(self, cfg: StageConfig) -> None:
@@ -58,7 +58,7 @@ class _EvalMonitor:
         """Records one evaluation; returns whether the stage should stop now."""
         cfg = self.cfg
         self.last = (success, value_error)
-        score = (ret, success) if cfg.keep_best_by == "return" else (success, -value_error)
+        score = (success, ret if cfg.keep_best_by == "return" else -value_error)
         self.best_is_last = cfg.keep_best and (self.best_score is None or score > self.best_score)
         if self.best_is_last:
             self.best_score, self.best = score, (success, -value_error)

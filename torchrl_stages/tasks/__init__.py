@@ -9,8 +9,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from torchrl_stages.tasks import gridworld, manipulator
+from torchrl_stages.tasks import cargo, gridworld, manipulator
 
 Report = Callable[..., dict[str, Any]]
 
-REPORTS: dict[str, Report] = {"gridworld": gridworld.report, "manipulator": manipulator.report}
+REPORTS: dict[str, Report] = {
+    "cargo": cargo.report,
+    "gridworld": gridworld.report,
+    "manipulator": manipulator.report,
+}
