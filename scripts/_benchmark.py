@@ -34,12 +34,15 @@ def parse_args(doc: str, variants: list[str], task: str, stage: str) -> argparse
         "default: the task config's",
     )
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument(
+        "overrides", nargs="*", help="extra Hydra overrides for every run, e.g. task.env.window=12"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     register_configs()
     args.out = args.out or Path(tempfile.mkdtemp(prefix=f"{task}_bench_"))
     if args.frames is None:
-        args.frames = int(compose_config(task).task.stages[stage].frames)
+        args.frames = int(compose_config(task, *args.overrides).task.stages[stage].frames)
     print(
         f"runs in {args.out}; budget {args.frames} frames per SDQL stage, "
         f"{2 * args.frames} for single learners"

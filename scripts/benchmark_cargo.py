@@ -9,7 +9,7 @@ starts (within 2 a of the target in 500 steps), mean and median steps to the tar
 episodes), training wall-clock and env frames. SDQL stages may stop early; single learners get
 twice the per-stage budget.
 
-    python scripts/benchmark_cargo.py --seeds 0 1 2 [--variants a b] [--frames 204800]
+    python scripts/benchmark_cargo.py --seeds 0 1 2 [--variants a b] [--frames N] [OVERRIDE ...]
 """
 
 from __future__ import annotations
@@ -26,12 +26,14 @@ VARIANTS = {
 }
 
 
-def run(variant: str, seed: int, frames: int, out: Path) -> dict:
+def run(variant: str, seed: int, frames: int, out: Path, extra: list[str]) -> dict:
     name, overrides = VARIANTS[variant]
     stages = [s for s in ("slider", "propelled") if f"~task.stages.{s}" not in overrides]
     per_stage = frames if len(stages) == 2 else 2 * frames
     budget = [f"task.stages.{s}.frames={per_stage}" for s in stages]
-    result = train("cargo", out / f"{variant}_seed{seed}", f"seed={seed}", *overrides, *budget)
+    result = train(
+        "cargo", out / f"{variant}_seed{seed}", f"seed={seed}", *overrides, *budget, *extra
+    )
     m = result["task_metrics"]
     return {
         "variant": variant,
@@ -60,7 +62,7 @@ def main() -> None:
     rows = []
     for variant in args.variants:
         for seed in args.seeds:
-            r = run(variant, seed, args.frames, args.out)
+            r = run(variant, seed, args.frames, args.out, args.overrides)
             rows.append(r)
             per_robot = " / ".join(f"{s:.1f}" for s in r["per_robot"])
             print(

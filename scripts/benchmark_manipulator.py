@@ -9,7 +9,7 @@ For each it prints the success rate over 1000 whole-task episodes from uniform r
 angles (d <= 0.01 within 50 steps), mean steps of successful episodes, final-distance
 percentiles, training wall-clock and frames.
 
-    python scripts/benchmark_manipulator.py --seeds 0 1 2 [--variants a c] [--frames 200000]
+    python scripts/benchmark_manipulator.py --seeds 0 1 2 [--variants a c] [--frames N] [OVERRIDE]
 """
 
 from __future__ import annotations
@@ -28,14 +28,14 @@ VARIANTS = {
 }
 
 
-def run(variant: str, seed: int, frames: int, out: Path) -> dict:
+def run(variant: str, seed: int, frames: int, out: Path, extra: list[str]) -> dict:
     name, overrides = VARIANTS[variant]
     single = "~task.stages.fine" in overrides
     budget = [f"task.stages.coarse.frames={2 * frames if single else frames}"]
     if not single:
         budget.append(f"task.stages.fine.frames={frames}")
     result = train(
-        "manipulator", out / f"{variant}_seed{seed}", f"seed={seed}", *overrides, *budget
+        "manipulator", out / f"{variant}_seed{seed}", f"seed={seed}", *overrides, *budget, *extra
     )
     m = result["task_metrics"]
     return {
@@ -60,7 +60,7 @@ def main() -> None:
     rows = []
     for variant in args.variants:
         for seed in args.seeds:
-            r = run(variant, seed, args.frames, args.out)
+            r = run(variant, seed, args.frames, args.out, args.overrides)
             rows.append(r)
             dist = " / ".join(f"{d:.3f}" for d in r["dist"])
             print(
