@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -55,3 +56,21 @@ def train(task: str, run_dir: Path, *overrides: str) -> dict[str, Any]:
     cfg = compose_config(task, "logger=csv", *overrides)
     run_dir.mkdir(parents=True, exist_ok=True)
     return run_training(cfg, run_dir)
+
+
+def run_table(
+    args: argparse.Namespace,
+    columns: list[str],
+    run_one: Callable[[str, int], dict[str, Any]],
+    cells: Callable[[dict[str, Any]], list[str]],
+) -> list[dict[str, Any]]:
+    """Runs every (variant, seed) of ``args`` and prints a markdown row as each one finishes."""
+    print("| " + " | ".join(columns) + " |")
+    print("|" + "---|" * len(columns))
+    rows = []
+    for variant in args.variants:
+        for seed in args.seeds:
+            row = run_one(variant, seed)
+            rows.append(row)
+            print("| " + " | ".join(cells(row)) + " |", flush=True)
+    return rows

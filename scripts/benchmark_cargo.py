@@ -17,7 +17,7 @@ from __future__ import annotations
 import statistics
 from pathlib import Path
 
-from _benchmark import parse_args, train
+from _benchmark import parse_args, run_table, train
 
 VARIANTS = {
     "a": ("SDQL TD3 slider -> DQN propelled", []),
@@ -54,23 +54,22 @@ def _fmt(value: float | None) -> str:
 
 def main() -> None:
     args = parse_args(__doc__, list(VARIANTS), "cargo", "slider")
-    print(
-        "| variant | seed | success (1000 eps) | mean / median steps (successes) "
-        "| mean steps per robot | train wall-clock (s) | env frames |"
+    columns = ["variant", "seed", "success (1000 eps)", "mean / median steps (successes)"]
+    columns += ["mean steps per robot", "train wall-clock (s)", "env frames"]
+    rows = run_table(
+        args,
+        columns,
+        lambda variant, seed: run(variant, seed, args.frames, args.out, args.overrides),
+        lambda r: [
+            f"({r['variant']}) {r['name']}",
+            str(r["seed"]),
+            f"{r['success']:.1%}",
+            f"{_fmt(r['mean_steps'])} / {_fmt(r['median_steps'])}",
+            " / ".join(f"{s:.1f}" for s in r["per_robot"]),
+            f"{r['seconds']:.0f}",
+            str(r["frames"]),
+        ],
     )
-    print("|---|---|---|---|---|---|---|")
-    rows = []
-    for variant in args.variants:
-        for seed in args.seeds:
-            r = run(variant, seed, args.frames, args.out, args.overrides)
-            rows.append(r)
-            per_robot = " / ".join(f"{s:.1f}" for s in r["per_robot"])
-            print(
-                f"| ({r['variant']}) {r['name']} | {r['seed']} | {r['success']:.1%} | "
-                f"{_fmt(r['mean_steps'])} / {_fmt(r['median_steps'])} | {per_robot} | "
-                f"{r['seconds']:.0f} | {r['frames']} |",
-                flush=True,
-            )
     for variant in args.variants:
         done = [r for r in rows if r["variant"] == variant]
         steps = [r["mean_steps"] for r in done if r["mean_steps"] is not None]

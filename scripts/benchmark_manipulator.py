@@ -17,7 +17,7 @@ from __future__ import annotations
 import statistics
 from pathlib import Path
 
-from _benchmark import parse_args, train
+from _benchmark import parse_args, run_table, train
 
 SINGLE = ["~task.stages.fine", "task.env.scales=[0.5]"]
 VARIANTS = {
@@ -52,22 +52,22 @@ def run(variant: str, seed: int, frames: int, out: Path, extra: list[str]) -> di
 
 def main() -> None:
     args = parse_args(__doc__, list(VARIANTS), "manipulator", "fine")
-    print(
-        "| variant | seed | success (1000 eps) | mean steps (successes) "
-        "| final distance p50 / p90 / p99 | train wall-clock (s) | env frames |"
+    columns = ["variant", "seed", "success (1000 eps)", "mean steps (successes)"]
+    columns += ["final distance p50 / p90 / p99", "train wall-clock (s)", "env frames"]
+    rows = run_table(
+        args,
+        columns,
+        lambda variant, seed: run(variant, seed, args.frames, args.out, args.overrides),
+        lambda r: [
+            f"({r['variant']}) {r['name']}",
+            str(r["seed"]),
+            f"{r['success']:.1%}",
+            f"{r['steps']:.1f}",
+            " / ".join(f"{d:.3f}" for d in r["dist"]),
+            f"{r['seconds']:.0f}",
+            str(r["frames"]),
+        ],
     )
-    print("|---|---|---|---|---|---|---|")
-    rows = []
-    for variant in args.variants:
-        for seed in args.seeds:
-            r = run(variant, seed, args.frames, args.out, args.overrides)
-            rows.append(r)
-            dist = " / ".join(f"{d:.3f}" for d in r["dist"])
-            print(
-                f"| ({r['variant']}) {r['name']} | {r['seed']} | {r['success']:.1%} | "
-                f"{r['steps']:.1f} | {dist} | {r['seconds']:.0f} | {r['frames']} |",
-                flush=True,
-            )
     for variant in args.variants:
         succ = [r["success"] for r in rows if r["variant"] == variant]
         print(
