@@ -46,7 +46,7 @@ class _EvalMonitor:
         self.cfg = cfg
         self.streak = 0
         self.stopped = False
-        self.best: tuple[float, float] | None = None
+        self.best: tuple[float, float] | None = None  # (success, value error) of the best
         self.best_score: tuple[float, float] | None = None
         self.best_is_last = False
         self.best_state: dict | None = None
@@ -61,7 +61,7 @@ class _EvalMonitor:
         score = (success, ret if cfg.keep_best_by == "return" else -value_error)
         self.best_is_last = cfg.keep_best and (self.best_score is None or score > self.best_score)
         if self.best_is_last:
-            self.best_score, self.best = score, (success, -value_error)
+            self.best_score, self.best = score, (success, value_error)
             self.best_state = copy.deepcopy(learner.state_dict())
         met = (
             cfg.success_threshold is not None
@@ -85,7 +85,7 @@ class _EvalMonitor:
             return None, None
         if self.stopped or self.best is None:
             return self.last
-        return self.best[0], -self.best[1]
+        return self.best
 
 
 class StageTrainer:
