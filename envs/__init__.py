@@ -5,6 +5,7 @@ from .gridworld import (
     GridWorldEnv,
     greedy_path_from_values,
     gridworld_optimal_values,
+    gridworld_shortest_steps,
     measure_throughput,
 )
 from .manipulator import ManipulatorEnv, forward_kinematics, inverse_kinematics, wrap_angle
@@ -16,6 +17,7 @@ __all__ = [
     "GridWorldEnv",
     "greedy_path_from_values",
     "gridworld_optimal_values",
+    "gridworld_shortest_steps",
     "measure_throughput",
     "ManipulatorEnv",
     "forward_kinematics",

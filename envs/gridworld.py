@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -11,12 +12,13 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ._common import StageStarts, sparse_reward_and_done_specs
+from ._common import StageStarts, check_start_stage, sparse_reward_and_done_specs
 
 __all__ = [
     "GridWorldEnv",
     "greedy_path_from_values",
     "gridworld_optimal_values",
+    "gridworld_shortest_steps",
     "measure_throughput",
 ]
 
@@ -159,6 +161,38 @@ class GridWorldEnv(StageStarts, EnvBase):
             return self._start_cell
         return torch.randint(self.size, (n,), device=dev, generator=self.rng) * self.size
 
+    def start_states(self, stage: int | None = None) -> dict[str, Any]:
+        """Every start state of ``stage`` (``None``: the whole-task starts, column 0), as the
+        constructor arguments of an env whose batch element ``i`` always starts at the ``i``-th:
+        ``{"batch_size": (M,), "start_cell": cells [M, 2], "start_stage": None}``.
+
+        Stage ``k``'s start states are all cells of its strip but the target; evaluations from
+        all of them leave no state the previous stage can hand over unchecked.
+
+        Examples:
+            >>> from torchrl_stages.envs import GridWorldEnv
+            >>> env = GridWorldEnv(size=10, num_stages=2)
+            >>> env.start_states(1)["batch_size"], env.start_states()["start_cell"][:2].tolist()
+            ((49,), [[0, 0], [1, 0]])
+        """
+        if stage is None:
+            cols = torch.zeros(self.size, dtype=torch.int64)
+            rows = torch.arange(self.size)
+        else:
+            check_start_stage(stage, self.num_stages)
+            w = self.stage_width
+            rows, cols = torch.meshgrid(
+                torch.arange(self.size), torch.arange(stage * w, (stage + 1) * w), indexing="ij"
+            )
+        cells = torch.stack([rows.reshape(-1), cols.reshape(-1)], -1)
+        cells = cells[(cells != torch.tensor(self.target)).any(-1)]
+        return {"batch_size": (len(cells),), "start_cell": cells, "start_stage": None}
+
+    def observation_of(self, cells: torch.Tensor) -> torch.Tensor:
+        """The observation of integer cells ``[..., 2]`` (``(row, col)``), the inverse of
+        :meth:`cells_of`."""
+        return cells.to(torch.float32) / OBS_SCALE
+
     # ------------------------------------------------------------------ EnvBase API
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         reset = tensordict.get("_reset", None) if tensordict is not None else None
@@ -295,6 +329,38 @@ def greedy_path_from_values(
         s = int(cand[int(np.argmax(q))])
         path.append((s // size, s % size))
     return path
+
+
+def gridworld_shortest_steps(
+    start: Sequence[int],
+    *,
+    size: int = 25,
+    num_stages: int = 5,
+    target: Sequence[int] | None = None,
+) -> int | None:
+    """Fewest moves from ``start`` to the target (breadth-first search over the grid's moves,
+    blocked ones included); ``None`` when the target cannot be reached.
+
+    Examples:
+        >>> gridworld_shortest_steps((0, 0))
+        48
+    """
+    tgt = _check_grid(size, num_stages, target)
+    nxt, _, _, t = _transitions(size, num_stages, tgt)
+    s = int(start[0]) * size + int(start[1])
+    dist = {s: 0}
+    frontier = [s]
+    while frontier:
+        if t in dist:
+            return dist[t]
+        nxt_frontier = []
+        for cell in frontier:
+            for c in nxt[:, cell].tolist():
+                if c not in dist:
+                    dist[c] = dist[cell] + 1
+                    nxt_frontier.append(c)
+        frontier = nxt_frontier
+    return dist.get(t)
 
 
 def measure_throughput(batch_size: int, steps: int = 200, seed: int = 0) -> float:

@@ -249,14 +249,23 @@ class ManipulatorEnv(StageStarts, EnvBase):
         )
 
     # ------------------------------------------------------------------ EnvBase API
+    def observation_of(
+        self, theta: torch.Tensor, target: torch.Tensor, stage: torch.Tensor
+    ) -> torch.Tensor:
+        """The observation ``[..., 6]`` of joint angles ``theta [..., 2]`` reaching for
+        ``target [..., 2]`` in ``stage`` (int64 ``[...]``): elbow, effector and the target
+        offset divided by the stage's scale."""
+        elbow, eff = forward_kinematics(theta)
+        diff = (target - eff) / self._scales_t[stage].unsqueeze(-1)
+        return torch.cat([elbow, eff, diff], -1)
+
     def _observe(self) -> TensorDict:
         """Observation and stage of the current internal state (reset-style TensorDict)."""
-        elbow, eff = forward_kinematics(self._theta)
-        diff = (self._target - eff) / self._scales_t[self._stage].unsqueeze(-1)
         bs = self.batch_size
         zeros = torch.zeros((*bs, 1), dtype=torch.bool, device=self.device)
+        observation = self.observation_of(self._theta, self._target, self._stage)
         return TensorDict(
-            observation=torch.cat([elbow, eff, diff], -1).reshape(*bs, 6),
+            observation=observation.reshape(*bs, 6),
             stage=self._stage.reshape(*bs, 1).clone(),
             done=zeros,
             terminated=zeros.clone(),

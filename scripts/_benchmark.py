@@ -1,8 +1,16 @@
-"""What the SDQL-against-baselines benchmark scripts share: arguments, configs, training a run."""
+"""What the benchmark scripts share: arguments, configs, training one run, the results table.
+
+Every script writes its rows as ``rows.json`` and its table as ``table.md`` (the command that
+made it on top) into its output directory, so that a README table is pasted, never retyped.
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import shlex
+import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -21,32 +29,33 @@ def compose_config(task: str, *overrides: str) -> DictConfig:
         return compose("config", overrides=[f"task={task}", *overrides])
 
 
-def parse_args(doc: str, variants: list[str], task: str, stage: str) -> argparse.Namespace:
-    """``--seeds``, ``--variants``, ``--frames`` (default: ``task.stages.<stage>.frames``) and
-    ``--out`` (default: a temporary directory); also sets one torch thread."""
-    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespace:
+    """``--seeds``, ``--variants``, ``--out`` (default: a temporary directory) and extra Hydra
+    overrides for every run; ``extra`` adds ``--name default`` options. Sets one torch thread."""
+    parser = argparse.ArgumentParser(
+        description=doc.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--variants", nargs="+", default=variants, choices=variants)
-    parser.add_argument(
-        "--frames",
-        type=int,
-        default=None,
-        help="frame budget per SDQL stage (single learners get twice this); "
-        "default: the task config's",
-    )
+    for name, default in extra.items():
+        if isinstance(default, bool):
+            parser.add_argument(f"--{name}", action="store_true")
+        else:
+            parser.add_argument(f"--{name}", type=int, default=default)
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument(
-        "overrides", nargs="*", help="extra Hydra overrides for every run, e.g. task.env.window=12"
+        "overrides", nargs="*", help="extra Hydra overrides for every run, e.g. task.env.size=20"
     )
     args = parser.parse_args()
     torch.set_num_threads(1)
     register_configs()
-    args.out = args.out or Path(tempfile.mkdtemp(prefix=f"{task}_bench_"))
-    if args.frames is None:
-        args.frames = int(compose_config(task, *args.overrides).task.stages[stage].frames)
+    args.out = args.out or Path(tempfile.mkdtemp(prefix="benchmark_"))
+    args.out.mkdir(parents=True, exist_ok=True)
+    args.command = "python " + shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
     print(
-        f"runs in {args.out}; budget {args.frames} frames per SDQL stage, "
-        f"{2 * args.frames} for single learners"
+        f"{args.command}\ntorch {torch.__version__}, {os.cpu_count()} CPUs, 1 torch thread; "
+        f"runs in {args.out}",
+        flush=True,
     )
     return args
 
@@ -63,14 +72,25 @@ def run_table(
     columns: list[str],
     run_one: Callable[[str, int], dict[str, Any]],
     cells: Callable[[dict[str, Any]], list[str]],
+    summary: Callable[[list[dict[str, Any]]], list[str]] | None = None,
 ) -> list[dict[str, Any]]:
-    """Runs every (variant, seed) of ``args`` and prints a markdown row as each one finishes."""
-    print("| " + " | ".join(columns) + " |")
-    print("|" + "---|" * len(columns))
-    rows = []
+    """Runs every (variant, seed) of ``args``, printing a markdown row as each one finishes;
+    writes ``rows.json`` and ``table.md`` (command, table, ``summary`` lines) into ``args.out``.
+    """
+    header = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    print("\n".join(header), flush=True)
+    rows, lines = [], []
     for variant in args.variants:
         for seed in args.seeds:
             row = run_one(variant, seed)
             rows.append(row)
-            print("| " + " | ".join(cells(row)) + " |", flush=True)
+            lines.append("| " + " | ".join(cells(row)) + " |")
+            print(lines[-1], flush=True)
+            (args.out / "rows.json").write_text(json.dumps(rows, indent=2))
+    notes = summary(rows) if summary is not None else []
+    for note in notes:
+        print(note)
+    table = ["```text", f"$ {args.command}", "```", "", *header, *lines, "", *notes]
+    (args.out / "table.md").write_text("\n".join(table) + "\n")
+    print(f"wrote {args.out / 'rows.json'} and {args.out / 'table.md'}")
     return rows

@@ -17,7 +17,7 @@ from __future__ import annotations
 import statistics
 from pathlib import Path
 
-from _benchmark import parse_args, run_table, train
+from _benchmark import compose_config, parse_args, run_table, train
 
 VARIANTS = {
     "a": ("SDQL TD3 slider -> DQN propelled", []),
@@ -34,15 +34,15 @@ def run(variant: str, seed: int, frames: int, out: Path, extra: list[str]) -> di
     result = train(
         "cargo", out / f"{variant}_seed{seed}", f"seed={seed}", *overrides, *budget, *extra
     )
-    m = result["task_metrics"]
     return {
         "variant": variant,
         "name": name,
         "seed": seed,
-        "success": m["success_rate"],
-        "mean_steps": m["mean_steps_success"],
-        "median_steps": m["median_steps_success"],
-        "per_robot": m["mean_steps_per_robot"],
+        "success": result["success_rate"],
+        "episodes": result["episodes"],
+        "mean_steps": result["mean_steps_success"],
+        "median_steps": result["median_steps_success"],
+        "per_robot": result["mean_steps_per_stage"],
         "seconds": result["training"]["seconds"],
         "frames": sum(s["frames"] for s in result["training"]["stages"]),
     }
@@ -52,11 +52,28 @@ def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.1f}"
 
 
+def summary(rows: list[dict]) -> list[str]:
+    lines = []
+    for variant in dict.fromkeys(r["variant"] for r in rows):
+        done = [r for r in rows if r["variant"] == variant]
+        steps = [r["mean_steps"] for r in done if r["mean_steps"] is not None]
+        lines.append(
+            f"- ({variant}) {VARIANTS[variant][0]}: mean success "
+            f"{statistics.mean(r['success'] for r in done):.1%}, lowest "
+            f"{min(r['success'] for r in done):.1%}, mean steps "
+            f"{_fmt(statistics.mean(steps) if steps else None)} over seeds "
+            f"{[r['seed'] for r in done]}"
+        )
+    return lines
+
+
 def main() -> None:
-    args = parse_args(__doc__, list(VARIANTS), "cargo", "slider")
-    columns = ["variant", "seed", "success (1000 eps)", "mean / median steps (successes)"]
+    args = parse_args(__doc__, list(VARIANTS), frames=None)
+    if args.frames is None:  # frame budget per SDQL stage (single learners get twice this)
+        args.frames = int(compose_config("cargo", *args.overrides).task.stages.slider.frames)
+    columns = ["variant", "seed", "success", "mean / median steps (successes)"]
     columns += ["mean steps per robot", "train wall-clock (s)", "env frames"]
-    rows = run_table(
+    run_table(
         args,
         columns,
         lambda variant, seed: run(variant, seed, args.frames, args.out, args.overrides),
@@ -69,15 +86,8 @@ def main() -> None:
             f"{r['seconds']:.0f}",
             str(r["frames"]),
         ],
+        summary,
     )
-    for variant in args.variants:
-        done = [r for r in rows if r["variant"] == variant]
-        steps = [r["mean_steps"] for r in done if r["mean_steps"] is not None]
-        print(
-            f"({variant}) {VARIANTS[variant][0]}: mean success "
-            f"{statistics.mean(r['success'] for r in done):.1%}, mean steps "
-            f"{_fmt(statistics.mean(steps) if steps else None)} over seeds {args.seeds}"
-        )
 
 
 if __name__ == "__main__":

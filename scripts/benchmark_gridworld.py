@@ -1,91 +1,105 @@
-"""Grid-world benchmark: trains both discount presets to convergence and prints what they learned.
+"""Grid-world benchmark: trains discount presets and grid sizes, checks every quality bar.
 
-For each preset and seed it prints the training wall-clock, env frames, gradient steps, the
-success rate from every column-0 start, the greedy path length from (0, 0) and how many vertical
-moves fall in each stage; then the batched env's raw throughput at batch 1, 64 and 4096.
+Variants (the default config plus these overrides):
+  homo      gamma 0.99 in every stage (the paper's Fig. 2(b))
+  hetero    gamma 0.99 in stage 3 only, 0.9 elsewhere (Fig. 2(c))
+  patient1  gamma 0.99 in stage 1 only: every vertical move belongs there
+  size20    a 20 x 20 grid with 4 stages, homogeneous
+  size30    a 30 x 30 grid with 5 stages (6 columns each), heterogeneous
+For each run it reports the training wall-clock, env frames and gradient steps, the success rate
+from every column-0 start, the greedy path from (0, 0) against the shortest one and whether its
+discounted return is the optimal value of (0, 0) (so, with heterogeneous discounts, whether the
+vertical moves are all in the patient stage), the vertical moves per stage, and the merged value
+map's largest error against dynamic programming. A run passes when it succeeds from every start,
+its path is optimal and the value error is at most 0.05.
 
-    python scripts/benchmark_gridworld.py --seeds 0 1 2
-
-Runs go to ``--out`` (default: a temporary directory), one run directory each.
+    python scripts/benchmark_gridworld.py --seeds 0 1 2 [--variants homo hetero] [--throughput]
 """
 
 from __future__ import annotations
 
-import argparse
-import os
 import statistics
-import tempfile
 from pathlib import Path
 
-import torch
-from hydra import compose, initialize_config_module
+from _benchmark import parse_args, run_table, train
 
-from torchrl_stages.cli import run_training
-from torchrl_stages.config import register_configs
 from torchrl_stages.envs import measure_throughput
 
+PATIENT_1 = [f"task.stages.s{k}.gamma={0.99 if k == 1 else 0.9}" for k in range(5)]
+VARIANTS = {
+    "homo": ["task/gammas=homo"],
+    "hetero": ["task/gammas=hetero"],
+    "patient1": PATIENT_1,
+    "size20": ["task/gammas=homo", "task.env.size=20", "task.env.num_stages=4", "~task.stages.s4"],
+    "size30": ["task/gammas=hetero", "task.env.size=30"],
+}
+MAX_VALUE_ERROR = 0.05
 
-def train_preset(preset: str, seed: int, out: Path) -> dict:
-    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-        cfg = compose("config", overrides=[f"task/gammas={preset}", f"seed={seed}"])
-    run_dir = out / f"{preset}_seed{seed}"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    result = run_training(cfg, run_dir)
+
+def run(variant: str, seed: int, out: Path, extra: list[str]) -> dict:
+    run_dir = out / f"{variant}_seed{seed}"
+    result = train("gridworld", run_dir, f"seed={seed}", *VARIANTS[variant], *extra)
     stages = result["training"]["stages"]
-    metrics = result["task_metrics"]
-    return {
-        "preset": preset,
+    m = result["task_metrics"]
+    row = {
+        "variant": variant,
         "seed": seed,
         "seconds": result["training"]["seconds"],
         "frames": sum(s["frames"] for s in stages),
         "updates": sum(s["updates"] for s in stages),
-        "column0": metrics["column0_success_rate"],
-        "path": metrics["path_from_origin_steps"],
-        "vertical": metrics["vertical_moves_per_stage"],
-        "value_err": metrics["value_map_max_abs_error"],
+        "success": result["success_rate"],
+        "path": m["path_from_origin_steps"],
+        "shortest": m["optimal_steps_from_origin"],
+        "optimal": m["path_from_origin_optimal"],
+        "vertical": m["vertical_moves_per_stage"],
+        "value_error": m["value_map_max_abs_error"],
     }
+    row["pass"] = row["success"] == 1.0 and row["optimal"] and row["value_error"] <= MAX_VALUE_ERROR
+    return row
+
+
+def summary(rows: list[dict]) -> list[str]:
+    lines = []
+    for variant in dict.fromkeys(r["variant"] for r in rows):
+        done = [r for r in rows if r["variant"] == variant]
+        secs = [r["seconds"] for r in done]
+        lines.append(
+            f"- {variant}: {sum(r['pass'] for r in done)}/{len(done)} runs pass every bar; "
+            f"max value error {max(r['value_error'] for r in done):.3f}; train wall-clock "
+            f"median {statistics.median(secs):.1f} s, max {max(secs):.1f} s"
+        )
+    return lines
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--presets", nargs="+", default=["homo", "hetero"])
-    parser.add_argument("--out", type=Path, default=None)
-    parser.add_argument("--throughput-steps", type=int, default=200)
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-    register_configs()
-    out = args.out or Path(tempfile.mkdtemp(prefix="gridworld_bench_"))
-
-    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, 1 torch thread; runs in {out}")
-    print(
-        "| preset | seed | train wall-clock (s) | env frames | gradient steps | column-0 success "
-        "| path from (0,0) | vertical moves per stage | max abs V error |"
+    args = parse_args(__doc__, list(VARIANTS), throughput=False)
+    columns = ["variant", "seed", "train wall-clock (s)", "env frames", "gradient steps"]
+    columns += ["success (column 0)", "path from (0,0) / shortest", "optimal path"]
+    columns += ["vertical moves per stage", "max abs V error", "pass"]
+    run_table(
+        args,
+        columns,
+        lambda variant, seed: run(variant, seed, args.out, args.overrides),
+        lambda r: [
+            r["variant"],
+            str(r["seed"]),
+            f"{r['seconds']:.1f}",
+            str(r["frames"]),
+            str(r["updates"]),
+            f"{r['success']:.0%}",
+            f"{r['path']} / {r['shortest']}",
+            "yes" if r["optimal"] else "no",
+            str(r["vertical"]),
+            f"{r['value_error']:.3f}",
+            "yes" if r["pass"] else "**no**",
+        ],
+        summary,
     )
-    print("|---|---|---|---|---|---|---|---|---|")
-    rows = []
-    for preset in args.presets:
-        for seed in args.seeds:
-            r = train_preset(preset, seed, out)
-            rows.append(r)
-            print(
-                f"| {r['preset']} | {r['seed']} | {r['seconds']:.1f} | {r['frames']} | "
-                f"{r['updates']} | {r['column0']:.0%} | {r['path']} | {r['vertical']} | "
-                f"{r['value_err']:.3f} |",
-                flush=True,
-            )
-    for preset in args.presets:
-        secs = [r["seconds"] for r in rows if r["preset"] == preset]
-        print(
-            f"{preset}: median train wall-clock {statistics.median(secs):.1f} s "
-            f"(max {max(secs):.1f} s) over {len(secs)} seeds"
-        )
-
-    print("\n| env batch | frames/s (median of 5) |")
-    print("|---|---|")
-    for batch in (1, 64, 4096):
-        runs = [measure_throughput(batch, steps=args.throughput_steps) for _ in range(5)]
-        print(f"| {batch} | {statistics.median(runs):.3g} |")
+    if args.throughput:
+        print("\n| env batch | frames/s (median of 5) |\n|---|---|")
+        for batch in (1, 64, 4096):
+            runs = [measure_throughput(batch) for _ in range(5)]
+            print(f"| {batch} | {statistics.median(runs):.3g} |")
 
 
 if __name__ == "__main__":

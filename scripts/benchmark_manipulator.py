@@ -17,7 +17,7 @@ from __future__ import annotations
 import statistics
 from pathlib import Path
 
-from _benchmark import parse_args, run_table, train
+from _benchmark import compose_config, parse_args, run_table, train
 
 SINGLE = ["~task.stages.fine", "task.env.scales=[0.5]"]
 VARIANTS = {
@@ -37,24 +37,38 @@ def run(variant: str, seed: int, frames: int, out: Path, extra: list[str]) -> di
     result = train(
         "manipulator", out / f"{variant}_seed{seed}", f"seed={seed}", *overrides, *budget, *extra
     )
-    m = result["task_metrics"]
     return {
         "variant": variant,
         "name": name,
         "seed": seed,
-        "success": m["success_rate"],
-        "steps": m["mean_steps_success"],
-        "dist": m["final_distance_p50_p90_p99"],
+        "success": result["success_rate"],
+        "episodes": result["episodes"],
+        "steps": result["mean_steps_success"],
+        "dist": result["task_metrics"]["final_distance_p50_p90_p99"],
         "seconds": result["training"]["seconds"],
         "frames": sum(s["frames"] for s in result["training"]["stages"]),
     }
 
 
+def summary(rows: list[dict]) -> list[str]:
+    lines = []
+    for variant in dict.fromkeys(r["variant"] for r in rows):
+        succ = [r["success"] for r in rows if r["variant"] == variant]
+        seeds = [r["seed"] for r in rows if r["variant"] == variant]
+        lines.append(
+            f"- ({variant}) {VARIANTS[variant][0]}: mean success {statistics.mean(succ):.1%}, "
+            f"lowest {min(succ):.1%}, over seeds {seeds}"
+        )
+    return lines
+
+
 def main() -> None:
-    args = parse_args(__doc__, list(VARIANTS), "manipulator", "fine")
-    columns = ["variant", "seed", "success (1000 eps)", "mean steps (successes)"]
+    args = parse_args(__doc__, list(VARIANTS), frames=None)
+    if args.frames is None:  # frame budget per SDQL stage (single learners get twice this)
+        args.frames = int(compose_config("manipulator", *args.overrides).task.stages.fine.frames)
+    columns = ["variant", "seed", "success", "mean steps (successes)"]
     columns += ["final distance p50 / p90 / p99", "train wall-clock (s)", "env frames"]
-    rows = run_table(
+    run_table(
         args,
         columns,
         lambda variant, seed: run(variant, seed, args.frames, args.out, args.overrides),
@@ -62,18 +76,13 @@ def main() -> None:
             f"({r['variant']}) {r['name']}",
             str(r["seed"]),
             f"{r['success']:.1%}",
-            f"{r['steps']:.1f}",
+            "-" if r["steps"] is None else f"{r['steps']:.1f}",
             " / ".join(f"{d:.3f}" for d in r["dist"]),
             f"{r['seconds']:.0f}",
             str(r["frames"]),
         ],
+        summary,
     )
-    for variant in args.variants:
-        succ = [r["success"] for r in rows if r["variant"] == variant]
-        print(
-            f"({variant}) {VARIANTS[variant][0]}: mean success {statistics.mean(succ):.1%} "
-            f"over seeds {args.seeds}"
-        )
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ from torchrl_stages.learners import (
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.schedule import train_backward
 from torchrl_stages.task import StagedTask
+from torchrl_stages.values import with_params
 
 OBS_DIM, NUM_ACTIONS, ACTION_DIM = 3, 4, 2
 SMALL = {"num_cells": [16, 16], "lr": 1e-2, "tau": 0.1, "annealing_frames": 1000}
@@ -127,9 +128,9 @@ def test_updates_change_parameters_and_return_finite_losses(algo):
         all_keys |= set(losses)
         assert learner.num_updates == i + 1
     expected_keys = {
-        "dqn": {"loss"},
-        "ddpg": {"loss_actor", "loss_value"},
-        "td3": {"loss_qvalue", "loss_actor"},
+        "dqn": {"loss", "grad_norm"},
+        "ddpg": {"loss_actor", "loss_value", "grad_norm_actor", "grad_norm_critic"},
+        "td3": {"loss_qvalue", "loss_actor", "grad_norm_actor", "grad_norm_critic"},
     }[algo]
     assert all_keys == expected_keys
     for name, before in online0.items():
@@ -149,7 +150,8 @@ def test_td3_actor_and_targets_update_every_policy_update_delay():
     actor0 = learner.loss.actor_network_params.detach().clone()
     target0 = learner.loss.target_qvalue_network_params.detach().clone()
     keys = [set(learner.update(batch.clone())) for _ in range(3)]
-    assert keys == [{"loss_qvalue"}, {"loss_qvalue"}, {"loss_qvalue", "loss_actor"}]
+    critic = {"loss_qvalue", "grad_norm_critic"}
+    assert keys == [critic, critic, critic | {"loss_actor", "grad_norm_actor"}]
     assert not td_equal(actor0, learner.loss.actor_network_params.detach())
     assert not td_equal(target0, learner.loss.target_qvalue_network_params.detach())
 
@@ -198,10 +200,38 @@ def test_saturation_penalty_pulls_a_saturated_actor_back(algo):
     assert (last.bias < 6.0 - 20 * 1e-2 * 0.5).all()  # Adam steps of ~lr towards the bound
 
 
+@pytest.mark.parametrize("double", [False, True])
+def test_double_dqn_switch_picks_the_bootstrap_action(double):
+    learner = DQNLearner(dqn_cfg(double_dqn=double), DISCRETE)
+    assert learner.loss.double_dqn is double
+    batch = batch_for(DISCRETE)
+    with torch.no_grad():  # online and target networks disagree on argmax_a' Q(s', a')
+        for p in learner.loss.target_value_network_params.values(True, True):
+            p.add_(0.5 * torch.randn_like(p))
+    online = learner.qnet
+    target = with_params(learner.qnet, learner.loss.target_value_network_params)
+    with torch.no_grad():
+        q_online = online(batch["next"].clone())["action_value"]
+        q_target = target(batch["next"].clone())["action_value"]
+        plain = q_target.max(-1, keepdim=True).values
+        double_q = q_target.gather(-1, q_online.argmax(-1, keepdim=True))
+        assert not torch.allclose(plain, double_q)
+        q_sa = online(batch.clone())["action_value"].gather(-1, batch["action"].unsqueeze(-1))
+
+    def mse(bootstrap):
+        alive = (~batch["next", "terminated"]).float()
+        y = batch["next", "reward"] + learner.cfg.gamma * bootstrap * alive
+        return (q_sa - y).pow(2).mean()
+
+    loss = learner.loss(batch.clone())["loss"].detach()
+    torch.testing.assert_close(loss, mse(double_q if double else plain))
+    assert not torch.allclose(loss, mse(plain if double else double_q))
+
+
 def test_dqn_double_and_dueling_build_and_update():
     learner = DQNLearner(dqn_cfg(double_dqn=True, dueling=True), DISCRETE)
     assert learner.loss.double_dqn
-    plain = DQNLearner(dqn_cfg(), DISCRETE)
+    plain = DQNLearner(dqn_cfg(dueling=False), DISCRETE)
     names = {n for n, _ in learner.qnet.named_parameters()}
     assert names != {n for n, _ in plain.qnet.named_parameters()}  # a different (dueling) net
     online0 = online_params(learner)

@@ -165,7 +165,7 @@ def ac_batch(n=64, action_dim=1):
 
 
 def test_dqn_value_uses_target_params():
-    cfg = OmegaConf.structured(DQNConfig(num_cells=[16, 16], tau=0.1, lr=1e-2))
+    cfg = OmegaConf.structured(DQNConfig(num_cells=[16, 16], tau=0.1, lr=1e-2, dueling=False))
     learner = DQNLearner(cfg, StageSpecs(["observation"], 2, "action", Categorical(4)))
     batch = dqn_batch()
     for _ in range(5):

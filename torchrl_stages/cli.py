@@ -19,10 +19,10 @@ from omegaconf import DictConfig
 from torchrl_stages.config import register_configs
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import make_logger
-from torchrl_stages.report import evaluate_run, format_summary
+from torchrl_stages.reports import evaluate_run, format_summary
 from torchrl_stages.run import load_run, save_config, save_stage
 from torchrl_stages.schedule import train_backward
-from torchrl_stages.stage import StageResult
+from torchrl_stages.stage import DivergenceError, StageResult
 from torchrl_stages.task import StagedTask
 from torchrl_stages.validate import ConfigError, validate_config, validate_task
 
@@ -92,6 +92,9 @@ def _train_app(cfg: DictConfig) -> float:
     except ConfigError as err:
         print(f"stages-train: invalid config: {err}", file=sys.stderr)
         sys.exit(2)
+    except DivergenceError as err:
+        print(f"stages-train: {err}", file=sys.stderr)
+        sys.exit(3)
     print(format_summary(result, run_dir))
     return float(result["success_rate"])  # the objective of sweeper plugins (e.g. Optuna)
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import II, MISSING
 
 
 @dataclass
@@ -26,6 +26,10 @@ class StageConfig:
     algo: str = MISSING
     gamma: float = 0.99  # this stage's discount (also used for its transition reward)
     lr: float = 1e-3  # learning rate (the critic's, for actor-critic algorithms)
+    # every learning rate decays linearly to this fraction of its start value over `frames`
+    # (1: constant); late, small steps let the values settle instead of oscillating
+    lr_end_factor: float = 1.0
+    max_grad_norm: float | None = None  # clip each optimizer's gradient norm (null: no clip)
     num_cells: list[int] = field(default_factory=lambda: [64, 64])  # hidden layers of each MLP
     fourier_features: int = 0  # octaves of sin/cos input encoding before each MLP (0: raw input)
     # CNN over image observations (C, H, W), one entry per conv layer (padding kernel // 2); its
@@ -42,11 +46,15 @@ class StageConfig:
     updates_per_batch: int = 4  # gradient steps per collected batch
     tau: float = 0.005  # soft target-network update rate
     eval_every: int = 5_000  # frames between greedy evaluations of the stage (0: never)
-    eval_episodes: int = 64  # greedy episodes per stage evaluation (random starts in the stage)
+    # greedy episodes per stage evaluation, from random starts in the stage; an env that can
+    # enumerate the stage's start states (GridWorldEnv.start_states) is evaluated from all of them
+    eval_episodes: int = 64
     eval_max_steps: int | None = None  # longer greedy stage episodes fail (null: env time limit)
     success_threshold: float | None = None  # early stop once stage success >= this (null: off)
-    # ... and mean |V(s_0) - discounted greedy return| <= this (null: not checked)
+    # ... and |V(s_0) - discounted greedy return| <= this over the evaluation's starts, reduced
+    # by `value_error_reduce` (null: not checked)
     value_tolerance: float | None = None
+    value_error_reduce: str = "mean"  # mean | max over the evaluation's start states
     patience: int = 1  # consecutive evaluations that must meet the early-stop criterion
     min_frames: int = 0  # no early stop before this many frames
     keep_best: bool = True  # budget exhausted: restore the best evaluated weights
@@ -60,7 +68,10 @@ class DQNConfig(StageConfig):
 
     algo: str = "dqn"
     double_dqn: bool = True  # double-DQN targets (torchrl's DQNLoss(double_dqn=...))
-    dueling: bool = False  # dueling Q-network: separate state-value and advantage heads
+    # dueling Q-network: separate state-value and advantage heads. Where actions differ by little
+    # (a blocked move in the grid world costs 1 - gamma of the value) the advantages are learned
+    # apart from the value they would otherwise be lost in, and the greedy action stops flipping.
+    dueling: bool = True
     loss_function: str = "l2"  # l1 | l2 | smooth_l1
     eps_init: float = 1.0
     eps_end: float = 0.05
@@ -110,6 +121,7 @@ class TaskConfig:
     # Whole-task starts used for the final evaluation (passed to the env on top of `env`).
     eval_env: dict[str, Any] = field(default_factory=dict)
     stages: dict[str, Any] = field(default_factory=dict)
+    eval_episodes: int = 100  # this task's default for eval.episodes
 
 
 @dataclass
@@ -123,9 +135,13 @@ class LoggerConfig:
 
 @dataclass
 class EvalConfig:
-    """Whole-task evaluation of the stacked greedy policy after training."""
+    """Whole-task evaluation of the stacked greedy policy after training.
 
-    episodes: int = 100
+    Episodes start from the task's whole-task starts: every one of them once when the env can
+    enumerate them (the grid world's column 0), else ``episodes`` random ones.
+    """
+
+    episodes: int = II("task.eval_episodes")  # default: the task's (e.g. 1000 for cargo)
     plots: bool = True
 
 

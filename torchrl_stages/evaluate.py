@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+if TYPE_CHECKING:
+    from torchrl_stages.task import StagedTask
+
+CHUNK = 250  # whole-task episodes per batched rollout (bounds the memory of long rollouts)
 
 
 @torch.no_grad()
@@ -43,16 +49,24 @@ class EpisodeStats:
     length: torch.Tensor  # int64 [B]: steps of the first episode
     ret: torch.Tensor  # float [B]: undiscounted return of the first episode
 
-    def summary(self) -> dict[str, float]:
+    def summary(self) -> dict[str, float | None]:
+        """Success rate, mean return and steps; steps of successful episodes (``None`` when
+        there is none)."""
         ok = self.success
+        steps = self.length[ok].float()
         return {
             "success_rate": ok.float().mean().item(),
             "mean_return": self.ret.mean().item(),
             "mean_steps": self.length.float().mean().item(),
-            "mean_steps_success": self.length[ok].float().mean().item()
-            if ok.any()
-            else float("nan"),
+            "mean_steps_success": steps.mean().item() if ok.any() else None,
+            "median_steps_success": steps.median().item() if ok.any() else None,
         }
+
+    @classmethod
+    def cat(cls, parts: list[EpisodeStats]) -> EpisodeStats:
+        return cls(
+            *(torch.cat([getattr(p, f) for p in parts]) for f in ("success", "length", "ret"))
+        )
 
 
 def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
@@ -86,3 +100,64 @@ def evaluate_policy(
     """Greedy first-episode statistics of ``policy`` on ``env``, and the rollout itself."""
     rollout = rollout_first_episodes(env, policy, max_steps)
     return episode_stats(rollout), rollout
+
+
+@dataclass
+class TaskEvaluation:
+    """Greedy whole-task episodes of a stacked policy (the first episode of every batch row).
+
+    Attributes:
+        stats: success, length and return of every episode ``[E]``.
+        steps_per_stage: int64 ``[E, N]``, the steps each episode spent in each stage.
+        final: the ``"next"`` TensorDict of every episode's last step ``[E]`` (where it ended).
+        rollout: the first chunk's rollout ``[min(E, CHUNK), T]``, for figures.
+        all_starts: every whole-task start state was evaluated once (else random starts).
+    """
+
+    stats: EpisodeStats
+    steps_per_stage: torch.Tensor
+    final: TensorDictBase
+    rollout: TensorDictBase
+    all_starts: bool
+
+    def summary(self) -> dict[str, Any]:
+        """The numbers ``eval.json`` reports for every task."""
+        return {
+            "episodes": len(self.stats.length),
+            "starts": "all" if self.all_starts else "random",
+            **self.stats.summary(),
+            "mean_steps_per_stage": self.steps_per_stage.float().mean(0).tolist(),
+        }
+
+
+def _last_steps(rollout: TensorDictBase, length: torch.Tensor) -> TensorDictBase:
+    rows = torch.arange(rollout.shape[0], device=length.device)
+    return rollout.get("next")[rows, length - 1]
+
+
+@torch.no_grad()
+def evaluate_task(
+    task: StagedTask, policy: TensorDictModuleBase, episodes: int, seed: int
+) -> TaskEvaluation:
+    """Greedy whole-task episodes of ``policy``: one from every whole-task start state when the
+    env enumerates them (``episodes`` is then ignored), else ``episodes`` from random starts,
+    in batched chunks of :data:`CHUNK` seeded from ``seed``."""
+    all_starts = task.start_states(None) is not None
+    sizes = [None] if all_starts else [min(CHUNK, episodes - i) for i in range(0, episodes, CHUNK)]
+    stats, per_stage, final, first = [], [], [], None
+    for i, size in enumerate(sizes):
+        env = task.task_env(size)
+        env.set_seed(seed + i)
+        chunk, rollout = evaluate_policy(env, policy, int(getattr(env.base_env, "max_steps", 1000)))
+        steps = torch.arange(rollout.shape[-1], device=chunk.length.device)
+        in_episode = steps < chunk.length.unsqueeze(-1)
+        stage = rollout.get("stage").squeeze(-1)
+        per_stage.append(
+            torch.stack([((stage == k) & in_episode).sum(-1) for k in range(task.num_stages)], -1)
+        )
+        stats.append(chunk)
+        final.append(_last_steps(rollout, chunk.length))
+        first = rollout if first is None else first
+    return TaskEvaluation(
+        EpisodeStats.cat(stats), torch.cat(per_stage), torch.cat(final), first, all_starts
+    )

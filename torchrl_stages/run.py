@@ -28,6 +28,7 @@ def save_config(cfg: DictConfig, run_dir: Path) -> None:
 
 def save_stage(run_dir: Path, stage: int, name: str, learner: Learner, result: StageResult) -> Path:
     """Writes ``stage_<k>.pt``: weights (targets included), optimizers, exploration, counters."""
+    learner.check_finite()  # never write a non-finite checkpoint
     path = stage_file(run_dir, stage)
     state = {"stage": stage, "name": name, "algo": learner.algo, "result": asdict(result)}
     torch.save({**state, **learner.checkpoint()}, path)

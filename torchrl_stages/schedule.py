@@ -37,7 +37,7 @@ def train_backward(
         torch.manual_seed(seed + k)
         env = task.stage_env(k, cfg.num_envs, next_value)
         env.set_seed(seed + k)
-        eval_env = task.stage_env(k, cfg.eval_episodes, next_value)
+        eval_env = task.stage_eval_env(k, next_value)
         eval_env.set_seed(seed + 10_000 + k)
         learner = make_learner(cfg, task.specs(k))
         trainer = StageTrainer(

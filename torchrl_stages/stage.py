@@ -5,7 +5,10 @@ from __future__ import annotations
 import copy
 import sys
 import time
-from dataclasses import dataclass
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 
 import torch
 from torchrl.collectors import Collector
@@ -17,6 +20,26 @@ from tqdm.auto import tqdm
 from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner
+from torchrl_stages.learners.base import NonFiniteError
+from torchrl_stages.transforms import NonFiniteValueError
+
+
+class DivergenceError(RuntimeError):
+    """A stage's training produced a NaN or infinite loss, gradient or parameter, or got a
+    non-finite transition value from the next stage.
+
+    The message names the stage, its algorithm, what was not finite and where; nothing of the
+    stage has been saved.
+    """
+
+    def __init__(self, stage: int, name: str, algo: str, cause: FloatingPointError) -> None:
+        key = f"task.stages.{name}"
+        rates = f"{key}.lr" if algo == "dqn" else f"{key}.lr or {key}.actor_lr"
+        super().__init__(
+            f"stage {stage} ({name}, {algo}) diverged: {cause}. Nothing of stage {stage} was "
+            f"saved. Fix: lower {rates}, or set {key}.max_grad_norm"
+        )
+        self.stage = stage
 
 
 @dataclass
@@ -31,6 +54,44 @@ class StageResult:
     value_error: float | None  # mean |V(s_0) - greedy discounted return| at that evaluation
     early_stopped: bool
     restored_best: bool = False  # budget ran out; the best evaluated weights were restored
+    # wall-clock seconds per phase: collect, sample, update, evaluate, log
+    timing: dict[str, float] = field(default_factory=dict)
+
+
+class Stopwatch:
+    """Wall-clock seconds spent in named phases of a loop.
+
+    Examples:
+        >>> watch = Stopwatch()
+        >>> with watch("update"):
+        ...     pass
+        >>> list(watch.seconds)
+        ['update']
+    """
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def __call__(self, phase: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[phase] += time.perf_counter() - start
+
+    def timed(self, phase: str, iterable):
+        """Yields from ``iterable``, timing each ``next`` as ``phase``."""
+        iterator = iter(iterable)
+        while True:
+            with self(phase):
+                item = next(iterator, _END)
+            if item is _END:
+                return
+            yield item
+
+
+_END = object()
 
 
 class _EvalMonitor:
@@ -148,9 +209,8 @@ class StageTrainer:
         buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(cfg.buffer_size), batch_size=cfg.batch_size
         )
-        keep = learner.loss.in_keys  # store only what the loss reads
         monitor = _EvalMonitor(cfg)
-        start, frames, next_eval = time.perf_counter(), 0, cfg.eval_every
+        start = time.perf_counter()
         bar = tqdm(
             total=cfg.frames,
             desc=f"stage {self.stage} ({self.name})",
@@ -158,23 +218,14 @@ class StageTrainer:
             disable=not (self.progress and sys.stderr.isatty()),
             leave=False,
         )
-        for batch in collector:
-            buffer.extend(batch.reshape(-1).select(*keep, strict=False))
-            frames += batch.numel()
-            learner.anneal(frames)
-            losses = []
-            if frames >= cfg.init_random_frames:
-                losses = [learner.update(buffer.sample()) for _ in range(cfg.updates_per_batch)]
-            self._log_batch(batch, losses, frames)
-            bar.update(batch.numel())
-            if cfg.eval_every > 0 and frames >= next_eval:
-                next_eval += cfg.eval_every
-                success, value_error, ret = self.evaluate(frames)
-                bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
-                if monitor.record(learner, success, value_error, frames, ret):
-                    break
-        bar.close()
-        collector.shutdown()
+        watch = Stopwatch()
+        try:
+            frames = self._loop(collector, buffer, monitor, watch, bar)
+        except (NonFiniteError, NonFiniteValueError) as err:
+            raise DivergenceError(self.stage, self.name, learner.algo, err) from err
+        finally:
+            bar.close()
+            collector.shutdown()
         restored = monitor.restore_best(learner)
         success, value_error = monitor.final
         return StageResult(
@@ -186,24 +237,61 @@ class StageTrainer:
             value_error,
             monitor.stopped,
             restored,
+            dict(watch.seconds),
         )
 
+    def _loop(self, collector, buffer, monitor, watch, bar) -> int:
+        """Collect, store, update and evaluate until the budget or the early stop; returns the
+        frames collected."""
+        cfg, learner = self.cfg, self.learner
+        keep = learner.loss.in_keys  # store only what the loss reads
+        frames, next_eval = 0, cfg.eval_every
+        for batch in watch.timed("collect", collector):
+            with watch("collect"):
+                buffer.extend(batch.reshape(-1).select(*keep, strict=False))
+            frames += batch.numel()
+            learner.anneal(frames)
+            losses = []
+            if frames >= cfg.init_random_frames:
+                for _ in range(cfg.updates_per_batch):
+                    with watch("sample"):
+                        sample = buffer.sample()
+                    with watch("update"):
+                        losses.append(learner.update(sample))
+                learner.check_finite()
+            with watch("log"):
+                self._log_batch(batch, losses, frames)
+            bar.update(batch.numel())
+            if cfg.eval_every > 0 and frames >= next_eval:
+                next_eval += cfg.eval_every
+                with watch("evaluate"):
+                    success, value_error, ret = self.evaluate(frames)
+                bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
+                if monitor.record(learner, success, value_error, frames, ret):
+                    break
+        return frames
+
     def evaluate(self, frames: int) -> tuple[float, float, float]:
-        """Greedy episodes from random starts in the stage; logs and returns three numbers.
+        """Greedy episodes from the evaluation env's starts; logs and returns three numbers.
 
         ``success_rate``: episodes that terminate (leave the stage or end the task) before the
-        time limit. ``value_error``: mean ``|V(s_0) - G|`` between the stage's value estimate at
-        the start and the discounted return the greedy policy actually got, a check that the
-        values handed to the previous stage have converged. ``discounted_return``: the mean of
-        those returns, the stage's objective.
+        time limit. ``value_error``: ``|V(s_0) - G|`` between the stage's value estimate at the
+        start and the discounted return the greedy policy actually got, reduced over the starts
+        by ``cfg.value_error_reduce`` (mean or max), a check that the values handed to the
+        previous stage have converged. ``discounted_return``: the mean of those returns, the
+        stage's objective.
         """
-        max_steps = self.cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
+        cfg = self.cfg
+        max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
         stats, rollout = evaluate_policy(self.eval_env, self.learner.policy, max_steps)
         summary = stats.summary()
-        returns = discounted_return(rollout, stats.length, self.cfg.gamma)
+        returns = discounted_return(rollout, stats.length, cfg.gamma)
         with torch.no_grad():
             v0 = self.learner.value()(rollout[:, 0].clone()).get("state_value").reshape(-1)
-        summary["value_error"] = (v0 - returns).abs().mean().item()
+        errors = (v0 - returns).abs()
+        summary["value_error"] = (
+            errors.max() if cfg.value_error_reduce == "max" else errors.mean()
+        ).item()
         summary["discounted_return"] = returns.mean().item()
         self._log({f"eval/stage_{self.stage}/{k}": v for k, v in summary.items()}, frames)
         return summary["success_rate"], summary["value_error"], summary["discounted_return"]
@@ -221,7 +309,8 @@ class StageTrainer:
         metrics["updates"] = self.learner.num_updates
         self._log({f"{self.prefix}/{k}": v for k, v in metrics.items()}, frames)
 
-    def _log(self, metrics: dict[str, float], step: int) -> None:
+    def _log(self, metrics: dict[str, float | None], step: int) -> None:
         if self.logger is not None:
             for key, value in metrics.items():
-                self.logger.log_scalar(key, value, step=step)
+                if value is not None:
+                    self.logger.log_scalar(key, value, step=step)

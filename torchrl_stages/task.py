@@ -55,23 +55,38 @@ class StagedTask:
         self, batch_size: int | Sequence[int], start_stage: int | None = None, **overrides: Any
     ) -> EnvBase:
         """The task's env without stage transform (``overrides`` go to its constructor)."""
-        batch = (batch_size,) if isinstance(batch_size, int) else tuple(batch_size)
+        batch = (int(batch_size),) if isinstance(batch_size, int) else tuple(batch_size)
         kwargs = OmegaConf.to_container(self.cfg.env, resolve=True)
         kwargs.update(overrides)
         return instantiate(kwargs, batch_size=batch, start_stage=start_stage, device=self.device)
+
+    def start_states(self, stage: int | None) -> dict[str, Any] | None:
+        """Constructor arguments that start every batch element at one of ``stage``'s start
+        states, all of them covered (``None``: the whole-task starts), from the env's optional
+        ``start_states(stage)`` hook; ``None`` when the env cannot enumerate them."""
+        hook = getattr(self._probe, "start_states", None)
+        return None if hook is None else hook(stage)
 
     def stage_env(
         self,
         stage: int,
         batch_size: int,
         next_value: TensorDictModuleBase | None = None,
+        *,
+        all_starts: bool = False,
     ) -> TransformedEnv:
         """Stage ``stage``'s training env: starts inside the stage, its learner's view of rewards.
 
         Episodes end when they leave the stage; the transition reward adds
-        ``gamma_stage * next_value(s_{t+1})``. ``RewardSum`` tracks episode returns.
+        ``gamma_stage * next_value(s_{t+1})``. ``RewardSum`` tracks episode returns. With
+        ``all_starts`` (and an env that enumerates its starts, see :meth:`start_states`) the
+        batch holds one element per start state of the stage and ``batch_size`` is ignored.
         """
-        base = self.base_env(batch_size, start_stage=stage)
+        starts = self.start_states(stage) if all_starts else None
+        if starts is not None:
+            base = self.base_env(**starts)
+        else:
+            base = self.base_env(batch_size, start_stage=stage)
         transform = StageTransform(
             base.stage_fn,
             base.num_stages,
@@ -81,10 +96,29 @@ class StagedTask:
         )
         return TransformedEnv(base, Compose(transform, RewardSum()))
 
-    def task_env(self, batch_size: int, **overrides: Any) -> TransformedEnv:
-        """Whole-task env (stage tags only), with ``task.eval_env`` starts unless overridden."""
+    def stage_eval_env(
+        self, stage: int, next_value: TensorDictModuleBase | None = None
+    ) -> TransformedEnv:
+        """The env of stage ``stage``'s greedy evaluations: one episode from every start state
+        when the env enumerates them, else ``eval_episodes`` random starts in the stage."""
+        cfg = self.stage_cfg(stage)
+        return self.stage_env(stage, int(cfg.eval_episodes), next_value, all_starts=True)
+
+    def task_env(self, batch_size: int | None = None, **overrides: Any) -> TransformedEnv:
+        """Whole-task env (stage tags only), with ``task.eval_env`` starts unless overridden.
+
+        ``batch_size=None`` gives one element per whole-task start state (the env must
+        enumerate them, see :meth:`start_states`).
+        """
         kwargs = {**OmegaConf.to_container(self.cfg.eval_env, resolve=True), **overrides}
-        base = self.base_env(batch_size, **kwargs)
+        if batch_size is None:
+            starts = self.start_states(None)
+            if starts is None:
+                raise ValueError(f"the env of task '{self.name}' cannot enumerate its starts.")
+            kwargs = {**starts, **kwargs}
+        else:
+            kwargs["batch_size"] = batch_size
+        base = self.base_env(**kwargs)
         return TransformedEnv(base, StageTransform(base.stage_fn, base.num_stages))
 
     def specs(self, stage: int) -> StageSpecs:

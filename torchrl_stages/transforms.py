@@ -16,6 +16,10 @@ from torchrl.envs import Transform
 StageFn = Callable[[TensorDictBase], torch.Tensor]
 
 
+class NonFiniteValueError(FloatingPointError):
+    """The next stage's value of a transition is NaN or infinite."""
+
+
 def freeze(module: nn.Module) -> nn.Module:
     """Returns a frozen snapshot of ``module``: a deep copy with no gradients, in eval mode."""
     module = copy.deepcopy(module)
@@ -153,6 +157,13 @@ class StageTransform(Transform):
             bootstrap = leaving & ~task_terminated
             reward = next_td.get(self.reward_key)
             value = self._value(next_td).to(reward.dtype).reshape(reward.shape)
+            if not bool(torch.isfinite(value[bootstrap]).all()):
+                raise NonFiniteValueError(
+                    f"the value of stage {self.train_stage + 1}, V(s_t+1), is not finite on a "
+                    f"transition out of stage {self.train_stage}: stage {self.train_stage + 1}'s "
+                    "networks diverged, so stage "
+                    f"{self.train_stage}'s transition rewards would be NaN or infinite"
+                )
             next_td.set(
                 self.reward_key, torch.where(bootstrap, reward + self.gamma * value, reward)
             )

@@ -106,7 +106,7 @@ class ActorCriticLearner(Learner):
         excess = (captured[-1].abs() - SATURATION).clamp_min(0.0)
         return out, self.cfg.saturation_penalty * excess.pow(2).mean()
 
-    def anneal(self, frames: int) -> None:
+    def anneal_exploration(self, frames: int) -> None:
         cfg = self.cfg
         self.noise.sigma.fill_(
             linear_schedule(cfg.sigma_init, cfg.sigma_end, frames, cfg.annealing_frames)

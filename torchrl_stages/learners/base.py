@@ -52,6 +52,14 @@ def is_continuous(spec: TensorSpec) -> bool:
     return isinstance(spec, Bounded) and spec.dtype.is_floating_point
 
 
+class NonFiniteError(FloatingPointError):
+    """A learner's loss, gradient or parameter is NaN or infinite (the stage diverged)."""
+
+    def __init__(self, what: str, update: int) -> None:
+        super().__init__(f"{what} is not finite at update {update}")
+        self.what, self.update = what, update
+
+
 def linear_schedule(start: float, end: float, frames: int, horizon: int) -> float:
     """Linear annealing from ``start`` to ``end`` over ``horizon`` frames, then constant."""
     if horizon <= 0:
@@ -63,7 +71,8 @@ class Learner(nn.Module, ABC):
     """One stage's algorithm: networks, exploration, loss, optimizers and target updater.
 
     Subclasses build these from a :class:`~torchrl_stages.config.StageConfig` and
-    :class:`StageSpecs` and implement :meth:`update`, :meth:`anneal` and :meth:`value`. The loop in
+    :class:`StageSpecs` and implement :meth:`update`, :meth:`anneal_exploration` and
+    :meth:`value`. The loop in
     :mod:`torchrl_stages.stage` only talks to this interface, so all algorithms share it.
 
     Attributes:
@@ -82,6 +91,7 @@ class Learner(nn.Module, ABC):
         self.policy: TensorDictModuleBase
         self.exploration_policy: TensorDictModuleBase
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.grad_norms: dict[str, torch.Tensor] = {}  # of the last update, per optimizer
         self.num_updates = 0
 
     @property
@@ -99,8 +109,18 @@ class Learner(nn.Module, ABC):
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One gradient step on a replay batch, target update included; returns detached losses."""
 
-    @abstractmethod
     def anneal(self, frames: int) -> None:
+        """Sets the schedules for ``frames`` collected frames: exploration noise and the
+        learning rates (linear decay to ``cfg.lr_end_factor`` of their start over ``cfg.frames``).
+        """
+        factor = linear_schedule(1.0, float(self.cfg.lr_end_factor), frames, int(self.cfg.frames))
+        for optimizer in self.optimizers.values():
+            for group in optimizer.param_groups:
+                group["lr"] = group.setdefault("initial_lr", group["lr"]) * factor
+        self.anneal_exploration(frames)
+
+    @abstractmethod
+    def anneal_exploration(self, frames: int) -> None:
         """Sets the exploration noise for ``frames`` collected frames."""
 
     @abstractmethod
@@ -110,13 +130,41 @@ class Learner(nn.Module, ABC):
         The caller freezes it (:func:`torchrl_stages.transforms.freeze`).
         """
 
+    def _check_losses(self, **losses: torch.Tensor) -> None:
+        """Raises :class:`NonFiniteError` naming the first loss that is NaN or infinite."""
+        for name, value in losses.items():
+            if not bool(torch.isfinite(value).all()):
+                raise NonFiniteError(name, self.num_updates + 1)
+
     def _step(self, loss: torch.Tensor, *names: str) -> None:
-        """Backward ``loss`` and step the named optimizers (all when none are named)."""
-        optimizers = [self.optimizers[n] for n in names] if names else self.optimizers.values()
+        """Backward ``loss`` and step the named optimizers (all when none are named).
+
+        Each optimizer's gradient is clipped to ``cfg.max_grad_norm`` when set; its norm before
+        clipping is kept in :attr:`grad_norms`, and a non-finite one raises
+        :class:`NonFiniteError` before any parameter changes.
+        """
+        names = names or tuple(self.optimizers)
+        max_norm = self.cfg.max_grad_norm
         loss.backward()
-        for optimizer in optimizers:
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
+        for name in names:
+            params = [p for group in self.optimizers[name].param_groups for p in group["params"]]
+            grads = [p.grad for p in params if p.grad is not None]
+            norm = torch.nn.utils.get_total_norm(grads)
+            if max_norm is not None:
+                torch.nn.utils.clip_grads_with_norm_(params, float(max_norm), norm)
+            if not bool(torch.isfinite(norm)):
+                raise NonFiniteError(f"the gradient of the {name} parameters", self.num_updates + 1)
+            self.grad_norms[name] = norm.detach()
+        for name in names:
+            self.optimizers[name].step()
+            self.optimizers[name].zero_grad(set_to_none=True)
+
+    def check_finite(self) -> None:
+        """Raises :class:`NonFiniteError` if a parameter or buffer (targets included) is NaN or
+        infinite."""
+        for name, tensor in self.state_dict().items():
+            if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+                raise NonFiniteError(f"parameter {name}", self.num_updates)
 
     def checkpoint(self) -> dict[str, Any]:
         """Weights (target networks included), exploration state and optimizer states."""

@@ -45,11 +45,17 @@ class DDPGLearner(ActorCriticLearner):
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         out, penalty = self.with_saturation_penalty(self.loss, batch)
+        self._check_losses(loss_actor=out["loss_actor"], loss_value=out["loss_value"])
         # Sum only the loss terms: other entries (pred_value, ...) are not detached.
         self._step(out["loss_actor"] + out["loss_value"] + penalty)
         self.target_updater.step()
         self.num_updates += 1
-        return {"loss_actor": out["loss_actor"].detach(), "loss_value": out["loss_value"].detach()}
+        return {
+            "loss_actor": out["loss_actor"].detach(),
+            "loss_value": out["loss_value"].detach(),
+            "grad_norm_actor": self.grad_norms["actor"],
+            "grad_norm_critic": self.grad_norms["critic"],
+        }
 
     def value(self) -> TensorDictModuleBase:
         """``Q_target(s, mu_target(s))``."""

@@ -78,12 +78,13 @@ class DQNLearner(Learner):
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss = self.loss(batch)["loss"]
+        self._check_losses(loss=loss)
         self._step(loss)
         self.target_updater.step()
         self.num_updates += 1
-        return {"loss": loss.detach()}
+        return {"loss": loss.detach(), "grad_norm": self.grad_norms["qvalue"]}
 
-    def anneal(self, frames: int) -> None:
+    def anneal_exploration(self, frames: int) -> None:
         cfg = self.cfg
         self.egreedy.eps.fill_(
             linear_schedule(cfg.eps_init, cfg.eps_end, frames, cfg.annealing_frames)

@@ -51,15 +51,18 @@ class TD3Learner(ActorCriticLearner):
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_q, _ = self.loss.value_loss(batch)
+        self._check_losses(loss_qvalue=loss_q)
         self._step(loss_q, "critic")
-        out = {"loss_qvalue": loss_q.detach()}
-        self.num_updates += 1
-        if self.num_updates % self.cfg.policy_update_delay == 0:
+        out = {"loss_qvalue": loss_q.detach(), "grad_norm_critic": self.grad_norms["critic"]}
+        if (self.num_updates + 1) % self.cfg.policy_update_delay == 0:
             (loss_actor, _), penalty = self.with_saturation_penalty(self.loss.actor_loss, batch)
+            self._check_losses(loss_actor=loss_actor)
             self._step(loss_actor + penalty, "actor")
             self.optimizers["critic"].zero_grad(set_to_none=True)
             self.target_updater.step()
             out["loss_actor"] = loss_actor.detach()
+            out["grad_norm_actor"] = self.grad_norms["actor"]
+        self.num_updates += 1
         return out
 
     def value(self) -> TensorDictModuleBase:

@@ -1,0 +1,96 @@
+"""Whole-task evaluation of a trained run (``eval.json``) and the per-task reports.
+
+Every run gets one whole-task evaluation (:func:`torchrl_stages.evaluate.evaluate_task`): its
+success rate, returns and steps are the run's numbers. A task may add a report, looked up by
+``task.name`` in :data:`REPORTS`: ``report(task, learners, evaluation, run_dir, plots) -> dict``
+reads that same evaluation (or runs task-specific deterministic checks), draws the task's
+figures, and its dict is stored under ``"task_metrics"`` in ``eval.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig
+
+from torchrl_stages.evaluate import evaluate_task
+from torchrl_stages.learners import Learner
+from torchrl_stages.policy import StackedPolicy
+from torchrl_stages.reports import cargo, gridworld, manipulator
+from torchrl_stages.task import StagedTask
+
+EVAL_FILE = "eval.json"
+EVAL_SEED_OFFSET = 20_000  # whole-task evaluation seeds: run seed + this (+ chunk index)
+
+Report = Callable[..., dict[str, Any]]
+
+REPORTS: dict[str, Report] = {
+    "cargo": cargo.report,
+    "gridworld": gridworld.report,
+    "manipulator": manipulator.report,
+}
+
+
+def strict_json(value: Any) -> Any:
+    """``value`` with every NaN or infinite float replaced by ``None`` (strict JSON)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [strict_json(v) for v in value]
+    return value
+
+
+def evaluate_run(
+    cfg: DictConfig,
+    task: StagedTask,
+    learners: Sequence[Learner],
+    run_dir: Path,
+    training: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Evaluates the greedy stacked policy on whole-task episodes; writes ``eval.json``.
+
+    Episodes start from every whole-task start state when the env enumerates them, else from
+    ``cfg.eval.episodes`` random ones seeded from ``cfg.seed``; the task's report (if any) adds
+    its metrics and figures; ``training`` (wall-clock, frames, updates per stage) is stored
+    alongside. ``eval.json`` is strict JSON: undefined values are ``null``.
+    """
+    policy = StackedPolicy([learner.policy for learner in learners])
+    evaluation = evaluate_task(
+        task, policy, int(cfg.eval.episodes), int(cfg.seed) + EVAL_SEED_OFFSET
+    )
+    result: dict[str, Any] = {
+        "task": cfg.task.name,
+        **evaluation.summary(),
+        "training": training or {},
+    }
+    report = REPORTS.get(cfg.task.name)
+    if report is not None:
+        result["task_metrics"] = report(task, learners, evaluation, run_dir, plots=cfg.eval.plots)
+    if cfg.eval.plots and (run_dir / "metrics.csv").is_file():
+        from torchrl_stages.plots import plot_learning_curves
+
+        plot_learning_curves(run_dir / "metrics.csv", run_dir / "learning_curves.png")
+    result = strict_json(result)
+    (run_dir / EVAL_FILE).write_text(json.dumps(result, indent=2, allow_nan=False))
+    return result
+
+
+def format_summary(result: dict[str, Any], run_dir: Path) -> str:
+    """A few human-readable lines for the end of a run."""
+    starts = "every whole-task start" if result.get("starts") == "all" else "random starts"
+    lines = [
+        f"task {result['task']}: success {result['success_rate']:.1%} over "
+        f"{result['episodes']} whole-task episodes ({starts}), mean return "
+        f"{result['mean_return']:.3f}, mean steps {result['mean_steps']:.1f}",
+    ]
+    for key, value in result.get("task_metrics", {}).items():
+        if key != "path_from_origin":
+            lines.append(f"  {key}: {value}")
+    lines.append(f"Run directory: {run_dir}")
+    return "\n".join(lines)

@@ -1,0 +1,80 @@
+"""Manipulator report: final-distance percentiles, effector trajectories, fine-stage value map."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+from torchrl_stages.envs.manipulator import inverse_kinematics
+from torchrl_stages.evaluate import TaskEvaluation
+from torchrl_stages.learners import Learner
+from torchrl_stages.task import StagedTask
+
+EXAMPLES = 8  # effector paths drawn in manipulator.png
+
+
+def final_distances(final: TensorDictBase, scales: Sequence[float]) -> torch.Tensor:
+    """Effector-target distance where each episode ended, from its last observation (the
+    observation's target offset is divided by the scale of the stage it is in)."""
+    obs, stage = final["observation"], final["stage"].reshape(-1)
+    scale = torch.as_tensor(scales, dtype=obs.dtype)[stage]
+    return obs[:, 4:6].norm(dim=-1) * scale
+
+
+@torch.no_grad()
+def fine_value_map(
+    task: StagedTask, learner: Learner, target: Sequence[float], half_width: float, n: int = 61
+) -> np.ndarray:
+    """The fine stage's ``V(s)`` on an ``n x n`` grid of effector positions around ``target``."""
+    env = task.base_env(1)
+    xs = torch.linspace(-half_width, half_width, n)
+    gx, gy = torch.meshgrid(xs + target[0], xs + target[1], indexing="xy")
+    points = torch.stack([gx, gy], -1).reshape(-1, 2)
+    theta = inverse_kinematics(points, torch.ones(len(points), dtype=torch.bool))
+    stage = torch.ones(len(points), dtype=torch.long)
+    obs = env.observation_of(theta, torch.as_tensor(target).expand_as(points), stage)
+    td = TensorDict(observation=obs, stage=stage.unsqueeze(-1), batch_size=[len(obs)])
+    return learner.value()(td)["state_value"].reshape(n, n).numpy()
+
+
+def report(
+    task: StagedTask,
+    learners: Sequence[Learner],
+    evaluation: TaskEvaluation,
+    run_dir: Path,
+    plots: bool = True,
+) -> dict[str, Any]:
+    """Manipulator metrics for ``eval.json`` (and the Fig. 4(b) panel when ``plots``), from
+    the run's whole-task evaluation."""
+    env = task.base_env(1)
+    dist = final_distances(evaluation.final, list(env.scales))
+    q = torch.tensor([0.5, 0.9, 0.99])
+    out: dict[str, Any] = {"final_distance_p50_p90_p99": torch.quantile(dist, q).tolist()}
+    if plots and not env.random_target and len(learners) == 2:
+        from torchrl_stages.plots import plot_arm_figure
+
+        rollout, length = evaluation.rollout, evaluation.stats.length
+        count = min(EXAMPLES, rollout.shape[0])
+        effector_paths = [
+            torch.cat(
+                [rollout["observation"][i, :1, 2:4], rollout["next", "observation"][i, :n, 2:4]]
+            ).tolist()
+            for i, n in enumerate(length[:count].tolist())
+        ]
+        half = 2.0 * float(env.switch_distance)
+        target = list(env.target)
+        values = fine_value_map(task, learners[1], target, half)
+        plot_arm_figure(
+            effector_paths,
+            values,
+            target=target,
+            half_width=half,
+            switch_distance=float(env.switch_distance),
+            out=run_dir / "manipulator.png",
+        )
+    return out
