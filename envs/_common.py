@@ -32,14 +32,35 @@ def sparse_reward_and_done_specs(
 
 
 class StageStarts:
-    """Mixin of the multi-stage envs: a validated ``start_stage`` and a seeded generator.
+    """Mixin of the multi-stage envs: a validated ``start_stage``, a seeded generator, and the
+    env's dynamic state in ``state_dict``.
 
     ``start_stage`` is the stage whose states resets are drawn from (``None``: whole-task
     starts); the backward schedule sets it to train one stage. ``env.set_seed`` seeds ``rng``.
+    The buffers named in ``_dynamic_state`` (positions, step counters: everything a step
+    changes) and the generator's state travel in ``state_dict()["_extra_state"]``, so a run
+    resumed from a checkpoint continues the same episodes with the same noise.
     """
 
     num_stages: int
     rng: torch.Generator | None = None
+    _dynamic_state: tuple[str, ...] = ()
+
+    def get_extra_state(self) -> dict:
+        return {
+            "rng": None if self.rng is None else self.rng.get_state(),
+            **{name: getattr(self, name).clone() for name in self._dynamic_state},
+        }
+
+    def set_extra_state(self, state: dict) -> None:
+        if state["rng"] is None:
+            self.rng = None
+        else:
+            if self.rng is None:
+                self.rng = torch.Generator(device=self.device or "cpu")
+            self.rng.set_state(state["rng"])
+        for name in self._dynamic_state:
+            getattr(self, name).copy_(state[name])
 
     @property
     def start_stage(self) -> int | None:

@@ -118,6 +118,8 @@ class CargoEnv(StageStarts, EnvBase):
 
     stage_fn = None  # the env tracks its stage itself: StageTransform(None, n) reads "stage"
 
+    _dynamic_state = ("_pos", "_theta", "_stage", "_steps")  # what a step changes (see StageStarts)
+
     def __init__(
         self,
         batch_size: Sequence[int] | torch.Size = (),

@@ -73,6 +73,8 @@ class GridWorldEnv(StageStarts, EnvBase):
         [4, 4, 4, 4]
     """
 
+    _dynamic_state = ("_cell", "_steps")  # what a step changes (see StageStarts)
+
     def __init__(
         self,
         batch_size: Sequence[int] | torch.Size = (),

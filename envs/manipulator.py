@@ -146,6 +146,13 @@ class ManipulatorEnv(StageStarts, EnvBase):
 
     stage_fn = None  # the env tracks its stage itself: StageTransform(None, 2) reads "stage"
 
+    _dynamic_state = (
+        "_theta",
+        "_target",
+        "_stage",
+        "_steps",
+    )  # what a step changes (see StageStarts)
+
     def __init__(
         self,
         batch_size: Sequence[int] | torch.Size = (),

@@ -20,8 +20,8 @@ import torch
 from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 
-from torchrl_stages.cli import run_training
 from torchrl_stages.config import register_configs
+from torchrl_stages.experiment import Experiment
 
 
 def compose_config(task: str, *overrides: str) -> DictConfig:
@@ -63,8 +63,7 @@ def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespac
 def train(task: str, run_dir: Path, *overrides: str) -> dict[str, Any]:
     """Trains and evaluates one run in ``run_dir`` (CSV logger); returns its ``eval.json``."""
     cfg = compose_config(task, "logger=csv", *overrides)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    return run_training(cfg, run_dir)
+    return Experiment(cfg, run_dir).run()
 
 
 def run_table(

@@ -12,9 +12,9 @@ from hydra.errors import ConfigCompositionException
 from tensordict.nn import TensorDictModule
 from torchrl.data import Bounded, Categorical
 
-from torchrl_stages.cli import build_task
 from torchrl_stages.config import register_configs
 from torchrl_stages.evaluate import rollout_first_episodes
+from torchrl_stages.experiment import build_task
 from torchrl_stages.learners import DQNLearner, TD3Learner, make_learner
 from torchrl_stages.learners.networks import ConvEncoder
 from torchrl_stages.policy import StackedPolicy

@@ -17,8 +17,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import ConfigCompositionException
 from omegaconf import DictConfig, OmegaConf
 
-import torchrl_stages.cli
-from torchrl_stages.cli import build_task, run_training
+import torchrl_stages.experiment
 from torchrl_stages.config import (
     ALGO_SCHEMAS,
     DDPGConfig,
@@ -27,6 +26,7 @@ from torchrl_stages.config import (
     TD3Config,
     register_configs,
 )
+from torchrl_stages.experiment import Experiment, build_task
 from torchrl_stages.validate import ConfigError, validate_config
 
 CONF = importlib.resources.files("torchrl_stages.conf")
@@ -337,20 +337,21 @@ def test_valid_variants_build(hydra_compose):
 # ------------------------------------------------------------------ known package bugs
 @pytest.fixture
 def no_training(monkeypatch):
-    """Makes ``run_training`` fail loudly instead of training if validation lets a config by."""
+    """Makes an experiment fail loudly instead of training if validation lets a config by."""
 
     def refuse(*args, **kwargs):
         raise AssertionError("training started: the config was not rejected")
 
-    monkeypatch.setattr(torchrl_stages.cli, "train_backward", refuse)
+    monkeypatch.setattr(torchrl_stages.experiment, "train_backward", refuse)
     threads = torch.get_num_threads()
     yield
     torch.set_num_threads(threads)
 
 
-def test_run_training_rejects_threads_zero_with_config_error(hydra_compose, no_training, tmp_path):
+def test_experiment_rejects_threads_zero_with_config_error(hydra_compose, no_training, tmp_path):
     with pytest.raises(ConfigError, match=r"threads=0.*Fix:"):
-        run_training(hydra_compose("threads=0"), tmp_path)
+        Experiment(hydra_compose("threads=0"), tmp_path).run()
+    assert not any(tmp_path.iterdir())  # nothing written
 
 
 def test_bad_device_is_reported_on_the_device_key(hydra_compose):
@@ -371,4 +372,4 @@ def test_logger_backend_without_its_package_is_a_config_error(
     if importlib.util.find_spec(module) is not None:
         pytest.skip(f"{module} is installed")
     with pytest.raises(ConfigError, match=r"logger\.backend.*Fix:"):
-        run_training(hydra_compose(f"logger={backend}"), tmp_path)
+        Experiment(hydra_compose(f"logger={backend}"), tmp_path).run()

@@ -11,9 +11,9 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from tensordict.nn import TensorDictModule
 
-from torchrl_stages.cli import build_task
 from torchrl_stages.config import register_configs
 from torchrl_stages.envs.manipulator import inverse_kinematics
+from torchrl_stages.experiment import build_task
 from torchrl_stages.validate import ConfigError
 
 

@@ -1,100 +1,79 @@
-"""Console scripts: ``stages-train`` (Hydra app) and ``stages-eval RUN_DIR``."""
+"""Console scripts: ``stages-train`` (Hydra app) and ``stages-eval RUN_DIR``.
+
+Both are thin shells over the library: :class:`torchrl_stages.experiment.Experiment` trains,
+:func:`torchrl_stages.rundir.load_run` and :func:`torchrl_stages.reports.evaluate_run`
+re-evaluate. Exit codes: 0 done, 2 invalid config or run directory, 3 training diverged.
+"""
 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
-import time
-from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import InstantiationException
-from omegaconf import DictConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config import register_configs
-from torchrl_stages.learners import Learner
-from torchrl_stages.loggers import make_logger
+from torchrl_stages.experiment import Experiment
 from torchrl_stages.reports import evaluate_run, format_summary
-from torchrl_stages.run import load_run, save_config, save_stage
-from torchrl_stages.schedule import train_backward
-from torchrl_stages.stage import DivergenceError, StageResult
-from torchrl_stages.task import StagedTask
-from torchrl_stages.validate import ConfigError, validate_config, validate_task
+from torchrl_stages.rundir import RunDir, RunDirError, load_run
+from torchrl_stages.stage import DivergenceError
+from torchrl_stages.validate import ConfigError
 
-log = logging.getLogger("torchrl_stages")
+EXIT_INVALID, EXIT_DIVERGED = 2, 3
 
 
-def build_task(cfg: DictConfig) -> StagedTask:
-    """Validates ``cfg`` and builds its task; raises :class:`ConfigError` before any training."""
-    validate_config(cfg)
-    try:
-        task = StagedTask(cfg.task, device=cfg.device)
-    except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
-        raise ConfigError(
-            f"task.env: cannot build the env of task '{cfg.task.name}': {err}. "
-            "Fix: check the task.env.* values (or task.env._target_)."
-        ) from err
-    validate_task(cfg, task)
-    return task
+class JobFailed(RuntimeError):
+    """A multirun job that failed; its directory's ``status.json`` says why."""
 
 
-def run_training(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Validates, trains every stage backward, evaluates; everything lands in ``run_dir``."""
-    task = build_task(cfg)
-    torch.set_num_threads(cfg.threads)
-    logging.getLogger("torchrl").setLevel(logging.WARNING)
-    save_config(cfg, run_dir)
-    logger = make_logger(cfg, run_dir)
+def _write_hydra_files(cfg: DictConfig, run_dir: Path) -> None:
+    """What Hydra writes to ``.hydra/`` (its ``output_subdir`` is off, see ``conf/config.yaml``):
+    the composed config, Hydra's config and the command-line overrides."""
+    hydra_cfg = HydraConfig.get()
+    out = run_dir / ".hydra"
+    out.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, out / "config.yaml")
+    OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), out / "hydra.yaml")
+    OmegaConf.save(hydra_cfg.overrides.task, out / "overrides.yaml")
 
-    def on_stage_end(k: int, learner: Learner, result: StageResult) -> None:
-        save_stage(run_dir, k, task.stage_names[k], learner, result)
-        evaluated = result.success_rate is not None
-        quality = (
-            f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
-            if evaluated
-            else "not evaluated"
-        )
-        log.info(
-            "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s%s",
-            k,
-            task.stage_names[k],
-            learner.algo,
-            result.frames,
-            result.updates,
-            result.seconds,
-            quality,
-            " (early stop)" if result.early_stopped else "",
-            " (best evaluation restored)" if result.restored_best else "",
-        )
 
-    start = time.perf_counter()
-    learners, results = train_backward(
-        task, seed=cfg.seed, logger=logger, progress=cfg.progress, on_stage_end=on_stage_end
-    )
-    training = {"seconds": time.perf_counter() - start, "stages": [asdict(r) for r in results]}
-    result = evaluate_run(cfg, task, learners, run_dir, training=training)
-    if logger is not None:
-        for key in ("success_rate", "mean_return", "mean_steps"):
-            logger.log_scalar(f"eval/task/{key}", result[key], step=0)
-    return result
+def _fail(run_dir: Path, status: str, message: str, code: int, write_status: bool) -> None:
+    """Reports a failed job: one line on stderr; in a multirun, ``status.json`` in its
+    directory and an exception, so the sweep goes on with the other jobs and exits non-zero."""
+    print(f"stages-train: {message}", file=sys.stderr)
+    multirun = HydraConfig.get().mode == RunMode.MULTIRUN
+    if multirun or write_status:
+        RunDir(run_dir).write_status(status, message)
+    if multirun:
+        raise JobFailed(f"{run_dir}: {message}")
+    sys.exit(code)
 
 
 @hydra.main(config_path="pkg://torchrl_stages.conf", config_name="config", version_base="1.3")
 def _train_app(cfg: DictConfig) -> float:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
+    multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
-        result = run_training(cfg, run_dir)
+        experiment = Experiment(cfg, run_dir)
+    except RunDirError as err:  # the directory holds another run: touch nothing there
+        _fail(run_dir, "refused", str(err), EXIT_INVALID, write_status=False)
     except ConfigError as err:
-        print(f"stages-train: invalid config: {err}", file=sys.stderr)
-        sys.exit(2)
+        if multirun:
+            _write_hydra_files(cfg, run_dir)
+        _fail(run_dir, "invalid", f"invalid config: {err}", EXIT_INVALID, write_status=False)
+    if not experiment.resuming:
+        _write_hydra_files(cfg, run_dir)
+    try:
+        result = experiment.run()
     except DivergenceError as err:
-        print(f"stages-train: {err}", file=sys.stderr)
-        sys.exit(3)
+        _fail(run_dir, "diverged", str(err), EXIT_DIVERGED, write_status=True)
+    except RunDirError as err:
+        _fail(run_dir, "failed", str(err), EXIT_INVALID, write_status=True)
     print(format_summary(result, run_dir))
     return float(result["success_rate"])  # the objective of sweeper plugins (e.g. Optuna)
 
@@ -120,16 +99,17 @@ def evaluate(argv: list[str] | None = None) -> None:
         "--episodes",
         type=_positive_int,
         default=None,
-        help="whole-task episodes (default: the run's eval.episodes)",
+        help="whole-task episodes from random starts (default: the run's eval.episodes; "
+        "envs that enumerate their starts are evaluated from each one)",
     )
     parser.add_argument("--no-plots", action="store_true", help="skip the figures")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     try:
         run = load_run(args.run_dir)
-    except FileNotFoundError as err:
+    except RunDirError as err:
         print(f"stages-eval: {err}", file=sys.stderr)
-        sys.exit(2)
+        sys.exit(EXIT_INVALID)
     if args.episodes is not None:
         run.cfg.eval.episodes = args.episodes
     if args.no_plots:

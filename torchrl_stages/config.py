@@ -156,6 +156,12 @@ class TrainConfig:
     device: str = "cpu"
     threads: int = 1  # torch intra-op threads; small nets train fastest with 1
     progress: bool = True  # tqdm bar per stage (hidden anyway when stderr is not a TTY)
+    # frames between two checkpoints of the stage in progress (0: none); a resumed run loses at
+    # most that much of the stage (about a minute of training on the shipped tasks)
+    checkpoint_every: int = 50_000
+    checkpoint_keep: int = 2  # newest checkpoints kept per stage
+    resume: bool = False  # continue the run in hydra.run.dir (same overrides otherwise)
+    overwrite: bool = False  # replace the run in hydra.run.dir
 
 
 def register_configs() -> None:

@@ -39,6 +39,27 @@ class MetricsCSVLogger(CSVLogger):
         super().log_scalar(name, value, step=step)
         self._append([name, step, float(value)])
 
+    def _files(self) -> dict[str, Path]:
+        """The files this logger appends to, by path relative to the run directory."""
+        root = self.metrics_file.parent
+        files = [self.metrics_file, *sorted(Path(self.experiment.log_dir).rglob("*.csv"))]
+        return {f.relative_to(root).as_posix(): f for f in files}
+
+    def position(self) -> dict[str, int]:
+        """The size of every file this logger appends to (``metrics.csv`` and torchrl's
+        per-tag files), for :meth:`rewind`."""
+        return {name: f.stat().st_size for name, f in self._files().items() if f.is_file()}
+
+    def rewind(self, position: dict[str, int]) -> None:
+        """Truncates the files to a :meth:`position` (rows written after it are dropped; files
+        created after it are emptied), so a resumed run does not log anything twice."""
+        for name, f in self._files().items():
+            if f.is_file():
+                with f.open("r+b") as handle:
+                    handle.truncate(position.get(name, 0))
+        if self.metrics_file.stat().st_size == 0:
+            self._append(["name", "step", "value"])
+
 
 def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
     """The logger of ``cfg.logger`` writing inside ``run_dir`` (``None`` for backend ``none``)."""

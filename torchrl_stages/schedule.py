@@ -2,17 +2,30 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from typing import Protocol
 
 import torch
-from omegaconf import DictConfig
 from torchrl.record.loggers import Logger
 
+from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.stage import StageResult, StageTrainer
 from torchrl_stages.task import StagedTask
 
-StageCallback = Callable[[int, Learner, StageResult], None]
+
+class StageStore(Protocol):
+    """Where a schedule keeps its stages (a run directory, see
+    :class:`~torchrl_stages.experiment.Experiment`): finished ones, checkpoints of the one in
+    progress."""
+
+    def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
+        """The stage if it was already trained (a resumed run), else ``None``."""
+
+    def begin(self, stage: int) -> StageCheckpoints | None:
+        """The checkpoints the stage's loop saves to and resumes from."""
+
+    def save(self, stage: int, learner: Learner, result: StageResult) -> None:
+        """Keeps a stage that just finished."""
 
 
 def train_backward(
@@ -21,38 +34,62 @@ def train_backward(
     seed: int = 0,
     logger: Logger | None = None,
     progress: bool = False,
-    on_stage_end: StageCallback | None = None,
+    store: StageStore | None = None,
 ) -> tuple[list[Learner], list[StageResult]]:
     """Trains stages N-1, ..., 0 of ``task`` in turn (the paper's backward schedule).
 
     Stage k's episodes start inside stage k; its transition reward uses the frozen value of the
-    already trained stage k+1 (its target networks). ``on_stage_end`` runs as soon as a stage is
-    done (the CLI writes the stage checkpoint there). Returns learners and results in stage order.
+    already trained stage k+1 (its target networks). Each stage seeds the global generator with
+    ``seed + k`` and its envs with ``seed + k`` (training) and ``seed + 10_000 + k``
+    (evaluation), so a stage's training does not depend on how the ones after it were reached
+    (trained now, or loaded by a resumed run). ``store`` (optional) skips stages that are
+    already trained, checkpoints the one in progress and keeps each finished stage. Returns
+    learners and results in stage order.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.config import DQNConfig
+        >>> from torchrl_stages.task import StagedTask
+        >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16,
+        ...                  init_random_frames=128, batch_size=32, eval_every=0)
+        >>> task = StagedTask(OmegaConf.create({
+        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},  # stages 0 and 1
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2},
+        ... }))
+        >>> learners, results = train_backward(task)
+        >>> [r.frames for r in results]
+        [256, 256]
     """
     learners: list[Learner | None] = [None] * task.num_stages
     results: list[StageResult | None] = [None] * task.num_stages
     next_value = None
     for k in reversed(range(task.num_stages)):
-        cfg: DictConfig = task.stage_cfg(k)
-        torch.manual_seed(seed + k)
-        env = task.stage_env(k, cfg.num_envs, next_value)
-        env.set_seed(seed + k)
-        eval_env = task.stage_eval_env(k, next_value)
-        eval_env.set_seed(seed + 10_000 + k)
-        learner = make_learner(cfg, task.specs(k))
-        trainer = StageTrainer(
-            k,
-            learner,
-            env,
-            eval_env,
-            cfg,
-            logger=logger,
-            progress=progress,
-            name=task.stage_names[k],
-        )
-        results[k] = trainer.train()
-        learners[k] = learner
-        if on_stage_end is not None:
-            on_stage_end(k, learner, results[k])
-        next_value = learner.value()
+        done = store.finished(k) if store is not None else None
+        if done is not None:
+            learners[k], results[k] = done
+        else:
+            cfg = task.stage_cfg(k)
+            torch.manual_seed(seed + k)
+            env = task.stage_env(k, cfg.num_envs, next_value)
+            env.set_seed(seed + k)
+            eval_env = task.stage_eval_env(k, next_value)
+            eval_env.set_seed(seed + 10_000 + k)
+            learner = make_learner(cfg, task.specs(k))
+            trainer = StageTrainer(
+                k,
+                learner,
+                env,
+                eval_env,
+                cfg,
+                logger=logger,
+                progress=progress,
+                name=task.stage_names[k],
+                checkpoints=store.begin(k) if store is not None else None,
+            )
+            results[k] = trainer.train()
+            learners[k] = learner
+            if store is not None:
+                store.save(k, learner, results[k])
+        next_value = learners[k].value()
     return learners, results

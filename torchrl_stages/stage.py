@@ -11,12 +11,13 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import torch
-from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
+from torchrl_stages.checkpoint import StageCheckpoints, StateOf
+from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner
@@ -133,6 +134,17 @@ class _EvalMonitor:
         self.stopped = self.streak >= cfg.patience and frames >= cfg.min_frames
         return self.stopped
 
+    _FIELDS = ("streak", "stopped", "best", "best_score", "best_is_last", "last")
+
+    def state_dict(self) -> dict:
+        return {**{f: getattr(self, f) for f in self._FIELDS}, "best_state": self.best_state}
+
+    def load_state_dict(self, state: dict) -> None:
+        for f in self._FIELDS:
+            value = state[f]
+            setattr(self, f, tuple(value) if isinstance(value, list) else value)
+        self.best_state = state["best_state"]
+
     def restore_best(self, learner: Learner) -> bool:
         if self.stopped or self.best_state is None or self.best_is_last:
             return False
@@ -155,6 +167,9 @@ class StageTrainer:
     ``env`` is the stage's training env (starts inside the stage, transitions terminal, rewards
     rewritten by :class:`~torchrl_stages.transforms.StageTransform`); ``eval_env`` is the same
     kind of env used for greedy evaluations and the early stop on ``cfg.success_threshold``.
+    With ``checkpoints`` the loop saves a checkpoint every ``checkpoints.every`` frames and
+    starts from the newest one on disk, so that an interrupted stage goes on exactly where it
+    stopped; ``log_position`` / ``log_rewind`` record and restore the logger's files with it.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -185,6 +200,7 @@ class StageTrainer:
         logger: Logger | None = None,
         progress: bool = False,
         name: str | None = None,
+        checkpoints: StageCheckpoints | None = None,
     ) -> None:
         self.stage = stage
         self.learner = learner
@@ -195,42 +211,83 @@ class StageTrainer:
         self.progress = progress
         self.name = name or str(stage)
         self.prefix = f"train/stage_{stage}"
+        self.checkpoints = checkpoints
 
     def train(self) -> StageResult:
         cfg, learner = self.cfg, self.learner
-        collector = Collector(
+        collector = StageCollector(
             self.env,
             learner.exploration_policy,
             frames_per_batch=cfg.frames_per_batch,
             total_frames=cfg.frames,
             init_random_frames=cfg.init_random_frames,
-            auto_register_policy_transforms=False,
         )
         buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(cfg.buffer_size), batch_size=cfg.batch_size
         )
         monitor = _EvalMonitor(cfg)
-        start = time.perf_counter()
+        counters = {"next_eval": cfg.eval_every, "seconds": 0.0, "log": {}}
+        state = {  # what a checkpoint holds (and the process-global generators)
+            "learner": StateOf(learner.checkpoint, learner.load_checkpoint),
+            "replay_buffer": buffer,
+            "collector": collector,
+            "eval_env": getattr(self.eval_env, "base_env", self.eval_env),
+            "monitor": monitor,
+            "counters": counters,
+        }
+        if self.checkpoints is not None and (latest := self.checkpoints.latest()) is not None:
+            self.checkpoints.load(latest, state)
+            self._rewind_log(counters["log"])
+        start = time.perf_counter() - counters["seconds"]
+        watch = Stopwatch()
         bar = tqdm(
+            initial=collector.frames,
             total=cfg.frames,
             desc=f"stage {self.stage} ({self.name})",
             unit="frame",
             disable=not (self.progress and sys.stderr.isatty()),
             leave=False,
         )
-        watch = Stopwatch()
         try:
-            frames = self._loop(collector, buffer, monitor, watch, bar)
+            for batch in watch.timed("collect", collector):
+                frames = collector.frames
+                with watch("collect"):
+                    buffer.extend(batch.reshape(-1).select(*learner.loss.in_keys, strict=False))
+                learner.anneal(frames)
+                losses = []
+                if frames >= cfg.init_random_frames:
+                    for _ in range(cfg.updates_per_batch):
+                        with watch("sample"):
+                            sample = buffer.sample()
+                        with watch("update"):
+                            losses.append(learner.update(sample))
+                    learner.check_finite()
+                with watch("log"):
+                    self._log_batch(batch, losses, frames)
+                bar.update(batch.numel())
+                stop = False
+                if cfg.eval_every > 0 and frames >= counters["next_eval"]:
+                    counters["next_eval"] += cfg.eval_every
+                    with watch("evaluate"):
+                        success, value_error, ret = self.evaluate(frames)
+                    bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
+                    stop = monitor.record(learner, success, value_error, frames, ret)
+                if stop:
+                    break
+                if self.checkpoints is not None and self.checkpoints.due(frames):
+                    with watch("checkpoint"):
+                        counters["seconds"] = time.perf_counter() - start
+                        counters["log"] = self._log_position()
+                        self.checkpoints.save(frames, state)
         except (NonFiniteError, NonFiniteValueError) as err:
             raise DivergenceError(self.stage, self.name, learner.algo, err) from err
         finally:
             bar.close()
-            collector.shutdown()
         restored = monitor.restore_best(learner)
         success, value_error = monitor.final
         return StageResult(
             self.stage,
-            frames,
+            collector.frames,
             learner.num_updates,
             time.perf_counter() - start,
             success,
@@ -239,37 +296,6 @@ class StageTrainer:
             restored,
             dict(watch.seconds),
         )
-
-    def _loop(self, collector, buffer, monitor, watch, bar) -> int:
-        """Collect, store, update and evaluate until the budget or the early stop; returns the
-        frames collected."""
-        cfg, learner = self.cfg, self.learner
-        keep = learner.loss.in_keys  # store only what the loss reads
-        frames, next_eval = 0, cfg.eval_every
-        for batch in watch.timed("collect", collector):
-            with watch("collect"):
-                buffer.extend(batch.reshape(-1).select(*keep, strict=False))
-            frames += batch.numel()
-            learner.anneal(frames)
-            losses = []
-            if frames >= cfg.init_random_frames:
-                for _ in range(cfg.updates_per_batch):
-                    with watch("sample"):
-                        sample = buffer.sample()
-                    with watch("update"):
-                        losses.append(learner.update(sample))
-                learner.check_finite()
-            with watch("log"):
-                self._log_batch(batch, losses, frames)
-            bar.update(batch.numel())
-            if cfg.eval_every > 0 and frames >= next_eval:
-                next_eval += cfg.eval_every
-                with watch("evaluate"):
-                    success, value_error, ret = self.evaluate(frames)
-                bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
-                if monitor.record(learner, success, value_error, frames, ret):
-                    break
-        return frames
 
     def evaluate(self, frames: int) -> tuple[float, float, float]:
         """Greedy episodes from the evaluation env's starts; logs and returns three numbers.
@@ -304,10 +330,19 @@ class StageTrainer:
         if done.any():
             metrics["episode_return"] = batch["next", "episode_reward"][done].mean().item()
             metrics["episode_success"] = batch["next", "terminated"][done].float().mean().item()
-        for key in {k for loss in losses for k in loss}:
+        for key in dict.fromkeys(k for loss in losses for k in loss):
             metrics[key] = torch.stack([loss[key] for loss in losses if key in loss]).mean().item()
         metrics["updates"] = self.learner.num_updates
         self._log({f"{self.prefix}/{k}": v for k, v in metrics.items()}, frames)
+
+    def _log_position(self) -> dict[str, int]:
+        position = getattr(self.logger, "position", None)
+        return position() if position is not None else {}
+
+    def _rewind_log(self, position: dict[str, int]) -> None:
+        rewind = getattr(self.logger, "rewind", None)
+        if rewind is not None:
+            rewind(position)
 
     def _log(self, metrics: dict[str, float | None], step: int) -> None:
         if self.logger is not None:

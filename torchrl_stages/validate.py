@@ -168,6 +168,20 @@ def validate_config(cfg: DictConfig) -> None:
         f"pip install {package}, or use logger=csv",
     )
     _check(cfg.threads >= 1, "threads", cfg.threads, "must be >= 1", "set threads=1")
+    _check(
+        cfg.checkpoint_every >= 0,
+        "checkpoint_every",
+        cfg.checkpoint_every,
+        "must be >= 0 (0: no checkpoints)",
+        "set checkpoint_every=50000",
+    )
+    _check(
+        cfg.checkpoint_keep >= 1,
+        "checkpoint_keep",
+        cfg.checkpoint_keep,
+        "must be >= 1",
+        "set checkpoint_keep=2",
+    )
     try:
         torch.device(cfg.device)
         ok = True

@@ -1,0 +1,250 @@
+"""Runs that survive faults: SIGKILL and resume, no silent overwrite, damaged files, multiruns.
+
+Every command is a ``stages-train`` subprocess on a tiny two-stage 10 x 10 grid world with a
+checkpoint every 256 frames. The uninterrupted reference run and the run that gets killed start
+together (two cores); the other commands are short.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+TIMEOUT_S = 300
+TINY = {
+    "frames": 2048,
+    "frames_per_batch": 128,
+    "num_envs": 16,
+    "init_random_frames": 128,
+    "batch_size": 64,
+    "updates_per_batch": 2,
+    "eval_every": 512,
+    "eval_episodes": 8,
+    "min_frames": 0,
+}
+TWO_STAGES = ["task.env.size=10", "task.env.num_stages=2"] + [
+    f"~task.stages.s{k}" for k in (2, 3, 4)
+]
+OVERRIDES = [
+    *TWO_STAGES,
+    *[f"task.stages.s{k}.{key}={value}" for k in (0, 1) for key, value in TINY.items()],
+    "checkpoint_every=256",
+    "eval.plots=false",
+]
+
+
+def stages_train() -> str:
+    found = shutil.which("stages-train")
+    return found or str(Path(sys.executable).parent / "stages-train")
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    env.pop("HYDRA_FULL_ERROR", None)
+    return env
+
+
+def spawn(run_dir: Path, *extra: str, multirun: bool = False) -> subprocess.Popen:
+    target = f"hydra.sweep.dir={run_dir}" if multirun else f"hydra.run.dir={run_dir}"
+    argv = [stages_train(), *(["-m"] if multirun else []), *OVERRIDES, target, *extra]
+    return subprocess.Popen(
+        argv,
+        cwd=run_dir.parent,
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        stdin=subprocess.DEVNULL,
+    )
+
+
+def finish(proc: subprocess.Popen) -> subprocess.CompletedProcess:
+    out, err = proc.communicate(timeout=TIMEOUT_S)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def run(run_dir: Path, *extra: str, multirun: bool = False) -> subprocess.CompletedProcess:
+    return finish(spawn(run_dir, *extra, multirun=multirun))
+
+
+def kill_when(proc: subprocess.Popen, ready, delay: float = 0.0) -> None:
+    """SIGKILLs ``proc`` ``delay`` seconds after ``ready()`` first holds."""
+    deadline = time.monotonic() + TIMEOUT_S
+    while not ready():
+        assert proc.poll() is None, "the run ended before it could be killed"
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+    time.sleep(delay)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=TIMEOUT_S)
+    assert proc.returncode == -signal.SIGKILL
+
+
+def snapshot(directory: Path) -> dict[str, str]:
+    """Every file under ``directory`` (``.hydra/`` included) by content hash."""
+    return {
+        str(p.relative_to(directory)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(directory.rglob("*"))
+        if p.is_file()
+    }
+
+
+def assert_same_run(a: Path, b: Path) -> None:
+    """Bitwise-equal stage weights, identical metrics.csv, eval.json equal but for timings."""
+    for k in (0, 1):
+        sa, sb = (torch.load(d / f"stage_{k}.pt", weights_only=True) for d in (a, b))
+        assert sa["model"].keys() == sb["model"].keys()
+        for name in sa["model"]:
+            assert torch.equal(sa["model"][name], sb["model"][name]), (k, name)
+        for opt in sa["optimizers"]:
+            for key, state in sa["optimizers"][opt]["state"].items():
+                for field, value in state.items():
+                    assert torch.equal(value, sb["optimizers"][opt]["state"][key][field])
+    assert (a / "metrics.csv").read_bytes() == (b / "metrics.csv").read_bytes()
+    ea, eb = (json.loads((d / "eval.json").read_text()) for d in (a, b))
+    timing = ("seconds", "timing")
+    for stage_a, stage_b in zip(ea["training"]["stages"], eb["training"]["stages"], strict=True):
+        assert {k: v for k, v in stage_a.items() if k not in timing} == {
+            k: v for k, v in stage_b.items() if k not in timing
+        }
+    assert {k: v for k, v in ea.items() if k != "training"} == {
+        k: v for k, v in eb.items() if k != "training"
+    }
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """The uninterrupted reference run, and a run SIGKILLed while stage 1 is in progress
+    (after its second checkpoint), started together."""
+    root = tmp_path_factory.mktemp("resume")
+    reference, killed = root / "reference", root / "killed"
+    ref = spawn(reference)
+    proc = spawn(killed)
+    checkpoints = killed / "checkpoints" / "stage_1"
+    kill_when(proc, lambda: len(list(checkpoints.glob("frames-*"))) >= 2, delay=0.05)
+    result = finish(ref)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return root, reference, killed
+
+
+def test_kill_mid_stage_then_resume_is_bitwise_equal(runs):
+    root, reference, killed = runs
+    assert not (killed / "stage_1.pt").exists()  # killed mid-stage
+    assert list((killed / "checkpoints" / "stage_1").glob("frames-*"))
+    resumed = root / "mid_stage"
+    shutil.copytree(killed, resumed)
+    result = run(resumed, "resume=true")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "resuming from" in result.stderr + result.stdout
+    assert_same_run(reference, resumed)
+    assert not (resumed / "checkpoints").exists()  # dropped once the stages are written
+
+
+def test_kill_between_stages_then_resume_is_bitwise_equal(runs):
+    root, reference, _ = runs
+    # the state a kill leaves between stages: stage 1 written, nothing of stage 0 yet
+    between = root / "between"
+    shutil.copytree(reference, between)
+    for name in ("stage_0.pt", "eval.json", "value_map.npy"):
+        (between / name).unlink()
+    with (between / "metrics.csv").open("a") as f:  # rows of the interrupted stage 0
+        f.write("train/stage_0/loss,128,0.5\n")
+    result = run(between, "resume=true")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "finished earlier, loaded" in result.stderr + result.stdout
+    assert_same_run(reference, between)
+
+
+def test_a_directory_with_a_run_is_refused_and_left_untouched(runs):
+    _, reference, _ = runs
+    before = snapshot(reference)
+    result = run(reference, "seed=1")
+    assert result.returncode == 2
+    assert "resume=true" in result.stderr and "overwrite=true" in result.stderr
+    assert snapshot(reference) == before  # .hydra/ included
+
+
+def test_resume_refuses_overrides_that_change_the_finished_work(runs):
+    _, reference, _ = runs
+    before = snapshot(reference)
+    result = run(reference, "resume=true", "task.stages.s1.lr=0.5", "seed=3")
+    assert result.returncode == 2
+    assert "seed" in result.stderr and "task.stages.s1.lr" in result.stderr
+    assert snapshot(reference) == before
+
+
+def test_overwrite_replaces_the_run(runs):
+    root, reference, _ = runs
+    replaced = root / "replaced"
+    shutil.copytree(reference, replaced)
+    (replaced / "trajectories.png").write_bytes(b"old figure")
+    result = run(replaced, "overwrite=true")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert not (replaced / "trajectories.png").exists()  # eval.plots=false: nothing drew it
+    assert_same_run(reference, replaced)
+
+
+def test_damaged_stage_checkpoint_names_the_file_and_the_fix(runs, capsys):
+    from torchrl_stages.cli import evaluate
+
+    root, reference, _ = runs
+    damaged = root / "damaged_stage"
+    shutil.copytree(reference, damaged)
+    data = (damaged / "stage_1.pt").read_bytes()
+    (damaged / "stage_1.pt").write_bytes(data[: len(data) // 2])  # truncated
+    with pytest.raises(SystemExit) as info:
+        evaluate([str(damaged), "--no-plots"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "stage_1.pt" in err and "resume=true" in err and "weights_only" not in err
+    assert len(err.strip().splitlines()) == 1  # a message, not a traceback
+    result = run(damaged, "resume=true")
+    assert result.returncode == 2 and "stage_1.pt" in result.stderr
+    assert "weights_only" not in result.stderr and "Traceback" not in result.stderr
+
+
+def test_truncated_config_names_the_file(runs, capsys):
+    from torchrl_stages.cli import evaluate
+
+    root, reference, _ = runs
+    damaged = root / "damaged_config"
+    shutil.copytree(reference, damaged)
+    text = (damaged / "config.yaml").read_text()
+    (damaged / "config.yaml").write_text(text[: len(text) // 3] + "\n  - [unclosed")
+    with pytest.raises(SystemExit):
+        evaluate([str(damaged)])
+    err = capsys.readouterr().err
+    assert "config.yaml" in err and "damaged" in err and "Fix:" in err
+    result = run(damaged, "resume=true")
+    assert result.returncode == 2 and "config.yaml" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_invalid_config_leaves_no_new_directory_but_the_hydra_log(tmp_path):
+    fresh = tmp_path / "fresh"
+    result = run(fresh, "task.stages.s0.gamma=1.5")
+    assert result.returncode == 2 and "task.stages.s0.gamma" in result.stderr
+    left = [p.name for p in fresh.iterdir()] if fresh.exists() else []
+    assert left in ([], ["stages-train.log"])
+
+
+def test_multirun_survives_an_invalid_job(tmp_path):
+    sweep = tmp_path / "sweep"
+    result = run(sweep, "task.stages.s0.gamma=0.9,1.5", multirun=True)
+    assert result.returncode != 0  # the sweep says that a job failed
+    ok, bad = sweep / "0", sweep / "1"
+    assert (ok / "eval.json").is_file() and (ok / "stage_0.pt").is_file()
+    status = json.loads((bad / "status.json").read_text())
+    assert status["status"] == "invalid" and "task.stages.s0.gamma" in status["reason"]
+    overrides = (bad / ".hydra" / "overrides.yaml").read_text()
+    assert "task.stages.s0.gamma=1.5" in overrides

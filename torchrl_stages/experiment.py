@@ -1,0 +1,217 @@
+"""One training run, start to end: the library API behind ``stages-train``.
+
+:class:`Experiment` validates a config, checks its run directory, builds the task, trains every
+stage (backward schedule) with periodic checkpoints, resumes an interrupted run, and evaluates.
+The CLI, ``stages-eval``, the benchmark scripts and Python users all go through it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from hydra.errors import InstantiationException
+from omegaconf import DictConfig
+from torchrl.record.loggers import Logger
+
+from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.learners import Learner
+from torchrl_stages.loggers import make_logger
+from torchrl_stages.reports import evaluate_run
+from torchrl_stages.rundir import RunDir, RunDirError, config_differences, load_stage
+from torchrl_stages.schedule import train_backward
+from torchrl_stages.stage import StageResult
+from torchrl_stages.task import StagedTask
+from torchrl_stages.validate import ConfigError, validate_config, validate_task
+
+log = logging.getLogger("torchrl_stages")
+
+#: keys a resumed run may change: they do not touch what was trained
+RESUMABLE_CHANGES = (
+    "resume",
+    "overwrite",
+    "progress",
+    "eval",
+    "checkpoint_every",
+    "checkpoint_keep",
+)
+
+
+def build_task(cfg: DictConfig) -> StagedTask:
+    """Validates ``cfg`` and builds its task; raises :class:`ConfigError` before any training."""
+    validate_config(cfg)
+    try:
+        task = StagedTask(cfg.task, device=cfg.device)
+    except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
+        raise ConfigError(
+            f"task.env: cannot build the env of task '{cfg.task.name}': {err}. "
+            "Fix: check the task.env.* values (or task.env._target_)."
+        ) from err
+    validate_task(cfg, task)
+    return task
+
+
+class Experiment:
+    """Trains and evaluates one run of ``cfg`` in ``run_dir``.
+
+    Everything is checked when the experiment is built, before anything is written: the config
+    (:class:`~torchrl_stages.validate.ConfigError`) and the run directory
+    (:class:`~torchrl_stages.rundir.RunDirError`): a directory that already holds a run is
+    refused unless ``resume`` (continue it: finished stages are loaded, the stage in progress
+    goes on from its last checkpoint, and the config must be the one it started with) or
+    ``overwrite`` (replace it). Both default to ``cfg.resume`` / ``cfg.overwrite``. With
+    ``resume`` and no run in the directory, a new run starts (the same command can be relaunched
+    after any interruption).
+
+    Examples:
+        >>> from hydra import compose, initialize_config_module
+        >>> from torchrl_stages.config import register_configs
+        >>> register_configs()
+        >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
+        ...     cfg = compose("config", overrides=["experiment=smoke"])  # doctest: +SKIP
+        >>> result = Experiment(cfg, "runs/grid").run()  # doctest: +SKIP
+        >>> result["success_rate"]  # doctest: +SKIP
+        1.0
+    """
+
+    def __init__(
+        self,
+        cfg: DictConfig,
+        run_dir: str | Path,
+        *,
+        resume: bool | None = None,
+        overwrite: bool | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.run_dir = RunDir(run_dir)
+        self.resume = bool(cfg.get("resume", False) if resume is None else resume)
+        self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
+        validate_config(cfg)
+        if self.resume and self.overwrite:
+            raise ConfigError(
+                "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "
+                "overwrite=true replaces it"
+            )
+        self.resuming = self._check_run_dir()
+        self.task = build_task(cfg)
+        self.logger: Logger | None = None
+
+    def _check_run_dir(self) -> bool:
+        """Whether this continues a run; raises :class:`RunDirError` if it must not proceed."""
+        run = self.run_dir
+        if not run.holds_run() or self.overwrite:
+            return False
+        if not self.resume:
+            raise RunDirError(
+                f"{run.path} already holds a run. Fix: add resume=true to continue it, "
+                "overwrite=true to replace it, or pick another hydra.run.dir"
+            )
+        saved = run.read_config()
+        changed = config_differences(saved, self.cfg, ignore=RESUMABLE_CHANGES)
+        if changed:
+            raise RunDirError(
+                f"resume=true: the config differs from {run.config_file} in "
+                f"{', '.join(changed)}; a resumed run keeps the config it started with. Fix: "
+                "rerun with the overrides the run was started with, or train into a new "
+                "directory"
+            )
+        return True
+
+    # ------------------------------------------------------------------ the run
+    def run(self) -> dict[str, Any]:
+        """Trains every stage (or what is left of them) and evaluates; returns ``eval.json``."""
+        cfg, run = self.cfg, self.run_dir
+        if self.overwrite and run.holds_run():
+            run.clear()
+        if not self.resuming:
+            run.write_config(cfg)
+        torch.set_num_threads(int(cfg.threads))
+        logging.getLogger("torchrl").setLevel(logging.WARNING)
+        self.logger = make_logger(cfg, run.path)
+        start = time.perf_counter()
+        learners, results = train_backward(
+            self.task, seed=int(cfg.seed), logger=self.logger, progress=cfg.progress, store=self
+        )
+        training = {"seconds": time.perf_counter() - start, "stages": [asdict(r) for r in results]}
+        result = evaluate_run(cfg, self.task, learners, run.path, training=training)
+        if self.logger is not None:
+            for key in ("success_rate", "mean_return", "mean_steps"):
+                self.logger.log_scalar(f"eval/task/{key}", result[key], step=0)
+        return result
+
+    # ------------------------------------------------------------------ stage store
+    def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
+        """Stage ``stage`` as trained by an earlier launch of this run (resume only)."""
+        if not self.resuming:
+            return None
+        loaded = load_stage(self.run_dir, self.task, stage, self.cfg.device)
+        if loaded is None:
+            return None
+        learner, result = loaded
+        log.info("stage %d (%s): finished earlier, loaded", stage, self.task.stage_names[stage])
+        return learner, StageResult(**result)
+
+    def begin(self, stage: int) -> StageCheckpoints:
+        """Stage ``stage``'s checkpoints; without one to resume from, the logs are rewound to
+        where the stage started (rows of an interrupted attempt are dropped)."""
+        cfg = self.cfg
+        checkpoints = self.run_dir.checkpoints(
+            stage, int(cfg.checkpoint_every), int(cfg.checkpoint_keep)
+        )
+        if self.resuming and checkpoints.latest() is None:
+            later = self.run_dir.read_stage(stage + 1) if stage + 1 < self.task.num_stages else None
+            rewind = getattr(self.logger, "rewind", None)
+            if rewind is not None:
+                rewind({} if later is None else later.get("log", {}))
+        elif self.resuming:
+            log.info("stage %d: resuming from %s", stage, checkpoints.latest())
+        return checkpoints
+
+    def save(self, stage: int, learner: Learner, result: StageResult) -> None:
+        """Writes ``stage_<k>.pt`` (with the log position) and drops the stage's checkpoints."""
+        position = getattr(self.logger, "position", None)
+        self.run_dir.save_stage(
+            stage,
+            self.task.stage_names[stage],
+            learner,
+            result,
+            log=position() if position is not None else {},
+        )
+        self.run_dir.clear_checkpoints(stage)
+        quality = (
+            f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
+            if result.success_rate is not None
+            else "not evaluated"
+        )
+        note = " (early stop)" if result.early_stopped else ""
+        if result.restored_best:
+            note = " (best evaluation restored)"
+        log.info(
+            "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s",
+            stage,
+            self.task.stage_names[stage],
+            learner.algo,
+            result.frames,
+            result.updates,
+            result.seconds,
+            quality,
+            note,
+        )
+        threshold = self.task.stage_cfg(stage).success_threshold
+        if threshold is not None and not result.early_stopped:
+            log.warning(
+                "stage %d (%s) did not meet its early-stop criterion within its budget of %d "
+                "frames; the run goes on with its best evaluation. Fix: raise "
+                "task.stages.%s.frames",
+                stage,
+                self.task.stage_names[stage],
+                result.frames,
+                self.task.stage_names[stage],
+            )
+
+
+__all__ = ["Experiment", "RunDirError", "build_task"]
