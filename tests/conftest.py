@@ -12,6 +12,18 @@ import torch
 torch.set_num_threads(1)
 
 
+def assert_figure(path: Path, min_side: int = 200) -> None:
+    """Asserts that ``path`` is a PNG of at least ``min_side`` pixels a side that is not blank."""
+    from matplotlib import image
+
+    path = Path(path)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", f"{path} is not a PNG"
+    pixels = image.imread(path)
+    height, width = pixels.shape[:2]
+    assert min(height, width) >= min_side, f"{path} is {width} x {height} pixels"
+    assert float(pixels.std()) > 0.01, f"{path} is blank"
+
+
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)

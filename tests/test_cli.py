@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import assert_figure
 
 from torchrl_stages import StackedPolicy, StagedTask, load_policy, load_run
 from torchrl_stages.cli import evaluate as stages_eval_main
@@ -280,7 +281,7 @@ def test_run_dir_contents(run_dir):
     for name in expected:
         assert (run_dir / name).is_file(), f"{name} missing from {sorted(os.listdir(run_dir))}"
     for png in ("trajectories.png", "value_map.png"):
-        assert (run_dir / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert_figure(run_dir / png)
 
 
 def test_saved_config_is_resolved_and_has_the_overrides(run_dir):

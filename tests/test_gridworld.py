@@ -7,6 +7,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
+import torchrl_stages.envs.gridworld
 from torchrl_stages.envs import (
     GridWorldEnv,
     greedy_path_from_values,
@@ -287,8 +288,17 @@ def test_greedy_path_replays_in_env():
 
 
 # ------------------------------------------------------------------ misc
-def test_measure_throughput_positive():
-    assert measure_throughput(4096, steps=50) > 0
+def test_measure_throughput_is_frames_over_elapsed_time(monkeypatch):
+    ticks = iter([100.0, 102.5])  # start, end: 2.5 s of (fake) wall clock
+
+    class FakeTime:
+        @staticmethod
+        def perf_counter() -> float:
+            return next(ticks)
+
+    monkeypatch.setattr(torchrl_stages.envs.gridworld, "time", FakeTime)
+    assert measure_throughput(64, steps=10) == pytest.approx(10 * 64 / 2.5)
+    assert next(ticks, None) is None  # exactly two readings: before and after the timed steps
 
 
 def test_docstring_examples():

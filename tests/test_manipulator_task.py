@@ -7,6 +7,7 @@ import math
 
 import pytest
 import torch
+from conftest import assert_figure
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from tensordict.nn import TensorDictModule
@@ -98,5 +99,5 @@ def test_tiny_cli_run(train_tiny):
     metrics = result["task_metrics"]
     p50, p90, p99 = metrics["final_distance_p50_p90_p99"]
     assert 0.0 <= p50 <= p90 <= p99 <= 4.0 and not math.isnan(p99)
-    assert (run_dir / "manipulator.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert_figure(run_dir / "manipulator.png")
     assert (run_dir / "stage_0.pt").is_file() and (run_dir / "stage_1.pt").is_file()

@@ -8,7 +8,6 @@ differ and every rewritten reward can be computed by hand.
 
 import pytest
 import torch
-from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.collectors import Collector
@@ -17,7 +16,7 @@ from torchrl.envs import Compose, RewardSum, SerialEnv, StepCounter, Transformed
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from torchrl_stages.envs import GridWorldEnv
-from torchrl_stages.transforms import StageTransform, freeze
+from torchrl_stages.transforms import StageRewardTransform, StageTransform, freeze
 
 UP, DOWN, LEFT, RIGHT = 0, 1, 2, 3
 GAMMA = 0.9
@@ -384,7 +383,7 @@ def test_last_stage_has_ordinary_targets():
 
 
 def test_train_stage_without_next_value_still_ends_the_stage_episode():
-    env, _, _ = make_env([(3, 4)], train_stage=0, gamma=GAMMA)
+    env, _, _ = make_env([(3, 4)], train_stage=0, standalone=True, gamma=GAMMA)
     nxt = step(env, RIGHT)["next"]
     assert col(nxt["reward"]) == [0.0]
     assert col(nxt["terminated"]) == [True]
@@ -456,9 +455,10 @@ def test_next_value_follows_state_dict():
 
 
 # ---------------------------------------------------------------------- replay-buffer path
-def collect_raw(steps=3):
+def collect_raw(steps=3, rewrite_in_env=False):
     """Rows start at (0,1) [task-ending transition], (3,1) [transition] and (5,0) [transition
-    at the second step] on a 10x10 grid with 5 strips and target (0, 2); always move right."""
+    at the second step] on a 10x10 grid with 5 strips and target (0, 2); always move right.
+    Stage 0's episode is cut at the transition (``rewrite_in_env=False``); rewards stay raw."""
     base = GridWorldEnv(
         (3,), size=10, num_stages=5, target=(0, 2), start_cell=[(0, 1), (3, 1), (5, 0)]
     )
@@ -470,7 +470,7 @@ def collect_raw(steps=3):
             train_stage=0,
             next_value=const_value(99.0),
             gamma=GAMMA,
-            rewrite_in_env=False,
+            rewrite_in_env=rewrite_in_env,
         ),
     )
     data = env.rollout(
@@ -490,7 +490,14 @@ def expected_view(data, value_fn, gamma=GAMMA):
     return reward, nxt["terminated"] | leaving
 
 
-def test_raw_collection_keeps_reward_and_terminated():
+def stage_buffer(data, transform, batch_size=64):
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(32), batch_size=batch_size)
+    rb.extend(data.reshape(-1))
+    rb.append_transform(transform)
+    return rb
+
+
+def test_raw_collection_cuts_the_episode_with_truncated():
     _, data = collect_raw()
     nxt = data["next"]
     # row 0 enters the target each step (reset in between), row 1 transitions each step,
@@ -502,104 +509,130 @@ def test_raw_collection_keeps_reward_and_terminated():
     ]
     assert nxt["reward"].squeeze(-1).tolist() == [[1.0] * 3, [0.0] * 3, [0.0] * 3]
     assert nxt["terminated"].squeeze(-1).tolist() == [[True] * 3, [False] * 3, [False] * 3]
-    # the transition still ends stage 0's episode for the collector
-    assert nxt["done"].squeeze(-1).tolist() == [[True] * 3, [True] * 3, [False, True, False]]
+    # the transition ends stage 0's episode for the collector as a truncation ...
+    assert nxt["truncated"].squeeze(-1).tolist() == [[True] * 3, [True] * 3, [False, True, False]]
+    # ... and done is terminated | truncated on every step the package emits
+    assert torch.equal(nxt["done"], nxt["terminated"] | nxt["truncated"])
 
 
-def test_replay_buffer_transform_rewrites_at_sampling_time():
-    base, data = collect_raw()
+def test_done_is_terminated_or_truncated_with_rewrite_in_env():
+    _, data = collect_raw(rewrite_in_env=True)
+    nxt = data["next"]
+    assert torch.equal(nxt["done"], nxt["terminated"] | nxt["truncated"])
+    assert nxt["terminated"].squeeze(-1).tolist() == [[True] * 3, [True] * 3, [False, True, False]]
+
+
+def test_reward_transform_gives_stage_k_view_at_sampling_time():
+    _, data = collect_raw()
     flat = data.reshape(-1)
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(32), batch_size=64)
-    rb.extend(flat)
-    rb_t = StageTransform(base.stage_fn, 5, train_stage=0, next_value=cell_sum_value(), gamma=GAMMA)
-    rb.append_transform(rb_t)
-
+    rb = stage_buffer(data, StageRewardTransform(0, 5, next_value=cell_sum_value(), gamma=GAMMA))
     view = rb[:]
     reward, terminated = expected_view(flat, lambda o: o.sum(-1, keepdim=True) * 5)
     assert torch.allclose(view["next", "reward"], reward)
     assert torch.equal(view["next", "terminated"], terminated)
+    assert torch.equal(view["next", "done"], terminated | view["next", "truncated"])
     # by hand: row 1 transitions into (3, 2): V = 5 -> 4.5; the task-ending row 0 keeps r = 1
     by_row = view["next", "reward"].reshape(3, 3)
     assert by_row[0].tolist() == [1.0, 1.0, 1.0]
     assert by_row[1].tolist() == pytest.approx([GAMMA * 5] * 3)
     assert by_row[2].tolist() == pytest.approx([0.0, GAMMA * 7, 0.0])
-    assert view["next", "terminated"].reshape(3, 3).tolist() == [
-        [True] * 3,
-        [True] * 3,
-        [False, True, False],
-    ]
-
     # the storage stays raw, also after indexing and sampling
     sample = rb.sample()
-    assert sample.shape == (64,)
     raw = rb.storage[torch.arange(9)]
     assert torch.equal(raw["next", "reward"], flat["next", "reward"])
     assert torch.equal(raw["next", "terminated"], flat["next", "terminated"])
-    raw_slice = rb.storage[0:9]
-    assert torch.equal(raw_slice["next", "reward"], flat["next", "reward"])
-
-    # samples follow the same rule, item by item
     s_reward, s_term = expected_view(sample, lambda o: o.sum(-1, keepdim=True) * 5)
     assert torch.allclose(sample["next", "reward"], s_reward)
     assert torch.equal(sample["next", "terminated"], s_term)
-    assert sample["next", "stage_transition"].any()
 
 
-def test_replay_buffer_uses_the_current_next_value():
-    base, data = collect_raw()
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(32), batch_size=16)
-    rb.extend(data.reshape(-1))
-    rb_t = StageTransform(base.stage_fn, 5, train_stage=0, next_value=const_value(1.0), gamma=GAMMA)
-    rb.append_transform(rb_t)
+def test_sampled_reward_follows_the_next_network_after_storage():
+    _, data = collect_raw()
+    v_next = linear_value((0.0, 0.0), bias=1.0)  # the next stage's network, by reference
+    rb = stage_buffer(data, StageRewardTransform(0, 5, next_value=v_next, gamma=GAMMA))
     before = rb[:]["next", "reward"].reshape(3, 3)
     assert before[1].tolist() == pytest.approx([GAMMA * 1.0] * 3)
-    rb_t.set_next_value(const_value(10.0))
+    with torch.no_grad():  # the next stage learns after the data was stored
+        v_next.module.bias.fill_(10.0)
     after = rb[:]["next", "reward"].reshape(3, 3)
     assert after[1].tolist() == pytest.approx([GAMMA * 10.0] * 3)
     assert after[0].tolist() == [1.0, 1.0, 1.0]  # task-terminating transitions: never a V term
     assert after[2].tolist() == pytest.approx([0.0, GAMMA * 10.0, 0.0])
-    sample = rb.sample()
-    leaving = sample["next", "stage_transition"] & ~sample["next", "terminated"].clone()
-    rewards = sample["next", "reward"]
-    raw = data.reshape(-1)["next", "reward"][sample["index"]]
-    # transitions that did not end the task carry the current V term, others are raw
-    is_bootstrap = (
-        data.reshape(-1)["next", "stage_transition"] & ~data.reshape(-1)["next", "terminated"]
-    )[sample["index"]]
-    assert torch.allclose(rewards, torch.where(is_bootstrap, raw + GAMMA * 10.0, raw))
-    assert leaving.shape == rewards.shape
-
-
-def test_replay_buffer_transform_tag_only_is_identity():
-    base, data = collect_raw()
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(32), batch_size=4)
-    rb.extend(data.reshape(-1))
-    rb.append_transform(StageTransform(base.stage_fn, 5))
-    out = rb[:]
-    assert torch.equal(out["next", "reward"], data.reshape(-1)["next", "reward"])
-    assert torch.equal(out["next", "terminated"], data.reshape(-1)["next", "terminated"])
-
-
-def test_forward_on_a_tensordict_directly():
-    base = GridWorldEnv((1,), size=10, num_stages=2)
-    t = StageTransform(base.stage_fn, 2, train_stage=0, next_value=cell_sum_value(), gamma=0.5)
-    td = TensorDict(
-        stage=torch.tensor([[0], [0], [1]]),
-        observation=torch.tensor([[3.0, 4.0], [3.0, 3.0], [3.0, 5.0]]) / 5,
-        next=TensorDict(
-            observation=torch.tensor([[3.0, 5.0], [3.0, 4.0], [3.0, 6.0]]) / 5,
-            stage=torch.tensor([[1], [0], [1]]),
-            stage_transition=torch.tensor([[True], [False], [False]]),
-            reward=torch.zeros(3, 1),
-            terminated=torch.zeros(3, 1, dtype=torch.bool),
-            done=torch.tensor([[True], [False], [False]]),
-            batch_size=[3],
-        ),
-        batch_size=[3],
+    assert torch.equal(
+        rb.storage[torch.arange(9)]["next", "reward"], data.reshape(-1)["next", "reward"]
     )
-    out = t(td)
-    assert col(out["next", "reward"]) == pytest.approx([4.0, 0.0, 0.0])
-    assert col(out["next", "terminated"]) == [True, False, False]
+
+
+def test_reward_transform_without_next_value_only_marks_the_transition():
+    _, data = collect_raw()
+    rb = stage_buffer(data, StageRewardTransform(0, 5, standalone=True, gamma=GAMMA))
+    view = rb[:]
+    assert torch.equal(view["next", "reward"], data.reshape(-1)["next", "reward"])
+    _, terminated = expected_view(data.reshape(-1), lambda o: o[..., :1] * 0)
+    assert torch.equal(view["next", "terminated"], terminated)
+
+
+@pytest.mark.parametrize(
+    ("drop", "missing"),
+    [("stage", "needs stage"), (("next", "stage_transition"), "needs next.stage_transition")],
+)
+def test_reward_transform_names_missing_entries(drop, missing):
+    _, data = collect_raw()
+    rb = stage_buffer(data.exclude(drop), StageRewardTransform(0, 5, next_value=const_value(1.0)))
+    with pytest.raises(KeyError, match=missing):
+        rb.sample()
+
+
+def test_reward_transform_refuses_env_use():
+    base = GridWorldEnv((1,), size=10, num_stages=2)
+    env = TransformedEnv(base, StageRewardTransform(1, 2))
+    with pytest.raises(RuntimeError, match="replay-buffer transform"):
+        env.reset()
+
+
+def test_stage_transform_refuses_replay_buffer_use():
+    base, data = collect_raw()
+    rb = stage_buffer(data, StageTransform(base.stage_fn, 5))
+    with pytest.raises(RuntimeError, match="StageRewardTransform"):
+        rb.sample()
+
+
+def test_reward_transform_arguments():
+    with pytest.raises(ValueError, match="next_value"):
+        StageRewardTransform(0, 2)  # stage 0 has a next stage
+    with pytest.raises(ValueError, match="last"):
+        StageRewardTransform(1, 2, next_value=const_value(1.0))
+    with pytest.raises(ValueError, match="outside"):
+        StageRewardTransform(2, 2)
+
+
+def test_stage_skip_with_a_next_value_is_an_error():
+    # a 3-strip grid whose stage function jumps from stage 0 to stage 2
+    base = GridWorldEnv((1,), size=9, num_stages=3, start_cell=(0, 2))
+
+    def skipping(td):
+        stage = base.stage_fn(td)
+        return torch.where(stage == 1, torch.full_like(stage, 2), stage)
+
+    env = TransformedEnv(
+        base, StageTransform(skipping, 3, train_stage=0, next_value=const_value(1.0))
+    )
+    with pytest.raises(ValueError, match="landed in stage 2"):
+        step(env, RIGHT)
+
+
+def test_stage_fn_outside_the_stages_is_an_error():
+    base = GridWorldEnv((1,), size=10, num_stages=2)
+    env = TransformedEnv(base, StageTransform(lambda td: base.stage_fn(td) + 5, 2))
+    with pytest.raises(ValueError, match="outside 0..1"):
+        env.reset()
+
+
+def test_train_stage_without_next_value_needs_standalone():
+    base = GridWorldEnv((1,), size=10, num_stages=2)
+    with pytest.raises(ValueError, match="standalone"):
+        StageTransform(base.stage_fn, 2, train_stage=0)
+    StageTransform(base.stage_fn, 2, train_stage=0, standalone=True)  # asked for explicitly
 
 
 class _SelfTaggedGrid(GridWorldEnv):

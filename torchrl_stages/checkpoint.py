@@ -90,7 +90,11 @@ class StageCheckpoints:
         return ckpt
 
     def save(self, frames: int, components: dict[str, Any]) -> Path:
-        """Writes a checkpoint at ``frames`` (atomically) and prunes the old ones."""
+        """Writes a checkpoint at ``frames`` (atomically) and prunes the old ones. Empty replay
+        buffers are left out (an empty storage cannot be dumped; loading leaves it empty)."""
+        components = {
+            k: v for k, v in components.items() if not (hasattr(v, "dump") and len(v) == 0)
+        }
         rotation = CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX)
         path = rotation.save(self._checkpoint(components), step=int(frames))
         self._next = (frames // self.every + 1) * self.every if self.every > 0 else 0
@@ -103,9 +107,11 @@ class StageCheckpoints:
         return CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX).latest()
 
     def load(self, path: Path, components: dict[str, Any]) -> Path:
-        """Restores ``components`` (and the global generators) from the checkpoint ``path``."""
+        """Restores those of ``components`` that the checkpoint ``path`` holds (and the global
+        generators)."""
         try:
-            self._checkpoint(components).load(path)
+            saved = Checkpoint.manifest(path)["components"]
+            self._checkpoint({k: v for k, v in components.items() if k in saved}).load(path)
         except (CheckpointError, OSError, RuntimeError, ValueError, KeyError) as err:
             raise CheckpointDamagedError(
                 f"{path} cannot be read back ({type(err).__name__}: {str(err)[:200]}). Fix: "

@@ -122,6 +122,30 @@ class TaskConfig:
     eval_env: dict[str, Any] = field(default_factory=dict)
     stages: dict[str, Any] = field(default_factory=dict)
     eval_episodes: int = 100  # this task's default for eval.episodes
+    # whether the env can start an episode inside a chosen stage (`start_stage=k`); without
+    # stage starts only schedule=joint applies, as one phase from the task's own starts
+    stage_starts: bool = True
+
+
+@dataclass
+class ScheduleConfig:
+    """How the stages are trained.
+
+    * ``backward``: stage N-1 alone, frozen, then N-2 against its value, ... (each stage's own
+      budget, early stop and evaluation from its start states).
+    * ``joint``: the paper's Algorithm 1. Phase k (k = N-1 .. 0) runs whole-task episodes from
+      stage-k starts with the stacked exploration policy; each transition goes to the replay
+      buffer of the stage of s_t; every collected batch, every stage with data takes its
+      ``updates_per_batch`` gradient steps, last stage first, with transition rewards computed
+      at sampling time from the next stage's current target networks. Phase k uses stage k's
+      collection, budget (``frames``), evaluation and early-stop keys, its evaluations being
+      whole-task episodes from stage-k starts.
+    * ``flat``: one learner (stage 0's config, the sum of the stages' budgets) over the whole
+      task, no stages: the end-to-end baseline of the paper's Discussion. Each transition is
+      discounted with the gamma of its stage, so it optimizes the same objective.
+    """
+
+    name: str = "backward"  # backward | joint | flat
 
 
 @dataclass
@@ -150,6 +174,7 @@ class TrainConfig:
     """Root config of ``stages-train``."""
 
     task: TaskConfig = field(default_factory=TaskConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     seed: int = 0
@@ -169,5 +194,6 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(name="train_schema", node=TrainConfig)
     cs.store(group="logger", name="logger_schema", node=LoggerConfig)
+    cs.store(group="schedule", name="schedule_schema", node=ScheduleConfig)
     for name, schema in ALGO_SCHEMAS.items():
         cs.store(group="algo", name=f"{name}_schema", node=schema)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -59,7 +60,7 @@ class EpisodeStats:
             "mean_return": self.ret.mean().item(),
             "mean_steps": self.length.float().mean().item(),
             "mean_steps_success": steps.mean().item() if ok.any() else None,
-            "median_steps_success": steps.median().item() if ok.any() else None,
+            "median_steps_success": steps.quantile(0.5).item() if ok.any() else None,
         }
 
     @classmethod
@@ -86,11 +87,24 @@ def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
     return EpisodeStats(success=success, length=length, ret=(reward * in_first).sum(-1))
 
 
-def discounted_return(rollout: TensorDictBase, length: torch.Tensor, gamma: float) -> torch.Tensor:
-    """``sum_t gamma^t r_t`` over each row's first episode (``length``: its episode lengths)."""
+def discounted_return(
+    rollout: TensorDictBase, length: torch.Tensor, gamma: float | Sequence[float]
+) -> torch.Tensor:
+    """``sum_t w_t r_t`` over each row's first episode (``length``: its episode lengths).
+
+    ``gamma`` is one discount (``w_t = gamma^t``) or one per stage: then each step is
+    discounted by the gamma of the stage of the state it leaves, ``w_t = prod_{j<t}
+    gamma[stage(s_j)]``, the merged return whose expectation Proposition 1 speaks of.
+    """
     reward = rollout.get(("next", "reward")).squeeze(-1)  # [B, T]
     steps = torch.arange(reward.shape[-1], device=reward.device)
-    weights = torch.where(steps < length.unsqueeze(-1), gamma**steps, 0.0)
+    if isinstance(gamma, int | float):
+        weights = gamma ** steps.to(reward.dtype)
+    else:
+        per_step = torch.as_tensor(gamma, dtype=reward.dtype, device=reward.device)
+        per_step = per_step[rollout.get("stage").squeeze(-1)]  # [B, T]: gamma of s_t
+        weights = torch.cumprod(per_step, -1) / per_step  # prod_{j<t} gamma_j
+    weights = torch.where(steps < length.unsqueeze(-1), weights, 0.0)
     return (reward * weights).sum(-1)
 
 

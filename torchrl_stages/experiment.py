@@ -19,11 +19,12 @@ from omegaconf import DictConfig
 from torchrl.record.loggers import Logger
 
 from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.joint import JointTrainer
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import make_logger
 from torchrl_stages.reports import evaluate_run
 from torchrl_stages.rundir import RunDir, RunDirError, config_differences, load_stage
-from torchrl_stages.schedule import train_backward
+from torchrl_stages.schedule import train_backward, train_flat
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 from torchrl_stages.validate import ConfigError, validate_config, validate_task
@@ -132,16 +133,44 @@ class Experiment:
         torch.set_num_threads(int(cfg.threads))
         logging.getLogger("torchrl").setLevel(logging.WARNING)
         self.logger = make_logger(cfg, run.path)
-        start = time.perf_counter()
-        learners, results = train_backward(
-            self.task, seed=int(cfg.seed), logger=self.logger, progress=cfg.progress, store=self
-        )
-        training = {"seconds": time.perf_counter() - start, "stages": [asdict(r) for r in results]}
+        start, schedule, phases = time.perf_counter(), cfg.schedule.name, None
+        kwargs = {"seed": int(cfg.seed), "logger": self.logger, "progress": cfg.progress}
+        if schedule == "joint":
+            learners, results, phases = self._train_joint(**kwargs)
+        elif schedule == "flat":
+            learners, results = train_flat(self.task, store=self, **kwargs)
+        else:
+            learners, results = train_backward(self.task, store=self, **kwargs)
+        training = {
+            "schedule": schedule,
+            "seconds": time.perf_counter() - start,
+            "stages": [asdict(r) for r in results],
+        }
+        if phases is not None:
+            training["phases"] = phases
         result = evaluate_run(cfg, self.task, learners, run.path, training=training)
         if self.logger is not None:
             for key in ("success_rate", "mean_return", "mean_steps"):
                 self.logger.log_scalar(f"eval/task/{key}", result[key], step=0)
         return result
+
+    def _train_joint(self, **kwargs: Any) -> tuple[list[Learner], list[StageResult], list]:
+        """The joint schedule: resumable as a whole, its stages written once it ends."""
+        task, run = self.task, self.run_dir
+        if self.resuming and all(run.stage_file(k).is_file() for k in range(task.num_stages)):
+            stages = [self.finished(k) for k in range(task.num_stages)]
+            return [s[0] for s in stages], [s[1] for s in stages], []
+        checkpoints = run.checkpoints(
+            "joint", int(self.cfg.checkpoint_every), int(self.cfg.checkpoint_keep)
+        )
+        rewind = getattr(self.logger, "rewind", None)
+        if self.resuming and checkpoints.latest() is None and rewind is not None:
+            rewind({})
+        learners, results, phases = JointTrainer(task, checkpoints=checkpoints, **kwargs).train()
+        for k in range(task.num_stages):
+            self.save(k, learners[k], results[k])
+        run.clear_checkpoints("joint")
+        return learners, results, phases
 
     # ------------------------------------------------------------------ stage store
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
@@ -174,9 +203,10 @@ class Experiment:
     def save(self, stage: int, learner: Learner, result: StageResult) -> None:
         """Writes ``stage_<k>.pt`` (with the log position) and drops the stage's checkpoints."""
         position = getattr(self.logger, "position", None)
+        name = "flat" if self.cfg.schedule.name == "flat" else self.task.stage_names[stage]
         self.run_dir.save_stage(
             stage,
-            self.task.stage_names[stage],
+            name,
             learner,
             result,
             log=position() if position is not None else {},
@@ -193,7 +223,7 @@ class Experiment:
         log.info(
             "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s",
             stage,
-            self.task.stage_names[stage],
+            name,
             learner.algo,
             result.frames,
             result.updates,

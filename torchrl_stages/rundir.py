@@ -175,11 +175,13 @@ class RunDir:
             ) from err
         return state
 
-    def checkpoints(self, stage: int, every: int, keep: int) -> StageCheckpoints:
-        """The periodic checkpoints of stage ``stage`` in progress."""
-        return StageCheckpoints(self.path / CHECKPOINTS / f"stage_{stage}", every, keep)
+    def checkpoints(self, stage: int | str, every: int, keep: int) -> StageCheckpoints:
+        """The periodic checkpoints of stage ``stage`` in progress (``"joint"``: of the joint
+        schedule, all stages at once)."""
+        name = stage if isinstance(stage, str) else f"stage_{stage}"
+        return StageCheckpoints(self.path / CHECKPOINTS / name, every, keep)
 
-    def clear_checkpoints(self, stage: int) -> None:
+    def clear_checkpoints(self, stage: int | str) -> None:
         """Drops stage ``stage``'s checkpoints (once ``stage_<k>.pt`` is written)."""
         self.checkpoints(stage, 0, 1).clear()
         root = self.path / CHECKPOINTS
@@ -246,7 +248,10 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> LoadedR
     run = RunDir(run_dir)
     cfg = run.read_config()
     task = StagedTask(cfg.task, device=device)
-    stages = [load_stage(run, task, k, device) for k in range(task.num_stages)]
+    if cfg.get("schedule", {}).get("name") == "flat":  # one learner acts in every stage
+        stages = [load_stage(run, task, 0, device)] * task.num_stages
+    else:
+        stages = [load_stage(run, task, k, device) for k in range(task.num_stages)]
     missing = [run.stage_file(k).name for k, s in enumerate(stages) if s is None]
     if missing:
         raise RunDirError(

@@ -5,12 +5,14 @@ from __future__ import annotations
 from typing import Protocol
 
 import torch
+from omegaconf import DictConfig
 from torchrl.record.loggers import Logger
 
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.stage import StageResult, StageTrainer
 from torchrl_stages.task import StagedTask
+from torchrl_stages.transforms import StageDiscount
 
 
 class StageStore(Protocol):
@@ -93,3 +95,72 @@ def train_backward(
                 store.save(k, learner, results[k])
         next_value = learners[k].value()
     return learners, results
+
+
+def flat_config(task: StagedTask) -> DictConfig:
+    """The flat learner's config: stage 0's, with the stages' budgets summed."""
+    cfg = task.stage_cfg(0).copy()
+    cfg.frames = sum(int(task.stage_cfg(k).frames) for k in range(task.num_stages))
+    return cfg
+
+
+def train_flat(
+    task: StagedTask,
+    *,
+    seed: int = 0,
+    logger: Logger | None = None,
+    progress: bool = False,
+    store: StageStore | None = None,
+) -> tuple[list[Learner], list[StageResult]]:
+    """One learner over the whole task, no stages (the paper's end-to-end baseline).
+
+    It has stage 0's algorithm and hyper-parameters and the sum of the stages' budgets, starts
+    from the task's own starts, and discounts every transition with the gamma of its stage
+    (:class:`~torchrl_stages.transforms.StageDiscount`), so it optimizes the objective the
+    stacked learners do. Its evaluations are whole-task episodes. Returns the learner once per
+    stage (it acts everywhere) and its one result.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.config import DQNConfig
+        >>> from torchrl_stages.task import StagedTask
+        >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16, gamma=0.9,
+        ...                  init_random_frames=128, batch_size=32, eval_every=0)
+        >>> task = StagedTask(OmegaConf.create({
+        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2},
+        ... }))
+        >>> learners, results = train_flat(task)
+        >>> learners[0] is learners[1], results[0].frames
+        (True, 512)
+    """
+    done = store.finished(0) if store is not None else None
+    if done is not None:
+        return [done[0]] * task.num_stages, [done[1]]
+    cfg = flat_config(task)
+    gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
+    torch.manual_seed(seed)
+    env = task.task_env(int(cfg.num_envs), start_stage=None, train=True)
+    env.set_seed(seed)
+    eval_env = task.task_env(None if task.start_states(None) is not None else cfg.eval_episodes)
+    eval_env.set_seed(seed + 10_000)
+    learner = make_learner(cfg, task.specs(0))
+    trainer = StageTrainer(
+        0,
+        learner,
+        env,
+        eval_env,
+        cfg,
+        logger=logger,
+        progress=progress,
+        name="flat",
+        checkpoints=store.begin(0) if store is not None else None,
+        gammas=gammas,
+        postproc=StageDiscount(gammas, float(cfg.gamma)),
+        extra_keys=["steps_to_next_obs"],
+    )
+    result = trainer.train()
+    if store is not None:
+        store.save(0, learner, result)
+    return [learner] * task.num_stages, [result]

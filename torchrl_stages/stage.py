@@ -6,11 +6,14 @@ import copy
 import sys
 import time
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torch import nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
@@ -145,11 +148,17 @@ class _EvalMonitor:
             setattr(self, f, tuple(value) if isinstance(value, list) else value)
         self.best_state = state["best_state"]
 
-    def restore_best(self, learner: Learner) -> bool:
-        if self.stopped or self.best_state is None or self.best_is_last:
+    def restore_best(self, learner: nn.Module) -> bool:
+        """Puts back the best evaluated weights (the budget ran out before the early stop);
+        returns whether they differ from the weights the loop ended with (updates may follow
+        the last evaluation)."""
+        if self.stopped or self.best_state is None:
             return False
-        learner.load_state_dict(self.best_state)
-        return True
+        current = learner.state_dict()
+        changed = any(not torch.equal(current[k], v) for k, v in self.best_state.items())
+        if changed:
+            learner.load_state_dict(self.best_state)
+        return changed
 
     @property
     def final(self) -> tuple[float | None, float | None]:
@@ -158,7 +167,7 @@ class _EvalMonitor:
             return None, None
         if self.stopped or self.best is None:
             return self.last
-        return self.best
+        return self.best  # restore_best puts these weights back
 
 
 class StageTrainer:
@@ -169,7 +178,10 @@ class StageTrainer:
     kind of env used for greedy evaluations and the early stop on ``cfg.success_threshold``.
     With ``checkpoints`` the loop saves a checkpoint every ``checkpoints.every`` frames and
     starts from the newest one on disk, so that an interrupted stage goes on exactly where it
-    stopped; ``log_position`` / ``log_rewind`` record and restore the logger's files with it.
+    stopped (the logger's files are rewound with it when it has ``position``/``rewind``).
+    ``gammas`` (one per stage) makes evaluations compare values with the stage-discounted
+    return; ``postproc`` transforms each collected batch and ``extra_keys`` are stored with
+    what the loss reads (the flat schedule's per-transition discounts).
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -201,7 +213,13 @@ class StageTrainer:
         progress: bool = False,
         name: str | None = None,
         checkpoints: StageCheckpoints | None = None,
+        gammas: Sequence[float] | None = None,
+        postproc: Callable[[TensorDictBase], TensorDictBase] | None = None,
+        extra_keys: Sequence[NestedKey] = (),
     ) -> None:
+        self.gammas = gammas
+        self.postproc = postproc
+        self.keys = list(dict.fromkeys([*learner.loss.in_keys, *extra_keys]))
         self.stage = stage
         self.learner = learner
         self.env = env
@@ -252,7 +270,9 @@ class StageTrainer:
             for batch in watch.timed("collect", collector):
                 frames = collector.frames
                 with watch("collect"):
-                    buffer.extend(batch.reshape(-1).select(*learner.loss.in_keys, strict=False))
+                    if self.postproc is not None:
+                        batch = self.postproc(batch)
+                    buffer.extend(batch.reshape(-1).select(*self.keys, strict=False))
                 learner.anneal(frames)
                 losses = []
                 if frames >= cfg.init_random_frames:
@@ -311,7 +331,7 @@ class StageTrainer:
         max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
         stats, rollout = evaluate_policy(self.eval_env, self.learner.policy, max_steps)
         summary = stats.summary()
-        returns = discounted_return(rollout, stats.length, cfg.gamma)
+        returns = discounted_return(rollout, stats.length, self.gammas or float(cfg.gamma))
         with torch.no_grad():
             v0 = self.learner.value()(rollout[:, 0].clone()).get("state_value").reshape(-1)
         errors = (v0 - returns).abs()

@@ -58,7 +58,19 @@ class StagedTask:
         batch = (int(batch_size),) if isinstance(batch_size, int) else tuple(batch_size)
         kwargs = OmegaConf.to_container(self.cfg.env, resolve=True)
         kwargs.update(overrides)
-        return instantiate(kwargs, batch_size=batch, start_stage=start_stage, device=self.device)
+        if self.stage_starts:  # an env without stage starts takes no start_stage argument
+            kwargs.setdefault("start_stage", start_stage)
+        elif start_stage is not None:
+            raise ValueError(
+                f"task '{self.name}' has stage_starts=false: its env cannot start in stage "
+                f"{start_stage}."
+            )
+        return instantiate(kwargs, batch_size=batch, device=self.device)
+
+    @property
+    def stage_starts(self) -> bool:
+        """Whether the env can start episodes inside a chosen stage (``task.stage_starts``)."""
+        return bool(self.cfg.get("stage_starts", True))
 
     def start_states(self, stage: int | None) -> dict[str, Any] | None:
         """Constructor arguments that start every batch element at one of ``stage``'s start
@@ -104,13 +116,17 @@ class StagedTask:
         cfg = self.stage_cfg(stage)
         return self.stage_env(stage, int(cfg.eval_episodes), next_value, all_starts=True)
 
-    def task_env(self, batch_size: int | None = None, **overrides: Any) -> TransformedEnv:
+    def task_env(
+        self, batch_size: int | None = None, *, train: bool = False, **overrides: Any
+    ) -> TransformedEnv:
         """Whole-task env (stage tags only), with ``task.eval_env`` starts unless overridden.
 
         ``batch_size=None`` gives one element per whole-task start state (the env must
-        enumerate them, see :meth:`start_states`).
+        enumerate them, see :meth:`start_states`). ``train`` adds ``RewardSum`` (episode
+        returns for the training logs).
         """
-        kwargs = {**OmegaConf.to_container(self.cfg.eval_env, resolve=True), **overrides}
+        eval_env = self.cfg.get("eval_env") or {}
+        kwargs = {**OmegaConf.to_container(OmegaConf.create(eval_env), resolve=True), **overrides}
         if batch_size is None:
             starts = self.start_states(None)
             if starts is None:
@@ -119,7 +135,8 @@ class StagedTask:
         else:
             kwargs["batch_size"] = batch_size
         base = self.base_env(**kwargs)
-        return TransformedEnv(base, StageTransform(base.stage_fn, base.num_stages))
+        tags = StageTransform(base.stage_fn, base.num_stages)
+        return TransformedEnv(base, Compose(tags, RewardSum()) if train else tags)
 
     def specs(self, stage: int) -> StageSpecs:
         """Observation and action entries of ``stage``'s learner, read from the env's specs."""

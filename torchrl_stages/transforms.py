@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Sequence
+from typing import Protocol
 
 import torch
 from tensordict import TensorDictBase
@@ -18,6 +20,63 @@ StageFn = Callable[[TensorDictBase], torch.Tensor]
 
 class NonFiniteValueError(FloatingPointError):
     """The next stage's value of a transition is NaN or infinite."""
+
+
+class _Keys(Protocol):
+    stage_key: NestedKey
+    transition_key: NestedKey
+    reward_key: NestedKey
+    terminated_key: NestedKey
+    truncated_key: NestedKey
+    done_key: NestedKey
+    value_key: NestedKey
+
+
+@torch.no_grad()
+def apply_stage_view(
+    stage: int,
+    gamma: float,
+    next_value: TensorDictModuleBase | None,
+    stage_t: torch.Tensor,
+    next_td: TensorDictBase,
+    keys: _Keys,
+) -> None:
+    """Stage ``stage``'s learner view of transitions, in place on their ``"next"`` content.
+
+    A transition that leaves stage ``stage`` is ``terminated`` for its loss (``done`` follows,
+    as ``terminated | truncated``) and its reward gains ``gamma * next_value(s_{t+1})``, unless
+    the task itself terminated on it. It must land in the next stage: ``next_value`` is that
+    stage's value, and a non-finite one raises :class:`NonFiniteValueError`.
+    """
+    leaving = next_td.get(keys.transition_key) & (stage_t == stage)
+    task_terminated = next_td.get(keys.terminated_key)
+    if next_value is not None and leaving.any():
+        landed = next_td.get(keys.stage_key)[leaving]
+        if (landed != stage + 1).any():
+            raise ValueError(
+                f"a transition out of stage {stage} landed in stage "
+                f"{landed[landed != stage + 1][0].item()}: with a next-stage value, a step may "
+                f"only move to stage {stage + 1} (whose value it gets)."
+            )
+        bootstrap = leaving & ~task_terminated
+        reward = next_td.get(keys.reward_key)
+        # the value module runs on a selection: it cannot write into the transition
+        td_in = next_td.select(*next_value.in_keys).clone(False)
+        value = next_value(td_in).get(keys.value_key).to(reward.dtype).reshape(reward.shape)
+        if not bool(torch.isfinite(value[bootstrap]).all()):
+            raise NonFiniteValueError(
+                f"the value of stage {stage + 1}, V(s_t+1), is not finite on a transition out "
+                f"of stage {stage}: stage {stage + 1}'s networks diverged, so stage {stage}'s "
+                "transition rewards would be NaN or infinite"
+            )
+        next_td.set(keys.reward_key, torch.where(bootstrap, reward + gamma * value, reward))
+    terminated = task_terminated | leaving
+    next_td.set(keys.terminated_key, terminated)
+    truncated = next_td.get(keys.truncated_key, None)
+    if truncated is None:  # an env without a truncated entry
+        next_td.set(keys.done_key, next_td.get(keys.done_key) | terminated)
+    else:
+        next_td.set(keys.done_key, terminated | truncated)
 
 
 def freeze(module: nn.Module) -> nn.Module:
@@ -42,9 +101,10 @@ class StageTransform(Transform):
     writing ``value_key``). No value term is added when the task itself terminates on that step;
     truncation is left alone.
 
-    Appended to a replay buffer, :meth:`forward` rewrites ``("next", reward)`` of sampled
-    transitions from the stored stage entries instead (the storage stays raw), which lets the
-    next-stage value change after the data was collected.
+    Stage indices must be in ``0..N-1`` and, when a next-stage value is set, a step may move
+    one stage at most. To compute stage k's view of stored transitions at sampling time instead
+    (the joint schedule), collect with ``rewrite_in_env=False`` or tag only, and append a
+    :class:`StageRewardTransform` to the replay buffer.
 
     Args:
         stage_fn: maps a TensorDict (a reset output or the ``"next"`` content of a step) to its
@@ -56,11 +116,14 @@ class StageTransform(Transform):
         train_stage: the stage being learned, or ``None`` to only tag (whole-task rollouts).
         next_value: state-value module of stage ``train_stage + 1`` (see
             :mod:`torchrl_stages.values`). It is frozen (copied, no grad, eval mode) here.
+            Required when ``train_stage < N - 1``, unless ``standalone``.
+        standalone: train stage ``train_stage < N - 1`` on its own rewards only (no value
+            term on the transition), e.g. to test a stage alone.
         gamma: stage ``train_stage``'s discount.
         rewrite_in_env: finish stage k's view inside ``env.step``. With ``False`` the env only
-            ends the episode at the transition (``done``) and keeps the raw reward and
-            ``terminated``; a copy of this transform appended to the replay buffer finishes them
-            at sampling time with the then-current ``next_value``.
+            cuts the episode at the transition (``truncated`` and ``done``) and keeps the raw
+            reward and ``terminated``; a :class:`StageRewardTransform` on the replay buffer
+            finishes them at sampling time with the then-current next-stage value.
         stage_key, transition_key, reward_key, terminated_key, done_key, value_key: keys.
 
     Examples:
@@ -82,12 +145,14 @@ class StageTransform(Transform):
         *,
         train_stage: int | None = None,
         next_value: TensorDictModuleBase | None = None,
+        standalone: bool = False,
         gamma: float = 0.99,
         rewrite_in_env: bool = True,
         stage_key: NestedKey = "stage",
         transition_key: NestedKey = "stage_transition",
         reward_key: NestedKey = "reward",
         terminated_key: NestedKey = "terminated",
+        truncated_key: NestedKey = "truncated",
         done_key: NestedKey = "done",
         value_key: NestedKey = "state_value",
     ) -> None:
@@ -102,6 +167,13 @@ class StageTransform(Transform):
                 "next_value is only used when training a stage that has a next stage: "
                 f"got train_stage={train_stage} with num_stages={num_stages}."
             )
+        has_next = train_stage is not None and train_stage < num_stages - 1
+        if has_next and next_value is None and not standalone:
+            raise ValueError(
+                f"train_stage={train_stage} has a next stage: pass next_value (stage "
+                f"{train_stage + 1}'s state value, e.g. learner.value()) for its transition "
+                "reward, or standalone=True to train the stage on its own rewards only."
+            )
         super().__init__(in_keys=[], out_keys=[stage_key, transition_key])
         self.stage_fn = stage_fn
         self.num_stages = num_stages
@@ -112,6 +184,7 @@ class StageTransform(Transform):
         self.transition_key = transition_key
         self.reward_key = reward_key
         self.terminated_key = terminated_key
+        self.truncated_key = truncated_key
         self.done_key = done_key
         self.value_key = value_key
         self.next_value = None
@@ -131,43 +204,31 @@ class StageTransform(Transform):
     # ------------------------------------------------------------------ helpers
     def _stage(self, td: TensorDictBase) -> torch.Tensor:
         stage = td.get(self.stage_key) if self.stage_fn is None else self.stage_fn(td)
-        return stage.to(torch.int64).reshape(*td.batch_size, 1)
+        stage = stage.to(torch.int64).reshape(*td.batch_size, 1)
+        bad = (stage < 0) | (stage >= self.num_stages)
+        if bad.any():
+            source = "the env's stage entry" if self.stage_fn is None else "stage_fn"
+            raise ValueError(
+                f"{source} gave stage {stage[bad][0].item()}, outside 0..{self.num_stages - 1} "
+                f"(num_stages={self.num_stages})."
+            )
+        return stage
 
-    @torch.no_grad()
-    def _value(self, next_td: TensorDictBase) -> torch.Tensor:
-        # Run the value module on a selection so it cannot write into the env's output.
-        td_in = next_td.select(*self.next_value.in_keys).clone(False)
-        return self.next_value(td_in).get(self.value_key)
-
-    def _learner_view(
-        self, stage_t: torch.Tensor, next_td: TensorDictBase, *, finish: bool
-    ) -> None:
+    def _learner_view(self, stage_t: torch.Tensor, next_td: TensorDictBase) -> None:
         """Stage k's learner view of a step (``next_td`` is the t+1 content).
 
-        The step that leaves stage k is ``done`` for the collector. When ``finish`` is set it is
-        also ``terminated`` for stage k's loss, and its reward gains gamma_k * V_{k+1}(s_{t+1})
-        unless the task itself terminated on that step.
+        The step that leaves stage k ends stage k's episode. With ``rewrite_in_env`` it is
+        ``terminated`` for stage k's loss and its reward gains gamma_k * V_{k+1}(s_{t+1}) unless
+        the task itself terminated on that step; otherwise it is ``truncated`` (the stored
+        transition stays raw for a :class:`StageRewardTransform`). ``done`` follows.
         """
         leaving = next_td.get(self.transition_key) & (stage_t == self.train_stage)
-        next_td.set(self.done_key, next_td.get(self.done_key) | leaving)
-        if not finish:
+        if not self.rewrite_in_env:
+            truncated = next_td.get(self.truncated_key) | leaving
+            next_td.set(self.truncated_key, truncated)
+            next_td.set(self.done_key, next_td.get(self.terminated_key) | truncated)
             return
-        task_terminated = next_td.get(self.terminated_key)
-        if self.next_value is not None and leaving.any():
-            bootstrap = leaving & ~task_terminated
-            reward = next_td.get(self.reward_key)
-            value = self._value(next_td).to(reward.dtype).reshape(reward.shape)
-            if not bool(torch.isfinite(value[bootstrap]).all()):
-                raise NonFiniteValueError(
-                    f"the value of stage {self.train_stage + 1}, V(s_t+1), is not finite on a "
-                    f"transition out of stage {self.train_stage}: stage {self.train_stage + 1}'s "
-                    "networks diverged, so stage "
-                    f"{self.train_stage}'s transition rewards would be NaN or infinite"
-                )
-            next_td.set(
-                self.reward_key, torch.where(bootstrap, reward + self.gamma * value, reward)
-            )
-        next_td.set(self.terminated_key, task_terminated | leaving)
+        apply_stage_view(self.train_stage, self.gamma, self.next_value, stage_t, next_td, self)
 
     # ------------------------------------------------------------------ env path
     def _reset(
@@ -186,21 +247,15 @@ class StageTransform(Transform):
         next_tensordict.set(self.stage_key, stage_next)
         next_tensordict.set(self.transition_key, transition)
         if self.train_stage is not None:
-            self._learner_view(stage_t, next_tensordict, finish=self.rewrite_in_env)
+            self._learner_view(stage_t, next_tensordict)
         return next_tensordict
 
-    # ------------------------------------------------------------------ replay-buffer path
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Finishes stage k's view of stored transitions (replay-buffer transform).
-
-        Use it on data collected with ``rewrite_in_env=False``: the storage keeps the raw reward
-        and the task's own ``terminated``; each sample gets the transition marked terminal and
-        ``gamma_k * V_{k+1}(s_{t+1})`` from the *current* ``next_value`` module.
-        """
-        if self.train_stage is None:
-            return tensordict
-        self._learner_view(tensordict.get(self.stage_key), tensordict.get("next"), finish=True)
-        return tensordict
+        raise RuntimeError(
+            "StageTransform is an env transform (it tags steps as they happen). To compute stage "
+            "k's view of stored transitions, append StageRewardTransform(k, ...) to the replay "
+            "buffer instead."
+        )
 
     # ------------------------------------------------------------------ specs
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
@@ -219,3 +274,170 @@ class StageTransform(Transform):
             f"{type(self).__name__}(num_stages={self.num_stages}, train_stage={self.train_stage}, "
             f"gamma={self.gamma}, next_value={'set' if self.next_value is not None else None})"
         )
+
+
+class StageRewardTransform(Transform):
+    """Stage k's learner view of sampled transitions, computed when they are sampled.
+
+    A replay-buffer transform, kept apart from the env transforms the way torchrl keeps
+    ``MultiStepTransform``: the storage holds raw transitions tagged by :class:`StageTransform`
+    (``"stage"`` at the root and under ``"next"``, ``("next", "stage_transition")``), and every
+    sample gets the transitions that leave stage k marked ``terminated`` with
+    ``r + gamma_k * V_{k+1}(s_{t+1})`` from the *current* ``next_value``: the next stage may
+    keep learning after the data was stored (the paper's joint schedule, Algorithm 1).
+
+    Args:
+        stage: the stage k whose loss reads the samples.
+        num_stages: number of stages N.
+
+    Keyword Args:
+        next_value: state-value module of stage k + 1, held by reference (not copied, never
+            trained here): pass ``learner.value(live=True)`` to follow the next learner's target
+            networks as they move. Required when ``k < N - 1`` unless ``standalone``.
+        standalone: stage ``k < N - 1`` learns from its own rewards only.
+        gamma: stage k's discount.
+        stage_key, transition_key, reward_key, terminated_key, truncated_key, done_key,
+        value_key: keys.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        >>> v1 = TensorDictModule(lambda o: o.sum(-1, keepdim=True), ["observation"],
+        ...                       ["state_value"])
+        >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(4), batch_size=2)
+        >>> _ = rb.append_transform(StageRewardTransform(0, 2, next_value=v1, gamma=0.5))
+        >>> leaves = torch.tensor([[True], [False]])  # the first transition enters stage 1
+        >>> no = torch.zeros(2, 1, dtype=torch.bool)
+        >>> _ = rb.extend(TensorDict(stage=torch.zeros(2, 1, dtype=torch.long), next=TensorDict(
+        ...     observation=torch.ones(2, 2), stage=leaves.long(), stage_transition=leaves,
+        ...     reward=torch.zeros(2, 1), terminated=no, truncated=no, done=no,
+        ...     batch_size=[2]), batch_size=[2]))
+        >>> sample = rb[:]  # the storage stays raw; samples get stage 0's view
+        >>> nxt = sample["next"]
+        >>> nxt["reward"].squeeze(-1).tolist(), nxt["terminated"].squeeze(-1).tolist()
+        ([1.0, 0.0], [True, False])
+    """
+
+    ENV_ERR = (
+        "StageRewardTransform is a replay-buffer transform: append it to a replay buffer "
+        "(rb.append_transform). In an env, StageTransform(train_stage=k, next_value=...) gives "
+        "stage k's view as the steps happen."
+    )
+
+    def __init__(
+        self,
+        stage: int,
+        num_stages: int,
+        *,
+        next_value: TensorDictModuleBase | None = None,
+        standalone: bool = False,
+        gamma: float = 0.99,
+        stage_key: NestedKey = "stage",
+        transition_key: NestedKey = "stage_transition",
+        reward_key: NestedKey = "reward",
+        terminated_key: NestedKey = "terminated",
+        truncated_key: NestedKey = "truncated",
+        done_key: NestedKey = "done",
+        value_key: NestedKey = "state_value",
+    ) -> None:
+        if not 0 <= stage < num_stages:
+            raise ValueError(f"stage={stage} is outside 0..{num_stages - 1}.")
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"gamma={gamma} is outside (0, 1].")
+        if stage == num_stages - 1 and next_value is not None:
+            raise ValueError(f"stage {stage} is the last one: it has no next_value.")
+        if stage < num_stages - 1 and next_value is None and not standalone:
+            raise ValueError(
+                f"stage {stage} has a next stage: pass next_value (stage {stage + 1}'s state "
+                "value) or standalone=True."
+            )
+        super().__init__(in_keys=[], out_keys=[])
+        self.stage, self.num_stages, self.gamma = stage, num_stages, gamma
+        self.stage_key, self.transition_key = stage_key, transition_key
+        self.reward_key, self.terminated_key = reward_key, terminated_key
+        self.truncated_key, self.done_key, self.value_key = truncated_key, done_key, value_key
+        # held by reference, not as a sub-module: it belongs to the next stage's learner, and
+        # must not travel in this transform's (or the replay buffer's) state_dict
+        self.__dict__["next_value"] = next_value
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self.parent is not None:
+            raise RuntimeError(self.ENV_ERR)
+        required = [self.stage_key, ("next", self.transition_key), ("next", self.reward_key)]
+        required.append(("next", self.terminated_key))
+        if self.next_value is not None:
+            required.append(("next", self.stage_key))
+        missing = [k for k in required if tensordict.get(k, None) is None]
+        if missing:
+            names = ", ".join(".".join(k) if isinstance(k, tuple) else k for k in missing)
+            raise KeyError(
+                f"StageRewardTransform(stage={self.stage}) needs {names} in the sampled data: "
+                'store transitions collected through StageTransform (it writes "stage" and '
+                '("next", "stage_transition")), keeping those entries in the buffer.'
+            )
+        apply_stage_view(
+            self.stage,
+            self.gamma,
+            self.next_value,
+            tensordict.get(self.stage_key),
+            tensordict.get("next"),
+            self,
+        )
+        return tensordict
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        raise RuntimeError(self.ENV_ERR)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase):
+        raise RuntimeError(self.ENV_ERR)
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase):
+        raise RuntimeError(self.ENV_ERR)
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(stage={self.stage}, num_stages={self.num_stages}, "
+            f"gamma={self.gamma}, next_value={'set' if self.next_value is not None else None})"
+        )
+
+
+class StageDiscount(Transform):
+    """Discounts every transition with the gamma of its stage in torchrl's value estimators.
+
+    It writes ``steps_to_next_obs = log(gammas[stage(s_t)]) / log(gamma)`` next to each stored
+    transition; a TD(0) estimator built with ``gamma`` then bootstraps with
+    ``gamma ** steps_to_next_obs = gammas[stage(s_t)]``. One learner trained on the whole task
+    (the flat baseline) so optimizes the same stage-discounted objective as the stacked
+    learners. Use it as a replay-buffer transform or on collected batches.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> t = StageDiscount([0.9, 0.99], gamma=0.99)
+        >>> td = t(TensorDict(stage=torch.tensor([[0], [1]]), batch_size=[2]))
+        >>> (0.99 ** td["steps_to_next_obs"]).squeeze(-1)
+        tensor([0.9000, 0.9900])
+    """
+
+    def __init__(
+        self,
+        gammas: Sequence[float],
+        gamma: float,
+        *,
+        stage_key: NestedKey = "stage",
+        out_key: NestedKey = "steps_to_next_obs",
+    ) -> None:
+        if not 0.0 < gamma < 1.0 and any(g != gamma for g in gammas):
+            raise ValueError(f"gamma={gamma} cannot express the stage discounts {list(gammas)}.")
+        super().__init__(in_keys=[stage_key], out_keys=[out_key])
+        ratio = [1.0 if g == gamma else math.log(g) / math.log(gamma) for g in gammas]
+        self.register_buffer("_steps", torch.tensor(ratio, dtype=torch.float32))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        stage = tensordict.get(self.in_keys[0])
+        return tensordict.set(self.out_keys[0], self._steps.to(stage.device)[stage])
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase):
+        raise RuntimeError("StageDiscount transforms stored transitions, not env steps.")

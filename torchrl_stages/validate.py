@@ -12,6 +12,7 @@ from torchrl_stages.learners import LEARNERS
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
 LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
+SCHEDULES = ("backward", "joint", "flat")
 
 
 class ConfigError(ValueError):
@@ -169,6 +170,21 @@ def validate_config(cfg: DictConfig) -> None:
     )
     _check(cfg.threads >= 1, "threads", cfg.threads, "must be >= 1", "set threads=1")
     _check(
+        cfg.schedule.name in SCHEDULES,
+        "schedule.name",
+        cfg.schedule.name,
+        f"unknown schedule (known: {', '.join(SCHEDULES)})",
+        "select one with schedule=backward|joint|flat",
+    )
+    _check(
+        cfg.schedule.name != "backward" or cfg.task.get("stage_starts", True),
+        "schedule",
+        cfg.schedule.name,
+        f"task '{cfg.task.name}' has stage_starts=false: its env cannot start inside a stage, "
+        "which the backward schedule needs",
+        "use schedule=joint (one phase from the task's own starts)",
+    )
+    _check(
         cfg.checkpoint_every >= 0,
         "checkpoint_every",
         cfg.checkpoint_every,
@@ -224,6 +240,21 @@ def validate_task(cfg: DictConfig, task) -> None:
         f"configure exactly {task.num_stages} stages (add them with "
         f"+algo@task.stages.NAME=dqn or remove extra ones with ~task.stages.NAME)",
     )
+    if cfg.schedule.name == "flat":
+        first = task.specs(0)
+        for k, name in enumerate(names):
+            specs = task.specs(k)
+            _check(
+                specs.action_key == first.action_key
+                and list(specs.observation_keys) == list(first.observation_keys),
+                "schedule",
+                "flat",
+                f"one learner acts in every stage, but stage {k} ({name}) reads "
+                f"{list(specs.observation_keys)} and writes {specs.action_key!r} where stage 0 "
+                f"reads {list(first.observation_keys)} and writes {first.action_key!r}",
+                "give the stages one action entry (e.g. cargo's single-robot task: "
+                "task.env.robots=[propelled] ~task.stages.slider), or use schedule=backward",
+            )
     for k, name in enumerate(names):
         algo = cfg.task.stages[name].algo
         problem = LEARNERS[algo].check_action_spec(task.specs(k).action_spec)

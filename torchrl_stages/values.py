@@ -17,11 +17,18 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 
-def with_params(module: nn.Module, params: TensorDictBase) -> nn.Module:
-    """A deep copy of ``module`` holding ``params`` (e.g. a loss module's target parameters)."""
+def with_params(module: nn.Module, params: TensorDictBase, *, live: bool = False) -> nn.Module:
+    """A deep copy of ``module`` holding ``params`` (e.g. a loss module's target parameters).
+
+    With ``live`` the copy reads ``params`` themselves (no copy of their values, no gradients):
+    it follows them as they are updated in place, e.g. by a target-network updater.
+    """
     module = copy.deepcopy(module)
-    TensorDict.from_module(module).data.update_(params.data)
-    return module
+    if not live:
+        TensorDict.from_module(module).data.update_(params.data)
+        return module
+    params.data.to_module(module)
+    return module.requires_grad_(False).eval()
 
 
 def _unique(keys: Sequence[NestedKey]) -> list[NestedKey]:

@@ -124,10 +124,12 @@ class Learner(nn.Module, ABC):
         """Sets the exploration noise for ``frames`` collected frames."""
 
     @abstractmethod
-    def value(self) -> TensorDictModuleBase:
+    def value(self, live: bool = False) -> TensorDictModuleBase:
         """This stage's state-value module ``V(s)`` from its target networks.
 
-        The caller freezes it (:func:`torchrl_stages.transforms.freeze`).
+        By default a copy of their current values (an env transform freezes it further, see
+        :func:`torchrl_stages.transforms.freeze`); with ``live`` it reads the target networks
+        themselves and follows their updates (the joint schedule's replay-buffer transforms).
         """
 
     def _check_losses(self, **losses: torch.Tensor) -> None:

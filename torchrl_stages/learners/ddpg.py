@@ -57,10 +57,10 @@ class DDPGLearner(ActorCriticLearner):
             "grad_norm_critic": self.grad_norms["critic"],
         }
 
-    def value(self) -> TensorDictModuleBase:
+    def value(self, live: bool = False) -> TensorDictModuleBase:
         """``Q_target(s, mu_target(s))``."""
         loss = self.loss
         return ActorCriticValue(
-            with_params(self.actor, loss.target_actor_network_params),
-            [with_params(self.critic, loss.target_value_network_params)],
+            with_params(self.actor, loss.target_actor_network_params, live=live),
+            [with_params(self.critic, loss.target_value_network_params, live=live)],
         )

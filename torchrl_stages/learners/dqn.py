@@ -90,6 +90,7 @@ class DQNLearner(Learner):
             linear_schedule(cfg.eps_init, cfg.eps_end, frames, cfg.annealing_frames)
         )
 
-    def value(self) -> TensorDictModuleBase:
+    def value(self, live: bool = False) -> TensorDictModuleBase:
         """``max_a Q_target(s, a)``."""
-        return QMaxValue(with_params(self.qnet, self.loss.target_value_network_params))
+        target = self.loss.target_value_network_params
+        return QMaxValue(with_params(self.qnet, target, live=live))

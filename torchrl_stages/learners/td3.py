@@ -65,11 +65,12 @@ class TD3Learner(ActorCriticLearner):
         self.num_updates += 1
         return out
 
-    def value(self) -> TensorDictModuleBase:
+    def value(self, live: bool = False) -> TensorDictModuleBase:
         """``min_i Q_i,target(s, mu_target(s))`` over the twin critics."""
         loss = self.loss
         critics = [
-            with_params(self.critic, loss.target_qvalue_network_params[i])
+            with_params(self.critic, loss.target_qvalue_network_params[i], live=live)
             for i in range(loss.target_qvalue_network_params.shape[0])
         ]
-        return ActorCriticValue(with_params(self.actor, loss.target_actor_network_params), critics)
+        actor = with_params(self.actor, loss.target_actor_network_params, live=live)
+        return ActorCriticValue(actor, critics)

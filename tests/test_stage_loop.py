@@ -1,0 +1,330 @@
+"""The stage loop (``StageTrainer.train``) with a scripted learner, and the backward schedule."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from torchrl_stages.config import DQNConfig
+from torchrl_stages.learners import Learner
+from torchrl_stages.schedule import train_backward
+from torchrl_stages.stage import StageTrainer
+from torchrl_stages.task import StagedTask
+from torchrl_stages.transforms import StageTransform
+from torchrl_stages.values import QMaxValue, with_params
+
+SIZE, NUM_ENVS = 10, 16
+
+
+def _task(stage=None) -> StagedTask:
+    stage = stage if stage is not None else DQNConfig(gamma=0.9)
+    return StagedTask(
+        OmegaConf.create(
+            {
+                "name": "grid",
+                "stages": {"a": stage, "b": stage},
+                "env": {
+                    "_target_": "torchrl_stages.envs.GridWorldEnv",
+                    "size": SIZE,
+                    "num_stages": 2,
+                },
+            }
+        )
+    )
+
+
+def _cfg(**kw) -> DQNConfig:
+    base = {"frames_per_batch": 128, "num_envs": NUM_ENVS, "batch_size": 32, "eval_every": 0}
+    return OmegaConf.structured(DQNConfig(**{**base, **kw}))
+
+
+class FakeLearner(Learner):
+    """A scripted right-then-down policy; each update adds 1 to ``weight`` and is recorded."""
+
+    algo = "fake"
+
+    def __init__(self, cfg, specs) -> None:
+        super().__init__(cfg, specs)
+        self.weight = nn.Parameter(torch.zeros(()))
+        self.policy = TensorDictModule(self._act, ["observation"], ["action"])
+        self.exploration_policy = self.policy
+        self.loss = SimpleNamespace(
+            in_keys=[
+                "observation",
+                "action",
+                ("next", "observation"),
+                ("next", "reward"),
+                ("next", "done"),
+                ("next", "terminated"),
+            ]
+        )
+        self.annealed: list[int] = []  # frames passed to anneal_exploration, in order
+        self.update_frames: list[int] = []  # frames collected when each update happened
+        self.batch_sizes: list[int] = []
+        self.policy_frames: list[int] = []  # frames collected when the policy acted
+
+    def _act(self, obs: torch.Tensor) -> torch.Tensor:
+        self.policy_frames.append(self.annealed[-1] if self.annealed else 0)
+        col = torch.round(obs[..., 1] * 5).long()
+        return torch.where(col < SIZE - 1, 3, 1)
+
+    def update(self, batch):
+        self.update_frames.append(self.annealed[-1])
+        self.batch_sizes.append(batch.numel())
+        with torch.no_grad():
+            self.weight.add_(1.0)
+        self.num_updates += 1
+        return {"loss": torch.zeros(())}
+
+    def anneal_exploration(self, frames: int) -> None:
+        self.annealed.append(frames)
+
+    def value(self, live: bool = False):
+        weight = self.weight.detach().clone()
+        return TensorDictModule(
+            lambda obs: weight.expand(*obs.shape[:-1], 1), ["observation"], ["state_value"]
+        )
+
+
+def _trainer(cfg, stage: int = 1) -> tuple[StageTrainer, FakeLearner]:
+    task = _task()
+    learner = FakeLearner(cfg, task.specs(stage))
+    env = task.stage_env(stage, cfg.num_envs)
+    env.set_seed(0)
+    trainer = StageTrainer(stage, learner, env, task.stage_eval_env(stage), cfg)
+    return trainer, learner
+
+
+def _script(trainer: StageTrainer, learner: FakeLearner, evals, monkeypatch) -> list[dict]:
+    """Replaces ``trainer.evaluate`` by a scripted sequence of (success, value error, return);
+    returns the log of calls (frames and the weight at the time)."""
+    calls: list[dict] = []
+    it = iter(evals)
+
+    def evaluate(frames: int):
+        calls.append({"frames": frames, "weight": learner.weight.item()})
+        return next(it)
+
+    monkeypatch.setattr(trainer, "evaluate", evaluate)
+    return calls
+
+
+def test_no_update_before_init_random_frames():
+    cfg = _cfg(frames=1024, init_random_frames=256, updates_per_batch=3)
+    trainer, learner = _trainer(cfg)
+    result = trainer.train()
+    batches = list(range(128, 1024 + 1, 128))
+    assert learner.annealed == batches
+    assert result.frames == 1024
+    learning = [f for f in batches if f >= 256]
+    assert learner.update_frames == [f for f in learning for _ in range(3)]
+    assert result.updates == learner.num_updates == 3 * len(learning) == 21
+    assert learner.weight.item() == 21.0
+    assert learner.batch_sizes == [cfg.batch_size] * 21
+    # random actions for the first 256 frames, the policy from then on
+    steps_per_batch = 128 // NUM_ENVS
+    assert min(learner.policy_frames) == 256
+    assert len(learner.policy_frames) == steps_per_batch * (len(batches) - 2)
+    assert not result.early_stopped and not result.restored_best
+    assert result.success_rate is None and result.value_error is None
+
+
+def test_early_stop_breaks_at_the_evaluation_that_meets_the_criterion(monkeypatch):
+    cfg = _cfg(
+        frames=2048,
+        init_random_frames=128,
+        updates_per_batch=2,
+        eval_every=128,
+        success_threshold=1.0,
+        patience=2,
+        min_frames=512,
+    )
+    trainer, learner = _trainer(cfg)
+    evals = [
+        (1.0, 0.0, 0.5),  # 128
+        (1.0, 0.0, 0.5),  # 256: a streak of 2, but before min_frames
+        (0.5, 0.0, 0.5),  # 384: the streak ends
+        (1.0, 0.0, 0.5),  # 512
+        (1.0, 0.1, 0.5),  # 640: a streak of 2 after min_frames: stop here
+    ] + [(0.0, 1.0, 0.0)] * 20
+    calls = _script(trainer, learner, evals, monkeypatch)
+    result = trainer.train()
+    assert [c["frames"] for c in calls] == [128, 256, 384, 512, 640]
+    assert result.frames == 640 and result.early_stopped
+    assert not result.restored_best
+    assert result.updates == learner.num_updates == 2 * 5
+    assert learner.update_frames[-1] == 640  # no update after the stopping evaluation
+    assert learner.weight.item() == calls[-1]["weight"] == 10.0
+    assert (result.success_rate, result.value_error) == (1.0, 0.1)
+
+
+def test_value_tolerance_is_part_of_the_early_stop(monkeypatch):
+    cfg = _cfg(
+        frames=1024,
+        init_random_frames=128,
+        updates_per_batch=1,
+        eval_every=256,
+        success_threshold=1.0,
+        value_tolerance=0.05,
+        patience=1,
+    )
+    trainer, learner = _trainer(cfg)
+    evals = [(1.0, 0.2, 0.0), (1.0, 0.06, 0.0), (1.0, 0.04, 0.0), (1.0, 0.0, 0.0)]
+    calls = _script(trainer, learner, evals, monkeypatch)
+    result = trainer.train()
+    assert [c["frames"] for c in calls] == [256, 512, 768]
+    assert result.frames == 768 and result.early_stopped
+
+
+EVALS = [  # (success, value error, return); the best is the third one
+    (0.5, 0.10, 0.0),
+    (1.0, 0.20, 0.0),
+    (1.0, 0.05, 0.0),
+    (0.8, 0.01, 0.0),
+    (1.0, 0.10, 0.0),
+    (0.9, 0.00, 0.0),
+]
+
+
+def _budget_cfg(**kw):
+    return _cfg(
+        frames=768,
+        init_random_frames=128,
+        updates_per_batch=2,
+        eval_every=128,
+        success_threshold=1.0,
+        patience=3,
+        **kw,
+    )
+
+
+def test_budget_exhausted_restores_the_best_evaluated_weights(monkeypatch):
+    trainer, learner = _trainer(_budget_cfg())
+    calls = _script(trainer, learner, EVALS, monkeypatch)
+    result = trainer.train()
+    assert len(calls) == len(EVALS) and result.frames == 768
+    assert not result.early_stopped and result.restored_best
+    assert learner.weight.item() == calls[2]["weight"] == 6.0
+    assert learner.weight.item() != calls[-1]["weight"]
+    assert (result.success_rate, result.value_error) == (1.0, 0.05)
+    assert result.updates == 12  # updates done, not those of the restored weights
+
+
+def test_keep_best_off_keeps_the_last_weights(monkeypatch):
+    trainer, learner = _trainer(_budget_cfg(keep_best=False))
+    calls = _script(trainer, learner, EVALS, monkeypatch)
+    result = trainer.train()
+    assert not result.restored_best and not result.early_stopped
+    assert learner.weight.item() == calls[-1]["weight"] == 12.0
+    assert (result.success_rate, result.value_error) == (0.9, 0.0)
+
+
+def test_updates_after_the_best_last_evaluation_are_undone(monkeypatch):
+    cfg = _cfg(
+        frames=640,
+        init_random_frames=128,
+        updates_per_batch=2,
+        eval_every=256,
+        success_threshold=1.0,
+        patience=5,
+    )
+    trainer, learner = _trainer(cfg)
+    calls = _script(trainer, learner, [(0.5, 0.1, 0.0), (1.0, 0.0, 0.0)], monkeypatch)
+    result = trainer.train()
+    assert [c["frames"] for c in calls] == [256, 512]  # 128 frames of updates after the best
+    assert (result.success_rate, result.value_error) == (1.0, 0.0)
+    assert learner.weight.item() == calls[-1]["weight"]  # the weights that were evaluated
+    assert result.restored_best
+
+
+def test_evaluate_runs_the_greedy_policy_from_every_start():
+    # the real evaluation on stage 1: the scripted policy reaches the target from every cell
+    cfg = _cfg(frames=128, init_random_frames=0, gamma=0.9)
+    task = _task()
+    learner = FakeLearner(cfg, task.specs(1))
+    with torch.no_grad():
+        learner.weight.fill_(2.0)  # V(s) = 2 everywhere
+    trainer = StageTrainer(1, learner, task.stage_env(1, NUM_ENVS), task.stage_eval_env(1), cfg)
+    success, value_error, ret = trainer.evaluate(0)
+    rows, cols = torch.meshgrid(torch.arange(SIZE), torch.arange(5, SIZE), indexing="ij")
+    steps = (SIZE - 1 - rows) + (SIZE - 1 - cols)  # right, then down
+    returns = 0.9 ** (steps[steps > 0] - 1.0)  # reward 1 on entering the target
+    assert len(returns) == 49
+    assert success == 1.0
+    assert ret == pytest.approx(returns.mean().item())
+    assert value_error == pytest.approx((2.0 - returns).mean().item())
+
+
+# ------------------------------------------------------------------ backward schedule
+def _tiny_dqn() -> DQNConfig:
+    return DQNConfig(
+        frames=256,
+        frames_per_batch=128,
+        num_envs=16,
+        init_random_frames=128,
+        batch_size=32,
+        updates_per_batch=2,
+        eval_every=0,
+        tau=0.5,
+    )
+
+
+def test_train_backward_hands_a_frozen_target_value_to_the_previous_stage(monkeypatch):
+    calls: list[tuple[str, int, object, object]] = []
+    stage_env, stage_eval_env = StagedTask.stage_env, StagedTask.stage_eval_env
+
+    def spy_env(self, stage, batch_size, next_value=None, **kw):
+        env = stage_env(self, stage, batch_size, next_value, **kw)
+        calls.append(("train" if not kw.get("all_starts") else "inner", stage, next_value, env))
+        return env
+
+    def spy_eval_env(self, stage, next_value=None):
+        env = stage_eval_env(self, stage, next_value)
+        calls.append(("eval", stage, next_value, env))
+        return env
+
+    monkeypatch.setattr(StagedTask, "stage_env", spy_env)
+    monkeypatch.setattr(StagedTask, "stage_eval_env", spy_eval_env)
+    task = _task(_tiny_dqn())
+    learners, results = train_backward(task, seed=0)
+    assert [r.frames for r in results] == [256, 256]
+    assert [(kind, stage) for kind, stage, _, _ in calls if kind != "inner"] == [
+        ("train", 1),
+        ("eval", 1),
+        ("train", 0),
+        ("eval", 0),
+    ]
+    assert all(nv is None for _, stage, nv, _ in calls if stage == 1)
+
+    stage1 = learners[1]
+    obs = task.base_env(64, start_stage=1).reset()["observation"]
+
+    def out(module) -> torch.Tensor:
+        with torch.no_grad():
+            return module(TensorDict(observation=obs.clone(), batch_size=[64]))["state_value"]
+
+    target = QMaxValue(with_params(stage1.qnet, stage1.loss.target_value_network_params))
+    expected = out(target)
+    assert torch.allclose(out(stage1.value()), expected)
+    assert not torch.allclose(out(QMaxValue(stage1.qnet)), expected)  # the targets lag
+    stage0 = [(kind, nv, env) for kind, stage, nv, env in calls if stage == 0 and kind != "inner"]
+    assert len(stage0) == 2
+    # perturb stage 1's online and target networks: the handed-over value must not move
+    with torch.no_grad():
+        for p in stage1.qnet.parameters():
+            p.add_(torch.randn_like(p))
+        stage1.loss.target_value_network_params.apply_(lambda p: p.add_(1.0))
+    online = out(QMaxValue(stage1.qnet))
+    for _, next_value, env in stage0:
+        assert next_value is not None
+        assert torch.allclose(out(next_value), expected)
+        assert not torch.allclose(out(next_value), online)
+        transform = next(t for t in env.transform if isinstance(t, StageTransform))
+        assert transform.train_stage == 0
+        assert torch.allclose(out(transform.next_value), expected)
