@@ -311,7 +311,7 @@ def test_metrics_csv(run_dir):
         assert f"eval/stage_{k}/success_rate" in names
         assert any(name.startswith(f"train/stage_{k}/") for name in names)
     assert "train/stage_4/loss" in names
-    assert "eval/task/success_rate" in names
+    assert "eval/final/success_rate" in names
     for name, step, value in rows[1:]:
         assert name.split("/")[0] in ("train", "eval"), name
         int(step)

@@ -248,3 +248,23 @@ def test_multirun_survives_an_invalid_job(tmp_path):
     assert status["status"] == "invalid" and "task.stages.s0.gamma" in status["reason"]
     overrides = (bad / ".hydra" / "overrides.yaml").read_text()
     assert "task.stages.s0.gamma=1.5" in overrides
+
+
+def test_joint_schedule_kill_and_resume_is_bitwise_equal(tmp_path):
+    reference, killed = tmp_path / "joint_reference", tmp_path / "joint_killed"
+    ref = spawn(reference, "schedule=joint")
+    proc = spawn(killed, "schedule=joint")
+    checkpoints = killed / "checkpoints" / "joint"
+    # the second phase (from stage 0) is under way: a checkpoint past stage 1's budget exists
+    kill_when(
+        proc,
+        lambda: any(
+            int(p.name.split("-")[1]) > TINY["frames"] for p in checkpoints.glob("frames-*")
+        ),
+        delay=0.05,
+    )
+    result = finish(ref)
+    assert result.returncode == 0, result.stderr[-3000:]
+    resumed = run(killed, "schedule=joint", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert_same_run(reference, killed)

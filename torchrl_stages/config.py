@@ -167,6 +167,10 @@ class EvalConfig:
 
     episodes: int = II("task.eval_episodes")  # default: the task's (e.g. 1000 for cargo)
     plots: bool = True
+    # follow the whole task during training: at every evaluation of stage 0 (backward), of
+    # phase 0 (joint) or of the flat learner, log eval/task/{success_rate, seconds} (and the
+    # grid world's path_optimal, value_error) against the frames of all stages so far
+    probe: bool = False
 
 
 @dataclass

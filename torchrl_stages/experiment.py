@@ -22,7 +22,7 @@ from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.joint import JointTrainer
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import make_logger
-from torchrl_stages.reports import evaluate_run
+from torchrl_stages.reports import EVAL_SEED_OFFSET, evaluate_run, probe_task
 from torchrl_stages.rundir import RunDir, RunDirError, config_differences, load_stage
 from torchrl_stages.schedule import train_backward, train_flat
 from torchrl_stages.stage import StageResult
@@ -135,6 +135,17 @@ class Experiment:
         self.logger = make_logger(cfg, run.path)
         start, schedule, phases = time.perf_counter(), cfg.schedule.name, None
         kwargs = {"seed": int(cfg.seed), "logger": self.logger, "progress": cfg.progress}
+        if cfg.eval.get("probe", False):
+
+            def probe(learners: list[Learner], frames: int) -> None:
+                seed = int(cfg.seed) + EVAL_SEED_OFFSET
+                metrics = {**probe_task(self.task, learners, seed)}
+                metrics["seconds"] = time.perf_counter() - start
+                if self.logger is not None:
+                    for key, value in metrics.items():
+                        self.logger.log_scalar(f"eval/task/{key}", value, step=frames)
+
+            kwargs["probe"] = probe
         if schedule == "joint":
             learners, results, phases = self._train_joint(**kwargs)
         elif schedule == "flat":
@@ -149,9 +160,10 @@ class Experiment:
         if phases is not None:
             training["phases"] = phases
         result = evaluate_run(cfg, self.task, learners, run.path, training=training)
-        if self.logger is not None:
+        if self.logger is not None:  # the run's whole-task evaluation, after all its frames
+            frames = sum(r.frames for r in results)
             for key in ("success_rate", "mean_return", "mean_steps"):
-                self.logger.log_scalar(f"eval/task/{key}", result[key], step=0)
+                self.logger.log_scalar(f"eval/final/{key}", result[key], step=frames)
         return result
 
     def _train_joint(self, **kwargs: Any) -> tuple[list[Learner], list[StageResult], list]:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -83,8 +83,10 @@ class JointTrainer:
         logger: Logger | None = None,
         progress: bool = False,
         checkpoints: StageCheckpoints | None = None,
+        probe: Callable[[list[Learner], int], None] | None = None,
     ) -> None:
         self.task, self.seed, self.logger, self.progress = task, seed, logger, progress
+        self.probe = probe
         self.checkpoints = checkpoints
         n = task.num_stages
         torch.manual_seed(seed)
@@ -234,6 +236,8 @@ class JointTrainer:
                     phase["next_eval"] += int(cfg.eval_every)
                     with watch("evaluate"):
                         success, value_error, ret = self.evaluate(k, eval_env, counters["frames"])
+                        if self.probe is not None and k == 0:
+                            self.probe(self.learners, counters["frames"])
                     stop = monitor.record(team, success, value_error, frames, ret)
                 if stop:
                     break

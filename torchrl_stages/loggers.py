@@ -13,7 +13,7 @@ class MetricsCSVLogger(CSVLogger):
     """torchrl's ``CSVLogger`` that also appends every scalar to one ``name,step,value`` file.
 
     Names carry the namespace (``train/stage_3/loss``, ``eval/stage_3/success_rate``,
-    ``eval/task/success_rate``); ``step`` counts the frames of that stage.
+    ``eval/final/success_rate``); ``step`` counts the frames of that stage.
 
     Examples:
         >>> import tempfile, pathlib

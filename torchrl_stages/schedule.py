@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 import torch
@@ -30,6 +31,12 @@ class StageStore(Protocol):
         """Keeps a stage that just finished."""
 
 
+#: ``probe(learners, frames)``: follows the whole task during training (see ``eval.probe``);
+#: called at every evaluation of the stage that holds the whole-task starts, with the
+#: learners as they are and the frames collected so far over all stages
+Probe = Callable[[list[Learner], int], None]
+
+
 def train_backward(
     task: StagedTask,
     *,
@@ -37,6 +44,7 @@ def train_backward(
     logger: Logger | None = None,
     progress: bool = False,
     store: StageStore | None = None,
+    probe: Probe | None = None,
 ) -> tuple[list[Learner], list[StageResult]]:
     """Trains stages N-1, ..., 0 of ``task`` in turn (the paper's backward schedule).
 
@@ -65,7 +73,7 @@ def train_backward(
     """
     learners: list[Learner | None] = [None] * task.num_stages
     results: list[StageResult | None] = [None] * task.num_stages
-    next_value = None
+    next_value, frames_before = None, 0
     for k in reversed(range(task.num_stages)):
         done = store.finished(k) if store is not None else None
         if done is not None:
@@ -78,6 +86,12 @@ def train_backward(
             eval_env = task.stage_eval_env(k, next_value)
             eval_env.set_seed(seed + 10_000 + k)
             learner = make_learner(cfg, task.specs(k))
+            on_evaluate = None
+            if probe is not None and k == 0:
+
+                def on_evaluate(frames: int, learner=learner, before=frames_before) -> None:
+                    probe([learner, *learners[1:]], before + frames)
+
             trainer = StageTrainer(
                 k,
                 learner,
@@ -88,12 +102,14 @@ def train_backward(
                 progress=progress,
                 name=task.stage_names[k],
                 checkpoints=store.begin(k) if store is not None else None,
+                on_evaluate=on_evaluate,
             )
             results[k] = trainer.train()
             learners[k] = learner
             if store is not None:
                 store.save(k, learner, results[k])
         next_value = learners[k].value()
+        frames_before += results[k].frames
     return learners, results
 
 
@@ -111,6 +127,7 @@ def train_flat(
     logger: Logger | None = None,
     progress: bool = False,
     store: StageStore | None = None,
+    probe: Probe | None = None,
 ) -> tuple[list[Learner], list[StageResult]]:
     """One learner over the whole task, no stages (the paper's end-to-end baseline).
 
@@ -159,6 +176,7 @@ def train_flat(
         gammas=gammas,
         postproc=StageDiscount(gammas, float(cfg.gamma)),
         extra_keys=["steps_to_next_obs"],
+        on_evaluate=None if probe is None else lambda f: probe([learner] * task.num_stages, f),
     )
     result = trainer.train()
     if store is not None:

@@ -181,7 +181,8 @@ class StageTrainer:
     stopped (the logger's files are rewound with it when it has ``position``/``rewind``).
     ``gammas`` (one per stage) makes evaluations compare values with the stage-discounted
     return; ``postproc`` transforms each collected batch and ``extra_keys`` are stored with
-    what the loss reads (the flat schedule's per-transition discounts).
+    what the loss reads (the flat schedule's per-transition discounts); ``on_evaluate(frames)``
+    runs after every evaluation.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -216,7 +217,9 @@ class StageTrainer:
         gammas: Sequence[float] | None = None,
         postproc: Callable[[TensorDictBase], TensorDictBase] | None = None,
         extra_keys: Sequence[NestedKey] = (),
+        on_evaluate: Callable[[int], None] | None = None,
     ) -> None:
+        self.on_evaluate = on_evaluate
         self.gammas = gammas
         self.postproc = postproc
         self.keys = list(dict.fromkeys([*learner.loss.in_keys, *extra_keys]))
@@ -290,6 +293,8 @@ class StageTrainer:
                     counters["next_eval"] += cfg.eval_every
                     with watch("evaluate"):
                         success, value_error, ret = self.evaluate(frames)
+                        if self.on_evaluate is not None:
+                            self.on_evaluate(frames)
                     bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
                     stop = monitor.record(learner, success, value_error, frames, ret)
                 if stop:

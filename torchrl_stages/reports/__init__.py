@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig
 
 from torchrl_stages.evaluate import evaluate_task
@@ -33,6 +34,25 @@ REPORTS: dict[str, Report] = {
     "gridworld": gridworld.report,
     "manipulator": manipulator.report,
 }
+#: task-specific numbers followed during training (``eval.probe=true``)
+PROBES: dict[str, Callable[..., dict[str, float]]] = {"gridworld": gridworld.probe}
+
+
+@torch.no_grad()
+def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict[str, float]:
+    """Whole-task numbers of the current learners, for learning curves across schedules: the
+    success rate of greedy whole-task episodes (every whole-task start when the env enumerates
+    them, else stage 0's ``eval_episodes`` random ones), plus the task's own probe (the grid
+    world: optimal path from (0, 0), merged value error)."""
+    policy = StackedPolicy([learner.policy for learner in learners])
+    episodes = int(task.stage_cfg(0).eval_episodes)
+    out = {
+        "success_rate": evaluate_task(task, policy, episodes, seed).stats.summary()["success_rate"]
+    }
+    extra = PROBES.get(task.name)
+    if extra is not None:
+        out.update(extra(task, learners))
+    return out
 
 
 def strict_json(value: Any) -> Any:

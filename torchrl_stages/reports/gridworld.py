@@ -55,6 +55,63 @@ def merged_value_map(task: StagedTask, learners: Sequence[Learner]) -> np.ndarra
     return values.gather(0, stage).reshape(size, size).numpy()
 
 
+def _gammas(task: StagedTask) -> list[float]:
+    return [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
+
+
+def path_from_origin(task: StagedTask, policy: StackedPolicy) -> dict[str, Any]:
+    """The greedy path from ``(0, 0)``: its cells, steps, the shortest steps, whether its
+    discounted return is the optimal value of ``(0, 0)`` (dynamic programming), and its
+    vertical moves per stage."""
+    env = task.base_env(1)
+    size, width, n, target = env.size, env.stage_width, env.num_stages, env.target
+    gammas = _gammas(task)
+    path = greedy_path(task, policy, (0, 0))
+    reached = tuple(path[-1]) == tuple(target)
+    optimal = gridworld_optimal_values(gammas, size=size, num_stages=n, target=target)
+    # the discounted return of the path: gamma of the stage of every state left on the way
+    stage_of = [min(c // width, n - 1) for _, c in path[:-1]]
+    path_return = float(np.prod([gammas[k] for k in stage_of[:-1]])) if reached else 0.0
+    best = float(optimal[0, 0])
+    return {
+        "path_from_origin": path,
+        "path_from_origin_steps": len(path) - 1 if reached else None,
+        "path_from_origin_optimal": bool(reached and abs(path_return - best) <= 1e-9 * best),
+        "optimal_steps_from_origin": gridworld_shortest_steps(
+            (0, 0), size=size, num_stages=n, target=target
+        ),
+        "vertical_moves_per_stage": vertical_moves_per_stage(path, width, n),
+    }
+
+
+def value_map_errors(task: StagedTask, learners: Sequence[Learner]) -> tuple[np.ndarray, dict]:
+    """The merged value map and its largest and mean error against the exact optimal values
+    (Proposition 1; the terminal target cell is left out)."""
+    env = task.base_env(1)
+    values = merged_value_map(task, learners)
+    optimal = gridworld_optimal_values(
+        _gammas(task), size=env.size, num_stages=env.num_stages, target=env.target
+    )
+    free = np.ones_like(optimal, dtype=bool)
+    free[env.target] = False  # the target is terminal: no value is learned there
+    error = np.abs(values - optimal)[free]
+    return values, {
+        "value_map_max_abs_error": float(error.max()),
+        "value_map_mean_abs_error": float(error.mean()),
+    }
+
+
+def probe(task: StagedTask, learners: Sequence[Learner]) -> dict[str, float]:
+    """What a benchmark follows during training: whether the greedy path from (0, 0) is
+    optimal, and the merged value map's largest error."""
+    policy = StackedPolicy([learner.policy for learner in learners])
+    _, errors = value_map_errors(task, learners)
+    return {
+        "path_optimal": float(path_from_origin(task, policy)["path_from_origin_optimal"]),
+        "value_error": errors["value_map_max_abs_error"],
+    }
+
+
 def report(
     task: StagedTask,
     learners: Sequence[Learner],
@@ -69,21 +126,16 @@ def report(
     value map's error against the exact optimal values (Proposition 1).
     """
     env = task.base_env(1)
-    size, width, n, target = env.size, env.stage_width, env.num_stages, env.target
+    size, width, target = env.size, env.stage_width, env.target
     policy = StackedPolicy([learner.policy for learner in learners])
-    path = greedy_path(task, policy, (0, 0))
-    reached = tuple(path[-1]) == tuple(target)
-    gammas = [float(task.stage_cfg(k).gamma) for k in range(n)]
-    values = merged_value_map(task, learners)
-    optimal = gridworld_optimal_values(gammas, size=size, num_stages=n, target=target)
-    free = np.ones_like(optimal, dtype=bool)
-    free[target] = False  # the target is terminal: no value is learned there
+    metrics = path_from_origin(task, policy)
+    values, errors = value_map_errors(task, learners)
     np.save(run_dir / "value_map.npy", values)
     if plots:
         from torchrl_stages.plots import plot_grid_trajectories, plot_value_map
 
         starts = [(size // 2, 0), (size - 1, 0)]
-        paths = [path] + [greedy_path(task, policy, s) for s in starts]
+        paths = [metrics["path_from_origin"]] + [greedy_path(task, policy, s) for s in starts]
         plot_grid_trajectories(
             paths,
             size=size,
@@ -91,7 +143,7 @@ def report(
             target=target,
             out=run_dir / "trajectories.png",
             labels=[f"({r},{c})" for r, c in [(0, 0), *starts]],
-            title=f"greedy stacked policy, gammas={gammas}",
+            title=f"greedy stacked policy, gammas={_gammas(task)}",
         )
         plot_value_map(
             values,
@@ -100,20 +152,4 @@ def report(
             out=run_dir / "value_map.png",
             title="merged value V(s) = V_stage(s)(s)",
         )
-    error = np.abs(values - optimal)[free]
-    # the discounted return of the path: gamma of the stage of every state left on the way
-    stage_of = [min(c // width, n - 1) for _, c in path[:-1]]
-    path_return = float(np.prod([gammas[k] for k in stage_of[:-1]])) if reached else 0.0
-    best = float(optimal[0, 0])
-    return {
-        "path_from_origin": path,
-        "path_from_origin_steps": len(path) - 1 if reached else None,
-        # optimal: the path's return equals the optimal value of (0, 0) (dynamic programming)
-        "path_from_origin_optimal": bool(reached and abs(path_return - best) <= 1e-9 * best),
-        "optimal_steps_from_origin": gridworld_shortest_steps(
-            (0, 0), size=size, num_stages=n, target=target
-        ),
-        "vertical_moves_per_stage": vertical_moves_per_stage(path, width, n),
-        "value_map_max_abs_error": float(error.max()),
-        "value_map_mean_abs_error": float(error.mean()),
-    }
+    return {**metrics, **errors}
