@@ -42,6 +42,16 @@ RESUMABLE_CHANGES = (
 )
 
 
+def compile_mode(cfg: DictConfig) -> str:
+    """``cfg.compile`` with ``auto`` resolved for the run's device: ``off`` on CPU (compiling
+    the small update costs more than it saves, see the README's speed table),
+    ``reduce-overhead`` (CUDA graphs) on a GPU."""
+    mode = str(cfg.get("compile", "auto"))
+    if mode != "auto":
+        return mode
+    return "reduce-overhead" if torch.device(cfg.device).type == "cuda" else "off"
+
+
 def build_task(cfg: DictConfig) -> StagedTask:
     """Validates ``cfg`` and builds its task; raises :class:`ConfigError` before any training."""
     validate_config(cfg)
@@ -134,7 +144,12 @@ class Experiment:
         logging.getLogger("torchrl").setLevel(logging.WARNING)
         self.logger = make_logger(cfg, run.path)
         start, schedule, phases = time.perf_counter(), cfg.schedule.name, None
-        kwargs = {"seed": int(cfg.seed), "logger": self.logger, "progress": cfg.progress}
+        kwargs = {
+            "seed": int(cfg.seed),
+            "logger": self.logger,
+            "progress": cfg.progress,
+            "compile": compile_mode(cfg),
+        }
         if cfg.eval.get("probe", False):
 
             def probe(learners: list[Learner], frames: int) -> None:

@@ -84,13 +84,14 @@ class JointTrainer:
         progress: bool = False,
         checkpoints: StageCheckpoints | None = None,
         probe: Callable[[list[Learner], int], None] | None = None,
+        compile: str = "off",
     ) -> None:
         self.task, self.seed, self.logger, self.progress = task, seed, logger, progress
         self.probe = probe
         self.checkpoints = checkpoints
         n = task.num_stages
         torch.manual_seed(seed)
-        self.learners = [make_learner(task.stage_cfg(m), task.specs(m)) for m in range(n)]
+        self.learners = [make_learner(task.stage_cfg(m), task.specs(m), compile) for m in range(n)]
         self.gammas = [float(task.stage_cfg(m).gamma) for m in range(n)]
         self.buffers = [self._buffer(m) for m in range(n)]
         self.keys = [self._stored_keys(m) for m in range(n)]

@@ -45,6 +45,7 @@ def train_backward(
     progress: bool = False,
     store: StageStore | None = None,
     probe: Probe | None = None,
+    compile: str = "off",
 ) -> tuple[list[Learner], list[StageResult]]:
     """Trains stages N-1, ..., 0 of ``task`` in turn (the paper's backward schedule).
 
@@ -85,7 +86,7 @@ def train_backward(
             env.set_seed(seed + k)
             eval_env = task.stage_eval_env(k, next_value)
             eval_env.set_seed(seed + 10_000 + k)
-            learner = make_learner(cfg, task.specs(k))
+            learner = make_learner(cfg, task.specs(k), compile)
             on_evaluate = None
             if probe is not None and k == 0:
 
@@ -128,6 +129,7 @@ def train_flat(
     progress: bool = False,
     store: StageStore | None = None,
     probe: Probe | None = None,
+    compile: str = "off",
 ) -> tuple[list[Learner], list[StageResult]]:
     """One learner over the whole task, no stages (the paper's end-to-end baseline).
 
@@ -162,7 +164,7 @@ def train_flat(
     env.set_seed(seed)
     eval_env = task.task_env(None if task.start_states(None) is not None else cfg.eval_episodes)
     eval_env.set_seed(seed + 10_000)
-    learner = make_learner(cfg, task.specs(0))
+    learner = make_learner(cfg, task.specs(0), compile)
     trainer = StageTrainer(
         0,
         learner,

@@ -13,6 +13,7 @@ LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
 LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
 SCHEDULES = ("backward", "joint", "flat")
+COMPILE_MODES = ("auto", "off", "default", "reduce-overhead", "max-autotune")
 
 
 class ConfigError(ValueError):
@@ -190,6 +191,13 @@ def validate_config(cfg: DictConfig) -> None:
         cfg.checkpoint_every,
         "must be >= 0 (0: no checkpoints)",
         "set checkpoint_every=50000",
+    )
+    _check(
+        cfg.compile in COMPILE_MODES,
+        "compile",
+        cfg.compile,
+        f"unknown (known: {', '.join(COMPILE_MODES)})",
+        "set compile=auto",
     )
     _check(
         cfg.checkpoint_keep >= 1,

@@ -10,9 +10,10 @@ LEARNERS: dict[str, type[Learner]] = {
 }
 
 
-def make_learner(cfg, specs: StageSpecs) -> Learner:
-    """Builds the learner named by ``cfg.algo`` (``dqn``, ``ddpg`` or ``td3``)."""
-    return LEARNERS[cfg.algo](cfg, specs)
+def make_learner(cfg, specs: StageSpecs, compile: str = "off") -> Learner:
+    """Builds the learner named by ``cfg.algo`` (``dqn``, ``ddpg`` or ``td3``); ``compile``:
+    ``torch.compile`` mode of its fast update (``off``, ``default``, ``reduce-overhead``...)."""
+    return LEARNERS[cfg.algo](cfg, specs, compile=compile)
 
 
 __all__ = [

@@ -8,13 +8,21 @@ from typing import TypeVar
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
-from torchrl.objectives import LossModule, SoftUpdate, ValueEstimators
+from torchrl.objectives import LossModule, ValueEstimators
 
 from torchrl_stages.config import DDPGConfig
-from torchrl_stages.learners.base import Learner, StageSpecs, is_continuous, linear_schedule
+from torchrl_stages.learners.base import (
+    FusedSoftUpdate,
+    Learner,
+    StageSpecs,
+    is_continuous,
+    linear_schedule,
+)
 from torchrl_stages.learners.networks import mlp
+from torchrl_stages.values import with_params
 
 T = TypeVar("T")
 SATURATION = 2.0  # pre-tanh magnitude beyond which `saturation_penalty` applies (tanh(2) = 0.96)
@@ -28,8 +36,8 @@ class ActorCriticLearner(Learner):
     module, the value estimator, the optimizers and the soft target updater.
     """
 
-    def __init__(self, cfg: DDPGConfig, specs: StageSpecs) -> None:
-        super().__init__(cfg, specs)
+    def __init__(self, cfg: DDPGConfig, specs: StageSpecs, *, compile: str = "off") -> None:
+        super().__init__(cfg, specs, compile=compile)
         spec = specs.action_spec
         action_dim = spec.shape[-1]
         inputs, cells, fourier = specs.input_shapes, list(cfg.num_cells), cfg.fourier_features
@@ -57,12 +65,19 @@ class ActorCriticLearner(Learner):
         self.exploration_policy = TensorDictSequential(self.actor, self.noise)
         self.loss = self.make_loss(cfg, spec)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
-        self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
+        self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
+        # the fast path: tensors in and out, the target actor reading the loss module's target
+        # parameters (kept out of the module tree: no second copy in state_dict)
+        low, high = spec.space.low, spec.space.high
+        self.__dict__["_bounds"] = (low, high, bool((low != -1).any() or (high != 1).any()))
+        target_actor = self.loss.target_actor_network_params.get(("module", "0", "module"))
+        self.__dict__["_target_actor"] = with_params(self.actor_module, target_actor, live=True)
         actor_params, critic_params = self.loss_parameters()
         self.optimizers = {
             "actor": torch.optim.Adam(actor_params, lr=cfg.actor_lr),
             "critic": torch.optim.Adam(critic_params, lr=cfg.lr),
         }
+        self.make_fast_path()
 
     @classmethod
     def check_action_spec(cls, spec: TensorSpec) -> str | None:
@@ -73,7 +88,34 @@ class ActorCriticLearner(Learner):
             )
         return None
 
+    @property
+    def actor_module(self) -> nn.Module:
+        """The actor network: observation tensors in, the pre-tanh action out."""
+        return self.actor[0].module
+
+    @property
+    def critic_module(self) -> nn.Module:
+        """The critic network: observation and action tensors in, ``Q(s, a)`` out."""
+        return self.critic.module
+
+    def squash(self, u: torch.Tensor) -> torch.Tensor:
+        """The actor's tanh into the action bounds (what its ``TanhModule`` does)."""
+        low, high, scaled = self._bounds
+        action = u.tanh()
+        return low + (high - low) * (action + 1) / 2 if scaled else action
+
+    def penalty(self, u: torch.Tensor) -> torch.Tensor | float:
+        """``cfg.saturation_penalty`` times the mean of ``relu(|u| - SATURATION)^2``."""
+        if self.cfg.saturation_penalty <= 0:
+            return 0.0
+        excess = (u.abs() - SATURATION).clamp_min(0.0)
+        return self.cfg.saturation_penalty * excess.pow(2).mean()
+
     def make_loss(self, cfg: DDPGConfig, spec: TensorSpec) -> LossModule:
+        raise NotImplementedError
+
+    def make_fast_path(self) -> None:
+        """Sets up the tensor-only loss functions of ``cfg.fast_update``."""
         raise NotImplementedError
 
     def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:

@@ -7,11 +7,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
+from torchrl.objectives import SoftUpdate
 
 from torchrl_stages.config import StageConfig
 from torchrl_stages.learners.networks import ConvSpec
@@ -60,6 +62,61 @@ class NonFiniteError(FloatingPointError):
         self.what, self.update = what, update
 
 
+class FusedSoftUpdate(SoftUpdate):
+    """torchrl's ``SoftUpdate`` (``target <- target + tau (online - target)``) in one fused
+    ``torch._foreach_lerp_`` over all parameter pairs, instead of a TensorDict walk per call.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.modules import QValueActor
+        >>> from torchrl.objectives import DQNLoss
+        >>> loss = DQNLoss(QValueActor(torch.nn.Linear(3, 2), action_space="categorical"),
+        ...                delay_value=True, action_space="categorical")
+        >>> updater = FusedSoftUpdate(loss, tau=0.5)
+        >>> with torch.no_grad():
+        ...     _ = loss.value_network_params["module", "0", "module", "bias"].fill_(1.0)
+        ...     _ = loss.target_value_network_params["module", "0", "module", "bias"].fill_(0.0)
+        >>> updater.step()
+        >>> loss.target_value_network_params["module", "0", "module", "bias"].tolist()
+        [0.5, 0.5]
+    """
+
+    _pairs: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
+
+    def step(self) -> None:
+        if self._pairs is None:
+            if not self.initialized:
+                self.init_()
+            sources, targets = [], []
+            for key, params in self._sources.items():
+                target = self._targets.get(f"target_{key}")
+                for name, value in params.items(True, True):
+                    sources.append(value.data)
+                    targets.append(target.get(name).data)
+            self._pairs = (sources, targets)
+        sources, targets = self._pairs
+        torch._foreach_lerp_(targets, sources, 1.0 - float(self.eps))
+
+
+def td0_target(
+    next_td: TensorDictBase, next_value: torch.Tensor, gamma: float, steps: torch.Tensor | None
+) -> torch.Tensor:
+    """``r + gamma^steps * (1 - terminated) * V(s')``, torchrl's TD(0) estimate (``[B, 1]``)."""
+    reward = next_td.get("reward")
+    discount = gamma if steps is None else gamma ** steps.view_as(reward)
+    alive = (~next_td.get("terminated")).to(reward.dtype)
+    return reward + discount * alive * next_value
+
+
+def distance(pred: torch.Tensor, target: torch.Tensor, loss_function: str) -> torch.Tensor:
+    """torchrl's ``distance_loss`` (l1, l2 or smooth_l1), elementwise."""
+    if loss_function == "l2":
+        return (pred - target).pow(2)
+    if loss_function == "l1":
+        return (pred - target).abs()
+    return F.smooth_l1_loss(pred, target, reduction="none")
+
+
 def linear_schedule(start: float, end: float, frames: int, horizon: int) -> float:
     """Linear annealing from ``start`` to ``end`` over ``horizon`` frames, then constant."""
     if horizon <= 0:
@@ -84,10 +141,11 @@ class Learner(nn.Module, ABC):
     #: the algorithm's name in configs (``algo: dqn``)
     algo: str = ""
 
-    def __init__(self, cfg: StageConfig, specs: StageSpecs) -> None:
+    def __init__(self, cfg: StageConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__()
         self.cfg = cfg
         self.specs = specs
+        self.compile_mode = compile  # off | default | reduce-overhead | max-autotune
         self.policy: TensorDictModuleBase
         self.exploration_policy: TensorDictModuleBase
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
@@ -108,6 +166,18 @@ class Learner(nn.Module, ABC):
     @abstractmethod
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One gradient step on a replay batch, target update included; returns detached losses."""
+
+    def inputs(self, batch: TensorDictBase, nxt: bool = False) -> list[torch.Tensor]:
+        """The network inputs of a batch (of its ``"next"`` states with ``nxt``), in order."""
+        td = batch.get("next") if nxt else batch
+        return [td.get(key) for key in self.specs.observation_keys]
+
+    def compiled(self, fn):
+        """``fn`` through ``torch.compile`` unless :attr:`compile_mode` is ``"off"`` (the fast
+        path's loss function; ``"reduce-overhead"`` uses CUDA graphs on a GPU)."""
+        if self.compile_mode == "off":
+            return fn
+        return torch.compile(fn, mode=None if self.compile_mode == "default" else self.compile_mode)
 
     def anneal(self, frames: int) -> None:
         """Sets the schedules for ``frames`` collected frames: exploration noise and the

@@ -5,12 +5,21 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
-from torchrl.data import TensorSpec
+from torch import nn
+from torchrl.data import OneHot, TensorSpec
 from torchrl.modules import EGreedyModule, QValueActor
-from torchrl.objectives import DQNLoss, SoftUpdate, ValueEstimators
+from torchrl.objectives import DQNLoss, ValueEstimators
 
 from torchrl_stages.config import DQNConfig
-from torchrl_stages.learners.base import Learner, StageSpecs, is_discrete, linear_schedule
+from torchrl_stages.learners.base import (
+    FusedSoftUpdate,
+    Learner,
+    StageSpecs,
+    distance,
+    is_discrete,
+    linear_schedule,
+    td0_target,
+)
 from torchrl_stages.learners.networks import qvalue_net
 from torchrl_stages.values import QMaxValue, with_params
 
@@ -30,8 +39,8 @@ class DQNLearner(Learner):
 
     algo = "dqn"
 
-    def __init__(self, cfg: DQNConfig, specs: StageSpecs) -> None:
-        super().__init__(cfg, specs)
+    def __init__(self, cfg: DQNConfig, specs: StageSpecs, *, compile: str = "off") -> None:
+        super().__init__(cfg, specs, compile=compile)
         spec = specs.action_spec
         self.qnet = QValueActor(
             qvalue_net(
@@ -64,8 +73,19 @@ class DQNLearner(Learner):
         )
         self.loss.set_keys(action=specs.action_key)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
-        self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
+        self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
         self.optimizers = {"qvalue": torch.optim.Adam(self.loss.parameters(), lr=cfg.lr)}
+        # the fast path's networks: tensors in, Q-values out (no TensorDict); the target one
+        # reads the loss module's target parameters (not a sub-module: no second copy in
+        # state_dict)
+        target = self.loss.target_value_network_params.get(("module", "0", "module"))
+        self.__dict__["_target_q"] = with_params(self.q_module, target, live=True)
+        self._fast_loss = self.compiled(self._plain_loss)
+
+    @property
+    def q_module(self) -> nn.Module:
+        """The online Q-network (observation tensors in, one Q-value per action out)."""
+        return self.qnet.module[0].module
 
     @classmethod
     def check_action_spec(cls, spec: TensorSpec) -> str | None:
@@ -76,8 +96,36 @@ class DQNLearner(Learner):
             )
         return None
 
+    def _plain_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """What ``DQNLoss`` computes, on plain tensors: ``(Q(s, a) - y)`` under the loss
+        function, ``y = r + gamma (1 - terminated) Q_target(s', a')`` with ``a'`` the online
+        argmax (double DQN) or the target's own (DQN)."""
+        q = self.q_module(*self.inputs(batch))
+        action = batch.get(self.specs.action_key)
+        if isinstance(self.specs.action_spec, OneHot):
+            pred = (q * action.to(q.dtype)).sum(-1, keepdim=True)
+        else:
+            pred = q.gather(-1, action.reshape(*q.shape[:-1], 1))
+        with torch.no_grad():
+            next_obs = self.inputs(batch, nxt=True)
+            q_next = self._target_q(*next_obs)
+            if self.cfg.double_dqn:
+                next_value = q_next.gather(-1, self.q_module(*next_obs).argmax(-1, keepdim=True))
+            else:
+                next_value = q_next.max(-1, keepdim=True).values
+            target = td0_target(
+                batch.get("next"),
+                next_value,
+                float(self.cfg.gamma),
+                batch.get("steps_to_next_obs", None),
+            )
+        return distance(pred, target, self.cfg.loss_function).mean()
+
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        loss = self.loss(batch)["loss"]
+        if self.cfg.fast_update:
+            loss = self._fast_loss(batch)
+        else:
+            loss = self.loss(batch)["loss"]
         self._check_losses(loss=loss)
         self._step(loss)
         self.target_updater.step()

@@ -5,11 +5,13 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import TD3Loss
 
 from torchrl_stages.config import TD3Config
 from torchrl_stages.learners.actor_critic import ActorCriticLearner
+from torchrl_stages.learners.base import distance, td0_target
 from torchrl_stages.values import ActorCriticValue, with_params
 
 
@@ -49,13 +51,62 @@ class TD3Learner(ActorCriticLearner):
             list(self.loss.qvalue_network_params.flatten_keys().values()),
         )
 
+    def make_fast_path(self) -> None:
+        self._fast_value_loss = self.compiled(self._plain_value_loss)
+        self._fast_actor_loss = self.compiled(self._plain_actor_loss)
+
+    def _critics(self, params, *inputs: torch.Tensor) -> list[torch.Tensor]:
+        """``Q_i(inputs)`` of every critic in the stacked ``params`` (``[num_critics, ...]``)."""
+        flat = dict(params.flatten_keys(".").items())
+        return [
+            functional_call(self.critic_module, {n: p[i] for n, p in flat.items()}, inputs)
+            for i in range(params.batch_size[0])
+        ]
+
+    def _plain_value_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """What ``TD3Loss.value_loss`` computes, on plain tensors: every critic against
+        ``r + gamma (1 - terminated) min_i Q_i,target(s', a')``, ``a'`` the target actor's
+        action plus clipped Gaussian noise (drawn first, as torchrl does), summed."""
+        cfg, action = self.cfg, batch.get(self.specs.action_key)
+        noise = (torch.randn_like(action) * cfg.policy_noise).clamp(-cfg.noise_clip, cfg.noise_clip)
+        obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
+        low, high, _ = self._bounds
+        with torch.no_grad():
+            next_action = self.squash(self._target_actor(*next_obs)) + noise
+            next_action = torch.maximum(torch.minimum(next_action, high), low)
+            targets = self._critics(
+                self.loss.target_qvalue_network_params["module"], *next_obs, next_action
+            )
+            target = td0_target(
+                batch.get("next"),
+                torch.stack(targets).min(0).values,
+                float(cfg.gamma),
+                batch.get("steps_to_next_obs", None),
+            )
+        preds = self._critics(self.loss.qvalue_network_params["module"], *obs, action)
+        return sum(distance(p, target, cfg.loss_function).mean() for p in preds)
+
+    def _plain_actor_loss(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """``-Q_1(s, mu(s))`` with the critics' parameters detached, and the penalty."""
+        obs = self.inputs(batch)
+        u = self.actor_module(*obs)
+        first = self.loss.qvalue_network_params["module"].detach()[:1]
+        (q,) = self._critics(first, *obs, self.squash(u))
+        return -q.mean(), self.penalty(u)
+
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        loss_q, _ = self.loss.value_loss(batch)
+        if self.cfg.fast_update:
+            loss_q = self._fast_value_loss(batch)
+        else:
+            loss_q, _ = self.loss.value_loss(batch)
         self._check_losses(loss_qvalue=loss_q)
         self._step(loss_q, "critic")
         out = {"loss_qvalue": loss_q.detach(), "grad_norm_critic": self.grad_norms["critic"]}
         if (self.num_updates + 1) % self.cfg.policy_update_delay == 0:
-            (loss_actor, _), penalty = self.with_saturation_penalty(self.loss.actor_loss, batch)
+            if self.cfg.fast_update:
+                loss_actor, penalty = self._fast_actor_loss(batch)
+            else:
+                (loss_actor, _), penalty = self.with_saturation_penalty(self.loss.actor_loss, batch)
             self._check_losses(loss_actor=loss_actor)
             self._step(loss_actor + penalty, "actor")
             self.optimizers["critic"].zero_grad(set_to_none=True)

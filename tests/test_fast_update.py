@@ -1,0 +1,148 @@
+"""The fast update path (``fast_update``) computes what torchrl's loss modules compute.
+
+Each check builds a learner, moves its target networks away from the online ones (so that a
+path reading the wrong parameters shows), and compares the losses and the gradients of the
+fast path with the loss module's own forward on the same batch.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torchrl.data import Bounded, Categorical
+
+from torchrl_stages.config import DDPGConfig, DQNConfig, TD3Config
+from torchrl_stages.learners import DDPGLearner, DQNLearner, StageSpecs, TD3Learner
+
+DISCRETE = StageSpecs(["observation"], 2, "action", Categorical(4))
+# non-trivial bounds: the actor's tanh is rescaled into them
+CONTINUOUS = StageSpecs(
+    ["observation"], 3, "action", Bounded(torch.tensor([-1.0, -2.0]), torch.tensor([1.0, 0.5]))
+)
+
+
+def batch(obs_dim: int, action: torch.Tensor, n: int = 64) -> TensorDict:
+    g = torch.Generator().manual_seed(3)
+    return TensorDict(
+        observation=torch.rand(n, obs_dim, generator=g) * 5,
+        action=action,
+        steps_to_next_obs=torch.rand(n, 1, generator=g) * 3,  # per-transition discounts
+        next=TensorDict(
+            observation=torch.rand(n, obs_dim, generator=g) * 5,
+            reward=torch.rand(n, 1, generator=g),
+            terminated=torch.rand(n, 1, generator=g) < 0.2,
+            done=torch.rand(n, 1, generator=g) < 0.3,
+            batch_size=[n],
+        ),
+        batch_size=[n],
+    )
+
+
+def perturb(params) -> None:
+    """Moves the learnable entries (not the tanh bounds' buffers) of ``params``."""
+    with torch.no_grad():
+        for key, p in params.items(True, True):
+            if not any("low" in k or "high" in k for k in key):
+                p.add_(0.3 * torch.randn_like(p))
+
+
+def grads(params) -> list[torch.Tensor | None]:
+    return [None if p.grad is None else p.grad.clone() for p in params.values(True, True)]
+
+
+def assert_same_grads(a, b) -> None:
+    assert len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        assert (x is None) == (y is None)
+        if x is not None:
+            torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("double", [True, False])
+@pytest.mark.parametrize("dueling", [True, False])
+@pytest.mark.parametrize("loss_function", ["l2", "smooth_l1"])
+def test_dqn_fast_loss_is_the_dqn_loss(double, dueling, loss_function):
+    cfg = DQNConfig(
+        double_dqn=double, dueling=dueling, fourier_features=3, loss_function=loss_function
+    )
+    learner = DQNLearner(OmegaConf.structured(cfg), DISCRETE)
+    perturb(learner.loss.target_value_network_params)
+    data = batch(2, torch.randint(4, (64,)))
+    reference = learner.loss(data.clone())["loss"]
+    reference.backward()
+    expected = grads(learner.loss.value_network_params)
+    learner.optimizers["qvalue"].zero_grad()
+    fast = learner._plain_loss(data.clone())
+    fast.backward()
+    torch.testing.assert_close(fast, reference)
+    assert_same_grads(grads(learner.loss.value_network_params), expected)
+
+
+@pytest.mark.parametrize("penalty", [0.0, 1.0])
+def test_ddpg_fast_losses_are_the_ddpg_loss(penalty):
+    learner = DDPGLearner(OmegaConf.structured(DDPGConfig(saturation_penalty=penalty)), CONTINUOUS)
+    perturb(learner.loss.target_value_network_params)
+    perturb(learner.loss.target_actor_network_params)
+    with torch.no_grad():  # push the actor into saturation, where the penalty applies
+        for p in learner.actor_module.parameters():
+            p.mul_(3)
+    data = batch(3, torch.rand(64, 2) * 2 - 1)
+    out, expected_penalty = learner.with_saturation_penalty(learner.loss, data.clone())
+    (out["loss_actor"] + out["loss_value"] + expected_penalty).backward()
+    params = [learner.loss.actor_network_params, learner.loss.value_network_params]
+    expected = [g for p in params for g in grads(p)]
+    for optimizer in learner.optimizers.values():
+        optimizer.zero_grad()
+    loss_actor, loss_value, fast_penalty = learner._plain_losses(data.clone())
+    (loss_actor + loss_value + fast_penalty).backward()
+    torch.testing.assert_close(loss_actor, out["loss_actor"])
+    torch.testing.assert_close(loss_value, out["loss_value"])
+    torch.testing.assert_close(torch.as_tensor(fast_penalty), torch.as_tensor(expected_penalty))
+    assert_same_grads([g for p in params for g in grads(p)], expected)
+
+
+@pytest.mark.parametrize("penalty", [0.0, 1.0])
+def test_td3_fast_losses_are_the_td3_loss(penalty):
+    learner = TD3Learner(OmegaConf.structured(TD3Config(saturation_penalty=penalty)), CONTINUOUS)
+    perturb(learner.loss.target_qvalue_network_params)
+    perturb(learner.loss.target_actor_network_params)
+    data = batch(3, torch.rand(64, 2) * 2 - 1)
+    critics = learner.loss.qvalue_network_params
+    torch.manual_seed(5)  # the target policy smoothing noise: the same draws
+    reference, _ = learner.loss.value_loss(data.clone())
+    reference.backward()
+    expected = grads(critics)
+    learner.optimizers["critic"].zero_grad()
+    torch.manual_seed(5)
+    fast = learner._plain_value_loss(data.clone())
+    fast.backward()
+    torch.testing.assert_close(fast, reference)
+    assert_same_grads(grads(critics), expected)
+    for optimizer in learner.optimizers.values():
+        optimizer.zero_grad()
+    (loss_actor, _), expected_penalty = learner.with_saturation_penalty(
+        learner.loss.actor_loss, data.clone()
+    )
+    (loss_actor + expected_penalty).backward()
+    expected = grads(learner.loss.actor_network_params) + grads(critics)
+    for optimizer in learner.optimizers.values():
+        optimizer.zero_grad()
+    fast_actor, fast_penalty = learner._plain_actor_loss(data.clone())
+    (fast_actor + fast_penalty).backward()
+    torch.testing.assert_close(fast_actor, loss_actor)
+    assert_same_grads(grads(learner.loss.actor_network_params) + grads(critics), expected)
+
+
+def test_fused_soft_update_moves_targets_by_tau():
+    learner = DQNLearner(OmegaConf.structured(DQNConfig(tau=0.3)), DISCRETE)
+    perturb(learner.loss.value_network_params)
+    online = [p.detach().clone() for p in learner.loss.value_network_params.values(True, True)]
+    target = [
+        p.detach().clone() for p in learner.loss.target_value_network_params.values(True, True)
+    ]
+    learner.target_updater.step()
+    after = learner.loss.target_value_network_params.values(True, True)
+    for new, old, source in zip(after, target, online, strict=True):
+        torch.testing.assert_close(new, old + 0.3 * (source - old))
