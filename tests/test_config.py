@@ -30,8 +30,8 @@ from torchrl_stages.experiment import Experiment, build_task
 from torchrl_stages.validate import ConfigError, validate_config
 
 CONF = importlib.resources.files("torchrl_stages.conf")
-# the grid world's per-stage frame budget, as its YAML sets it
-GRID_FRAMES = OmegaConf.create(CONF.joinpath("task/gridworld.yaml").read_text()).stages.s0.frames
+# the grid world's per-stage frame budget, as its YAML sets it (keys shared by every stage)
+GRID_FRAMES = OmegaConf.create(CONF.joinpath("task/stage/gridworld.yaml").read_text()).frames
 STAGES = [f"s{k}" for k in range(5)]
 
 
