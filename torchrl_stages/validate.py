@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.util
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from torchrl_stages.learners import LEARNERS
 
@@ -13,6 +13,8 @@ LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
 LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
 SCHEDULES = ("backward", "joint", "flat")
+OBJECTIVE_METRICS = ("success_rate", "mean_return", "mean_steps")
+DIRECTIONS = ("maximize", "minimize")
 
 
 class ConfigError(ValueError):
@@ -169,6 +171,22 @@ def validate_config(cfg: DictConfig) -> None:
         f"pip install {package}, or use logger=csv",
     )
     _check(cfg.threads >= 1, "threads", cfg.threads, "must be >= 1", "set threads=1")
+    objective = cfg.get("objective")
+    if objective is not None:
+        _check(
+            objective.metric in OBJECTIVE_METRICS,
+            "objective.metric",
+            objective.metric,
+            f"unknown (known: {', '.join(OBJECTIVE_METRICS)}: entries of eval.json)",
+            "set objective.metric=success_rate",
+        )
+        _check(
+            objective.direction in DIRECTIONS,
+            "objective.direction",
+            objective.direction,
+            "must be maximize or minimize",
+            f"set objective.direction=maximize (or minimize, e.g. for {OBJECTIVE_METRICS[2]})",
+        )
     _check(
         cfg.schedule.name in SCHEDULES,
         "schedule.name",
@@ -265,3 +283,46 @@ def validate_task(cfg: DictConfig, task) -> None:
             str(problem),
             f"override it with algo@task.stages.{name}=<algo>",
         )
+
+
+def _direction_name(direction: object) -> str:
+    """``maximize`` / ``minimize`` of a sweeper's direction (a string or an enum member)."""
+    return str(getattr(direction, "name", direction)).lower()
+
+
+def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
+    """Checks that a sweeper optimizing a direction (Optuna's ``hydra.sweeper.direction``)
+    optimizes the one of ``cfg.objective``: the number a run returns is ``objective.metric``.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"objective": {"metric": "mean_steps", "direction": "minimize"}})
+        >>> validate_sweeper(OmegaConf.create({"direction": "minimize"}), cfg)
+        >>> validate_sweeper(OmegaConf.create({"direction": "maximize"}), cfg)
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.validate.ConfigError: hydra.sweeper.direction='maximize': ...
+    """
+    if sweeper is None or sweeper.get("direction") is None:
+        return
+    objective = cfg.objective
+    direction = sweeper.direction
+    if not isinstance(direction, str) and isinstance(direction, list | tuple | ListConfig):
+        _check(
+            False,
+            "hydra.sweeper.direction",
+            [_direction_name(d) for d in direction],
+            f"a run returns one number (objective.metric={objective.metric})",
+            f"set hydra.sweeper.direction={objective.direction}",
+        )
+    name = _direction_name(direction)
+    _check(
+        name == objective.direction,
+        "hydra.sweeper.direction",
+        name,
+        f"the sweeper would {name} objective.metric={objective.metric}, but "
+        f"objective.direction={objective.direction}",
+        f"add hydra.sweeper.direction={objective.direction} (Optuna's default is minimize), or "
+        f"set objective.direction={name} if a {'lower' if name == 'minimize' else 'higher'} "
+        f"{objective.metric} is better",
+    )
