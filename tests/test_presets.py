@@ -56,7 +56,8 @@ def test_smoke_gives_every_stage_of_every_task_its_budget(hydra_compose, task):
         for key in ("gamma", "lr", "num_cells", "algo", "tau"):
             assert stage[key] == full.task.stages[name][key], (name, key)
     assert smoke.eval.episodes == 32
-    validate_config(smoke)
+    if task in SHIPPED:  # the env templates leave their env keys to the user
+        validate_config(smoke)
 
 
 def test_every_task_has_a_smoke_file():

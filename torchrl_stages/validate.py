@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.util
 
 import torch
-from omegaconf import DictConfig, ListConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_stages.learners import LEARNERS
 
@@ -155,6 +155,14 @@ def _check_stage(key: str, s: DictConfig) -> None:
 
 def validate_config(cfg: DictConfig) -> None:
     """Checks what can be checked without building the env."""
+    for key in _missing_keys(cfg.task.get("env"), "task.env"):
+        _check(
+            False,
+            key,
+            "???",
+            f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)",
+            f"set it on the command line: {key}=...",
+        )
     _check(
         cfg.logger.backend in LOGGER_BACKENDS,
         "logger.backend",
@@ -247,8 +255,57 @@ def validate_config(cfg: DictConfig) -> None:
         _check_stage(f"task.stages.{name}", stage)
 
 
+def _missing_keys(node: object, prefix: str) -> list[str]:
+    """Dotted keys under ``node`` whose value is ``???`` (to be set by the user)."""
+    if not isinstance(node, DictConfig):
+        return []
+    out = []
+    for key in node.keys():
+        if OmegaConf.is_missing(node, key):
+            out.append(f"{prefix}.{key}")
+        else:
+            out += _missing_keys(node[key], f"{prefix}.{key}")
+    return out
+
+
+def validate_env_protocol(cfg: DictConfig, env) -> None:
+    """Checks what every stage env must have (a built one, ``batch_size=(1,)`` asked): one
+    batch dimension that honours the asked size, ``num_stages`` and ``stage_fn``."""
+    target = cfg.task.env.get("_target_", "?")
+    fix = (
+        "accept the batch_size keyword and build a batched env of that size (e.g. with "
+        "torchrl's SerialEnv), or use task=gym for a gymnasium env (torchrl_stages.GymStageEnv)"
+    )
+    _check(
+        tuple(env.batch_size) == (1,),
+        "task.env._target_",
+        target,
+        f"the env has batch_size={list(env.batch_size)} where batch_size=(1,) was asked: the "
+        "stage trainer needs a batched env with one batch dimension [num_envs]",
+        fix,
+    )
+    num_stages = getattr(env, "num_stages", None)
+    _check(
+        isinstance(num_stages, int) and num_stages >= 1,
+        "task.env._target_",
+        target,
+        f"the env has no positive integer num_stages attribute (got {num_stages!r})",
+        "give the env class a num_stages attribute (the number of stages it runs through)",
+    )
+    _check(
+        hasattr(env, "stage_fn") and (env.stage_fn is None or callable(env.stage_fn)),
+        "task.env._target_",
+        target,
+        "the env has no stage_fn(tensordict) method (nor stage_fn = None with its own "
+        '"stage" entry)',
+        "add stage_fn(td) returning the stage of each state as int64 [*batch, 1]",
+    )
+
+
 def validate_task(cfg: DictConfig, task) -> None:
-    """Checks the stage list and each stage's algorithm against the built env's specs."""
+    """Checks the env against the task protocol, then the stage list and each stage's
+    algorithm against the built env's specs."""
+    validate_env_protocol(cfg, task.probe)
     names = list(cfg.task.stages)
     _check(
         len(names) == task.num_stages,
