@@ -42,9 +42,12 @@ __all__ = [
     "Aggregate",
     "Job",
     "SweepSummary",
+    "aggregate_jobs",
     "bootstrap_ci",
     "find_jobs",
     "interquartile_mean",
+    "plot_sweep_curves",
+    "plot_sweep_final",
     "read_job",
     "summarize_sweep",
 ]
@@ -79,7 +82,14 @@ _SEED = re.compile(r"^\+{0,2}seed=(?P<seed>.*)$")
 
 @dataclass
 class Job:
-    """One job directory of a sweep, as read from its files."""
+    """One job directory of a sweep, as read from its files (:func:`read_job`).
+
+    Examples:
+        >>> from pathlib import Path
+        >>> job = Job(Path("sweep/3"), "3", ["task.stages.s0.lr=1e-3", "seed=1"], 1, "done")
+        >>> job.config, job.row()["overrides"]
+        ('task.stages.s0.lr=1e-3', 'task.stages.s0.lr=1e-3 seed=1')
+    """
 
     path: Path
     name: str  # its path relative to the sweep directory
@@ -116,7 +126,13 @@ class Job:
 
 @dataclass
 class Aggregate:
-    """One metric of one configuration, across the seeds that finished."""
+    """One metric of one configuration, across the seeds that finished.
+
+    Examples:
+        >>> agg = Aggregate("lr=1e-3", "success_rate", 3, 1, 0.5, 0.5, 0.25, 0.75)
+        >>> agg.n, agg.failed, (agg.ci_low, agg.ci_high)
+        (3, 1, (0.25, 0.75))
+    """
 
     config: str
     metric: str
@@ -130,7 +146,8 @@ class Aggregate:
 
 @dataclass
 class SweepSummary:
-    """What :func:`summarize_sweep` found and wrote."""
+    """What :func:`summarize_sweep` found and wrote: the jobs, the aggregates and the files by
+    name (see :func:`summarize_sweep` for an example)."""
 
     sweep_dir: Path
     jobs: list[Job]
