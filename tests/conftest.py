@@ -63,3 +63,32 @@ def train_tiny(tmp_path):
         return result, run_dir
 
     return run
+
+
+def console_script(name: str) -> str:
+    """The installed console script ``name`` (next to this interpreter if not on PATH)."""
+    found = shutil.which(name)
+    path = Path(found) if found else Path(sys.executable).parent / name
+    assert path.is_file(), f"console script {name} not found (is the package installed?)"
+    return str(path)
+
+
+def cli_env(**extra: str) -> dict[str, str]:
+    """The environment of a CLI subprocess: one thread, Hydra's short error messages."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", **extra)
+    env.pop("HYDRA_FULL_ERROR", None)
+    return env
+
+
+def run_cli(argv: list, cwd: Path, timeout: float = 300, **env: str) -> subprocess.CompletedProcess:
+    """Runs a console script (``argv[0]``: its name) to completion; returns the process."""
+    argv = [console_script(argv[0]), *(str(a) for a in argv[1:])]
+    return subprocess.run(
+        argv,
+        cwd=cwd,
+        env=cli_env(**env),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        stdin=subprocess.DEVNULL,
+    )

@@ -30,8 +30,8 @@ from torchrl_stages.experiment import Experiment, build_task
 from torchrl_stages.validate import ConfigError, validate_config
 
 CONF = importlib.resources.files("torchrl_stages.conf")
-# the grid world's per-stage frame budget, as its YAML sets it
-GRID_FRAMES = OmegaConf.create(CONF.joinpath("task/gridworld.yaml").read_text()).stages.s0.frames
+# the grid world's per-stage frame budget, as its YAML sets it (keys shared by every stage)
+GRID_FRAMES = OmegaConf.create(CONF.joinpath("task/stage/gridworld.yaml").read_text()).frames
 STAGES = [f"s{k}" for k in range(5)]
 
 
@@ -108,9 +108,24 @@ def test_default_config(hydra_compose):
     validate_config(cfg)
 
 
+# the keys the env templates leave to the user (tests/line_env.py registers LineWorld-v0)
+TEMPLATE_KEYS = {
+    "gym": (
+        "schedule=joint",
+        "task.env.env_id=line_env:LineWorld-v0",
+        "task.env.stage_fn._target_=line_env.line_stage",
+    ),
+    "custom": (
+        "task.env._target_=torchrl_stages.envs.GridWorldEnv",
+        "+task.env.size=10",
+        "+task.env.num_stages=2",
+    ),
+}
+
+
 @pytest.mark.parametrize("task", TASKS)
 def test_every_task_composes_and_builds(hydra_compose, task):
-    cfg = hydra_compose(f"task={task}")
+    cfg = hydra_compose(f"task={task}", *TEMPLATE_KEYS.get(task, ()))
     assert cfg.task.name
     assert len(cfg.task.stages) > 0
     built = build_task(cfg)  # validates, builds the env, checks stages against its specs

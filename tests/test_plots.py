@@ -95,6 +95,51 @@ def test_learning_curves_png(tmp_path):
     assert_png(got, out)
 
 
+# what each learner logs per collected batch (torchrl_stages/learners/*.py) and evaluation
+LOGGED = {
+    "dqn": ["loss", "grad_norm"],
+    "ddpg": ["loss_actor", "loss_value", "grad_norm_actor", "grad_norm_critic"],
+    "td3": ["loss_qvalue", "grad_norm_critic", "loss_actor", "grad_norm_actor"],
+}
+TRAIN_EXTRA = ["episode_return", "episode_success", "updates"]
+EVAL = ["success_rate", "value_error", "mean_return", "mean_steps", "discounted_return"]
+
+
+def test_learning_curves_show_every_loss_and_the_evaluations(tmp_path):
+    from torchrl_stages.plots import _read_stage_metrics, _stage_panels
+
+    csv_path = tmp_path / "metrics.csv"
+    lines = ["name,step,value"]
+    for stage, algo in enumerate(LOGGED):
+        for step in (256, 512, 768):
+            for key in LOGGED[algo] + TRAIN_EXTRA:
+                lines.append(f"train/stage_{stage}/{key},{step},{0.1 + step / 1000}")
+            for key in EVAL:
+                lines.append(f"eval/stage_{stage}/{key},{step},0.5")
+    lines.append("eval/joint_1/success_rate,512,0.25")  # a joint-schedule phase evaluation
+    csv_path.write_text("\n".join(lines) + "\n")
+    stages = _read_stage_metrics(csv_path)
+    titles = {k: [title for title, _ in _stage_panels(stages[k], None)] for k in stages}
+    common = [
+        "gradient norm",
+        "evaluation success rate",
+        "evaluation value error |V(s0) - G|",
+        "training episode return",
+    ]
+    assert titles[0] == ["loss", *common]
+    assert titles[1] == ["loss_value", "loss_actor", *common]
+    assert titles[2] == ["loss_qvalue", "loss_actor", *common]
+    success = dict(_stage_panels(stages[1], None))["evaluation success rate"]
+    assert ("eval", "joint", "success_rate") in success  # the phase evaluation joins row 1
+    for panels in titles.values():
+        assert not any("episode_success" in t or "updates" in t for t in panels)
+    out = plot_learning_curves(csv_path, tmp_path / "curves.png")
+    assert_png(out, tmp_path / "curves.png")
+    from conftest import assert_figure
+
+    assert_figure(out)
+
+
 def test_learning_curves_empty(tmp_path):
     csv_path = tmp_path / "metrics.csv"
     csv_path.write_text("name,step,value\n")

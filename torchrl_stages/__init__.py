@@ -1,22 +1,28 @@
 """torchrl-stages: Stacked Deep Q-Learning (SDQL) for multi-stage control on TorchRL."""
 
 from torchrl_stages.experiment import Experiment
-from torchrl_stages.learners import DDPGLearner, DQNLearner, Learner, TD3Learner
+from torchrl_stages.gym_env import GymStageEnv, threshold_stage
+from torchrl_stages.learners import DDPGLearner, DQNLearner, Learner, StageSpecs, TD3Learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.rundir import load_policy, load_run
 from torchrl_stages.schedule import train_backward
 from torchrl_stages.stage import StageTrainer
+from torchrl_stages.sweeps import summarize_sweep
+from torchrl_stages.targets import target_value
 from torchrl_stages.task import StagedTask
-from torchrl_stages.transforms import StageTransform, freeze
-from torchrl_stages.values import ActorCriticValue, QMaxValue
+from torchrl_stages.transforms import StageRewardTransform, StageTransform, freeze
+from torchrl_stages.values import ActorCriticValue, QMaxValue, with_params
 
 __all__ = [
     "ActorCriticValue",
     "DDPGLearner",
     "DQNLearner",
     "Experiment",
+    "GymStageEnv",
     "Learner",
     "QMaxValue",
+    "StageRewardTransform",
+    "StageSpecs",
     "StageTrainer",
     "StageTransform",
     "StackedPolicy",
@@ -25,6 +31,10 @@ __all__ = [
     "freeze",
     "load_policy",
     "load_run",
+    "summarize_sweep",
+    "target_value",
+    "threshold_stage",
     "train_backward",
+    "with_params",
 ]
 __version__ = "0.1.0"

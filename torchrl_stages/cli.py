@@ -1,19 +1,24 @@
-"""Console scripts: ``stages-train`` (Hydra app) and ``stages-eval RUN_DIR``.
+"""Console scripts: ``stages-train`` (Hydra app), ``stages-eval RUN_DIR`` and
+``stages-report SWEEP_DIR``, and the Hydra callback that summarizes a sweep.
 
-Both are thin shells over the library: :class:`torchrl_stages.experiment.Experiment` trains,
+All are thin shells over the library: :class:`torchrl_stages.experiment.Experiment` trains,
 :func:`torchrl_stages.rundir.load_run` and :func:`torchrl_stages.reports.evaluate_run`
-re-evaluate. Exit codes: 0 done, 2 invalid config or run directory, 3 training diverged.
+re-evaluate, :func:`torchrl_stages.sweeps.summarize_sweep` summarizes. Exit codes: 0 done,
+2 invalid config or directory, 3 training diverged.
 """
 
 from __future__ import annotations
 
 import argparse
+import atexit
 import sys
 from pathlib import Path
+from typing import Any
 
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
@@ -22,7 +27,8 @@ from torchrl_stages.experiment import Experiment
 from torchrl_stages.reports import evaluate_run, format_summary
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
 from torchrl_stages.stage import DivergenceError
-from torchrl_stages.validate import ConfigError
+from torchrl_stages.sweeps import find_jobs, summarize_sweep
+from torchrl_stages.validate import ConfigError, validate_sweeper
 
 EXIT_INVALID, EXIT_DIVERGED = 2, 3
 
@@ -59,6 +65,8 @@ def _train_app(cfg: DictConfig) -> float:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
+        if multirun:  # a sweeper that optimizes must optimize the objective's direction
+            validate_sweeper(HydraConfig.get().sweeper, cfg)
         experiment = Experiment(cfg, run_dir)
     except RunDirError as err:  # the directory holds another run: touch nothing there
         _fail(run_dir, "refused", str(err), EXIT_INVALID, write_status=False)
@@ -75,7 +83,22 @@ def _train_app(cfg: DictConfig) -> float:
     except RunDirError as err:
         _fail(run_dir, "failed", str(err), EXIT_INVALID, write_status=True)
     print(format_summary(result, run_dir))
-    return float(result["success_rate"])  # the objective of sweeper plugins (e.g. Optuna)
+    return objective_value(result, cfg)
+
+
+def objective_value(result: dict[str, Any], cfg: DictConfig) -> float:
+    """The number a run returns to a sweeper (e.g. Optuna): ``eval.json``'s entry named by
+    ``objective.metric`` (NaN when undefined, which Optuna records as a failed trial).
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"objective": {"metric": "mean_steps"}})
+        >>> objective_value({"success_rate": 1.0, "mean_steps": 12.5}, cfg)
+        12.5
+    """
+    objective = cfg.get("objective")
+    value = result.get("success_rate" if objective is None else objective.metric)
+    return float("nan") if value is None else float(value)
 
 
 def train() -> None:
@@ -117,3 +140,93 @@ def evaluate(argv: list[str] | None = None) -> None:
     training = {"stages": run.results}
     result = evaluate_run(run.cfg, run.task, run.learners, args.run_dir, training=training)
     print(format_summary(result, args.run_dir))
+
+
+class SweepSummaryCallback(Callback):
+    """Hydra callback (``hydra.callbacks.sweep_summary`` in ``conf/config.yaml``): when a
+    multirun ends, writes the sweep's summary (:func:`torchrl_stages.sweeps.summarize_sweep`)
+    into ``hydra.sweep.dir``, also when a job failed (the sweep then exits non-zero, after the
+    summary). Before any job runs, it checks that a sweeper optimizing a direction (Optuna)
+    optimizes ``objective.direction``. Jobs may run anywhere (submitit, Ray): the summary only
+    reads the job directories in the sweep directory.
+
+    Examples:
+        >>> import tempfile
+        >>> from omegaconf import OmegaConf
+        >>> sweep = tempfile.mkdtemp()
+        >>> callback = SweepSummaryCallback(plots=False)
+        >>> cfg = OmegaConf.create({"hydra": {"sweep": {"dir": sweep}, "sweeper": {}},
+        ...                         "objective": {"metric": "success_rate",
+        ...                                       "direction": "maximize"}})
+        >>> callback.on_multirun_start(cfg)
+        >>> callback.on_multirun_end(cfg)  # no job here: nothing to summarize
+    """
+
+    def __init__(self, plots: bool = True) -> None:
+        self.plots = plots
+        self._sweep_dir: Path | None = None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        try:
+            validate_sweeper(config.hydra.get("sweeper"), config)
+        except ConfigError as err:
+            print(f"stages-train: invalid config: {err}", file=sys.stderr)
+            sys.exit(EXIT_INVALID)
+        self._sweep_dir = Path(str(config.hydra.sweep.dir))
+        # a failed job makes Hydra's sweepers raise before on_multirun_end: summarize at exit
+        atexit.register(self._summarize)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        atexit.unregister(self._summarize)
+        self._summarize()
+
+    def _summarize(self) -> None:
+        sweep_dir, self._sweep_dir = self._sweep_dir, None
+        if sweep_dir is None or not sweep_dir.is_dir() or not find_jobs(sweep_dir):
+            return
+        try:
+            summary = summarize_sweep(sweep_dir, plots=self.plots)
+        except Exception as err:  # a summary must never hide the sweep's own outcome
+            print(f"stages-train: no sweep summary ({type(err).__name__}: {err})", file=sys.stderr)
+            return
+        done = sum(job.status == "done" for job in summary.jobs)
+        print(
+            f"Sweep summary: {summary.files['summary.md']} ({done} of {len(summary.jobs)} jobs "
+            "finished)"
+        )
+
+
+def report(argv: list[str] | None = None) -> None:
+    """``stages-report SWEEP_DIR``: (re)write the summary of a directory of runs."""
+    parser = argparse.ArgumentParser(
+        prog="stages-report",
+        description="Summarize a directory of stages-train runs (a multirun sweep directory, "
+        "made by any launcher, or runs gathered by hand): writes summary.csv (one row per job), "
+        "summary_configs.csv and summary.md (mean, interquartile mean and bootstrap 95%% "
+        "confidence interval across seeds per configuration) and summary_curves.png / "
+        "summary_final.png into it.",
+    )
+    parser.add_argument("sweep_dir", type=Path, help="the sweep directory (hydra.sweep.dir)")
+    parser.add_argument("--no-plots", action="store_true", help="skip the figures")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
+    args = parser.parse_args(argv)
+    directory: Path = args.sweep_dir
+    if not directory.is_dir():
+        print(f"stages-report: {directory} is not a directory", file=sys.stderr)
+        sys.exit(EXIT_INVALID)
+    if not find_jobs(directory):
+        print(
+            f"stages-report: no job directory under {directory} (a job directory holds "
+            ".hydra/overrides.yaml, eval.json, status.json or config.yaml). Fix: pass the sweep "
+            "directory of a `stages-train -m` run (hydra.sweep.dir)",
+            file=sys.stderr,
+        )
+        sys.exit(EXIT_INVALID)
+    summary = summarize_sweep(directory, plots=not args.no_plots, seed=args.seed)
+    for agg in summary.aggregates:
+        if agg.metric == "success_rate":
+            mean = "-" if agg.mean is None else f"{agg.mean:.3f}"
+            ci = "" if agg.ci_low is None else f" [{agg.ci_low:.3f}, {agg.ci_high:.3f}]"
+            print(f"{agg.config}: success {mean}{ci} over {agg.n} seeds, {agg.failed} failed")
+    for name, path in summary.files.items():
+        print(f"{name}: {path}")

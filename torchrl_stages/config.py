@@ -177,6 +177,20 @@ class EvalConfig:
 
 
 @dataclass
+class ObjectiveConfig:
+    """The number a run returns to a sweeper (``hydra/sweeper=optuna``): one entry of its
+    ``eval.json``, from the whole-task evaluation after training.
+
+    ``direction`` says whether higher is better; a sweeper that optimizes a direction of its own
+    (Optuna's ``hydra.sweeper.direction``) must agree with it, which is checked before any job
+    runs.
+    """
+
+    metric: str = "success_rate"  # success_rate | mean_return | mean_steps
+    direction: str = "maximize"  # maximize | minimize
+
+
+@dataclass
 class TrainConfig:
     """Root config of ``stages-train``."""
 
@@ -184,6 +198,7 @@ class TrainConfig:
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     seed: int = 0
     device: str = "cpu"
     threads: int = 1  # torch intra-op threads; small nets train fastest with 1

@@ -37,6 +37,7 @@ RESUMABLE_CHANGES = (
     "overwrite",
     "progress",
     "eval",
+    "objective",
     "checkpoint_every",
     "checkpoint_keep",
 )

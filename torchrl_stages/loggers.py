@@ -1,12 +1,23 @@
-"""Loggers: torchrl's, plus one tidy ``metrics.csv`` per run for the CSV backend."""
+"""Loggers: torchrl's, plus one tidy ``metrics.csv`` per run whichever backend is chosen.
+
+``metrics.csv`` (``name,step,value``) is the run directory's own record of every scalar: the
+learning curves (``learning_curves.png``) and sweep summaries read it. The ``csv`` backend writes
+it next to torchrl's per-tag files; every other backend (``tensorboard``, ``wandb``, ``mlflow``)
+and ``none`` get it through :class:`RunLogger`.
+"""
 
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig
+from torch import Tensor
 from torchrl.record.loggers import CSVLogger, Logger, get_logger
+
+METRICS_HEADER = ["name", "step", "value"]
 
 
 class MetricsCSVLogger(CSVLogger):
@@ -61,16 +72,83 @@ class MetricsCSVLogger(CSVLogger):
             self._append(["name", "step", "value"])
 
 
-def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
-    """The logger of ``cfg.logger`` writing inside ``run_dir`` (``None`` for backend ``none``)."""
+class RunLogger(Logger):
+    """Appends every scalar to the run's ``metrics.csv`` and forwards every call to a torchrl
+    ``backend`` logger (``None``: no backend, ``logger=none``).
+
+    Like :class:`MetricsCSVLogger` it has :meth:`position` / :meth:`rewind` for resumed runs
+    (on ``metrics.csv``; a backend's own records are not rewound).
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> logger = RunLogger(d / "metrics.csv")
+        >>> logger.log_scalar("eval/stage_1/success_rate", 1.0, step=512)
+        >>> (d / "metrics.csv").read_text().splitlines()
+        ['name,step,value', 'eval/stage_1/success_rate,512,1.0']
+    """
+
+    def __init__(self, metrics_file: str | Path, backend: Logger | None = None) -> None:
+        self.backend = backend
+        self.metrics_file = Path(metrics_file)
+        self.metrics_file.parent.mkdir(parents=True, exist_ok=True)
+        if not self.metrics_file.exists() or self.metrics_file.stat().st_size == 0:
+            self._append(METRICS_HEADER)
+        name = backend.exp_name if backend is not None else "metrics"
+        super().__init__(exp_name=name, log_dir=str(self.metrics_file.parent))
+
+    def _create_experiment(self) -> Any:
+        return None if self.backend is None else self.backend.experiment
+
+    def _append(self, row: list) -> None:
+        with self.metrics_file.open("a", newline="") as f:  # nothing stays open
+            csv.writer(f).writerow(row)
+
+    def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
+        self._append([name, step, float(value)])
+        if self.backend is not None:
+            self.backend.log_scalar(name, value, step=step)
+
+    def log_video(self, name: str, video: Tensor, step: int | None = None, **kwargs) -> None:
+        if self.backend is not None:
+            self.backend.log_video(name, video, step=step, **kwargs)
+
+    def log_hparams(self, cfg: DictConfig | dict) -> None:
+        if self.backend is not None:
+            self.backend.log_hparams(cfg)
+
+    def log_histogram(self, name: str, data: Sequence, **kwargs) -> None:
+        if self.backend is not None:
+            self.backend.log_histogram(name, data, **kwargs)
+
+    def __repr__(self) -> str:
+        return f"RunLogger({self.metrics_file}, backend={self.backend!r})"
+
+    def position(self) -> dict[str, int]:
+        """The size of ``metrics.csv``, for :meth:`rewind`."""
+        return {self.metrics_file.name: self.metrics_file.stat().st_size}
+
+    def rewind(self, position: dict[str, int]) -> None:
+        """Truncates ``metrics.csv`` to a :meth:`position` (a resumed run logs nothing twice)."""
+        with self.metrics_file.open("r+b") as handle:
+            handle.truncate(position.get(self.metrics_file.name, 0))
+        if self.metrics_file.stat().st_size == 0:
+            self._append(METRICS_HEADER)
+
+
+def make_logger(cfg: DictConfig, run_dir: Path) -> Logger:
+    """The logger of ``cfg.logger`` writing inside ``run_dir``; every backend (``none``
+    included) also writes the run's ``metrics.csv``."""
     backend = cfg.logger.backend
+    metrics_file = run_dir / "metrics.csv"
     if backend == "none":
-        return None
+        return RunLogger(metrics_file)
     if backend == "csv":
-        return MetricsCSVLogger("csv", log_dir=str(run_dir), metrics_file=run_dir / "metrics.csv")
+        return MetricsCSVLogger("csv", log_dir=str(run_dir), metrics_file=metrics_file)
     kwargs = {}
     if backend == "wandb":
         kwargs = {"project": cfg.logger.project}
-    return get_logger(
+    external = get_logger(
         backend, logger_name=str(run_dir), experiment_name=cfg.logger.exp_name, wandb_kwargs=kwargs
     )
+    return RunLogger(metrics_file, external)

@@ -8,7 +8,6 @@ matplotlib backend alone.
 from __future__ import annotations
 
 import csv
-import math
 import re
 from collections import defaultdict
 from collections.abc import Sequence
@@ -28,7 +27,6 @@ __all__ = [
 ]
 
 DPI = 120
-_METRIC = re.compile(r"^(?P<kind>[^/]+)/stage_(?P<stage>\d+)/(?P<metric>.+)$")
 
 
 def _save(fig: Figure, out: str | Path) -> Path:
@@ -152,66 +150,112 @@ def plot_value_map(
     return _save(fig, out)
 
 
-def _read_metrics(
-    metrics_csv: str | Path, names: Sequence[str]
-) -> dict[str, dict[tuple[str, int], list[tuple[float, float]]]]:
-    """``{metric: {(kind, stage): [(step, value), ...]}}`` for per-stage rows named in ``names``."""
-    wanted = set(names)
-    series: dict[str, dict[tuple[str, int], list[tuple[float, float]]]] = defaultdict(
-        lambda: defaultdict(list)
-    )
+#: per-stage rows of metrics.csv: train/stage_3/loss, eval/stage_3/success_rate and, under
+#: the joint schedule, train/joint_1/episode_return, eval/joint_1/success_rate (phase 1)
+_STAGE_METRIC = re.compile(
+    r"^(?P<kind>train|eval)/(?P<scope>stage|joint)_(?P<stage>\d+)/(?P<metric>.+)$"
+)
+#: losses in the order their panels appear (others follow, sorted)
+_LOSS_ORDER = ("loss", "loss_value", "loss_qvalue", "loss_actor")
+Series = dict[tuple[str, str, str], list[tuple[float, float]]]  # (kind, scope, metric) -> points
+
+
+def _read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
+    """``{stage: {(kind, scope, metric): [(step, value), ...]}}`` from a ``name,step,value``
+    CSV (rows not tied to a stage, e.g. ``eval/task/...``, are left out)."""
+    out: dict[int, Series] = defaultdict(lambda: defaultdict(list))
     with open(metrics_csv, newline="") as handle:
         for row in csv.DictReader(handle):
-            match = _METRIC.match(row.get("name") or "")
-            if match is None or match["metric"] not in wanted:
+            match = _STAGE_METRIC.match(row.get("name") or "")
+            if match is None:
                 continue
             try:
                 step, value = float(row["step"]), float(row["value"])
             except (KeyError, TypeError, ValueError):
                 continue
-            series[match["metric"]][(match["kind"], int(match["stage"]))].append((step, value))
-    return series
+            key = (match["kind"], match["scope"], match["metric"])
+            out[int(match["stage"])][key].append((step, value))
+    return out
+
+
+def _stage_panels(series: Series, names: Sequence[str] | None) -> list[tuple[str, list]]:
+    """The panels of one stage: every loss its learner logs (one each), its gradient norms,
+    the evaluations' success and value error, and the training episode return."""
+    metrics = {metric for (_, _, metric) in series if names is None or metric in names}
+    keys = [k for k in series if k[2] in metrics]
+
+    def pick(kind: str, test) -> list[tuple[str, str, str]]:
+        return sorted(k for k in keys if k[0] == kind and test(k[2]))
+
+    losses = sorted(
+        {k[2] for k in pick("train", lambda m: m.startswith("loss"))},
+        key=lambda m: (_LOSS_ORDER.index(m) if m in _LOSS_ORDER else len(_LOSS_ORDER), m),
+    )
+    panels = [(loss, pick("train", lambda m, loss=loss: m == loss)) for loss in losses]
+    for title, kind, test in (
+        ("gradient norm", "train", lambda m: m.startswith("grad_norm")),
+        ("evaluation success rate", "eval", lambda m: m == "success_rate"),
+        ("evaluation value error |V(s0) - G|", "eval", lambda m: m == "value_error"),
+        ("training episode return", "train", lambda m: m == "episode_return"),
+    ):
+        chosen = pick(kind, test)
+        if chosen:
+            panels.append((title, chosen))
+    return panels
 
 
 def plot_learning_curves(
-    metrics_csv: str | Path,
-    out: str | Path,
-    names: Sequence[str] = ("episode_return", "episode_success", "loss", "success_rate"),
+    metrics_csv: str | Path, out: str | Path, names: Sequence[str] | None = None
 ) -> Path | None:
-    """One subplot per metric in ``names``, one line per stage against frames in that stage.
+    """Training curves of every stage: one row per stage, one panel per loss the stage's
+    learner logs (DQN ``loss``; DDPG ``loss_value``, ``loss_actor``; TD3 ``loss_qvalue``,
+    ``loss_actor``), its gradient norms (``grad_norm*``), the greedy evaluations' success rate
+    and value error, and the training episode return, against the frames of the stage.
 
-    Reads a ``name,step,value`` CSV whose names look like ``train/stage_3/loss``; rows not tied
-    to a stage (e.g. ``eval/task/...``) are ignored. Returns None when nothing matches.
+    Reads a ``name,step,value`` CSV (``train/stage_3/loss``, ``eval/stage_3/success_rate``;
+    the joint schedule's ``eval/joint_<k>/...`` phase evaluations go to row k, dashed).
+    ``names`` keeps only those metrics. Returns None when nothing matches.
     """
-    series = _read_metrics(metrics_csv, names)
-    metrics = [name for name in names if name in series]
-    if not metrics:
+    stages = _read_stage_metrics(metrics_csv)
+    rows = [(k, _stage_panels(stages[k], names)) for k in sorted(stages)]
+    rows = [(k, panels) for k, panels in rows if panels]
+    if not rows:
         return None
-    ncols = min(2, len(metrics))
-    nrows = math.ceil(len(metrics) / ncols)
-    fig = Figure(figsize=(6 * ncols, 3.8 * nrows))
-    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
-    for ax, metric in zip(axes, metrics, strict=False):
-        lines = series[metric]
-        kinds = {kind for kind, _ in lines}
-        for kind, stage in sorted(lines, key=lambda key: (key[1], key[0])):
-            points = sorted(lines[(kind, stage)])
-            steps, vals = zip(*points, strict=True)
-            label = f"stage {stage}" if len(kinds) == 1 else f"stage {stage} ({kind})"
-            ax.plot(
-                steps,
-                vals,
-                color=f"C{stage % 10}",
-                label=label,
-                linestyle="-" if kind == "train" else "--",
-                marker="o" if len(points) == 1 else None,
-            )
-        ax.set_title(metric)
-        ax.set_xlabel("frames in stage")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    for ax in axes[len(metrics) :]:
-        ax.set_visible(False)
+    ncols = max(len(panels) for _, panels in rows)
+    fig = Figure(figsize=(3.6 * ncols, 2.7 * len(rows) + 0.4))
+    axes = fig.subplots(len(rows), ncols, squeeze=False)
+    for r, (stage, panels) in enumerate(rows):
+        series = stages[stage]
+        for c in range(ncols):
+            ax = axes[r, c]
+            if c >= len(panels):
+                ax.set_visible(False)
+                continue
+            title, keys = panels[c]
+            for i, key in enumerate(keys):
+                kind, scope, metric = key
+                steps, vals = zip(*sorted(series[key]), strict=True)
+                label = metric if scope == "stage" else f"{metric} (joint phase {stage})"
+                ax.plot(
+                    steps,
+                    vals,
+                    color=f"C{i % 10}",
+                    label=label,
+                    linestyle="-" if scope == "stage" else "--",
+                    marker="o" if len(steps) == 1 or kind == "eval" else None,
+                    markersize=3,
+                )
+            values = [v for key in keys for _, v in series[key]]
+            if min(values) > 0 and max(values) > 20 * min(values):  # spans decades
+                ax.set_yscale("log")
+            if title == "evaluation success rate":
+                ax.set_ylim(-0.05, 1.05)
+            ax.set_title(f"stage {stage}: {title}", fontsize=9)
+            ax.set_xlabel("frames in stage", fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3)
+            if len(keys) > 1 or keys[0][1] != "stage":
+                ax.legend(fontsize=7)
     fig.tight_layout()
     return _save(fig, out)
 

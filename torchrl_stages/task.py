@@ -41,6 +41,11 @@ class StagedTask:
         self._probe = self.base_env(batch_size=1)
 
     @property
+    def probe(self) -> EnvBase:
+        """The env built with ``batch_size=1`` whose specs the learners are built from."""
+        return self._probe
+
+    @property
     def name(self) -> str:
         return str(self.cfg.name)
 

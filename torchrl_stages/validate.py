@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.util
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_stages.learners import LEARNERS
 
@@ -14,6 +14,8 @@ LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "ml
 LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
 SCHEDULES = ("backward", "joint", "flat")
 COMPILE_MODES = ("auto", "off", "default", "reduce-overhead", "max-autotune")
+OBJECTIVE_METRICS = ("success_rate", "mean_return", "mean_steps")
+DIRECTIONS = ("maximize", "minimize")
 
 
 class ConfigError(ValueError):
@@ -154,6 +156,14 @@ def _check_stage(key: str, s: DictConfig) -> None:
 
 def validate_config(cfg: DictConfig) -> None:
     """Checks what can be checked without building the env."""
+    for key in _missing_keys(cfg.task.get("env"), "task.env"):
+        _check(
+            False,
+            key,
+            "???",
+            f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)",
+            f"set it on the command line: {key}=...",
+        )
     _check(
         cfg.logger.backend in LOGGER_BACKENDS,
         "logger.backend",
@@ -170,6 +180,22 @@ def validate_config(cfg: DictConfig) -> None:
         f"pip install {package}, or use logger=csv",
     )
     _check(cfg.threads >= 1, "threads", cfg.threads, "must be >= 1", "set threads=1")
+    objective = cfg.get("objective")
+    if objective is not None:
+        _check(
+            objective.metric in OBJECTIVE_METRICS,
+            "objective.metric",
+            objective.metric,
+            f"unknown (known: {', '.join(OBJECTIVE_METRICS)}: entries of eval.json)",
+            "set objective.metric=success_rate",
+        )
+        _check(
+            objective.direction in DIRECTIONS,
+            "objective.direction",
+            objective.direction,
+            "must be maximize or minimize",
+            f"set objective.direction=maximize (or minimize, e.g. for {OBJECTIVE_METRICS[2]})",
+        )
     _check(
         cfg.schedule.name in SCHEDULES,
         "schedule.name",
@@ -237,8 +263,57 @@ def validate_config(cfg: DictConfig) -> None:
         _check_stage(f"task.stages.{name}", stage)
 
 
+def _missing_keys(node: object, prefix: str) -> list[str]:
+    """Dotted keys under ``node`` whose value is ``???`` (to be set by the user)."""
+    if not isinstance(node, DictConfig):
+        return []
+    out = []
+    for key in node.keys():
+        if OmegaConf.is_missing(node, key):
+            out.append(f"{prefix}.{key}")
+        else:
+            out += _missing_keys(node[key], f"{prefix}.{key}")
+    return out
+
+
+def validate_env_protocol(cfg: DictConfig, env) -> None:
+    """Checks what every stage env must have (a built one, ``batch_size=(1,)`` asked): one
+    batch dimension that honours the asked size, ``num_stages`` and ``stage_fn``."""
+    target = cfg.task.env.get("_target_", "?")
+    fix = (
+        "accept the batch_size keyword and build a batched env of that size (e.g. with "
+        "torchrl's SerialEnv), or use task=gym for a gymnasium env (torchrl_stages.GymStageEnv)"
+    )
+    _check(
+        tuple(env.batch_size) == (1,),
+        "task.env._target_",
+        target,
+        f"the env has batch_size={list(env.batch_size)} where batch_size=(1,) was asked: the "
+        "stage trainer needs a batched env with one batch dimension [num_envs]",
+        fix,
+    )
+    num_stages = getattr(env, "num_stages", None)
+    _check(
+        isinstance(num_stages, int) and num_stages >= 1,
+        "task.env._target_",
+        target,
+        f"the env has no positive integer num_stages attribute (got {num_stages!r})",
+        "give the env class a num_stages attribute (the number of stages it runs through)",
+    )
+    _check(
+        hasattr(env, "stage_fn") and (env.stage_fn is None or callable(env.stage_fn)),
+        "task.env._target_",
+        target,
+        "the env has no stage_fn(tensordict) method (nor stage_fn = None with its own "
+        '"stage" entry)',
+        "add stage_fn(td) returning the stage of each state as int64 [*batch, 1]",
+    )
+
+
 def validate_task(cfg: DictConfig, task) -> None:
-    """Checks the stage list and each stage's algorithm against the built env's specs."""
+    """Checks the env against the task protocol, then the stage list and each stage's
+    algorithm against the built env's specs."""
+    validate_env_protocol(cfg, task.probe)
     names = list(cfg.task.stages)
     _check(
         len(names) == task.num_stages,
@@ -273,3 +348,46 @@ def validate_task(cfg: DictConfig, task) -> None:
             str(problem),
             f"override it with algo@task.stages.{name}=<algo>",
         )
+
+
+def _direction_name(direction: object) -> str:
+    """``maximize`` / ``minimize`` of a sweeper's direction (a string or an enum member)."""
+    return str(getattr(direction, "name", direction)).lower()
+
+
+def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
+    """Checks that a sweeper optimizing a direction (Optuna's ``hydra.sweeper.direction``)
+    optimizes the one of ``cfg.objective``: the number a run returns is ``objective.metric``.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"objective": {"metric": "mean_steps", "direction": "minimize"}})
+        >>> validate_sweeper(OmegaConf.create({"direction": "minimize"}), cfg)
+        >>> validate_sweeper(OmegaConf.create({"direction": "maximize"}), cfg)
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.validate.ConfigError: hydra.sweeper.direction='maximize': ...
+    """
+    if sweeper is None or sweeper.get("direction") is None:
+        return
+    objective = cfg.objective
+    direction = sweeper.direction
+    if not isinstance(direction, str) and isinstance(direction, list | tuple | ListConfig):
+        _check(
+            False,
+            "hydra.sweeper.direction",
+            [_direction_name(d) for d in direction],
+            f"a run returns one number (objective.metric={objective.metric})",
+            f"set hydra.sweeper.direction={objective.direction}",
+        )
+    name = _direction_name(direction)
+    _check(
+        name == objective.direction,
+        "hydra.sweeper.direction",
+        name,
+        f"the sweeper would {name} objective.metric={objective.metric}, but "
+        f"objective.direction={objective.direction}",
+        f"add hydra.sweeper.direction={objective.direction} (Optuna's default is minimize), or "
+        f"set objective.direction={name} if a {'lower' if name == 'minimize' else 'higher'} "
+        f"{objective.metric} is better",
+    )

@@ -1,0 +1,172 @@
+"""Bring your own env: a gymnasium env registered here (``line_env.LineWorld-v0``) and a batched
+TorchRL env train end to end from the CLI with their own keys plus at most two overrides
+(``experiment=smoke`` keeps them to seconds); protocol errors reach the user with the fix.
+
+The CLI commands start together when the module's first test runs; each test waits for its own.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import assert_figure, cli_env, console_script
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from line_env import line_stage, unbatched_line
+from omegaconf import OmegaConf
+
+from torchrl_stages import GymStageEnv, StagedTask, StageTrainer
+from torchrl_stages.config import DQNConfig, register_configs
+from torchrl_stages.experiment import build_task
+from torchrl_stages.learners import DQNLearner
+from torchrl_stages.validate import ConfigError
+
+TESTS = Path(__file__).resolve().parent
+TIMEOUT_S = 300
+LINE = ["task.env.env_id=line_env:LineWorld-v0", "task.env.stage_fn._target_=line_env.line_stage"]
+COMMANDS = {
+    # no stage starts: the joint schedule from the task's own starts
+    "joint": ["task=gym", "schedule=joint", *LINE],
+    # the env takes start_stage: stage-k starts, backward schedule
+    "backward": ["task=gym", "task.stage_starts=true", *LINE],
+    # a batched TorchRL env of one's own (the grid world stands in for it)
+    "custom": [
+        "task=custom",
+        "task.env._target_=torchrl_stages.envs.GridWorldEnv",
+        "+task.env.size=10",
+        "+task.env.num_stages=2",
+    ],
+    # a factory that ignores batch_size: refused before training, with the fix
+    "unbatched": [
+        "task=custom",
+        "task.stage_starts=false",
+        "schedule=joint",
+        "task.env._target_=line_env.unbatched_line",
+    ],
+}
+
+
+@pytest.fixture(scope="module")
+def cli(tmp_path_factory):
+    root = tmp_path_factory.mktemp("byoe")
+    env = cli_env(PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+    procs = {}
+    for name, args in COMMANDS.items():
+        argv = [console_script("stages-train"), *args, "experiment=smoke", "eval.episodes=8"]
+        argv.append(f"hydra.run.dir={root / name}")
+        with (root / f"{name}.out").open("w") as out, (root / f"{name}.err").open("w") as err:
+            procs[name] = subprocess.Popen(
+                argv, cwd=root, env=env, stdout=out, stderr=err, stdin=subprocess.DEVNULL
+            )
+
+    def result(name: str) -> tuple[int, str, str, Path]:
+        code = procs[name].wait(timeout=TIMEOUT_S)
+        out, err = (root / f"{name}.out").read_text(), (root / f"{name}.err").read_text()
+        return code, out, err, root / name
+
+    yield result
+    for proc in procs.values():
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.parametrize("name", ["joint", "backward"])
+def test_gymnasium_env_trains_from_the_cli(cli, name):
+    code, out, err, run_dir = cli(name)
+    assert code == 0, (out + err)[-4000:]
+    assert "task gym: success" in out and "Traceback" not in err
+    result = json.loads((run_dir / "eval.json").read_text())
+    assert result["training"]["schedule"] == name
+    assert result["episodes"] == 8 and 0.0 <= result["success_rate"] <= 1.0
+    assert [s["frames"] > 0 for s in result["training"]["stages"]] == [True, True]
+    assert (run_dir / "stage_0.pt").is_file() and (run_dir / "stage_1.pt").is_file()
+    saved = OmegaConf.load(run_dir / "config.yaml")
+    assert saved.task.env.stage_fn._target_ == "line_env.line_stage"
+    assert_figure(run_dir / "learning_curves.png")
+
+
+def test_torchrl_env_of_ones_own_trains_from_the_cli(cli):
+    code, out, err, run_dir = cli("custom")
+    assert code == 0, (out + err)[-4000:]
+    assert "task custom: success" in out
+    assert (run_dir / "stage_1.pt").is_file() and (run_dir / "eval.json").is_file()
+
+
+def test_unbatched_env_is_refused_with_the_fix(cli):
+    code, out, err, run_dir = cli("unbatched")
+    assert code == 2, (out + err)[-4000:]
+    assert "invalid config: task.env._target_='line_env.unbatched_line'" in err
+    assert "batch_size=[]" in err and "Fix:" in err and "Traceback" not in err
+    assert not (run_dir / "metrics.csv").exists()
+
+
+# ------------------------------------------------------------------ in-process
+@pytest.fixture
+def compose_cfg():
+    GlobalHydra.instance().clear()
+    register_configs()
+    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
+        yield lambda *overrides: compose("config", overrides=list(overrides))
+    GlobalHydra.instance().clear()
+
+
+def test_gym_stage_env_follows_the_task_protocol():
+    env = GymStageEnv("LineWorld-v0", "line_env.line_stage", batch_size=(3,), start_stage=1)
+    assert env.num_stages == 2 and env.max_steps == 20  # read from the gymnasium env
+    td = env.reset()
+    assert env.batch_size == torch.Size([3])
+    assert (env.stage_fn(td) == 1).all()  # started inside stage 1
+    assert env.stage_fn(td).dtype == torch.int64 and env.stage_fn(td).shape == (3, 1)
+    assert getattr(env, "start_states", None) is None  # optional hooks it does not offer
+
+
+def test_task_template_names_what_is_missing(compose_cfg):
+    with pytest.raises(ConfigError, match=r"task\.env\.env_id='\?\?\?'.*Fix: set it"):
+        build_task(compose_cfg("task=gym", "schedule=joint"))
+    with pytest.raises(ConfigError, match=r"stage_starts=false.*Fix: use schedule=joint"):
+        build_task(compose_cfg("task=gym", *LINE))
+    with pytest.raises(ConfigError, match=r"task\.env\._target_='\?\?\?'"):
+        build_task(compose_cfg("task=custom"))
+
+
+def test_env_without_num_stages_is_refused(compose_cfg):
+    cfg = compose_cfg(
+        "task=custom",
+        "task.stage_starts=false",
+        "schedule=joint",
+        "task.env._target_=torchrl_stages.GymStageEnv",
+        "+task.env.env_id=CartPole-v1",
+        "+task.env.stage_fn=line_env.line_stage",
+    )
+    with pytest.raises(ConfigError, match=r"no num_stages attribute. Fix: set task.env.num_stages"):
+        build_task(cfg)
+
+
+def test_stage_trainer_refuses_an_unbatched_env():
+    env = unbatched_line()
+    batched = GymStageEnv("LineWorld-v0", line_stage, batch_size=(4,))
+    task = StagedTask(
+        OmegaConf.create(
+            {
+                "name": "line",
+                "stage_starts": False,
+                "stages": {"a": {}, "b": {}},
+                "env": {
+                    "_target_": "torchrl_stages.GymStageEnv",
+                    "env_id": "LineWorld-v0",
+                    "stage_fn": "line_env.line_stage",
+                },
+            }
+        )
+    )
+    cfg = OmegaConf.structured(DQNConfig(frames=64, frames_per_batch=16, num_envs=4))
+    learner = DQNLearner(cfg, task.specs(0))
+    trainer = StageTrainer(0, learner, env, batched, cfg)
+    with pytest.raises(ValueError, match=r"one batch dimension \[num_envs\].*SerialEnv"):
+        trainer.train()

@@ -1,0 +1,159 @@
+"""Presets and help: the ``experiment`` group, the per-task stage defaults, the ``objective``
+block, and ``stages-train --help``. Compositions run in-process; ``--help`` is a subprocess."""
+
+from __future__ import annotations
+
+import functools
+import importlib.resources
+import re
+
+import pytest
+from conftest import run_cli
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_stages.config import register_configs
+from torchrl_stages.validate import ConfigError, validate_config, validate_sweeper
+
+CONF = importlib.resources.files("torchrl_stages.conf")
+SMOKE = OmegaConf.create(CONF.joinpath("experiment/stage/smoke.yaml").read_text())
+SHIPPED = {"gridworld": [f"s{k}" for k in range(5)], "manipulator": ["coarse", "fine"]}
+SHIPPED["cargo"] = ["slider", "propelled"]
+
+
+def options(group: str) -> list[str]:
+    return sorted(
+        p.name.removesuffix(".yaml")
+        for p in CONF.joinpath(group).iterdir()
+        if p.is_file() and p.name.endswith(".yaml")
+    )
+
+
+@pytest.fixture(scope="module")
+def hydra_compose():
+    GlobalHydra.instance().clear()
+    register_configs()
+
+    @functools.cache
+    def _compose(*overrides: str) -> DictConfig:
+        return compose("config", overrides=list(overrides))
+
+    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
+        yield _compose
+    GlobalHydra.instance().clear()
+
+
+# ------------------------------------------------------------------ experiment=smoke
+@pytest.mark.parametrize("task", options("task"))
+def test_smoke_gives_every_stage_of_every_task_its_budget(hydra_compose, task):
+    full, smoke = hydra_compose(f"task={task}"), hydra_compose(f"task={task}", "experiment=smoke")
+    assert list(smoke.task.stages) == list(full.task.stages)
+    for name, stage in smoke.task.stages.items():
+        for key, value in SMOKE.items():
+            assert stage[key] == value, (name, key)
+        # everything else is the task's own
+        for key in ("gamma", "lr", "num_cells", "algo", "tau"):
+            assert stage[key] == full.task.stages[name][key], (name, key)
+    assert smoke.eval.episodes == 32
+    if task in SHIPPED:  # the env templates leave their env keys to the user
+        validate_config(smoke)
+
+
+def test_every_task_has_a_smoke_file():
+    assert options("experiment/task/smoke") == options("task")
+
+
+def test_smoke_composes_with_other_overrides(hydra_compose):
+    cfg = hydra_compose(
+        "experiment=smoke",
+        "algo@task.stages.s0=td3",
+        "task.stages.s1.frames=512",
+        "task/gammas=hetero",
+        "eval.episodes=3",
+    )
+    assert cfg.task.stages.s0.algo == "td3" and cfg.task.stages.s0.frames == SMOKE.frames
+    assert cfg.task.stages.s1.frames == 512  # the command line wins over the preset
+    assert [cfg.task.stages[s].gamma for s in SHIPPED["gridworld"]] == [0.9, 0.9, 0.9, 0.99, 0.9]
+    assert cfg.eval.episodes == 3
+
+
+def test_without_an_experiment_no_preset_applies(hydra_compose):
+    cfg = hydra_compose()
+    assert cfg.task.stages.s0.frames != SMOKE.frames and cfg.eval.episodes == 100
+
+
+# ------------------------------------------------------------------ per-task stage defaults
+@pytest.mark.parametrize("task", sorted(SHIPPED))
+def test_shared_stage_keys_reach_every_stage(hydra_compose, task):
+    shared = OmegaConf.create(CONF.joinpath(f"task/stage/{task}.yaml").read_text())
+    cfg = hydra_compose(f"task={task}")
+    assert list(cfg.task.stages) == SHIPPED[task]
+    own = OmegaConf.create(CONF.joinpath(f"task/{task}.yaml").read_text()).get("stages", {})
+    for name in SHIPPED[task]:
+        for key, value in shared.items():
+            if key in own.get(name, {}) or (task == "gridworld" and key == "gamma"):
+                continue  # the stage's own value (or the discount preset) follows
+            assert cfg.task.stages[name][key] == value, (name, key)
+
+
+def test_stage_overrides_still_apply(hydra_compose):
+    cfg = hydra_compose("task=manipulator", "algo@task.stages.fine=td3", "task.stages.fine.lr=5e-4")
+    fine, coarse = cfg.task.stages.fine, cfg.task.stages.coarse
+    assert fine.algo == "td3" and fine.lr == 5e-4 and fine.num_cells == [256, 256]
+    assert coarse.algo == "ddpg" and coarse.lr == 1e-3
+    cargo = hydra_compose("task=cargo")
+    assert cargo.task.stages.slider.updates_per_batch == 64  # its own key over the shared 32
+    assert cargo.task.stages.propelled.updates_per_batch == 32
+    assert cargo.task.stages.propelled.gamma == 0.99 and cargo.task.stages.slider.gamma == 0.98
+
+
+# ------------------------------------------------------------------ objective
+def test_objective_defaults_and_validation(hydra_compose):
+    cfg = hydra_compose()
+    assert (cfg.objective.metric, cfg.objective.direction) == ("success_rate", "maximize")
+    validate_config(hydra_compose("objective.metric=mean_steps", "objective.direction=minimize"))
+    for override, key in (
+        ("objective.metric=reward", "objective.metric"),
+        ("objective.direction=up", "objective.direction"),
+    ):
+        with pytest.raises(ConfigError, match=rf"{re.escape(key)}=.*Fix:"):
+            validate_config(hydra_compose(override))
+
+
+def test_sweeper_direction_must_match_the_objective(hydra_compose):
+    cfg = hydra_compose()
+    validate_sweeper(None, cfg)  # the basic sweeper optimizes nothing
+    validate_sweeper(OmegaConf.create({"max_batch_size": None}), cfg)
+    validate_sweeper(OmegaConf.create({"direction": "maximize"}), cfg)
+    with pytest.raises(ConfigError, match=r"hydra\.sweeper\.direction='minimize'.*Fix: add "):
+        validate_sweeper(OmegaConf.create({"direction": "minimize"}), cfg)
+    with pytest.raises(ConfigError, match="one number"):
+        validate_sweeper(OmegaConf.create({"direction": ["maximize", "minimize"]}), cfg)
+
+
+# ------------------------------------------------------------------ --help
+def test_help_describes_the_app(tmp_path):
+    # the help shows the values of the composed config (task=cargo: 1000 evaluation episodes)
+    result = run_cli(["stages-train", "task=cargo", "--help"], cwd=tmp_path, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+    text = result.stdout
+    assert text.startswith("stages-train: Stacked Deep Q-Learning")
+    assert "_schema" not in text  # internal schema entries stay hidden
+    for group, line_start in [
+        ("task", "task="),
+        ("algo", "algo@task.stages.<stage>="),
+        ("schedule", "schedule="),
+        ("experiment", "experiment="),
+        ("logger", "logger="),
+        ("task/gammas", "task/gammas="),
+    ]:
+        listed = set()
+        for line in text.splitlines():
+            if line.startswith(line_start):
+                listed |= set(line.split()[0].removeprefix(line_start).split("|"))
+        assert set(options(group)) <= listed, (group, listed)
+    for key in ("objective.metric=success_rate", "seed=0", "eval.episodes=1000", "resume=False"):
+        assert key in text
+    assert "stages-train -m experiment=smoke seed=0,1" in text
+    assert "--multirun,-m" in text  # Hydra's flags

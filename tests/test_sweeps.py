@@ -1,0 +1,245 @@
+"""Sweep summaries: ``torchrl_stages.sweeps`` on hand-made job directories (in-process), and the
+Hydra callback and ``stages-report`` on real sweeps (subprocesses, tiny ``experiment=smoke``).
+
+The two ``stages-train -m`` commands start together when the module's first test runs (two
+cores) and each test waits only for the one it reads.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import assert_figure, cli_env, console_script
+
+from torchrl_stages.cli import report
+from torchrl_stages.sweeps import (
+    bootstrap_ci,
+    find_jobs,
+    interquartile_mean,
+    read_job,
+    summarize_sweep,
+)
+
+TIMEOUT_S = 300
+
+
+# ------------------------------------------------------------------ hand-made sweeps
+def make_job(
+    root: Path,
+    name: str,
+    overrides: list[str],
+    success: float | None = None,
+    status: tuple[str, str] | None = None,
+    curve: list[tuple[int, float]] = (),
+    value_error: float | None = None,
+) -> Path:
+    job = root / name
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
+    if success is not None:
+        result = {
+            "success_rate": success,
+            "mean_return": success * 2,
+            "mean_steps": 10.0 + success,
+            "training": {"seconds": 1.5, "stages": [{"frames": 256, "updates": 4}] * 2},
+        }
+        if value_error is not None:
+            result["task_metrics"] = {"value_map_max_abs_error": value_error}
+        (job / "eval.json").write_text(json.dumps(result))
+    if status is not None:
+        (job / "status.json").write_text(json.dumps({"status": status[0], "reason": status[1]}))
+    rows = ["name,step,value"] + [f"eval/stage_0/success_rate,{s},{v}" for s, v in curve]
+    rows += [f"train/stage_0/loss,{s},0.5" for s, _ in curve]
+    (job / "metrics.csv").write_text("\n".join(rows) + "\n")
+    return job
+
+
+@pytest.fixture
+def sweep(tmp_path) -> Path:
+    """Two configurations (lr) x three seeds, one failed and one unfinished job, and a nested
+    job directory (as with hydra.sweep.subdir=${hydra.job.override_dirname})."""
+    root = tmp_path / "sweep"
+    n = 0
+    for lr, successes in (("1e-3", [1.0, 0.5, 0.75]), ("1e-2", [0.0, 0.25, None])):
+        for seed, success in enumerate(successes):
+            overrides = [f"task.stages.s0.lr={lr}", f"seed={seed}"]
+            curve = [(128, 0.0), (256, success or 0.0)] if seed != 1 else [(128, 0.5)]
+            if success is None:
+                make_job(root, str(n), overrides, status=("diverged", "stage 0 diverged: nan"))
+            else:
+                make_job(root, str(n), overrides, success, curve=curve, value_error=0.1 * seed)
+            n += 1
+    make_job(root, "10", ["task.stages.s0.lr=1e-3", "seed=9"])  # killed: nothing written
+    make_job(root, "nested/lr=1e-3,seed=3", ["task.stages.s0.lr=1e-3", "seed=3"], 1.0)
+    (root / "multirun.yaml").write_text("hydra: {}\n")
+    (root / ".submitit").mkdir()  # launcher files are not jobs
+    (root / ".submitit" / "x").mkdir()
+    (root / ".submitit" / "x" / "status.json").write_text("{}")
+    return root
+
+
+def test_interquartile_mean_and_bootstrap_ci():
+    assert interquartile_mean([3.0]) == 3.0
+    # the lowest and highest quarter are dropped
+    assert interquartile_mean([-100.0, 1.0, 2.0, 100.0]) == 1.5
+    values = np.random.default_rng(0).normal(1.0, 0.1, size=50)
+    low, high = bootstrap_ci(values)
+    assert low < values.mean() < high and high - low < 0.1
+    assert bootstrap_ci(values, seed=3) == bootstrap_ci(values, seed=3)  # seeded
+    assert bootstrap_ci([2.0, 2.0]) == (2.0, 2.0)
+    with pytest.raises(ValueError):
+        interquartile_mean([])
+
+
+def test_find_jobs_any_depth_in_natural_order(sweep):
+    names = [p.relative_to(sweep).as_posix() for p in find_jobs(sweep)]
+    assert names == ["0", "1", "2", "3", "4", "5", "10", "nested/lr=1e-3,seed=3"]
+    single = find_jobs(sweep / "0")  # a run directory on its own is one job
+    assert single == [sweep / "0"]
+
+
+def test_read_job_status_and_numbers(sweep):
+    done, failed, killed = (read_job(sweep / n, sweep) for n in ("0", "5", "10"))
+    assert (done.status, done.seed, done.config) == ("done", 0, "task.stages.s0.lr=1e-3")
+    assert done.metrics["success_rate"] == 1.0 and done.frames == 512 and done.updates == 8
+    assert done.train_seconds == 1.5 and done.metrics["value_error"] == 0.0
+    assert failed.status == "diverged" and failed.reason == "stage 0 diverged: nan"
+    assert killed.status == "incomplete" and "still running" in killed.reason
+
+
+def test_summary_files(sweep):
+    summary = summarize_sweep(sweep)
+    assert set(summary.files) == {
+        "summary.csv",
+        "summary_configs.csv",
+        "summary.md",
+        "summary_curves.png",
+        "summary_final.png",
+    }
+    with (sweep / "summary.csv").open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [r["job"] for r in rows] == ["0", "1", "2", "3", "4", "5", "10", "nested/lr=1e-3,seed=3"]
+    assert [r["status"] for r in rows] == ["done"] * 5 + ["diverged", "incomplete", "done"]
+    assert rows[5]["reason"] == "stage 0 diverged: nan" and rows[5]["success_rate"] == ""
+    assert rows[0]["overrides"] == "task.stages.s0.lr=1e-3 seed=0"
+    assert rows[0]["config"] == "task.stages.s0.lr=1e-3" and rows[0]["seed"] == "0"
+    assert float(rows[1]["value_error"]) == pytest.approx(0.1)
+    assert rows[0]["frames"] == "512" and rows[0]["train_seconds"] == "1.5"
+    # per configuration, across seeds: the finished ones
+    good = summary.aggregate("task.stages.s0.lr=1e-3")
+    assert (good.n, good.failed) == (4, 1)  # seeds 0, 1, 2, 3 finished; seed 9 did not
+    assert good.mean == pytest.approx(np.mean([1.0, 0.5, 0.75, 1.0]))
+    assert good.iqm == pytest.approx(interquartile_mean([1.0, 0.5, 0.75, 1.0]))
+    assert good.ci_low <= good.mean <= good.ci_high
+    bad = summary.aggregate("task.stages.s0.lr=1e-2", "mean_steps")
+    assert (bad.n, bad.failed, bad.mean) == (2, 1, pytest.approx(10.125))
+    md = (sweep / "summary.md").read_text()
+    assert "| task.stages.s0.lr=1e-2 | success_rate | 2 | 1 |" in md
+    assert "stage 0 diverged: nan" in md and "![summary_curves.png]" in md
+    for png in ("summary_curves.png", "summary_final.png"):
+        assert_figure(sweep / png)
+
+
+def test_summary_is_reproducible(sweep):
+    summarize_sweep(sweep)
+    first = {n: (sweep / n).read_bytes() for n in ("summary.csv", "summary_configs.csv")}
+    summarize_sweep(sweep)
+    assert first == {n: (sweep / n).read_bytes() for n in first}
+
+
+def test_summary_without_finished_jobs(tmp_path):
+    make_job(tmp_path, "0", ["seed=0"], status=("invalid", "invalid config: gamma"))
+    summary = summarize_sweep(tmp_path)
+    assert [j.status for j in summary.jobs] == ["invalid"]
+    assert "summary_final.png" not in summary.files and "summary_curves.png" not in summary.files
+    assert summary.aggregate("(defaults)").mean is None
+
+
+def test_report_rejects_a_directory_without_jobs(tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        report([str(tmp_path)])
+    assert info.value.code == 2
+    assert "no job directory" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        report([str(tmp_path / "missing")])
+
+
+# ------------------------------------------------------------------ real sweeps
+SWEEPS = {
+    # the acceptance command: the shortest real sweep
+    "smoke": ["-m", "experiment=smoke", "seed=0,1"],
+    # every job refused by validation: the summary is written although the sweep fails
+    "invalid": ["-m", "experiment=smoke", "task.stages.s0.gamma=1.5,2.0", "eval.plots=false"],
+}
+
+
+@pytest.fixture(scope="module")
+def sweeps(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sweeps")
+    procs = {}
+    for name, args in SWEEPS.items():
+        argv = [console_script("stages-train"), *args, f"hydra.sweep.dir={root / name}"]
+        with (root / f"{name}.out").open("w") as out, (root / f"{name}.err").open("w") as err:
+            procs[name] = subprocess.Popen(
+                argv, cwd=root, env=cli_env(), stdout=out, stderr=err, stdin=subprocess.DEVNULL
+            )
+
+    def result(name: str) -> tuple[int, str, Path]:
+        code = procs[name].wait(timeout=TIMEOUT_S)
+        output = (root / f"{name}.out").read_text() + (root / f"{name}.err").read_text()
+        return code, output, root / name
+
+    yield result
+    for proc in procs.values():
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_smoke_sweep_writes_its_summary(sweeps):
+    code, output, sweep_dir = sweeps("smoke")
+    assert code == 0, output[-4000:]
+    assert f"Sweep summary: {sweep_dir / 'summary.md'} (2 of 2 jobs finished)" in output
+    with (sweep_dir / "summary.csv").open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 2
+    assert [(r["seed"], r["status"], r["config"]) for r in rows] == [
+        ("0", "done", "experiment=smoke"),
+        ("1", "done", "experiment=smoke"),
+    ]
+    for row in rows:
+        assert 0.0 <= float(row["success_rate"]) <= 1.0
+        assert float(row["value_error"]) >= 0.0  # the grid world reports its value-map error
+        assert int(row["frames"]) == 5 * 1024 and float(row["train_seconds"]) > 0
+    for png in ("summary_curves.png", "summary_final.png"):
+        assert_figure(sweep_dir / png)
+    assert "experiment=smoke" in (sweep_dir / "summary.md").read_text()
+
+
+def test_stages_report_reproduces_the_summary(sweeps, tmp_path, capsys):
+    code, output, sweep_dir = sweeps("smoke")
+    assert code == 0, output[-4000:]
+    names = ("summary.csv", "summary_configs.csv", "summary.md")
+    written = {n: (sweep_dir / n).read_bytes() for n in names}
+    figures = {n: (sweep_dir / n).read_bytes() for n in ("summary_curves.png", "summary_final.png")}
+    for name in (*written, *figures):
+        (sweep_dir / name).unlink()
+    report([str(sweep_dir)])
+    assert "experiment=smoke: success" in capsys.readouterr().out
+    assert {n: (sweep_dir / n).read_bytes() for n in names} == written
+    assert {n: (sweep_dir / n).read_bytes() for n in figures} == figures
+
+
+def test_failed_sweep_still_writes_its_summary(sweeps):
+    code, output, sweep_dir = sweeps("invalid")
+    assert code != 0  # the sweep says that its jobs failed
+    with (sweep_dir / "summary.csv").open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [r["status"] for r in rows] == ["invalid", "invalid"]
+    assert "task.stages.s0.gamma=1.5: must be in (0, 1]" in rows[0]["reason"]
+    assert "Sweep summary:" in output

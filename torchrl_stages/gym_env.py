@@ -1,0 +1,145 @@
+"""Gymnasium envs as multi-stage tasks: a batched TorchRL env named by its id and stage function.
+
+``task=gym`` builds :class:`GymStageEnv` from ``task.env``: the gymnasium env id (``module:Id``
+imports ``module`` first, where it registers the env), the stage function (``stage_fn``) and
+the env's own constructor keys. Everything the task protocol needs (a batch dimension, the
+device, ``num_stages``, ``stage_fn``, ``start_stage`` for envs that can start inside a stage) is
+added here, so a config names only the env and its stage function.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium
+import torch
+from hydra.utils import get_method
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.envs import GymEnv, SerialEnv
+
+__all__ = ["GymStageEnv", "threshold_stage"]
+
+StageFn = Callable[[TensorDictBase], torch.Tensor]
+_UNSET = object()
+
+
+def threshold_stage(
+    td: TensorDictBase,
+    *,
+    thresholds: Sequence[float],
+    key: NestedKey = "observation",
+    index: int = 0,
+) -> torch.Tensor:
+    """A stage function: the number of ``thresholds`` at or below ``td[key][..., index]``
+    (``len(thresholds) + 1`` stages). Name it in a config with ``_partial_: true``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict(observation=torch.tensor([[0.1], [0.5], [0.9]]), batch_size=[3])
+        >>> threshold_stage(td, thresholds=[0.5, 0.8]).squeeze(-1)
+        tensor([0, 1, 2])
+    """
+    value = td.get(key)[..., index : index + 1]
+    edges = torch.as_tensor(list(thresholds), dtype=value.dtype, device=value.device)
+    return (value >= edges).sum(-1, keepdim=True).long()
+
+
+def _stage_function(stage_fn: StageFn | str) -> StageFn:
+    """The stage function from a callable (e.g. a ``_partial_: true`` node) or a dotted path,
+    returning int64 ``[*batch, 1]``."""
+    fn = get_method(stage_fn) if isinstance(stage_fn, str) else stage_fn
+    if not callable(fn):
+        raise TypeError(
+            f"stage_fn must be a function of the tensordict, got {stage_fn!r}. Fix: set "
+            "task.env.stage_fn._target_=my_module.my_stage_fn (with _partial_: true)"
+        )
+
+    @functools.wraps(fn)
+    def stage(td: TensorDictBase) -> torch.Tensor:
+        out = torch.as_tensor(fn(td)).long()
+        return out.unsqueeze(-1) if out.shape == td.batch_size else out
+
+    return stage
+
+
+class GymStageEnv(SerialEnv):
+    """``batch_size[0]`` copies of a gymnasium env (torchrl ``GymEnv`` in a ``SerialEnv``)
+    with what a multi-stage task needs: ``num_stages`` and ``stage_fn``.
+
+    Args:
+        env_id: the gymnasium id; ``"my_module:MyEnv-v0"`` imports ``my_module`` first.
+        stage_fn: ``stage_fn(td) -> int64 [*batch, 1]``, the stage of each state (a callable or
+            a dotted path).
+        num_stages: the number of stages (default: the gymnasium env's ``num_stages``).
+
+    Keyword Args:
+        batch_size: ``(n,)``: the number of env copies.
+        device: where the TensorDicts live.
+        start_stage: given (``None`` included) only for tasks with ``task.stage_starts=true``;
+            passed to the gymnasium env's constructor, which then starts its episodes inside
+            that stage (``None``: the task's own starts).
+        **kwargs: the gymnasium env's own constructor keys.
+
+    Attributes:
+        max_steps: the env's ``max_episode_steps`` (the evaluations' episode cap), when it has
+            one.
+
+    Examples:
+        >>> env = GymStageEnv(
+        ...     "CartPole-v1",
+        ...     stage_fn=functools.partial(threshold_stage, thresholds=[0.0], index=2),
+        ...     num_stages=2,  # the pole leans left, then right
+        ...     batch_size=(4,),
+        ... )
+        >>> env.rollout(3)["observation"].shape, env.max_steps
+        (torch.Size([4, 3, 4]), 500)
+    """
+
+    #: optional hooks of the task protocol a gymnasium env does not offer
+    _NO_HOOKS = ("start_states", "stage_action_key", "stage_observation_keys")
+
+    def __init__(
+        self,
+        env_id: str,
+        stage_fn: StageFn | str,
+        num_stages: int | None = None,
+        *,
+        batch_size: Sequence[int],
+        device: str | torch.device = "cpu",
+        start_stage: Any = _UNSET,
+        **kwargs: Any,
+    ) -> None:
+        batch = tuple(int(b) for b in batch_size)
+        if len(batch) != 1:
+            raise ValueError(f"GymStageEnv needs batch_size=(n,), got {batch}")
+        if start_stage is not _UNSET:
+            kwargs["start_stage"] = start_stage
+        probe = gymnasium.make(env_id, **kwargs)
+        try:
+            found = getattr(probe.unwrapped, "num_stages", None)
+            max_steps = probe.spec.max_episode_steps if probe.spec is not None else None
+        finally:
+            probe.close()
+        if num_stages is None and found is None:
+            raise ValueError(
+                f"the gymnasium env {env_id!r} has no num_stages attribute. Fix: set "
+                "task.env.num_stages"
+            )
+        make = functools.partial(
+            GymEnv, env_id, categorical_action_encoding=True, device=device, **kwargs
+        )
+        super().__init__(batch[0], make, device=device)
+        self.env_id = env_id
+        self.num_stages = int(num_stages if num_stages is not None else found)
+        self.stage_fn = _stage_function(stage_fn)
+        if max_steps is not None:  # else evaluations cap episodes at 1000 steps
+            self.max_steps = int(max_steps)
+
+    def __getattr__(self, attr: str) -> Any:
+        if attr in GymStageEnv._NO_HOOKS:  # not forwarded to the copies
+            raise AttributeError(attr)
+        return super().__getattr__(attr)
