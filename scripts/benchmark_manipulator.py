@@ -1,10 +1,12 @@
 """Manipulator benchmark: SDQL (DDPG, TD3) against single-stage DDPG at equal frame budgets.
 
-Variants, each trained with the same seeds and the same total env-frame budget:
+Variants, each trained with the same seeds:
   (a) SDQL, two DDPG stages (coarse u_max 0.25, fine u_max 0.05 with a rescaled observation)
-  (b) SDQL, two TD3 stages
+  (b) SDQL, two TD3 stages (experiment=manipulator_td3: its own preset and 300 000-frame budgets)
   (c) one DDPG learner, u_max 0.25, on the same sparse task
   (d) one DDPG learner, u_max 0.05
+(a), (c) and (d) get the same total budget: ``--frames`` per SDQL stage (default: the task
+config's), twice that for a single learner.
 For each it prints the success rate over 1000 whole-task episodes from uniform random joint
 angles (d <= 0.01 within 50 steps), mean steps of successful episodes, final-distance
 percentiles, training wall-clock and frames.
@@ -22,7 +24,7 @@ from _benchmark import compose_config, parse_args, run_table, train
 SINGLE = ["~task.stages.fine", "task.env.scales=[0.5]"]
 VARIANTS = {
     "a": ("SDQL DDPG+DDPG", []),
-    "b": ("SDQL TD3+TD3", ["algo@task.stages.coarse=td3", "algo@task.stages.fine=td3"]),
+    "b": ("SDQL TD3+TD3", ["experiment=manipulator_td3"]),
     "c": ("single DDPG u_max 0.25", [*SINGLE, "task.env.u_max=[0.25]"]),
     "d": ("single DDPG u_max 0.05", [*SINGLE, "task.env.u_max=[0.05]"]),
 }
@@ -34,6 +36,8 @@ def run(variant: str, seed: int, frames: int, out: Path, extra: list[str]) -> di
     budget = [f"task.stages.coarse.frames={2 * frames if single else frames}"]
     if not single:
         budget.append(f"task.stages.fine.frames={frames}")
+    if variant == "b":  # its preset's own budgets
+        budget = []
     result = train(
         "manipulator", out / f"{variant}_seed{seed}", f"seed={seed}", *overrides, *budget, *extra
     )

@@ -146,16 +146,15 @@ def test_early_stop_breaks_at_the_evaluation_that_meets_the_criterion(monkeypatc
         min_frames=512,
     )
     trainer, learner = _trainer(cfg)
+    # evaluations start where they can stop the stage: min_frames - (patience - 1) * eval_every
     evals = [
-        (1.0, 0.0, 0.5),  # 128
-        (1.0, 0.0, 0.5),  # 256: a streak of 2, but before min_frames
-        (0.5, 0.0, 0.5),  # 384: the streak ends
+        (0.5, 0.0, 0.5),  # 384
         (1.0, 0.0, 0.5),  # 512
         (1.0, 0.1, 0.5),  # 640: a streak of 2 after min_frames: stop here
     ] + [(0.0, 1.0, 0.0)] * 20
     calls = _script(trainer, learner, evals, monkeypatch)
     result = trainer.train()
-    assert [c["frames"] for c in calls] == [128, 256, 384, 512, 640]
+    assert [c["frames"] for c in calls] == [384, 512, 640]
     assert result.frames == 640 and result.early_stopped
     assert not result.restored_best
     assert result.updates == learner.num_updates == 2 * 5

@@ -33,7 +33,13 @@ from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.stage import DivergenceError, StageResult, Stopwatch, _EvalMonitor
+from torchrl_stages.stage import (
+    DivergenceError,
+    StageResult,
+    Stopwatch,
+    _EvalMonitor,
+    first_evaluation,
+)
 from torchrl_stages.task import StagedTask
 from torchrl_stages.transforms import NonFiniteValueError, StageRewardTransform, StageTransform
 
@@ -201,7 +207,7 @@ class JointTrainer:
             init_random_frames=int(cfg.init_random_frames) if counters["phase"] == 0 else 0,
         )
         monitor = _EvalMonitor(cfg)
-        phase = {"next_eval": int(cfg.eval_every)}
+        phase = {"next_eval": first_evaluation(cfg)}
         state = {
             **stateful,
             "collector": collector,

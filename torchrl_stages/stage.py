@@ -62,6 +62,16 @@ class StageResult:
     timing: dict[str, float] = field(default_factory=dict)
 
 
+def first_evaluation(cfg: StageConfig) -> int:
+    """Frames of a stage's first evaluation: ``eval_every``, or, with an early stop, the first
+    of the ``patience`` evaluations that can stop the stage at ``min_frames`` (earlier ones
+    could not stop it: evaluations only as often as the early stop needs)."""
+    first = int(cfg.eval_every)
+    if cfg.success_threshold is not None:
+        first = max(first, int(cfg.min_frames) - (int(cfg.patience) - 1) * first)
+    return first
+
+
 class Stopwatch:
     """Wall-clock seconds spent in named phases of a loop.
 
@@ -247,7 +257,7 @@ class StageTrainer:
             storage=LazyTensorStorage(cfg.buffer_size), batch_size=cfg.batch_size
         )
         monitor = _EvalMonitor(cfg)
-        counters = {"next_eval": cfg.eval_every, "seconds": 0.0, "log": {}}
+        counters = {"next_eval": first_evaluation(cfg), "seconds": 0.0, "log": {}}
         state = {  # what a checkpoint holds (and the process-global generators)
             "learner": StateOf(learner.checkpoint, learner.load_checkpoint),
             "replay_buffer": buffer,

@@ -1,0 +1,153 @@
+"""Where a run's wall-clock goes: collection, replay sampling, update, target update, evaluation,
+logging and checkpoints, per stage, with gradient updates and env frames per second.
+
+It trains one run of a task (any Hydra overrides) and reads each stage's timing breakdown
+(``StageResult.timing``); the target-network update, which happens inside each gradient step,
+is timed apart. ``update`` is then the loss, backward and optimizer step alone; ``updates/s``
+counts gradient steps per second of update and target update, ``frames/s`` env frames per
+second of collection (policy, env step, storing).
+
+    python scripts/profile_stage.py --task gridworld [--compile off|default] [OVERRIDE ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from _benchmark import compose_config
+
+from torchrl_stages.config import register_configs
+from torchrl_stages.experiment import Experiment
+from torchrl_stages.learners.base import FusedSoftUpdate
+
+PHASES = ("collect", "sample", "update", "target_update", "evaluate", "log", "checkpoint")
+
+
+def profile(task: str, compile: str, overrides: list[str], out: Path) -> dict:
+    """Trains one run; returns its per-stage breakdown."""
+    per_stage: dict[int, float] = {}
+    current = {"stage": None}
+    step = FusedSoftUpdate.step
+
+    def timed_step(self) -> None:
+        start = time.perf_counter()
+        step(self)
+        stage = current["stage"]
+        per_stage[stage] = per_stage.get(stage, 0.0) + time.perf_counter() - start
+
+    FusedSoftUpdate.step = timed_step
+    try:
+        cfg = compose_config(task, f"compile={compile}", "eval.plots=false", *overrides)
+        experiment = Experiment(cfg, out / f"{task}_{compile}")
+        begin = experiment.begin
+
+        def begin_hook(stage: int):  # the stage whose target updates are being timed
+            current["stage"] = stage
+            return begin(stage)
+
+        experiment.begin = begin_hook
+        start = time.perf_counter()
+        result = experiment.run()
+        total = time.perf_counter() - start
+    finally:
+        FusedSoftUpdate.step = step
+    rows = []
+    for stage in result["training"]["stages"]:
+        k, timing = stage["stage"], dict(stage["timing"])
+        target = (
+            per_stage.get(k, 0.0)
+            if len(result["training"]["stages"]) > 1
+            else sum(per_stage.values())
+        )
+        timing["target_update"] = target
+        timing["update"] = timing.get("update", 0.0) - target
+        row = {
+            "task": task,
+            "compile": compile,
+            "stage": k,
+            "frames": stage["frames"],
+            "updates": stage["updates"],
+            "seconds": stage["seconds"],
+            **{phase: timing.get(phase, 0.0) for phase in PHASES},
+        }
+        learn = row["update"] + row["target_update"]
+        row["updates_per_s"] = stage["updates"] / learn if learn > 0 else None
+        row["frames_per_s"] = stage["frames"] / row["collect"] if row["collect"] > 0 else None
+        rows.append(row)
+    return {
+        "task": task,
+        "compile": compile,
+        "total_seconds": total,
+        "stages": rows,
+        "success_rate": result["success_rate"],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--task", default="gridworld")
+    parser.add_argument(
+        "--compile",
+        nargs="+",
+        default=["off"],
+        help="torch.compile modes to compare (off, default, ...)",
+    )
+    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("overrides", nargs="*")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    register_configs()
+    out = args.out or Path(tempfile.mkdtemp(prefix="profile_"))
+    out.mkdir(parents=True, exist_ok=True)
+    command = "python " + shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
+    print(f"{command}\ntorch {torch.__version__}, {os.cpu_count()} CPUs; runs in {out}")
+    header = [
+        "compile",
+        "stage",
+        "frames",
+        "updates",
+        "train (s)",
+        *PHASES,
+        "updates/s",
+        "frames/s",
+    ]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    runs = []
+    for mode in args.compile:
+        run = profile(args.task, mode, args.overrides, out)
+        runs.append(run)
+        for r in run["stages"]:
+            cells = [
+                mode,
+                str(r["stage"]),
+                str(r["frames"]),
+                str(r["updates"]),
+                f"{r['seconds']:.1f}",
+                *(f"{r[p]:.1f}" for p in PHASES),
+                f"{r['updates_per_s']:.0f}" if r["updates_per_s"] else "-",
+                f"{r['frames_per_s']:.0f}" if r["frames_per_s"] else "-",
+            ]
+            lines.append("| " + " | ".join(cells) + " |")
+        print("\n".join(lines[-len(run["stages"]) :]), flush=True)
+        print(
+            f"{args.task}, compile={mode}: {run['total_seconds']:.1f} s in all (training, "
+            f"evaluation, figures), success {run['success_rate']:.1%}"
+        )
+    (out / "rows.json").write_text(json.dumps(runs, indent=2))
+    table = ["```text", f"$ {command}", "```", "", *lines]
+    (out / "table.md").write_text("\n".join(table) + "\n")
+    print(f"wrote {out / 'rows.json'} and {out / 'table.md'}")
+
+
+if __name__ == "__main__":
+    main()
