@@ -195,6 +195,20 @@ class Experiment:
         if self.resuming and checkpoints.latest() is None and rewind is not None:
             rewind({})
         learners, results, phases = JointTrainer(task, checkpoints=checkpoints, **kwargs).train()
+        for phase in phases:
+            start = (
+                "the task's own starts"
+                if phase["start_stage"] is None
+                else (f"stage {phase['start_stage']} starts")
+            )
+            log.info(
+                "joint phase from %s: %d frames, whole-task success %.2f, value error %.3f%s",
+                start,
+                phase["frames"],
+                phase["success_rate"] if phase["success_rate"] is not None else float("nan"),
+                phase["value_error"] if phase["value_error"] is not None else float("nan"),
+                " (early stop)" if phase["early_stopped"] else " (budget used, best restored)",
+            )
         for k in range(task.num_stages):
             self.save(k, learners[k], results[k])
         run.clear_checkpoints("joint")
@@ -260,7 +274,7 @@ class Experiment:
             note,
         )
         threshold = self.task.stage_cfg(stage).success_threshold
-        if threshold is not None and not result.early_stopped:
+        if self.cfg.schedule.name != "joint" and threshold is not None and not result.early_stopped:
             log.warning(
                 "stage %d (%s) did not meet its early-stop criterion within its budget of %d "
                 "frames; the run goes on with its best evaluation. Fix: raise "

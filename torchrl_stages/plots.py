@@ -246,10 +246,10 @@ def plot_learning_curves(
                     markersize=3,
                 )
             values = [v for key in keys for _, v in series[key]]
-            if min(values) > 0 and max(values) > 20 * min(values):  # spans decades
-                ax.set_yscale("log")
             if title == "evaluation success rate":
                 ax.set_ylim(-0.05, 1.05)
+            elif min(values) > 0 and max(values) > 20 * min(values):  # spans decades
+                ax.set_yscale("log")
             ax.set_title(f"stage {stage}: {title}", fontsize=9)
             ax.set_xlabel("frames in stage", fontsize=8)
             ax.tick_params(labelsize=7)

@@ -63,11 +63,12 @@ class StageResult:
 
 
 def first_evaluation(cfg: StageConfig) -> int:
-    """Frames of a stage's first evaluation: ``eval_every``, or, with an early stop, the first
-    of the ``patience`` evaluations that can stop the stage at ``min_frames`` (earlier ones
-    could not stop it: evaluations only as often as the early stop needs)."""
+    """Frames of a stage's first evaluation: ``eval_every``, or, with an early stop that the
+    budget allows, the first of the ``patience`` evaluations that can stop the stage at
+    ``min_frames`` (earlier ones could not stop it: evaluations only as often as the early stop
+    needs)."""
     first = int(cfg.eval_every)
-    if cfg.success_threshold is not None:
+    if cfg.success_threshold is not None and int(cfg.min_frames) <= int(cfg.frames):
         first = max(first, int(cfg.min_frames) - (int(cfg.patience) - 1) * first)
     return first
 
