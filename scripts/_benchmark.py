@@ -66,6 +66,13 @@ def train(task: str, run_dir: Path, *overrides: str) -> dict[str, Any]:
     return Experiment(cfg, run_dir).run()
 
 
+def checkpoint_share(result: dict[str, Any]) -> str:
+    """Wall-clock of a run's mid-stage checkpoints, in seconds and as a share of its training."""
+    stages = result["training"]["stages"]
+    seconds = sum(stage.get("timing", {}).get("checkpoint", 0.0) for stage in stages)
+    return f"{seconds:.1f} ({seconds / result['training']['seconds']:.1%})"
+
+
 def run_table(
     args: argparse.Namespace,
     columns: list[str],

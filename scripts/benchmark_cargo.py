@@ -17,7 +17,7 @@ from __future__ import annotations
 import statistics
 from pathlib import Path
 
-from _benchmark import compose_config, parse_args, run_table, train
+from _benchmark import checkpoint_share, compose_config, parse_args, run_table, train
 
 VARIANTS = {
     "a": ("SDQL TD3 slider -> DQN propelled", []),
@@ -44,6 +44,7 @@ def run(variant: str, seed: int, frames: int, out: Path, extra: list[str]) -> di
         "median_steps": result["median_steps_success"],
         "per_robot": result["mean_steps_per_stage"],
         "seconds": result["training"]["seconds"],
+        "checkpoints": checkpoint_share(result),
         "frames": sum(s["frames"] for s in result["training"]["stages"]),
     }
 
@@ -72,7 +73,7 @@ def main() -> None:
     if args.frames is None:  # frame budget per SDQL stage (single learners get twice this)
         args.frames = int(compose_config("cargo", *args.overrides).task.stages.slider.frames)
     columns = ["variant", "seed", "success", "mean / median steps (successes)"]
-    columns += ["mean steps per robot", "train wall-clock (s)", "env frames"]
+    columns += ["mean steps per robot", "train wall-clock (s)", "checkpoints (s)", "env frames"]
     run_table(
         args,
         columns,
@@ -84,6 +85,7 @@ def main() -> None:
             f"{_fmt(r['mean_steps'])} / {_fmt(r['median_steps'])}",
             " / ".join(f"{s:.1f}" for s in r["per_robot"]),
             f"{r['seconds']:.0f}",
+            r["checkpoints"],
             str(r["frames"]),
         ],
         summary,

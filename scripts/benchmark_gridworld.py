@@ -21,7 +21,7 @@ from __future__ import annotations
 import statistics
 from pathlib import Path
 
-from _benchmark import parse_args, run_table, train
+from _benchmark import checkpoint_share, parse_args, run_table, train
 
 from torchrl_stages.envs import measure_throughput
 
@@ -45,6 +45,7 @@ def run(variant: str, seed: int, out: Path, extra: list[str]) -> dict:
         "variant": variant,
         "seed": seed,
         "seconds": result["training"]["seconds"],
+        "checkpoints": checkpoint_share(result),
         "frames": sum(s["frames"] for s in stages),
         "updates": sum(s["updates"] for s in stages),
         "success": result["success_rate"],
@@ -75,7 +76,7 @@ def main() -> None:
     args = parse_args(__doc__, list(VARIANTS), throughput=False)
     columns = ["variant", "seed", "train wall-clock (s)", "env frames", "gradient steps"]
     columns += ["success (column 0)", "path from (0,0) / shortest", "optimal path"]
-    columns += ["vertical moves per stage", "max abs V error", "pass"]
+    columns += ["vertical moves per stage", "max abs V error", "checkpoints (s)", "pass"]
     run_table(
         args,
         columns,
@@ -91,6 +92,7 @@ def main() -> None:
             "yes" if r["optimal"] else "no",
             str(r["vertical"]),
             f"{r['value_error']:.3f}",
+            r["checkpoints"],
             "yes" if r["pass"] else "**no**",
         ],
         summary,

@@ -19,7 +19,7 @@ from __future__ import annotations
 import statistics
 from pathlib import Path
 
-from _benchmark import compose_config, parse_args, run_table, train
+from _benchmark import checkpoint_share, compose_config, parse_args, run_table, train
 
 SINGLE = ["~task.stages.fine", "task.env.scales=[0.5]"]
 VARIANTS = {
@@ -50,6 +50,7 @@ def run(variant: str, seed: int, frames: int, out: Path, extra: list[str]) -> di
         "steps": result["mean_steps_success"],
         "dist": result["task_metrics"]["final_distance_p50_p90_p99"],
         "seconds": result["training"]["seconds"],
+        "checkpoints": checkpoint_share(result),
         "frames": sum(s["frames"] for s in result["training"]["stages"]),
     }
 
@@ -71,7 +72,12 @@ def main() -> None:
     if args.frames is None:  # frame budget per SDQL stage (single learners get twice this)
         args.frames = int(compose_config("manipulator", *args.overrides).task.stages.fine.frames)
     columns = ["variant", "seed", "success", "mean steps (successes)"]
-    columns += ["final distance p50 / p90 / p99", "train wall-clock (s)", "env frames"]
+    columns += [
+        "final distance p50 / p90 / p99",
+        "train wall-clock (s)",
+        "checkpoints (s)",
+        "env frames",
+    ]
     run_table(
         args,
         columns,
@@ -83,6 +89,7 @@ def main() -> None:
             "-" if r["steps"] is None else f"{r['steps']:.1f}",
             " / ".join(f"{d:.3f}" for d in r["dist"]),
             f"{r['seconds']:.0f}",
+            r["checkpoints"],
             str(r["frames"]),
         ],
         summary,

@@ -7,7 +7,7 @@ is timed apart. ``update`` is then the loss, backward and optimizer step alone; 
 counts gradient steps per second of update and target update, ``frames/s`` env frames per
 second of collection (policy, env step, storing).
 
-    python scripts/profile_stage.py --task gridworld [--compile off|default] [OVERRIDE ...]
+    python scripts/profile_stage.py [OVERRIDE ...] --task gridworld [--compile off default]
 """
 
 from __future__ import annotations
@@ -105,6 +105,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
+    misplaced = [mode for mode in args.compile if "=" in mode]
+    if misplaced:  # --compile takes every word after it
+        parser.error(f"{misplaced} are not compile modes: put Hydra overrides before --compile")
     torch.set_num_threads(1)
     register_configs()
     out = args.out or Path(tempfile.mkdtemp(prefix="profile_"))

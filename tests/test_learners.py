@@ -179,8 +179,9 @@ def test_saturation_penalty_is_zero_inside_the_bound(algo):
     saturate(learner, 1.5)
     _, penalty = learner.with_saturation_penalty(learner.loss, batch_for(learner.specs))
     assert penalty.item() == 0.0
-    _, off = make(algo).with_saturation_penalty(learner.loss, batch_for(learner.specs))
-    assert off == 0.0  # the default (0) adds nothing and skips the hook
+    off = make(algo, saturation_penalty=0.0)
+    _, nothing = off.with_saturation_penalty(off.loss, batch_for(off.specs))
+    assert nothing == 0.0  # 0 adds nothing and skips the hook
 
 
 @pytest.mark.parametrize("algo", ["ddpg", "td3"])

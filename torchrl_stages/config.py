@@ -92,8 +92,10 @@ class DDPGConfig(StageConfig):
     sigma_end: float = 0.1
     annealing_frames: int = 20_000
     # weight of mean(relu(|pre-tanh actor output| - 2)^2) in the actor loss: keeps the actor out
-    # of deep tanh saturation, where its gradient vanishes (0: off)
-    saturation_penalty: float = 0.0
+    # of deep tanh saturation, where its gradient vanishes and the actor stays at an action bound
+    # for good (the manipulator's fine stage failed from one elbow configuration without it, the
+    # cargo slider circled); zero inside |action| <= 0.96 of the bound (0: off)
+    saturation_penalty: float = 1.0
 
 
 @dataclass
