@@ -17,6 +17,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
+from matplotlib.ticker import MaxNLocator
 
 __all__ = [
     "plot_arm_figure",
@@ -252,6 +253,7 @@ def plot_learning_curves(
                 ax.set_yscale("log")
             ax.set_title(f"stage {stage}: {title}", fontsize=9)
             ax.set_xlabel("frames in stage", fontsize=8)
+            ax.xaxis.set_major_locator(MaxNLocator(4))  # frame counts: few, readable ticks
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3)
             if len(keys) > 1 or keys[0][1] != "stage":
