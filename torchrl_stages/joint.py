@@ -13,7 +13,6 @@ that cannot start inside a chosen stage runs one phase from the task's own start
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -25,7 +24,6 @@ from torch import nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, RewardSum, TransformedEnv
 from torchrl.record.loggers import Logger
-from tqdm.auto import tqdm
 
 from torchrl_stages.checkpoint import StageCheckpoints, StateOf
 from torchrl_stages.collector import StageCollector
@@ -39,6 +37,7 @@ from torchrl_stages.stage import (
     Stopwatch,
     _EvalMonitor,
     first_evaluation,
+    progress_bar,
 )
 from torchrl_stages.task import StagedTask
 from torchrl_stages.transforms import NonFiniteValueError, StageRewardTransform, StageTransform
@@ -220,13 +219,8 @@ class JointTrainer:
             self._rewind_log(counters["log"])
         counters["in_phase"] = True
         team = nn.ModuleList(self.learners)  # the best evaluation keeps every learner's weights
-        bar = tqdm(
-            initial=collector.frames,
-            total=int(cfg.frames),
-            desc=f"joint phase from stage {k}",
-            unit="frame",
-            disable=not (self.progress and sys.stderr.isatty()),
-            leave=False,
+        bar = progress_bar(
+            collector.frames, int(cfg.frames), f"joint phase from stage {k}", self.progress
         )
         try:
             for batch in watch.timed("collect", collector):

@@ -62,6 +62,18 @@ class StageResult:
     timing: dict[str, float] = field(default_factory=dict)
 
 
+def progress_bar(initial: int, total: int, desc: str, enabled: bool) -> tqdm:
+    """A stage's (or joint phase's) frame bar, shown only on a terminal."""
+    return tqdm(
+        initial=initial,
+        total=total,
+        desc=desc,
+        unit="frame",
+        disable=not (enabled and sys.stderr.isatty()),
+        leave=False,
+    )
+
+
 def first_evaluation(cfg: StageConfig) -> int:
     """Frames of a stage's first evaluation: ``eval_every``, or, with an early stop that the
     budget allows, the first of the ``patience`` evaluations that can stop the stage at
@@ -272,13 +284,8 @@ class StageTrainer:
             self._rewind_log(counters["log"])
         start = time.perf_counter() - counters["seconds"]
         watch = Stopwatch()
-        bar = tqdm(
-            initial=collector.frames,
-            total=cfg.frames,
-            desc=f"stage {self.stage} ({self.name})",
-            unit="frame",
-            disable=not (self.progress and sys.stderr.isatty()),
-            leave=False,
+        bar = progress_bar(
+            collector.frames, int(cfg.frames), f"stage {self.stage} ({self.name})", self.progress
         )
         try:
             for batch in watch.timed("collect", collector):
