@@ -6,14 +6,11 @@ import json
 
 import pytest
 import torch
-from conftest import assert_figure
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
+from conftest import assert_figure, hydra_config
 from hydra.errors import ConfigCompositionException
 from tensordict.nn import TensorDictModule
 from torchrl.data import Bounded, Categorical
 
-from torchrl_stages.config import register_configs
 from torchrl_stages.evaluate import rollout_first_episodes
 from torchrl_stages.experiment import build_task
 from torchrl_stages.learners import DQNLearner, TD3Learner, make_learner
@@ -24,11 +21,8 @@ from torchrl_stages.validate import ConfigError
 
 @pytest.fixture(scope="module")
 def compose_cfg():
-    register_configs()
-    GlobalHydra.instance().clear()
-    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-        yield lambda *overrides: compose("config", overrides=["task=cargo", *overrides])
-    GlobalHydra.instance().clear()
+    with hydra_config("task=cargo") as compose_fn:
+        yield compose_fn
 
 
 @pytest.fixture(scope="module")

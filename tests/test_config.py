@@ -6,14 +6,11 @@ Everything here runs in-process through Hydra's compose API (no training, no sub
 from __future__ import annotations
 
 import copy
-import functools
 import importlib.resources
 import importlib.util
 
 import pytest
 import torch
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import ConfigCompositionException
 from omegaconf import DictConfig, OmegaConf
 
@@ -24,7 +21,6 @@ from torchrl_stages.config import (
     DQNConfig,
     LoggerConfig,
     TD3Config,
-    register_configs,
 )
 from torchrl_stages.experiment import Experiment, build_task
 from torchrl_stages.validate import ConfigError, validate_config
@@ -50,25 +46,6 @@ TASKS = _options("task")
 GAMMAS = _options("task/gammas")
 ALGOS = _options("algo")
 LOGGERS = _options("logger")
-
-
-@pytest.fixture(scope="module")
-def hydra_compose():
-    """``compose(*overrides)`` of the root config (cached: treat the configs as read-only).
-
-    Hydra is initialised once for the module (a compose costs ~0.2 s) from a cleared global
-    state, and cleared again afterwards.
-    """
-    GlobalHydra.instance().clear()
-    register_configs()
-
-    @functools.cache
-    def _compose(*overrides: str) -> DictConfig:
-        return compose("config", overrides=list(overrides))
-
-    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-        yield _compose
-    GlobalHydra.instance().clear()
 
 
 def _gammas(cfg: DictConfig) -> list[float]:

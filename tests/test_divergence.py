@@ -10,12 +10,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
+from conftest import hydra_config
 from tensordict.nn import TensorDictModule
 from torchrl.envs import TransformedEnv
 
-from torchrl_stages.config import register_configs
 from torchrl_stages.envs import GridWorldEnv
 from torchrl_stages.experiment import Experiment
 from torchrl_stages.stage import DivergenceError
@@ -67,13 +65,8 @@ def test_nan_next_value_raises_on_the_transition(start_col):
 
 
 def _compose(*overrides: str):
-    GlobalHydra.instance().clear()
-    register_configs()
-    try:
-        with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-            return compose("config", overrides=["task=gridworld", *overrides])
-    finally:
-        GlobalHydra.instance().clear()
+    with hydra_config("task=gridworld") as compose_fn:
+        return compose_fn(*overrides)
 
 
 def _check_message(message: str) -> None:

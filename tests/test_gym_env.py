@@ -15,13 +15,11 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import assert_figure, cli_env, console_script
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
 from line_env import line_stage, unbatched_line
 from omegaconf import OmegaConf
 
 from torchrl_stages import GymStageEnv, StagedTask, StageTrainer
-from torchrl_stages.config import DQNConfig, register_configs
+from torchrl_stages.config import DQNConfig
 from torchrl_stages.experiment import build_task
 from torchrl_stages.learners import DQNLearner
 from torchrl_stages.validate import ConfigError
@@ -107,15 +105,6 @@ def test_unbatched_env_is_refused_with_the_fix(cli):
 
 
 # ------------------------------------------------------------------ in-process
-@pytest.fixture
-def compose_cfg():
-    GlobalHydra.instance().clear()
-    register_configs()
-    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-        yield lambda *overrides: compose("config", overrides=list(overrides))
-    GlobalHydra.instance().clear()
-
-
 def test_gym_stage_env_follows_the_task_protocol():
     env = GymStageEnv("LineWorld-v0", "line_env.line_stage", batch_size=(3,), start_stage=1)
     assert env.num_stages == 2 and env.max_steps == 20  # read from the gymnasium env

@@ -5,14 +5,10 @@ from __future__ import annotations
 
 import csv
 
-import pytest
 from conftest import assert_figure
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
 from torchrl.record.loggers import Logger
 
 from torchrl_stages import Experiment
-from torchrl_stages.config import register_configs
 from torchrl_stages.loggers import RunLogger
 
 TWO_STAGES = [
@@ -67,15 +63,6 @@ def test_run_logger_writes_metrics_and_forwards(tmp_path):
             ["name", "step", "value"],
             ["train/stage_1/loss", "256", "0.5"],
         ]
-
-
-@pytest.fixture
-def compose_cfg():
-    GlobalHydra.instance().clear()
-    register_configs()
-    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-        yield lambda *overrides: compose("config", overrides=list(overrides))
-    GlobalHydra.instance().clear()
 
 
 def test_learning_curves_without_a_metrics_backend(compose_cfg, tmp_path):

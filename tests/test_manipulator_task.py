@@ -7,12 +7,9 @@ import math
 
 import pytest
 import torch
-from conftest import assert_figure
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
+from conftest import assert_figure, hydra_config
 from tensordict.nn import TensorDictModule
 
-from torchrl_stages.config import register_configs
 from torchrl_stages.envs.manipulator import inverse_kinematics
 from torchrl_stages.experiment import build_task
 from torchrl_stages.validate import ConfigError
@@ -20,11 +17,8 @@ from torchrl_stages.validate import ConfigError
 
 @pytest.fixture(scope="module")
 def compose_cfg():
-    register_configs()
-    GlobalHydra.instance().clear()
-    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-        yield lambda *overrides: compose("config", overrides=["task=manipulator", *overrides])
-    GlobalHydra.instance().clear()
+    with hydra_config("task=manipulator") as compose_fn:
+        yield compose_fn
 
 
 def test_two_ddpg_stages_and_td3_override(compose_cfg):

@@ -3,17 +3,13 @@ block, and ``stages-train --help``. Compositions run in-process; ``--help`` is a
 
 from __future__ import annotations
 
-import functools
 import importlib.resources
 import re
 
 import pytest
 from conftest import run_cli
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
-from torchrl_stages.config import register_configs
 from torchrl_stages.validate import ConfigError, validate_config, validate_sweeper
 
 CONF = importlib.resources.files("torchrl_stages.conf")
@@ -28,20 +24,6 @@ def options(group: str) -> list[str]:
         for p in CONF.joinpath(group).iterdir()
         if p.is_file() and p.name.endswith(".yaml")
     )
-
-
-@pytest.fixture(scope="module")
-def hydra_compose():
-    GlobalHydra.instance().clear()
-    register_configs()
-
-    @functools.cache
-    def _compose(*overrides: str) -> DictConfig:
-        return compose("config", overrides=list(overrides))
-
-    with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-        yield _compose
-    GlobalHydra.instance().clear()
 
 
 # ------------------------------------------------------------------ experiment=smoke
