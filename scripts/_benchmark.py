@@ -31,7 +31,7 @@ def compose_config(task: str, *overrides: str) -> DictConfig:
 
 def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespace:
     """``--seeds``, ``--variants``, ``--out`` (default: a temporary directory) and extra Hydra
-    overrides for every run; ``extra`` adds ``--name default`` options. Sets one torch thread."""
+    overrides for every run; ``extra`` adds ``--name default`` options."""
     parser = argparse.ArgumentParser(
         description=doc.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -47,14 +47,13 @@ def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespac
         "overrides", nargs="*", help="extra Hydra overrides for every run, e.g. task.env.size=20"
     )
     args = parser.parse_args()
-    torch.set_num_threads(1)
     register_configs()
     args.out = args.out or Path(tempfile.mkdtemp(prefix="benchmark_"))
     args.out.mkdir(parents=True, exist_ok=True)
     args.command = "python " + shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
     print(
-        f"{args.command}\ntorch {torch.__version__}, {os.cpu_count()} CPUs, 1 torch thread; "
-        f"runs in {args.out}",
+        f"{args.command}\ntorch {torch.__version__}, {os.cpu_count()} CPUs (torch threads: "
+        f"the config's `threads`); runs in {args.out}",
         flush=True,
     )
     return args

@@ -8,11 +8,15 @@ counts gradient steps per second of update and target update, ``frames/s`` env f
 second of collection (policy, env step, storing).
 
     python scripts/profile_stage.py [OVERRIDE ...] --task gridworld [--compile off default]
+        [--threads 1 2]
+
+Every combination of ``--threads`` and ``--compile`` trains one run, with the same seed.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import shlex
@@ -31,7 +35,7 @@ from torchrl_stages.learners.base import FusedSoftUpdate
 PHASES = ("collect", "sample", "update", "target_update", "evaluate", "log", "checkpoint")
 
 
-def profile(task: str, compile: str, overrides: list[str], out: Path) -> dict:
+def profile(task: str, compile: str, threads: int | None, overrides: list[str], out: Path) -> dict:
     """Trains one run; returns its per-stage breakdown."""
     per_stage: dict[int, float] = {}
     current = {"stage": None}
@@ -45,8 +49,10 @@ def profile(task: str, compile: str, overrides: list[str], out: Path) -> dict:
 
     FusedSoftUpdate.step = timed_step
     try:
-        cfg = compose_config(task, f"compile={compile}", "eval.plots=false", *overrides)
-        experiment = Experiment(cfg, out / f"{task}_{compile}")
+        pinned = [] if threads is None else [f"threads={threads}"]
+        cfg = compose_config(task, f"compile={compile}", *pinned, "eval.plots=false", *overrides)
+        threads = int(cfg.threads)
+        experiment = Experiment(cfg, out / f"{task}_threads{threads}_{compile}")
         begin = experiment.begin
 
         def begin_hook(stage: int):  # the stage whose target updates are being timed
@@ -71,6 +77,7 @@ def profile(task: str, compile: str, overrides: list[str], out: Path) -> dict:
         timing["update"] = timing.get("update", 0.0) - target
         row = {
             "task": task,
+            "threads": threads,
             "compile": compile,
             "stage": k,
             "frames": stage["frames"],
@@ -84,6 +91,7 @@ def profile(task: str, compile: str, overrides: list[str], out: Path) -> dict:
         rows.append(row)
     return {
         "task": task,
+        "threads": threads,
         "compile": compile,
         "total_seconds": total,
         "stages": rows,
@@ -102,19 +110,26 @@ def main() -> None:
         default=["off"],
         help="torch.compile modes to compare (off, default, ...)",
     )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        default=[None],
+        help="torch thread counts to compare (default: the config's, i.e. the task's)",
+    )
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
     misplaced = [mode for mode in args.compile if "=" in mode]
     if misplaced:  # --compile takes every word after it
         parser.error(f"{misplaced} are not compile modes: put Hydra overrides before --compile")
-    torch.set_num_threads(1)
     register_configs()
     out = args.out or Path(tempfile.mkdtemp(prefix="profile_"))
     out.mkdir(parents=True, exist_ok=True)
     command = "python " + shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
     print(f"{command}\ntorch {torch.__version__}, {os.cpu_count()} CPUs; runs in {out}")
     header = [
+        "threads",
         "compile",
         "stage",
         "frames",
@@ -126,11 +141,12 @@ def main() -> None:
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     runs = []
-    for mode in args.compile:
-        run = profile(args.task, mode, args.overrides, out)
+    for threads, mode in itertools.product(args.threads, args.compile):
+        run = profile(args.task, mode, threads, args.overrides, out)
         runs.append(run)
         for r in run["stages"]:
             cells = [
+                str(run["threads"]),
                 mode,
                 str(r["stage"]),
                 str(r["frames"]),
@@ -143,8 +159,9 @@ def main() -> None:
             lines.append("| " + " | ".join(cells) + " |")
         print("\n".join(lines[-len(run["stages"]) :]), flush=True)
         print(
-            f"{args.task}, compile={mode}: {run['total_seconds']:.1f} s in all (training, "
-            f"evaluation, figures), success {run['success_rate']:.1%}"
+            f"{args.task}, threads={run['threads']}, compile={mode}: "
+            f"{run['total_seconds']:.1f} s in all (training, evaluation, figures), "
+            f"success {run['success_rate']:.1%}"
         )
     (out / "rows.json").write_text(json.dumps(runs, indent=2))
     table = ["```text", f"$ {command}", "```", "", *lines]

@@ -346,6 +346,14 @@ def test_experiment_rejects_threads_zero_with_config_error(hydra_compose, no_tra
     assert not any(tmp_path.iterdir())  # nothing written
 
 
+def test_threads_default_to_the_tasks_and_an_override_wins(hydra_compose):
+    assert hydra_compose().threads == 1  # the grid world's 64-unit layers
+    assert hydra_compose("task=manipulator").threads == 2
+    assert hydra_compose("task=cargo").threads == 2
+    assert hydra_compose("task=cargo", "threads=1").threads == 1
+    assert hydra_compose("task=manipulator", "task.threads=1").threads == 1
+
+
 def test_bad_device_is_reported_on_the_device_key(hydra_compose):
     with pytest.raises(ConfigError) as info:
         build_task(hydra_compose("device=foo"))

@@ -127,6 +127,10 @@ class TaskConfig:
     eval_env: dict[str, Any] = field(default_factory=dict)
     stages: dict[str, Any] = field(default_factory=dict)
     eval_episodes: int = 100  # this task's default for eval.episodes
+    # this task's default for `threads`: the torch intra-op threads its networks train fastest
+    # with (measured on 2 cores, README "Speed": 1 for the grid world's 64-unit layers, 2 for the
+    # manipulator's 256-unit layers and cargo's CNNs)
+    threads: int = 1
     # whether the env can start an episode inside a chosen stage (`start_stage=k`); without
     # stage starts only schedule=joint applies, as one phase from the task's own starts
     stage_starts: bool = True
@@ -203,7 +207,9 @@ class TrainConfig:
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     seed: int = 0
     device: str = "cpu"
-    threads: int = 1  # torch intra-op threads; small nets train fastest with 1
+    # torch intra-op threads; default: the task's (task.threads). Use 1 per job when a launcher
+    # runs several jobs at once on the same cores
+    threads: int = II("task.threads")
     progress: bool = True  # tqdm bar per stage (hidden anyway when stderr is not a TTY)
     # frames between two checkpoints of the stage in progress (0: none); a resumed run loses at
     # most that much of the stage (about a minute of training on the shipped tasks)
