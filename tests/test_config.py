@@ -354,6 +354,16 @@ def test_threads_default_to_the_tasks_and_an_override_wins(hydra_compose):
     assert hydra_compose("task=manipulator", "task.threads=1").threads == 1
 
 
+def test_only_stages_whose_values_are_learned_from_check_them(hydra_compose):
+    # the manipulator's coarse stage is stage 0: no stage bootstraps from its values
+    stages = hydra_compose("task=manipulator").task.stages
+    assert stages.coarse.value_tolerance is None and stages.fine.value_tolerance == 0.05
+    stages = hydra_compose("experiment=manipulator_td3").task.stages
+    assert stages.coarse.value_tolerance is None and stages.fine.value_tolerance == 0.05
+    # the grid world's report measures every cell's value, stage 0's included
+    assert hydra_compose().task.stages.s0.value_tolerance == 0.01
+
+
 def test_bad_device_is_reported_on_the_device_key(hydra_compose):
     with pytest.raises(ConfigError) as info:
         build_task(hydra_compose("device=foo"))

@@ -31,6 +31,15 @@ def test_early_stop_needs_patience_tolerance_and_min_frames():
     assert monitor.final == (1.0, 0.01)
 
 
+def test_without_value_tolerance_success_alone_stops_the_stage():
+    monitor = _EvalMonitor(_cfg(success_threshold=0.98, value_tolerance=None, patience=2))
+    learner = _learner(0.0)
+    assert not monitor.record(learner, 0.97, 0.0, 100)
+    assert not monitor.record(learner, 1.0, 0.9, 200)  # values far off: not checked
+    assert monitor.record(learner, 0.98, 0.5, 300)
+    assert monitor.stopped and monitor.final == (0.98, 0.5)
+
+
 def test_budget_exhausted_restores_best_evaluation():
     monitor = _EvalMonitor(_cfg(success_threshold=1.0, patience=3))
     learner = _learner(0.0)
