@@ -221,7 +221,7 @@ INVALID = {
         ["task.stages.s3.frames_per_batch", "multiple", "num_envs"],
     ),
     "batch_over_buffer": (
-        ["task.stages.s1.buffer_size=256"],  # the grid world's batch_size is 512
+        ["task.stages.s1.buffer_size=128"],  # the grid world's batch_size is 256
         ["task.stages.s1.batch_size", "task.stages.s1.buffer_size"],
     ),
     "logger_backend": (["logger.backend=neptune"], ["logger.backend", "csv"]),

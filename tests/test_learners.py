@@ -114,6 +114,45 @@ def test_registry_and_make_learner():
 
 # ---------------------------------------------------------------------- update
 @pytest.mark.parametrize("algo", list(ALGOS))
+def test_fused_adam_makes_the_same_updates_up_to_rounding(algo):
+    learners = {}
+    for fused in (False, True):
+        torch.manual_seed(0)
+        learner = make(algo, fused_adam=fused)
+        for i in range(5):
+            torch.manual_seed(i)  # TD3's smoothing noise
+            learner.update(batch_for(learner.specs, seed=i))
+        learners[fused] = learner
+    assert all(o.defaults["fused"] for o in learners[True].optimizers.values())
+    assert not any(o.defaults["fused"] for o in learners[False].optimizers.values())
+    plain, fused = snapshot(learners[False]), snapshot(learners[True])
+    for name, value in plain.items():
+        assert torch.allclose(value, fused[name], atol=1e-5), name
+    # checkpoints are portable between the two: each loads the other's and steps on
+    plain_state, fused_state = learners[False].checkpoint(), learners[True].checkpoint()
+    learners[False].load_checkpoint(fused_state)
+    learners[True].load_checkpoint(plain_state)
+    for learner in learners.values():
+        learner.update(batch_for(learner.specs, seed=9))
+        assert all(torch.isfinite(v).all() for v in snapshot(learner).values())
+
+
+@pytest.mark.parametrize("fast_update", [True, False])
+@pytest.mark.parametrize("algo", list(ALGOS))
+def test_only_td3_updates_draw_random_numbers(algo, fast_update):
+    """The stage loop draws a batch's minibatches at once for learners whose update leaves
+    torch's generator alone (``update_draws_random`` false): it must be true of them."""
+    learner = make(algo, fast_update=fast_update)
+    batch = batch_for(learner.specs)
+    learner.update(batch.clone())  # past any first-call setup
+    for _ in range(2):  # the TD3 actor's delayed update included
+        state = torch.get_rng_state()
+        learner.update(batch.clone())
+        drew = not torch.equal(state, torch.get_rng_state())
+        assert drew == learner.update_draws_random == (algo == "td3")
+
+
+@pytest.mark.parametrize("algo", list(ALGOS))
 def test_updates_change_parameters_and_return_finite_losses(algo):
     learner = make(algo, policy_update_delay=2) if algo == "td3" else make(algo)
     online0, target0 = online_params(learner), target_params(learner)

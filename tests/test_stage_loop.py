@@ -12,7 +12,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from torchrl_stages.config import DQNConfig
-from torchrl_stages.learners import Learner
+from torchrl_stages.learners import DDPGLearner, DQNLearner, Learner, TD3Learner
 from torchrl_stages.schedule import train_backward
 from torchrl_stages.stage import StageTrainer
 from torchrl_stages.task import StagedTask
@@ -133,6 +133,67 @@ def test_no_update_before_init_random_frames():
     assert len(learner.policy_frames) == steps_per_batch * (len(batches) - 2)
     assert not result.early_stopped and not result.restored_best
     assert result.success_rate is None and result.value_error is None
+
+
+class RecordingLearner(FakeLearner):
+    """Keeps a copy of every minibatch it is given."""
+
+    def update(self, batch):
+        self.batches = [*getattr(self, "batches", []), batch.clone()]
+        return super().update(batch)
+
+
+class RandomUpdateLearner(RecordingLearner):
+    """An update that draws from torch's generator (as TD3's target smoothing does)."""
+
+    update_draws_random = True
+
+    def update(self, batch):
+        torch.randn(3)
+        return super().update(batch)
+
+
+def _minibatches(cls, cfg, per_update: bool) -> list:
+    task = _task()
+    learner = cls(cfg, task.specs(1))
+    learner.update_draws_random = per_update  # True: a buffer draw right before every update
+    env = task.stage_env(1, cfg.num_envs)
+    env.set_seed(0)
+    torch.manual_seed(0)
+    StageTrainer(1, learner, env, task.stage_eval_env(1), cfg).train()
+    return learner.batches
+
+
+def _same(a: list, b: list) -> bool:
+    pairs = zip(a, b, strict=False)
+    return len(a) == len(b) and all(torch.equal(x["index"], y["index"]) for x, y in pairs)
+
+
+def test_one_draw_per_batch_gives_the_minibatches_of_a_draw_per_update():
+    """The loop samples a batch's ``updates_per_batch`` minibatches in one draw: the same
+    minibatches, in the same order, as a draw before each update."""
+    cfg = _cfg(frames=768, init_random_frames=256, updates_per_batch=4)
+    one_draw = _minibatches(RecordingLearner, cfg, per_update=False)
+    reference = _minibatches(RecordingLearner, cfg, per_update=True)
+    assert len(one_draw) == 5 * 4  # batches at 256, 384, ..., 768 frames
+    assert all(b.batch_size == (cfg.batch_size,) for b in one_draw)
+    assert _same(one_draw, reference)
+    for a, b in zip(one_draw, reference, strict=True):
+        assert torch.equal(a["next", "observation"], b["next", "observation"])
+    assert len({tuple(b["index"].tolist()) for b in one_draw}) == len(one_draw)
+
+
+def test_an_update_that_draws_random_numbers_gets_a_draw_per_update():
+    """Where the update draws random numbers (TD3), one draw per batch would change the
+    minibatches; such learners declare it and keep a draw before each update."""
+    cfg = _cfg(frames=768, init_random_frames=256, updates_per_batch=4)
+    assert TD3Learner.update_draws_random and not DQNLearner.update_draws_random
+    assert not DDPGLearner.update_draws_random
+    assert RandomUpdateLearner(cfg, _task().specs(1)).update_draws_random
+    declared = _minibatches(RandomUpdateLearner, cfg, per_update=True)
+    one_draw = _minibatches(RandomUpdateLearner, cfg, per_update=False)
+    assert len(declared) == len(one_draw) == 20
+    assert not _same(declared, one_draw)
 
 
 def test_early_stop_breaks_at_the_evaluation_that_meets_the_criterion(monkeypatch):

@@ -33,6 +33,10 @@ class StageConfig:
     # compute the loss on plain tensors (what the torchrl loss module computes, without its
     # TensorDict overhead: 2-5x cheaper updates for small networks); false: call the loss module
     fast_update: bool = True
+    # Adam's fused kernel (torch.optim.Adam(fused=True): one op for all parameters instead of
+    # ~10 per tensor): the same update up to float rounding, cheaper where the networks are
+    # small; false: torch's default Adam
+    fused_adam: bool = False
     num_cells: list[int] = field(default_factory=lambda: [64, 64])  # hidden layers of each MLP
     fourier_features: int = 0  # octaves of sin/cos input encoding before each MLP (0: raw input)
     # CNN over image observations (C, H, W), one entry per conv layer (padding kernel // 2); its

@@ -266,9 +266,12 @@ class StageTrainer:
             total_frames=cfg.frames,
             init_random_frames=cfg.init_random_frames,
         )
-        buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(cfg.buffer_size), batch_size=cfg.batch_size
-        )
+        # one draw for all of a batch's gradient steps, split per step: the same indices as a
+        # draw per step (the sampler's randint stream is the same) unless the update itself
+        # draws random numbers in between (TD3's target smoothing); one storage read, not n
+        steps = int(cfg.updates_per_batch)
+        draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
+        buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size))
         monitor = _EvalMonitor(cfg)
         counters = {"next_eval": first_evaluation(cfg), "seconds": 0.0, "log": {}}
         state = {  # what a checkpoint holds (and the process-global generators)
@@ -297,11 +300,13 @@ class StageTrainer:
                 learner.anneal(frames)
                 losses = []
                 if frames >= cfg.init_random_frames:
-                    for _ in range(cfg.updates_per_batch):
+                    for _ in range(draws):
                         with watch("sample"):
-                            sample = buffer.sample()
-                        with watch("update"):
-                            losses.append(learner.update(sample))
+                            sample = buffer.sample(cfg.batch_size * per_draw)
+                            samples = sample.split(cfg.batch_size)
+                        for sample in samples:
+                            with watch("update"):
+                                losses.append(learner.update(sample))
                     learner.check_finite()
                 with watch("log"):
                     self._log_batch(batch, losses, frames)

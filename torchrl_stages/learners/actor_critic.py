@@ -74,8 +74,8 @@ class ActorCriticLearner(Learner):
         self.__dict__["_target_actor"] = with_params(self.actor_module, target_actor, live=True)
         actor_params, critic_params = self.loss_parameters()
         self.optimizers = {
-            "actor": torch.optim.Adam(actor_params, lr=cfg.actor_lr),
-            "critic": torch.optim.Adam(critic_params, lr=cfg.lr),
+            "actor": self.adam(actor_params, cfg.actor_lr),
+            "critic": self.adam(critic_params, cfg.lr),
         }
         self.make_fast_path()
 

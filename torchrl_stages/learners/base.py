@@ -140,6 +140,9 @@ class Learner(nn.Module, ABC):
 
     #: the algorithm's name in configs (``algo: dqn``)
     algo: str = ""
+    #: whether :meth:`update` draws from torch's global generator (TD3's target smoothing
+    #: noise); if not, the stage loop samples all of a batch's minibatches in one draw
+    update_draws_random: bool = False
 
     def __init__(self, cfg: StageConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__()
@@ -178,6 +181,10 @@ class Learner(nn.Module, ABC):
         if self.compile_mode == "off":
             return fn
         return torch.compile(fn, mode=None if self.compile_mode == "default" else self.compile_mode)
+
+    def adam(self, params, lr: float) -> torch.optim.Adam:
+        """Adam over ``params``, fused when ``cfg.fused_adam``."""
+        return torch.optim.Adam(params, lr=lr, fused=True if self.cfg.fused_adam else None)
 
     def anneal(self, frames: int) -> None:
         """Sets the schedules for ``frames`` collected frames: exploration noise and the

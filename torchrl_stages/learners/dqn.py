@@ -74,7 +74,7 @@ class DQNLearner(Learner):
         self.loss.set_keys(action=specs.action_key)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
         self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
-        self.optimizers = {"qvalue": torch.optim.Adam(self.loss.parameters(), lr=cfg.lr)}
+        self.optimizers = {"qvalue": self.adam(self.loss.parameters(), cfg.lr)}
         # the fast path's networks: tensors in, Q-values out (no TensorDict); the target one
         # reads the loss module's target parameters (not a sub-module: no second copy in
         # state_dict)

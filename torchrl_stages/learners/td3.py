@@ -29,6 +29,7 @@ class TD3Learner(ActorCriticLearner):
     """
 
     algo = "td3"
+    update_draws_random = True  # the target policy's smoothing noise
 
     def make_loss(self, cfg: TD3Config, spec: TensorSpec) -> TD3Loss:
         loss = TD3Loss(
