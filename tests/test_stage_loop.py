@@ -183,9 +183,11 @@ def test_one_draw_per_batch_gives_the_minibatches_of_a_draw_per_update():
     assert len({tuple(b["index"].tolist()) for b in one_draw}) == len(one_draw)
 
 
-def test_an_update_that_draws_random_numbers_gets_a_draw_per_update():
-    """Where the update draws random numbers (TD3), one draw per batch would change the
-    minibatches; such learners declare it and keep a draw before each update."""
+def test_one_draw_per_batch_would_change_the_minibatches_of_an_update_that_draws():
+    """Where the update draws random numbers (TD3), one draw per batch would give other
+    minibatches than a draw per update; such learners declare ``update_draws_random`` and the
+    loop then draws per update (``test_only_td3_updates_draw_random_numbers`` checks the
+    declarations against the learners' updates)."""
     cfg = _cfg(frames=768, init_random_frames=256, updates_per_batch=4)
     assert TD3Learner.update_draws_random and not DQNLearner.update_draws_random
     assert not DDPGLearner.update_draws_random

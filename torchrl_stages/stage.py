@@ -302,8 +302,8 @@ class StageTrainer:
                 if frames >= cfg.init_random_frames:
                     for _ in range(draws):
                         with watch("sample"):
-                            sample = buffer.sample(cfg.batch_size * per_draw)
-                            samples = sample.split(cfg.batch_size)
+                            drawn = buffer.sample(cfg.batch_size * per_draw)
+                            samples = drawn.split(cfg.batch_size)
                         for sample in samples:
                             with watch("update"):
                                 losses.append(learner.update(sample))
