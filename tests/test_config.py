@@ -21,8 +21,10 @@ from torchrl_stages.config import (
     DQNConfig,
     LoggerConfig,
     TD3Config,
+    as_dataclass,
 )
 from torchrl_stages.experiment import Experiment, build_task
+from torchrl_stages.learners import make_learner
 from torchrl_stages.validate import ConfigError, validate_config
 
 CONF = importlib.resources.files("torchrl_stages.conf")
@@ -176,6 +178,22 @@ def test_stage_nodes_are_typed(hydra_compose):
     assert OmegaConf.get_type(hydra_compose("algo@task.stages.s1=td3").task.stages.s1) is (
         TD3Config
     )
+
+
+def test_learners_read_their_composed_stage_config_as_a_dataclass(hydra_compose):
+    cfg = hydra_compose("task.stages.s1.tau=0.125")
+    task = build_task(cfg)
+    learner = make_learner(task.stage_cfg(1), task.specs(1))
+    assert type(learner.cfg) is DQNConfig  # plain attribute reads in the update
+    assert learner.cfg.tau == 0.125 and learner.cfg.gamma == cfg.task.stages.s1.gamma
+    # anything that is not a structured node is kept as given
+    plain = OmegaConf.create({"gamma": 0.5})
+    assert as_dataclass(plain) is plain
+    missing = OmegaConf.structured(DQNConfig)
+    missing.gamma = "???"
+    assert as_dataclass(missing) is missing
+    instance = DQNConfig()
+    assert as_dataclass(instance) is instance
 
 
 def test_unknown_stage_key_fails_at_composition(hydra_compose):

@@ -69,6 +69,50 @@ def test_qmax_value_batched_time_dims():
     assert torch.equal(value, obs.max(-1, keepdim=True).values)
 
 
+class _TwoInputs(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(5, 8), nn.ReLU(), nn.Linear(8, 4))
+
+    def forward(self, image, vector):
+        return self.net(torch.cat([image.flatten(-2).float().mean(-1), vector], -1))
+
+
+def test_qmax_value_calls_a_qvalue_actors_network_directly_with_the_same_values():
+    torch.manual_seed(0)
+    qactor = QValueActor(_TwoInputs(), in_keys=["image", "vector"], spec=Categorical(4))
+    td = TensorDict(
+        image=torch.randint(0, 2, (6, 3, 2, 2), dtype=torch.uint8),
+        vector=torch.randn(6, 2),
+        batch_size=[6],
+    )
+    v = QMaxValue(qactor)
+    assert v._network() is qactor.module[0]
+    calls = []
+    handle = qactor.register_forward_hook(lambda *args: calls.append(1))
+    fast = v(td.clone())["state_value"]
+    handle.remove()
+    assert not calls  # the TensorDict modules around the network did not run
+    expected = qactor(td.clone())["action_value"].max(-1, keepdim=True).values
+    assert torch.equal(fast, expected)  # bit for bit
+    # a frozen copy keeps the direct call, on its own (copied) network
+    frozen = freeze(v)
+    assert frozen._network() is frozen.qvalue_net.module[0]
+    assert torch.equal(frozen(td.clone())["state_value"], expected)
+
+
+def test_qmax_value_runs_other_modules_whole():
+    q = TensorDictModule(lambda obs: obs * 2, ["observation"], ["action_value"])
+    assert QMaxValue(q)._network() is None
+    # a QValueActor whose action values are another key: the whole actor runs
+    qactor = QValueActor(
+        linear(2, 2, [[1.0, 0.0], [0.0, 1.0]], [0.0, 0.0]),
+        in_keys=["observation"],
+        spec=Categorical(2),
+    )
+    assert QMaxValue(qactor, action_value_key="chosen_action_value")._network() is None
+
+
 def make_actor_critic():
     """mu(s) = 0.5 * s0 - s1; Q1(s, a) = s0 + 2 a + 1; Q2(s, a) = -s1 + a."""
     actor = TensorDictModule(linear(2, 1, [[0.5, -1.0]], [0.0]), ["observation"], ["action"])

@@ -9,11 +9,12 @@ command line and a typo fails at composition.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, is_dataclass
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import II, MISSING
+from omegaconf import II, MISSING, DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 
 @dataclass
@@ -225,6 +226,27 @@ class TrainConfig:
     compile: str = "auto"
     resume: bool = False  # continue the run in hydra.run.dir (same overrides otherwise)
     overwrite: bool = False  # replace the run in hydra.run.dir
+
+
+def as_dataclass(cfg: Any) -> Any:
+    """A structured config node (e.g. a composed ``task.stages.<name>``) as an instance of its
+    schema, interpolations resolved; anything else as given.
+
+    Reading a field of a plain dataclass costs nanoseconds where a ``DictConfig`` read costs
+    about 10 microseconds, and a learner's update reads several.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = as_dataclass(OmegaConf.structured(DQNConfig(gamma=0.9)))
+        >>> type(cfg).__name__, cfg.gamma
+        ('DQNConfig', 0.9)
+    """
+    if isinstance(cfg, DictConfig) and is_dataclass(OmegaConf.get_type(cfg)):
+        try:
+            return OmegaConf.to_object(cfg)
+        except OmegaConfBaseException:  # e.g. a missing value: keep the node (errors on read)
+            return cfg
+    return cfg
 
 
 def register_configs() -> None:

@@ -15,7 +15,7 @@ from torch import nn
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
 from torchrl.objectives import SoftUpdate
 
-from torchrl_stages.config import StageConfig
+from torchrl_stages.config import StageConfig, as_dataclass
 from torchrl_stages.learners.networks import ConvSpec
 
 
@@ -146,7 +146,7 @@ class Learner(nn.Module, ABC):
 
     def __init__(self, cfg: StageConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__()
-        self.cfg = cfg
+        self.cfg = as_dataclass(cfg)  # plain reads in the update's hot path
         self.specs = specs
         self.compile_mode = compile  # off | default | reduce-overhead | max-autotune
         self.policy: TensorDictModuleBase
