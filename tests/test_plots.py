@@ -106,7 +106,7 @@ EVAL = ["success_rate", "value_error", "mean_return", "mean_steps", "discounted_
 
 
 def test_learning_curves_show_every_loss_and_the_evaluations(tmp_path):
-    from torchrl_stages.plots import _read_stage_metrics, _stage_panels
+    from torchrl_stages.plots import _stage_panels, read_stage_metrics
 
     csv_path = tmp_path / "metrics.csv"
     lines = ["name,step,value"]
@@ -118,7 +118,7 @@ def test_learning_curves_show_every_loss_and_the_evaluations(tmp_path):
                 lines.append(f"eval/stage_{stage}/{key},{step},0.5")
     lines.append("eval/joint_1/success_rate,512,0.25")  # a joint-schedule phase evaluation
     csv_path.write_text("\n".join(lines) + "\n")
-    stages = _read_stage_metrics(csv_path)
+    stages = read_stage_metrics(csv_path)
     titles = {k: [title for title, _ in _stage_panels(stages[k], None)] for k in stages}
     common = [
         "gradient norm",

@@ -161,7 +161,7 @@ _LOSS_ORDER = ("loss", "loss_value", "loss_qvalue", "loss_actor")
 Series = dict[tuple[str, str, str], list[tuple[float, float]]]  # (kind, scope, metric) -> points
 
 
-def _read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
+def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
     """``{stage: {(kind, scope, metric): [(step, value), ...]}}`` from a ``name,step,value``
     CSV (rows not tied to a stage, e.g. ``eval/task/...``, are left out)."""
     out: dict[int, Series] = defaultdict(lambda: defaultdict(list))
@@ -217,7 +217,7 @@ def plot_learning_curves(
     the joint schedule's ``eval/joint_<k>/...`` phase evaluations go to row k, dashed).
     ``names`` keeps only those metrics. Returns None when nothing matches.
     """
-    stages = _read_stage_metrics(metrics_csv)
+    stages = read_stage_metrics(metrics_csv)
     rows = [(k, _stage_panels(stages[k], names)) for k in sorted(stages)]
     rows = [(k, panels) for k, panels in rows if panels]
     if not rows:
