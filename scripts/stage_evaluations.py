@@ -16,18 +16,19 @@ import argparse
 import sys
 from pathlib import Path
 
-from torchrl_stages.plots import read_stage_metrics
+from torchrl_stages.plots import Series, read_stage_metrics
 from torchrl_stages.rundir import METRICS_FILE
 
 DEFAULT_METRICS = ("success_rate", "mean_steps", "discounted_return", "value_error")
 
 
-def evaluation_table(runs: dict[str, Path], stage: int, metrics: list[str]) -> str:
-    """The Markdown table of ``stage``'s evaluations in ``runs`` (name -> ``metrics.csv``)."""
+def evaluation_table(runs: dict[str, dict[int, Series]], stage: int, metrics: list[str]) -> str:
+    """The Markdown table of ``stage``'s evaluations in ``runs`` (name -> its metrics, as
+    :func:`~torchrl_stages.plots.read_stage_metrics` reads them)."""
     columns: list[tuple[str, str]] = []
     values: dict[tuple[str, str], dict[float, float]] = {}
-    for name, path in runs.items():
-        series = read_stage_metrics(path).get(stage, {})
+    for name, stages in runs.items():
+        series = stages.get(stage, {})
         for metric in metrics:
             points = series.get(("eval", "stage", metric))
             if points:
@@ -52,16 +53,16 @@ def main() -> int:
     parser.add_argument("--stage", type=int, nargs="+", default=None, help="default: every stage")
     parser.add_argument("--metrics", nargs="+", default=list(DEFAULT_METRICS))
     args = parser.parse_args()
-    runs: dict[str, Path] = {}
+    runs: dict[str, dict[int, Series]] = {}
     for run in args.runs:
         path = run if run.is_file() else run / METRICS_FILE
         if not path.is_file():
             print(f"error: {path} does not exist (is {run} a run directory?)", file=sys.stderr)
             return 2
-        runs[run.parent.name if run.is_file() else run.name] = path
+        runs[run.parent.name if run.is_file() else run.name] = read_stage_metrics(path)
     stages = args.stage
     if stages is None:
-        stages = sorted({k for path in runs.values() for k in read_stage_metrics(path)})
+        stages = sorted({k for series in runs.values() for k in series})
     for stage in stages:
         print(f"stage {stage}\n\n{evaluation_table(runs, stage, args.metrics)}\n")
     return 0
