@@ -121,3 +121,29 @@ def test_cli_exits_3_with_the_message(tmp_path):
     _check_message(result.stderr)
     assert not list(run_dir.glob("stage_*.pt"))
     assert _all_finite(run_dir) == []
+
+
+@pytest.mark.parametrize("where", ["online", "target"])
+def test_check_finite_names_the_tensor(where):
+    from omegaconf import OmegaConf
+    from torchrl.data import Categorical
+
+    from torchrl_stages.config import DQNConfig
+    from torchrl_stages.learners import DQNLearner, StageSpecs
+    from torchrl_stages.learners.base import NonFiniteError
+
+    learner = DQNLearner(
+        OmegaConf.structured(DQNConfig()), StageSpecs(["observation"], 2, "action", Categorical(4))
+    )
+    learner.check_finite()  # a fresh learner is finite
+    params = (
+        learner.loss.value_network_params
+        if where == "online"
+        else learner.loss.target_value_network_params
+    )
+    key, tensor = next(iter(params.items(True, True)))
+    with torch.no_grad():
+        tensor.view(-1)[-1] = float("inf" if where == "online" else "nan")
+    with pytest.raises(NonFiniteError, match="is not finite") as info:
+        learner.check_finite()
+    assert ("target" in info.value.what) == (where == "target")

@@ -241,6 +241,12 @@ class Learner(nn.Module, ABC):
     def check_finite(self) -> None:
         """Raises :class:`NonFiniteError` if a parameter or buffer (targets included) is NaN or
         infinite."""
+        # one check over every tensor at once (the stage loop calls this after every batch);
+        # the state_dict walk below only runs to name the culprit
+        tensors = [t.reshape(-1) for t in (*self.parameters(), *self.buffers())]
+        tensors = [t for t in tensors if t.is_floating_point()]
+        if not tensors or bool(torch.cat(tensors).isfinite().all()):
+            return
         for name, tensor in self.state_dict().items():
             if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
                 raise NonFiniteError(f"parameter {name}", self.num_updates)
