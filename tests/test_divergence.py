@@ -11,11 +11,16 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import hydra_config
+from omegaconf import OmegaConf
 from tensordict.nn import TensorDictModule
+from torchrl.data import Categorical
 from torchrl.envs import TransformedEnv
 
+from torchrl_stages.config import DQNConfig
 from torchrl_stages.envs import GridWorldEnv
 from torchrl_stages.experiment import Experiment
+from torchrl_stages.learners import DQNLearner, StageSpecs
+from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.stage import DivergenceError
 from torchrl_stages.transforms import NonFiniteValueError, StageTransform
 
@@ -125,13 +130,6 @@ def test_cli_exits_3_with_the_message(tmp_path):
 
 @pytest.mark.parametrize("where", ["online", "target"])
 def test_check_finite_names_the_tensor(where):
-    from omegaconf import OmegaConf
-    from torchrl.data import Categorical
-
-    from torchrl_stages.config import DQNConfig
-    from torchrl_stages.learners import DQNLearner, StageSpecs
-    from torchrl_stages.learners.base import NonFiniteError
-
     learner = DQNLearner(
         OmegaConf.structured(DQNConfig()), StageSpecs(["observation"], 2, "action", Categorical(4))
     )
@@ -141,7 +139,7 @@ def test_check_finite_names_the_tensor(where):
         if where == "online"
         else learner.loss.target_value_network_params
     )
-    key, tensor = next(iter(params.items(True, True)))
+    tensor = next(iter(params.values(True, True)))
     with torch.no_grad():
         tensor.view(-1)[-1] = float("inf" if where == "online" else "nan")
     with pytest.raises(NonFiniteError, match="is not finite") as info:

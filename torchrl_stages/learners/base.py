@@ -243,8 +243,9 @@ class Learner(nn.Module, ABC):
         infinite."""
         # one check over every tensor at once (the stage loop calls this after every batch);
         # the state_dict walk below only runs to name the culprit
-        tensors = [t.reshape(-1) for t in (*self.parameters(), *self.buffers())]
-        tensors = [t for t in tensors if t.is_floating_point()]
+        tensors = [
+            t.reshape(-1) for t in (*self.parameters(), *self.buffers()) if t.is_floating_point()
+        ]
         if not tensors or bool(torch.cat(tensors).isfinite().all()):
             return
         for name, tensor in self.state_dict().items():
