@@ -235,7 +235,7 @@ INVALID = {
     "stage_removed": (["~task.stages.s4"], ["task.stages", "5 stages"]),
     "stage_added": (["+algo@task.stages.s5=dqn"], ["task.stages", "5 stages"]),
     "frames_per_batch": (
-        ["task.stages.s3.frames_per_batch=100"],  # the grid world's num_envs is 64
+        ["task.stages.s3.frames_per_batch=100"],  # the grid world's num_envs is 256
         ["task.stages.s3.frames_per_batch", "multiple", "num_envs"],
     ),
     "batch_over_buffer": (
