@@ -101,6 +101,12 @@ class DDPGConfig(StageConfig):
     # for good (the manipulator's fine stage failed from one elbow configuration without it, the
     # cargo slider circled); zero inside |action| <= 0.96 of the bound (0: off)
     saturation_penalty: float = 1.0
+    # one input encoder (the CNN of image observations) for the actor and the critic(s),
+    # trained by the critic loss alone; the actor reads its features detached (as SAC-AE and
+    # DrQ do). An update then encodes s and s' once each (s' with the target encoder) instead
+    # of once per network (TD3: five). A different network from separate encoders; needs
+    # fast_update. Without an image input or fourier_features there is no encoder to share.
+    shared_encoder: bool = False
 
 
 @dataclass

@@ -21,7 +21,7 @@ from torchrl_stages.learners.base import (
     is_continuous,
     linear_schedule,
 )
-from torchrl_stages.learners.networks import mlp
+from torchrl_stages.learners.networks import SharedEncoderCritic, mlp
 from torchrl_stages.values import with_params
 
 T = TypeVar("T")
@@ -41,16 +41,22 @@ class ActorCriticLearner(Learner):
         spec = specs.action_spec
         action_dim = spec.shape[-1]
         inputs, cells, fourier = specs.input_shapes, list(cfg.num_cells), cfg.fourier_features
+        actor_net = mlp(inputs, action_dim, cells, fourier, self.cnn)
         self.actor = TensorDictSequential(
-            TensorDictModule(
-                mlp(inputs, action_dim, cells, fourier, self.cnn),
-                in_keys=specs.observation_keys,
-                out_keys=["_actor_param"],
-            ),
+            TensorDictModule(actor_net, in_keys=specs.observation_keys, out_keys=["_actor_param"]),
             TanhModule(in_keys=["_actor_param"], out_keys=[specs.action_key], spec=spec),
         )
+        # the critics read the actor's encoder when it is shared (and there is one to share)
+        self.shared_encoder = bool(cfg.shared_encoder) and hasattr(actor_net, "encoder")
+        if self.shared_encoder and not cfg.fast_update:
+            raise ValueError(
+                "shared_encoder=true needs fast_update=true: torchrl's losses would train the "
+                "shared encoder with the actor loss, not the critic's"
+            )
         self.critic = ValueOperator(
-            mlp([*inputs, (action_dim,)], 1, cells, fourier, self.cnn),
+            SharedEncoderCritic(actor_net.encoder, action_dim, cells)
+            if self.shared_encoder
+            else mlp([*inputs, (action_dim,)], 1, cells, fourier, self.cnn),
             in_keys=[*specs.observation_keys, specs.action_key],
             out_keys=["state_action_value"],
         )
@@ -97,6 +103,37 @@ class ActorCriticLearner(Learner):
     def critic_module(self) -> nn.Module:
         """The critic network: observation and action tensors in, ``Q(s, a)`` out."""
         return self.critic.module
+
+    def drop_critic_encoder_copies(self, loss: LossModule, critic: str) -> None:
+        """With a shared encoder, removes the loss module's copies of it from the ``critic``
+        parameters and their targets: torchrl keeps them as views without gradient (and target
+        copies its updater does not move); the critics read the (target) actor's encoder."""
+        if self.shared_encoder:
+            for name in (f"{critic}_params", f"target_{critic}_params"):
+                del loss._modules[name]["module", "encoder"]  # _modules: no updater warning yet
+
+    def split_parameters(
+        self, actor: TensorDictBase, critic: TensorDictBase
+    ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """The (actor, critic) optimizers' parameters: a shared encoder goes to the critic's."""
+        actor, critic = actor.flatten_keys("."), critic.flatten_keys(".")
+        if not self.shared_encoder:
+            return list(actor.values()), list(critic.values())
+        encoder = [k for k in actor.keys() if ".encoder." in f".{k}"]
+        return (
+            [p for k, p in actor.items() if k not in encoder],
+            [*critic.values(), *(actor[k] for k in encoder)],
+        )
+
+    def with_target_encoder(self, critic_params: TensorDictBase) -> TensorDictBase:
+        """Target critic parameters, with a shared encoder the target actor's (for modules
+        that run the whole critic, such as the stage value)."""
+        if not self.shared_encoder:
+            return critic_params
+        encoder = self.loss.target_actor_network_params["module", "0", "module", "encoder"]
+        out = critic_params.clone(recurse=False)
+        out.set(("module", "encoder"), encoder.expand(critic_params.shape))
+        return out
 
     def squash(self, u: torch.Tensor) -> torch.Tensor:
         """The actor's tanh into the action bounds (what its ``TanhModule`` does)."""

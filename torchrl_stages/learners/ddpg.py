@@ -31,24 +31,26 @@ class DDPGLearner(ActorCriticLearner):
     algo = "ddpg"
 
     def make_loss(self, cfg: DDPGConfig, spec: TensorSpec) -> DDPGLoss:
-        return DDPGLoss(
+        loss = DDPGLoss(
             self.actor,
             self.critic,
             loss_function=cfg.loss_function,
             delay_actor=True,
             delay_value=True,
         )
+        self.drop_critic_encoder_copies(loss, "value_network")
+        return loss
 
     def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        return (
-            list(self.loss.actor_network_params.flatten_keys().values()),
-            list(self.loss.value_network_params.flatten_keys().values()),
-        )
+        return self.split_parameters(self.loss.actor_network_params, self.loss.value_network_params)
 
     def make_fast_path(self) -> None:
-        target_critic = self.loss.target_value_network_params.get("module")
-        self.__dict__["_target_critic"] = with_params(self.critic_module, target_critic, live=True)
-        self._fast_losses = self.compiled(self._plain_losses)
+        target_critic = self.with_target_encoder(self.loss.target_value_network_params)
+        self.__dict__["_target_critic"] = with_params(
+            self.critic_module, target_critic.get("module"), live=True
+        )
+        losses = self._shared_losses if self.shared_encoder else self._plain_losses
+        self._fast_losses = self.compiled(losses)
 
     def _plain_losses(
         self, batch: TensorDictBase
@@ -72,6 +74,31 @@ class DDPGLearner(ActorCriticLearner):
         q = functional_call(self.critic_module, detached, (*obs, self.squash(u)))
         return -q.mean(), loss_value, self.penalty(u)
 
+    def _shared_losses(
+        self, batch: TensorDictBase
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | float]:
+        """:meth:`_plain_losses` with one encoder: ``s`` encoded once (the critic loss trains
+        the encoder; the actor reads its features detached), ``s'`` once by the target one."""
+        obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
+        features = self.actor_module.encoder(*obs)
+        pred = self.critic_module.head(features, batch.get(self.specs.action_key))
+        with torch.no_grad():
+            next_features = self._target_actor.encoder(*next_obs)
+            next_action = self.squash(self._target_actor.body(next_features))
+            target = td0_target(
+                batch.get("next"),
+                self._target_critic.head(next_features, next_action),
+                float(self.cfg.gamma),
+                batch.get("steps_to_next_obs", None),
+            )
+        loss_value = distance(pred, target, self.cfg.loss_function).mean()
+        features = features.detach()
+        u = self.actor_module.body(features)
+        body = self.critic_module.body
+        detached = {n: p.detach() for n, p in body.named_parameters()}
+        q = functional_call(body, detached, (torch.cat([features, self.squash(u)], -1),))
+        return -q.mean(), loss_value, self.penalty(u)
+
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         if self.cfg.fast_update:
             loss_actor, loss_value, penalty = self._fast_losses(batch)
@@ -93,7 +120,8 @@ class DDPGLearner(ActorCriticLearner):
     def value(self, live: bool = False) -> TensorDictModuleBase:
         """``Q_target(s, mu_target(s))``."""
         loss = self.loss
+        critic = self.with_target_encoder(loss.target_value_network_params)
         return ActorCriticValue(
             with_params(self.actor, loss.target_actor_network_params, live=live),
-            [with_params(self.critic, loss.target_value_network_params, live=live)],
+            [with_params(self.critic, critic, live=live)],
         )

@@ -129,6 +129,39 @@ class _Encoded(nn.Module):
         return self.body(self.encoder(*inputs))
 
 
+class SharedEncoderCritic(nn.Module):
+    """``Q(s, a) = body([encoder(s), a])``, over an input encoder shared with the actor.
+
+    The encoder (e.g. the CNN of an image observation) is the actor's own module: features are
+    laid out as in a critic with its own :class:`InputEncoder` (encoder features, then the
+    action), only the encoder is not duplicated.
+
+    Examples:
+        >>> enc = InputEncoder([(1, 10, 10), (2,)], cnn=ConvSpec(channels=(4,), kernels=(3,),
+        ...                    strides=(2,)))
+        >>> critic = SharedEncoderCritic(enc, action_dim=1, num_cells=[32])
+        >>> critic(torch.zeros(5, 1, 10, 10), torch.zeros(5, 2), torch.zeros(5, 1)).shape
+        torch.Size([5, 1])
+        >>> critic.encoder is enc
+        True
+    """
+
+    def __init__(self, encoder: nn.Module, action_dim: int, num_cells: list[int]) -> None:
+        super().__init__()
+        self.encoder = encoder
+        self.body = MLP(
+            in_features=encoder.out_features + action_dim, out_features=1, num_cells=num_cells
+        )
+
+    def head(self, features: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``Q`` from the encoder's ``features`` of ``s`` and the action."""
+        return self.body(torch.cat([features, action], -1))
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        *obs, action = inputs
+        return self.head(self.encoder(*obs), action)
+
+
 def _encoder(
     inputs: int | Sequence[Shape], fourier: int, cnn: ConvSpec | None
 ) -> tuple[nn.Module | None, int]:

@@ -32,6 +32,8 @@ class TD3Learner(ActorCriticLearner):
     update_draws_random = True  # the target policy's smoothing noise
 
     def make_loss(self, cfg: TD3Config, spec: TensorSpec) -> TD3Loss:
+        # separate_losses: a shared encoder's copies in the critics are views of the actor's,
+        # not freshly sampled (drop_critic_encoder_copies then removes them)
         loss = TD3Loss(
             self.actor,
             self.critic,
@@ -42,19 +44,24 @@ class TD3Learner(ActorCriticLearner):
             loss_function=cfg.loss_function,
             delay_actor=True,
             delay_qvalue=True,
+            separate_losses=self.shared_encoder,
         )
         loss.set_keys(action=self.specs.action_key)
+        self.drop_critic_encoder_copies(loss, "qvalue_network")
         return loss
 
     def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        return (
-            list(self.loss.actor_network_params.flatten_keys().values()),
-            list(self.loss.qvalue_network_params.flatten_keys().values()),
+        return self.split_parameters(
+            self.loss.actor_network_params, self.loss.qvalue_network_params
         )
 
     def make_fast_path(self) -> None:
-        self._fast_value_loss = self.compiled(self._plain_value_loss)
-        self._fast_actor_loss = self.compiled(self._plain_actor_loss)
+        if self.shared_encoder:
+            self._fast_value_loss = self.compiled(self._shared_value_loss)
+            self._fast_actor_loss = self.compiled(self._shared_actor_loss)
+        else:
+            self._fast_value_loss = self.compiled(self._plain_value_loss)
+            self._fast_actor_loss = self.compiled(self._plain_actor_loss)
 
     def _critics(self, params, *inputs: torch.Tensor) -> list[torch.Tensor]:
         """``Q_i(inputs)`` of every critic in the stacked ``params`` (``[num_critics, ...]``)."""
@@ -95,6 +102,51 @@ class TD3Learner(ActorCriticLearner):
         (q,) = self._critics(first, *obs, self.squash(u))
         return -q.mean(), self.penalty(u)
 
+    def _heads(self, params, features: torch.Tensor, action: torch.Tensor) -> list[torch.Tensor]:
+        """``Q_i`` of every critic head in the stacked ``params`` on shared-encoder features."""
+        x = torch.cat([features, action], -1)
+        flat = dict(params.flatten_keys(".").items())
+        body = self.critic_module.body
+        return [
+            functional_call(body, {n: p[i] for n, p in flat.items()}, (x,))
+            for i in range(params.batch_size[0])
+        ]
+
+    def _shared_value_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """:meth:`_plain_value_loss` with one encoder: ``s'`` is encoded once, by the target
+        encoder (the target actor's), for the target actor and both target critics; ``s`` once,
+        by the trained encoder, whose gradient comes from both critics' losses."""
+        cfg, action = self.cfg, batch.get(self.specs.action_key)
+        noise = (torch.randn_like(action) * cfg.policy_noise).clamp(-cfg.noise_clip, cfg.noise_clip)
+        obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
+        low, high, _ = self._bounds
+        with torch.no_grad():
+            features = self._target_actor.encoder(*next_obs)
+            next_action = self.squash(self._target_actor.body(features)) + noise
+            next_action = torch.maximum(torch.minimum(next_action, high), low)
+            targets = self._heads(
+                self.loss.target_qvalue_network_params["module", "body"], features, next_action
+            )
+            target = td0_target(
+                batch.get("next"),
+                torch.stack(targets).min(0).values,
+                float(cfg.gamma),
+                batch.get("steps_to_next_obs", None),
+            )
+        features = self.actor_module.encoder(*obs)
+        preds = self._heads(self.loss.qvalue_network_params["module", "body"], features, action)
+        return sum(distance(p, target, cfg.loss_function).mean() for p in preds)
+
+    def _shared_actor_loss(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`_plain_actor_loss` on the shared encoder's features of ``s``, detached: the
+        actor loss trains the actor's head only."""
+        with torch.no_grad():
+            features = self.actor_module.encoder(*self.inputs(batch))
+        u = self.actor_module.body(features)
+        first = self.loss.qvalue_network_params["module", "body"].detach()[:1]
+        (q,) = self._heads(first, features, self.squash(u))
+        return -q.mean(), self.penalty(u)
+
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         if self.cfg.fast_update:
             loss_q = self._fast_value_loss(batch)
@@ -120,9 +172,7 @@ class TD3Learner(ActorCriticLearner):
     def value(self, live: bool = False) -> TensorDictModuleBase:
         """``min_i Q_i,target(s, mu_target(s))`` over the twin critics."""
         loss = self.loss
-        critics = [
-            with_params(self.critic, loss.target_qvalue_network_params[i], live=live)
-            for i in range(loss.target_qvalue_network_params.shape[0])
-        ]
+        critics = self.with_target_encoder(loss.target_qvalue_network_params)
+        critics = [with_params(self.critic, critics[i], live=live) for i in range(len(critics))]
         actor = with_params(self.actor, loss.target_actor_network_params, live=live)
         return ActorCriticValue(actor, critics)
