@@ -63,11 +63,13 @@ class TD3Learner(ActorCriticLearner):
             self._fast_value_loss = self.compiled(self._plain_value_loss)
             self._fast_actor_loss = self.compiled(self._plain_actor_loss)
 
-    def _critics(self, params, *inputs: torch.Tensor) -> list[torch.Tensor]:
-        """``Q_i(inputs)`` of every critic in the stacked ``params`` (``[num_critics, ...]``)."""
+    def _critics(self, params, *inputs: torch.Tensor, module=None) -> list[torch.Tensor]:
+        """``Q_i(inputs)`` of every critic in the stacked ``params`` (``[num_critics, ...]``),
+        through ``module`` (default: the whole critic)."""
+        module = self.critic_module if module is None else module
         flat = dict(params.flatten_keys(".").items())
         return [
-            functional_call(self.critic_module, {n: p[i] for n, p in flat.items()}, inputs)
+            functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
             for i in range(params.batch_size[0])
         ]
 
@@ -105,12 +107,7 @@ class TD3Learner(ActorCriticLearner):
     def _heads(self, params, features: torch.Tensor, action: torch.Tensor) -> list[torch.Tensor]:
         """``Q_i`` of every critic head in the stacked ``params`` on shared-encoder features."""
         x = torch.cat([features, action], -1)
-        flat = dict(params.flatten_keys(".").items())
-        body = self.critic_module.body
-        return [
-            functional_call(body, {n: p[i] for n, p in flat.items()}, (x,))
-            for i in range(params.batch_size[0])
-        ]
+        return self._critics(params, x, module=self.critic_module.body)
 
     def _shared_value_loss(self, batch: TensorDictBase) -> torch.Tensor:
         """:meth:`_plain_value_loss` with one encoder: ``s'`` is encoded once, by the target
