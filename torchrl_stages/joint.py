@@ -13,6 +13,7 @@ that cannot start inside a chosen stage runs one phase from the task's own start
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -21,7 +22,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import Compose, RewardSum, TransformedEnv
 from torchrl.record.loggers import Logger
 
@@ -31,6 +32,7 @@ from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.policy import StackedPolicy
+from torchrl_stages.replay import GatherStorage
 from torchrl_stages.stage import (
     DivergenceError,
     StageResult,
@@ -107,7 +109,7 @@ class JointTrainer:
         cfg, n = self.task.stage_cfg(m), self.task.num_stages
         next_value = self.learners[m + 1].value(live=True) if m + 1 < n else None
         return TensorDictReplayBuffer(
-            storage=LazyTensorStorage(int(cfg.buffer_size)),
+            storage=GatherStorage(int(cfg.buffer_size)),
             batch_size=int(cfg.batch_size),
             transform=StageRewardTransform(m, n, next_value=next_value, gamma=self.gammas[m]),
         )
@@ -293,6 +295,12 @@ class JointTrainer:
                 raise DivergenceError(m, self.task.stage_names[m], learner.algo, err) from err
         return losses
 
+    @functools.cached_property
+    def _value(self) -> StackedPolicy:
+        """What evaluations read V from: every stage's target networks themselves (live), built
+        once instead of copied at every evaluation."""
+        return StackedPolicy([learner.value(live=True) for learner in self.learners])
+
     @torch.no_grad()
     def evaluate(self, k: int, eval_env, frames: int) -> tuple[float, float, float]:
         """Greedy whole-task episodes from stage-k starts: success, merged value error and
@@ -304,8 +312,7 @@ class JointTrainer:
             max_steps = min(max_steps, int(cfg.eval_max_steps) * (self.task.num_stages - k))
         stats, rollout = evaluate_policy(eval_env, policy, max_steps)
         returns = discounted_return(rollout, stats.length, self.gammas)
-        value = StackedPolicy([learner.value() for learner in self.learners])
-        v0 = value(rollout[:, 0].clone()).get("state_value").reshape(-1)
+        v0 = self._value(rollout[:, 0].clone()).get("state_value").reshape(-1)
         errors = (v0 - returns).abs()
         summary = stats.summary()
         summary["value_error"] = (

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import functools
 import sys
 import time
 from collections import defaultdict
@@ -12,9 +13,10 @@ from dataclasses import dataclass, field
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
@@ -25,6 +27,7 @@ from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
+from torchrl_stages.replay import GatherStorage
 from torchrl_stages.transforms import NonFiniteValueError
 
 
@@ -271,7 +274,7 @@ class StageTrainer:
         # draws random numbers in between (TD3's target smoothing); one storage read, not n
         steps = int(cfg.updates_per_batch)
         draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
-        buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.buffer_size))
+        buffer = TensorDictReplayBuffer(storage=GatherStorage(cfg.buffer_size))
         monitor = _EvalMonitor(cfg)
         counters = {"next_eval": first_evaluation(cfg), "seconds": 0.0, "log": {}}
         state = {  # what a checkpoint holds (and the process-global generators)
@@ -345,6 +348,12 @@ class StageTrainer:
             dict(watch.seconds),
         )
 
+    @functools.cached_property
+    def _value(self) -> TensorDictModuleBase:
+        """What evaluations read V from: the learner's target networks themselves (live), built
+        once instead of copied at every evaluation."""
+        return self.learner.value(live=True)
+
     def evaluate(self, frames: int) -> tuple[float, float, float]:
         """Greedy episodes from the evaluation env's starts; logs and returns three numbers.
 
@@ -361,7 +370,7 @@ class StageTrainer:
         summary = stats.summary()
         returns = discounted_return(rollout, stats.length, self.gammas or float(cfg.gamma))
         with torch.no_grad():
-            v0 = self.learner.value()(rollout[:, 0].clone()).get("state_value").reshape(-1)
+            v0 = self._value(rollout[:, 0].clone()).get("state_value").reshape(-1)
         errors = (v0 - returns).abs()
         summary["value_error"] = (
             errors.max() if cfg.value_error_reduce == "max" else errors.mean()

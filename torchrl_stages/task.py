@@ -91,11 +91,13 @@ class StagedTask:
         next_value: TensorDictModuleBase | None = None,
         *,
         all_starts: bool = False,
+        episode_returns: bool = True,
     ) -> TransformedEnv:
         """Stage ``stage``'s training env: starts inside the stage, its learner's view of rewards.
 
         Episodes end when they leave the stage; the transition reward adds
-        ``gamma_stage * next_value(s_{t+1})``. ``RewardSum`` tracks episode returns. With
+        ``gamma_stage * next_value(s_{t+1})``. With ``episode_returns`` a ``RewardSum`` tracks
+        episode returns (``("next", "episode_reward")``, what the training logs read). With
         ``all_starts`` (and an env that enumerates its starts, see :meth:`start_states`) the
         batch holds one element per start state of the stage and ``batch_size`` is ignored.
         """
@@ -111,15 +113,19 @@ class StagedTask:
             next_value=next_value,
             gamma=float(self.stage_cfg(stage).gamma),
         )
-        return TransformedEnv(base, Compose(transform, RewardSum()))
+        transforms = [transform, RewardSum()] if episode_returns else [transform]
+        return TransformedEnv(base, Compose(*transforms))
 
     def stage_eval_env(
         self, stage: int, next_value: TensorDictModuleBase | None = None
     ) -> TransformedEnv:
         """The env of stage ``stage``'s greedy evaluations: one episode from every start state
-        when the env enumerates them, else ``eval_episodes`` random starts in the stage."""
+        when the env enumerates them, else ``eval_episodes`` random starts in the stage (no
+        ``RewardSum``: evaluations compute their returns from the rollout)."""
         cfg = self.stage_cfg(stage)
-        return self.stage_env(stage, int(cfg.eval_episodes), next_value, all_starts=True)
+        return self.stage_env(
+            stage, int(cfg.eval_episodes), next_value, all_starts=True, episode_returns=False
+        )
 
     def task_env(
         self, batch_size: int | None = None, *, train: bool = False, **overrides: Any
