@@ -1,10 +1,15 @@
-"""GatherStorage: the same samples and checkpoints as torchrl's LazyTensorStorage."""
+"""GatherStorage: the same samples, checkpoints and stage runs as torchrl's LazyTensorStorage."""
 
 import torch
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
+from torchrl_stages import stage as stage_module
+from torchrl_stages.config import DQNConfig
+from torchrl_stages.learners import DQNLearner
 from torchrl_stages.replay import GatherStorage
+from torchrl_stages.task import StagedTask
 
 
 def transitions(n: int) -> TensorDict:
@@ -54,3 +59,48 @@ def test_other_indices_and_checkpoints_as_parent():
     restored.load_state_dict(plain.state_dict())  # a checkpoint of the parent's storage
     assert (restored.storage.get(torch.arange(16)) == plain.storage.get(torch.arange(16))).all()
     assert len(restored) == len(plain) == 16
+
+
+def test_stage_runs_equal_with_lazy_tensor_storage(monkeypatch):
+    """A DQN stage trained on GatherStorage ends with the weights it has on torchrl's storage."""
+    stage_cfg = DQNConfig(gamma=0.9)
+    task = StagedTask(
+        OmegaConf.create(
+            {
+                "name": "grid",
+                "stages": {"a": stage_cfg, "b": stage_cfg},
+                "env": {
+                    "_target_": "torchrl_stages.envs.GridWorldEnv",
+                    "size": 10,
+                    "num_stages": 2,
+                },
+            }
+        )
+    )
+    cfg = OmegaConf.structured(
+        DQNConfig(
+            gamma=0.9,
+            frames=1024,
+            frames_per_batch=128,
+            num_envs=16,
+            batch_size=32,
+            init_random_frames=128,
+            updates_per_batch=4,
+            eval_every=256,
+        )
+    )
+
+    def train() -> dict[str, torch.Tensor]:
+        torch.manual_seed(0)
+        learner = DQNLearner(cfg, task.specs(1))
+        env = task.stage_env(1, cfg.num_envs)
+        env.set_seed(0)
+        stage_module.StageTrainer(1, learner, env, task.stage_eval_env(1), cfg).train()
+        return learner.state_dict()
+
+    gathered = train()
+    monkeypatch.setattr(stage_module, "GatherStorage", LazyTensorStorage)
+    plain = train()
+    assert gathered.keys() == plain.keys()
+    for key in plain:
+        assert torch.equal(gathered[key], plain[key]), key

@@ -86,7 +86,7 @@ class FakeLearner(Learner):
         self.annealed.append(frames)
 
     def value(self, live: bool = False):
-        weight = self.weight.detach().clone()
+        weight = self.weight.detach() if live else self.weight.detach().clone()
         return TensorDictModule(
             lambda obs: weight.expand(*obs.shape[:-1], 1), ["observation"], ["state_value"]
         )
