@@ -10,6 +10,7 @@ import argparse
 import json
 import os
 import shlex
+import statistics
 import sys
 import tempfile
 from collections.abc import Callable
@@ -21,6 +22,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 
 from torchrl_stages.config import register_configs
+from torchrl_stages.envs import measure_throughput
 from torchrl_stages.experiment import Experiment
 
 
@@ -72,6 +74,22 @@ def checkpoint_share(result: dict[str, Any]) -> str:
     return f"{seconds:.1f} ({seconds / result['training']['seconds']:.1%})"
 
 
+def machine_speed() -> float:
+    """This machine's speed now: frames per second of the grid world env alone (64 envs, random
+    actions, median of 5 short runs), code that training changes leave alone. This project's
+    CPU machine drifts by hours, by up to about 2.6 times; wall-clocks of two tables compare
+    only at similar speeds."""
+    return statistics.median(measure_throughput(64) for _ in range(5))
+
+
+def speed_note(before: float, after: float) -> str:
+    """The summary line of :func:`machine_speed` before and after a table's runs."""
+    return (
+        f"- machine speed (grid world env alone, 64 envs): {before:.3g} frames/s before these "
+        f"runs, {after:.3g} after"
+    )
+
+
 def run_table(
     args: argparse.Namespace,
     columns: list[str],
@@ -80,8 +98,10 @@ def run_table(
     summary: Callable[[list[dict[str, Any]]], list[str]] | None = None,
 ) -> list[dict[str, Any]]:
     """Runs every (variant, seed) of ``args``, printing a markdown row as each one finishes;
-    writes ``rows.json`` and ``table.md`` (command, table, ``summary`` lines) into ``args.out``.
+    writes ``rows.json`` and ``table.md`` (command, table, ``summary`` lines and the machine's
+    speed before and after, :func:`machine_speed`) into ``args.out``.
     """
+    speed = machine_speed()
     header = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     print("\n".join(header), flush=True)
     rows, lines = [], []
@@ -93,6 +113,7 @@ def run_table(
             print(lines[-1], flush=True)
             (args.out / "rows.json").write_text(json.dumps(rows, indent=2))
     notes = summary(rows) if summary is not None else []
+    notes.append(speed_note(speed, machine_speed()))
     for note in notes:
         print(note)
     table = ["```text", f"$ {args.command}", "```", "", *header, *lines, "", *notes]

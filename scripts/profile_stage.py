@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import torch
-from _benchmark import compose_config
+from _benchmark import compose_config, machine_speed, speed_note
 
 from torchrl_stages.config import register_configs
 from torchrl_stages.experiment import Experiment
@@ -141,6 +141,7 @@ def main() -> None:
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     runs = []
+    speed = machine_speed()
     for threads, mode in itertools.product(args.threads, args.compile):
         run = profile(args.task, mode, threads, args.overrides, out)
         runs.append(run)
@@ -164,7 +165,9 @@ def main() -> None:
             f"success {run['success_rate']:.1%}"
         )
     (out / "rows.json").write_text(json.dumps(runs, indent=2))
-    table = ["```text", f"$ {command}", "```", "", *lines]
+    note = speed_note(speed, machine_speed())
+    print(note)
+    table = ["```text", f"$ {command}", "```", "", *lines, "", note]
     (out / "table.md").write_text("\n".join(table) + "\n")
     print(f"wrote {out / 'rows.json'} and {out / 'table.md'}")
 
