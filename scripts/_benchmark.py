@@ -77,8 +77,8 @@ def checkpoint_share(result: dict[str, Any]) -> str:
 def machine_speed() -> float:
     """This machine's speed now: frames per second of the grid world env alone (64 envs, random
     actions, median of 5 short runs), code that training changes leave alone. This project's
-    CPU machine drifts by hours, by up to about 2.6 times; wall-clocks of two tables compare
-    only at similar speeds."""
+    CPU machine drifts by hours, by two times and more; wall-clocks of two tables compare only
+    at similar speeds."""
     return statistics.median(measure_throughput(64) for _ in range(5))
 
 
