@@ -11,9 +11,12 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
+from test_shared_encoder import IMAGE, SMALL
+from test_shared_encoder import batch as image_batch
 from torchrl.data import Bounded, Categorical
 
 from torchrl_stages.config import DDPGConfig, DQNConfig, TD3Config
+from torchrl_stages.experiment import compile_mode
 from torchrl_stages.learners import DDPGLearner, DQNLearner, StageSpecs, TD3Learner
 
 DISCRETE = StageSpecs(["observation"], 2, "action", Categorical(4))
@@ -146,3 +149,59 @@ def test_fused_soft_update_moves_targets_by_tau():
     after = learner.loss.target_value_network_params.values(True, True)
     for new, old, source in zip(after, target, online, strict=True):
         torch.testing.assert_close(new, old + 0.3 * (source - old))
+
+
+def compiled_learner(name: str, compile: str):
+    """A learner of each fast path: DQN (dueling, Fourier features), DDPG, and TD3 with the
+    cargo slider's shared CNN encoder; its replay batches; and how many losses it compiles."""
+    if name == "dqn":
+        cfg = DQNConfig(dueling=True, fourier_features=2)
+        learner = DQNLearner(OmegaConf.structured(cfg), DISCRETE, compile=compile)
+        return learner, lambda seed: batch(2, torch.randint(4, (64,))), 1
+    if name == "ddpg":
+        learner = DDPGLearner(OmegaConf.structured(DDPGConfig()), CONTINUOUS, compile=compile)
+        return learner, lambda seed: batch(3, torch.rand(64, 2) * 2 - 1), 1
+    cfg = TD3Config(**SMALL, shared_encoder=True, policy_update_delay=1)
+    learner = TD3Learner(OmegaConf.structured(cfg), IMAGE, compile=compile)
+    return learner, lambda seed: image_batch(seed=seed), 2
+
+
+@pytest.mark.parametrize("name", ["dqn", "ddpg", "td3"])
+def test_compiled_fast_path_is_one_graph_and_the_same_updates(name, monkeypatch):
+    """``compile`` != off runs each fast-path loss through ``torch.compile``. Dynamo's eager
+    backend stands in for inductor here (its code generation takes about 15 s per learner on a
+    CPU): the capture is the same, each loss must be one graph without a break (a break splits
+    the CUDA graphs of ``reduce-overhead``), and the updates must equal ``compile=off``'s bit
+    for bit."""
+    compile = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, mode=None: compile(fn, backend="eager"))
+    torch._dynamo.reset()
+    counters = torch._dynamo.utils.counters
+    counters.clear()
+    states = {}
+    for mode in ("default", "off"):
+        torch.manual_seed(0)
+        learner, data, losses = compiled_learner(name, mode)
+        for seed in range(3):
+            torch.manual_seed(10 + seed)  # the same batches and TD3 smoothing noise
+            learner.update(data(seed))
+        states[mode] = learner.state_dict()
+    assert counters["stats"]["unique_graphs"] == losses
+    assert not counters["graph_break"]
+    assert states["default"].keys() == states["off"].keys()
+    for key, value in states["default"].items():
+        assert torch.equal(value, states["off"][key]), key
+
+
+@pytest.mark.parametrize(
+    ("compile", "device", "expected"),
+    [
+        ("auto", "cpu", "off"),
+        ("auto", "cuda", "reduce-overhead"),
+        ("auto", "cuda:1", "reduce-overhead"),
+        ("default", "cpu", "default"),
+        ("off", "cuda", "off"),
+    ],
+)
+def test_compile_auto_is_off_on_cpu_and_cuda_graphs_on_a_gpu(compile, device, expected):
+    assert compile_mode(OmegaConf.create({"compile": compile, "device": device})) == expected
