@@ -193,6 +193,36 @@ def test_compiled_fast_path_is_one_graph_and_the_same_updates(name, monkeypatch)
         assert torch.equal(value, states["off"][key]), key
 
 
+@pytest.mark.parametrize("name", ["dqn", "ddpg", "td3"])
+def test_update_returns_losses_the_next_replay_cannot_overwrite(name):
+    """Under ``compile=reduce-overhead`` each fast-path loss is a CUDA graph's static output,
+    rewritten by the graph's next replay while the stage still holds the batch's losses for
+    its log. Writing over every output of the fast path after the update stands in for that
+    replay: the losses the update returned must not change."""
+    torch.manual_seed(0)
+    learner, data, _ = compiled_learner(name, "off")
+    outputs = []
+    for attr in ("_fast_loss", "_fast_losses", "_fast_value_loss", "_fast_actor_loss"):
+        if hasattr(learner, attr):
+            fn = getattr(learner, attr)
+
+            def recorded(batch, fn=fn):
+                out = fn(batch)
+                outputs.extend(out if isinstance(out, tuple) else [out])
+                return out
+
+            setattr(learner, attr, recorded)
+    losses = learner.update(data(0))
+    before = {k: v.clone() for k, v in losses.items()}
+    assert outputs
+    with torch.no_grad():
+        for out in outputs:
+            if isinstance(out, torch.Tensor):
+                out.fill_(float("nan"))
+    for key, value in losses.items():
+        assert torch.equal(value, before[key]), key
+
+
 @pytest.mark.parametrize(
     ("compile", "device", "expected"),
     [

@@ -117,6 +117,14 @@ def distance(pred: torch.Tensor, target: torch.Tensor, loss_function: str) -> to
     return F.smooth_l1_loss(pred, target, reduction="none")
 
 
+def detached_copy(loss: torch.Tensor) -> torch.Tensor:
+    """A detached copy of ``loss`` that outlives the update (what :meth:`Learner.update`
+    returns): under ``compile=reduce-overhead`` the loss is a CUDA graph's static output, which
+    the graph's next replay overwrites, so the losses a stage logs after its batch of updates
+    must not be views of it."""
+    return loss.detach().clone()
+
+
 def linear_schedule(start: float, end: float, frames: int, horizon: int) -> float:
     """Linear annealing from ``start`` to ``end`` over ``horizon`` frames, then constant."""
     if horizon <= 0:
@@ -168,7 +176,8 @@ class Learner(nn.Module, ABC):
 
     @abstractmethod
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        """One gradient step on a replay batch, target update included; returns detached losses."""
+        """One gradient step on a replay batch, target update included; returns the losses
+        (:func:`detached_copy`: detached copies)."""
 
     def inputs(self, batch: TensorDictBase, nxt: bool = False) -> list[torch.Tensor]:
         """The network inputs of a batch (of its ``"next"`` states with ``nxt``), in order."""

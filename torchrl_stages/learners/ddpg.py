@@ -11,7 +11,7 @@ from torchrl.objectives import DDPGLoss
 
 from torchrl_stages.config import DDPGConfig
 from torchrl_stages.learners.actor_critic import ActorCriticLearner
-from torchrl_stages.learners.base import distance, td0_target
+from torchrl_stages.learners.base import detached_copy, distance, td0_target
 from torchrl_stages.values import ActorCriticValue, with_params
 
 
@@ -111,8 +111,8 @@ class DDPGLearner(ActorCriticLearner):
         self.target_updater.step()
         self.num_updates += 1
         return {
-            "loss_actor": out["loss_actor"].detach(),
-            "loss_value": out["loss_value"].detach(),
+            "loss_actor": detached_copy(out["loss_actor"]),
+            "loss_value": detached_copy(out["loss_value"]),
             "grad_norm_actor": self.grad_norms["actor"],
             "grad_norm_critic": self.grad_norms["critic"],
         }

@@ -15,6 +15,7 @@ from torchrl_stages.learners.base import (
     FusedSoftUpdate,
     Learner,
     StageSpecs,
+    detached_copy,
     distance,
     is_discrete,
     linear_schedule,
@@ -130,7 +131,7 @@ class DQNLearner(Learner):
         self._step(loss)
         self.target_updater.step()
         self.num_updates += 1
-        return {"loss": loss.detach(), "grad_norm": self.grad_norms["qvalue"]}
+        return {"loss": detached_copy(loss), "grad_norm": self.grad_norms["qvalue"]}
 
     def anneal_exploration(self, frames: int) -> None:
         cfg = self.cfg

@@ -11,7 +11,7 @@ from torchrl.objectives import TD3Loss
 
 from torchrl_stages.config import TD3Config
 from torchrl_stages.learners.actor_critic import ActorCriticLearner
-from torchrl_stages.learners.base import distance, td0_target
+from torchrl_stages.learners.base import detached_copy, distance, td0_target
 from torchrl_stages.values import ActorCriticValue, with_params
 
 
@@ -151,7 +151,7 @@ class TD3Learner(ActorCriticLearner):
             loss_q, _ = self.loss.value_loss(batch)
         self._check_losses(loss_qvalue=loss_q)
         self._step(loss_q, "critic")
-        out = {"loss_qvalue": loss_q.detach(), "grad_norm_critic": self.grad_norms["critic"]}
+        out = {"loss_qvalue": detached_copy(loss_q), "grad_norm_critic": self.grad_norms["critic"]}
         if (self.num_updates + 1) % self.cfg.policy_update_delay == 0:
             if self.cfg.fast_update:
                 loss_actor, penalty = self._fast_actor_loss(batch)
@@ -161,7 +161,7 @@ class TD3Learner(ActorCriticLearner):
             self._step(loss_actor + penalty, "actor")
             self.optimizers["critic"].zero_grad(set_to_none=True)
             self.target_updater.step()
-            out["loss_actor"] = loss_actor.detach()
+            out["loss_actor"] = detached_copy(loss_actor)
             out["grad_norm_actor"] = self.grad_norms["actor"]
         self.num_updates += 1
         return out
