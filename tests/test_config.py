@@ -390,6 +390,13 @@ def test_bad_device_is_reported_on_the_device_key(hydra_compose):
     assert message.startswith("device="), message
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the check is for machines without CUDA")
+def test_cuda_device_without_cuda_is_reported_before_building_envs(hydra_compose):
+    expected = r"^device='cuda': names a CUDA device.*Fix: set device=cpu"
+    with pytest.raises(ConfigError, match=expected):
+        build_task(hydra_compose("device=cuda"))
+
+
 @pytest.mark.parametrize(
     ("backend", "module"),
     [("tensorboard", "tensorboard"), ("wandb", "wandb"), ("mlflow", "mlflow")],

@@ -98,7 +98,9 @@ class JointTrainer:
         self.checkpoints = checkpoints
         n = task.num_stages
         torch.manual_seed(seed)
-        self.learners = [make_learner(task.stage_cfg(m), task.specs(m), compile) for m in range(n)]
+        self.learners = [
+            make_learner(task.stage_cfg(m), task.specs(m), compile, task.device) for m in range(n)
+        ]
         self.gammas = [float(task.stage_cfg(m).gamma) for m in range(n)]
         self.buffers = [self._buffer(m) for m in range(n)]
         self.keys = [self._stored_keys(m) for m in range(n)]
@@ -109,7 +111,7 @@ class JointTrainer:
         cfg, n = self.task.stage_cfg(m), self.task.num_stages
         next_value = self.learners[m + 1].value(live=True) if m + 1 < n else None
         return TensorDictReplayBuffer(
-            storage=GatherStorage(int(cfg.buffer_size)),
+            storage=GatherStorage(int(cfg.buffer_size), device=self.task.device),
             batch_size=int(cfg.batch_size),
             transform=StageRewardTransform(m, n, next_value=next_value, gamma=self.gammas[m]),
         )

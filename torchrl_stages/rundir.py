@@ -225,7 +225,7 @@ def load_stage(
     state = run.read_stage(stage, map_location=device)
     if state is None:
         return None
-    learner = make_learner(task.stage_cfg(stage), task.specs(stage)).to(device)
+    learner = make_learner(task.stage_cfg(stage), task.specs(stage), device=device)
     try:
         learner.load_checkpoint(state)
     except (KeyError, RuntimeError, ValueError) as err:

@@ -86,7 +86,7 @@ def train_backward(
             env.set_seed(seed + k)
             eval_env = task.stage_eval_env(k, next_value)
             eval_env.set_seed(seed + 10_000 + k)
-            learner = make_learner(cfg, task.specs(k), compile)
+            learner = make_learner(cfg, task.specs(k), compile, task.device)
             on_evaluate = None
             if probe is not None and k == 0:
 
@@ -164,7 +164,7 @@ def train_flat(
     env.set_seed(seed)
     eval_env = task.task_env(None if task.start_states(None) is not None else cfg.eval_episodes)
     eval_env.set_seed(seed + 10_000)
-    learner = make_learner(cfg, task.specs(0), compile)
+    learner = make_learner(cfg, task.specs(0), compile, task.device)
     trainer = StageTrainer(
         0,
         learner,

@@ -274,7 +274,9 @@ class StageTrainer:
         # draws random numbers in between (TD3's target smoothing); one storage read, not n
         steps = int(cfg.updates_per_batch)
         draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
-        buffer = TensorDictReplayBuffer(storage=GatherStorage(cfg.buffer_size))
+        # on the envs' device, where the learner's networks are too
+        device = getattr(self.env, "device", None) or "cpu"
+        buffer = TensorDictReplayBuffer(storage=GatherStorage(cfg.buffer_size, device=device))
         monitor = _EvalMonitor(cfg)
         counters = {"next_eval": first_evaluation(cfg), "seconds": 0.0, "log": {}}
         state = {  # what a checkpoint holds (and the process-global generators)

@@ -241,11 +241,18 @@ def validate_config(cfg: DictConfig) -> None:
         "set checkpoint_keep=2",
     )
     try:
-        torch.device(cfg.device)
-        ok = True
+        device = torch.device(cfg.device)
     except (RuntimeError, TypeError):
-        ok = False
-    _check(ok, "device", cfg.device, "is not a torch device", "set device=cpu (or cuda, cuda:1)")
+        device = None
+    fix = "set device=cpu (or cuda)"
+    _check(device is not None, "device", cfg.device, "is not a torch device", fix)
+    _check(
+        device.type != "cuda" or torch.cuda.is_available(),
+        "device",
+        cfg.device,
+        "names a CUDA device, but torch sees none on this machine",
+        "set device=cpu",
+    )
     _check(
         cfg.eval.episodes >= 1,
         "eval.episodes",

@@ -1,5 +1,9 @@
 """Per-stage learners: one class per algorithm behind the :class:`Learner` interface."""
 
+import contextlib
+
+import torch
+
 from torchrl_stages.learners.base import Learner, StageSpecs
 from torchrl_stages.learners.ddpg import DDPGLearner
 from torchrl_stages.learners.dqn import DQNLearner
@@ -10,10 +14,15 @@ LEARNERS: dict[str, type[Learner]] = {
 }
 
 
-def make_learner(cfg, specs: StageSpecs, compile: str = "off") -> Learner:
+def make_learner(
+    cfg, specs: StageSpecs, compile: str = "off", device: str | torch.device | None = None
+) -> Learner:
     """Builds the learner named by ``cfg.algo`` (``dqn``, ``ddpg`` or ``td3``); ``compile``:
-    ``torch.compile`` mode of its fast update (``off``, ``default``, ``reduce-overhead``...)."""
-    return LEARNERS[cfg.algo](cfg, specs, compile=compile)
+    ``torch.compile`` mode of its fast update (``off``, ``default``, ``reduce-overhead``...);
+    ``device``: where every tensor it builds lives (networks, targets, bounds; default: torch's
+    default device), the device of the envs it acts in."""
+    with torch.device(device) if device is not None else contextlib.nullcontext():
+        return LEARNERS[cfg.algo](cfg, specs, compile=compile)
 
 
 __all__ = [

@@ -45,14 +45,15 @@ def merged_value_map(task: StagedTask, learners: Sequence[Learner]) -> np.ndarra
     """``V(s) = V_{stage(s)}(s)`` on every cell, ``(size, size)``, row 0 at the top."""
     env = task.base_env(1)
     size = env.size
-    rows, cols = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    steps = torch.arange(size, device=env.device)
+    rows, cols = torch.meshgrid(steps, steps, indexing="ij")
     cells = torch.stack([rows, cols], -1).reshape(-1, 2)
     td = TensorDict(observation=env.observation_of(cells), batch_size=[size * size])
     values = torch.stack(
         [learner.value()(td.clone())["state_value"].squeeze(-1) for learner in learners]
     )  # [N, S]
     stage = env.stage_fn(td).reshape(1, -1)
-    return values.gather(0, stage).reshape(size, size).numpy()
+    return values.gather(0, stage).reshape(size, size).cpu().numpy()
 
 
 def _gammas(task: StagedTask) -> list[float]:

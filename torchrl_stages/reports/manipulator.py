@@ -22,7 +22,7 @@ def final_distances(final: TensorDictBase, scales: Sequence[float]) -> torch.Ten
     """Effector-target distance where each episode ended, from its last observation (the
     observation's target offset is divided by the scale of the stage it is in)."""
     obs, stage = final["observation"], final["stage"].reshape(-1)
-    scale = torch.as_tensor(scales, dtype=obs.dtype)[stage]
+    scale = torch.as_tensor(scales, dtype=obs.dtype, device=obs.device)[stage]
     return obs[:, 4:6].norm(dim=-1) * scale
 
 
@@ -39,7 +39,7 @@ def fine_value_map(
     stage = torch.ones(len(points), dtype=torch.long)
     obs = env.observation_of(theta, torch.as_tensor(target).expand_as(points), stage)
     td = TensorDict(observation=obs, stage=stage.unsqueeze(-1), batch_size=[len(obs)])
-    return learner.value()(td)["state_value"].reshape(n, n).numpy()
+    return learner.value()(td.to(env.device))["state_value"].reshape(n, n).cpu().numpy()
 
 
 def report(
@@ -53,7 +53,7 @@ def report(
     the run's whole-task evaluation."""
     env = task.base_env(1)
     dist = final_distances(evaluation.final, list(env.scales))
-    q = torch.tensor([0.5, 0.9, 0.99])
+    q = torch.tensor([0.5, 0.9, 0.99], device=dist.device)
     out: dict[str, Any] = {"final_distance_p50_p90_p99": torch.quantile(dist, q).tolist()}
     if plots and not env.random_target and len(learners) == 2:
         from torchrl_stages.plots import plot_arm_figure
