@@ -32,14 +32,15 @@ def fine_value_map(
 ) -> np.ndarray:
     """The fine stage's ``V(s)`` on an ``n x n`` grid of effector positions around ``target``."""
     env = task.base_env(1)
-    xs = torch.linspace(-half_width, half_width, n)
+    dev = env.device
+    xs = torch.linspace(-half_width, half_width, n, device=dev)
     gx, gy = torch.meshgrid(xs + target[0], xs + target[1], indexing="xy")
     points = torch.stack([gx, gy], -1).reshape(-1, 2)
-    theta = inverse_kinematics(points, torch.ones(len(points), dtype=torch.bool))
-    stage = torch.ones(len(points), dtype=torch.long)
-    obs = env.observation_of(theta, torch.as_tensor(target).expand_as(points), stage)
+    theta = inverse_kinematics(points, torch.ones(len(points), dtype=torch.bool, device=dev))
+    stage = torch.ones(len(points), dtype=torch.long, device=dev)
+    obs = env.observation_of(theta, torch.as_tensor(target, device=dev).expand_as(points), stage)
     td = TensorDict(observation=obs, stage=stage.unsqueeze(-1), batch_size=[len(obs)])
-    return learner.value()(td.to(env.device))["state_value"].reshape(n, n).cpu().numpy()
+    return learner.value()(td)["state_value"].reshape(n, n).cpu().numpy()
 
 
 def report(
