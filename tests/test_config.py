@@ -408,3 +408,11 @@ def test_logger_backend_without_its_package_is_a_config_error(
         pytest.skip(f"{module} is installed")
     with pytest.raises(ConfigError, match=r"logger\.backend.*Fix:"):
         Experiment(hydra_compose(f"logger={backend}"), tmp_path).run()
+
+
+def test_missing_gpu_index_is_reported_on_the_device_key(hydra_compose, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    expected = r"^device='cuda:3': names a GPU this machine does not have \(it has 1\)\. Fix:"
+    with pytest.raises(ConfigError, match=expected):
+        build_task(hydra_compose("device=cuda:3"))

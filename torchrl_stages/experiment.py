@@ -151,6 +151,10 @@ class Experiment:
             "progress": cfg.progress,
             "compile": compile_mode(cfg),
         }
+        if kwargs["compile"] != "off":
+            # compiled code starts fresh in every run: the jobs of a sweep run one after another
+            # in one process, and their learners' recompiles would add up to Dynamo's limit
+            torch._dynamo.reset()
         if cfg.eval.get("probe", False):
 
             def probe(learners: list[Learner], frames: int) -> None:

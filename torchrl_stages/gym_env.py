@@ -60,7 +60,7 @@ def _stage_function(stage_fn: StageFn | str) -> StageFn:
 
     @functools.wraps(fn)
     def stage(td: TensorDictBase) -> torch.Tensor:
-        out = torch.as_tensor(fn(td)).long()
+        out = torch.as_tensor(fn(td), device=td.device).long()
         return out.unsqueeze(-1) if out.shape == td.batch_size else out
 
     return stage

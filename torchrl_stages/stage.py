@@ -269,13 +269,13 @@ class StageTrainer:
             total_frames=cfg.frames,
             init_random_frames=cfg.init_random_frames,
         )
-        # one draw for all of a batch's gradient steps, split per step: the same indices as a
-        # draw per step (the sampler's randint stream is the same) unless the update itself
+        # one draw for all of a batch's gradient steps, split per step: on CPU the same indices
+        # as a draw per step (the sampler's randint stream is the same) unless the update itself
         # draws random numbers in between (TD3's target smoothing); one storage read, not n
         steps = int(cfg.updates_per_batch)
         draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
-        # on the envs' device, where the learner's networks are too
-        device = getattr(self.env, "device", None) or "cpu"
+        # on the learner's device: batches are drawn where its networks are
+        device = next(learner.parameters()).device
         buffer = TensorDictReplayBuffer(storage=GatherStorage(cfg.buffer_size, device=device))
         monitor = _EvalMonitor(cfg)
         counters = {"next_eval": first_evaluation(cfg), "seconds": 0.0, "log": {}}

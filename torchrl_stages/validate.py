@@ -253,6 +253,14 @@ def validate_config(cfg: DictConfig) -> None:
         "names a CUDA device, but torch sees none on this machine",
         "set device=cpu",
     )
+    count = torch.cuda.device_count() if device.type == "cuda" else 0
+    _check(
+        device.type != "cuda" or device.index is None or device.index < count,
+        "device",
+        cfg.device,
+        f"names a GPU this machine does not have (it has {count})",
+        "set device=cuda (the first GPU) or a lower index",
+    )
     _check(
         cfg.eval.episodes >= 1,
         "eval.episodes",
