@@ -111,7 +111,7 @@ class JointTrainer:
         cfg, n = self.task.stage_cfg(m), self.task.num_stages
         next_value = self.learners[m + 1].value(live=True) if m + 1 < n else None
         return TensorDictReplayBuffer(
-            storage=GatherStorage(int(cfg.buffer_size), device=self.task.device),
+            storage=GatherStorage(int(cfg.buffer_size), device=self.learners[m].device),
             batch_size=int(cfg.batch_size),
             transform=StageRewardTransform(m, n, next_value=next_value, gamma=self.gammas[m]),
         )

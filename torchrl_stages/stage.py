@@ -274,9 +274,8 @@ class StageTrainer:
         # draws random numbers in between (TD3's target smoothing); one storage read, not n
         steps = int(cfg.updates_per_batch)
         draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
-        # on the learner's device: batches are drawn where its networks are
-        device = next(learner.parameters()).device
-        buffer = TensorDictReplayBuffer(storage=GatherStorage(cfg.buffer_size, device=device))
+        storage = GatherStorage(cfg.buffer_size, device=learner.device)
+        buffer = TensorDictReplayBuffer(storage=storage)
         monitor = _EvalMonitor(cfg)
         counters = {"next_eval": first_evaluation(cfg), "seconds": 0.0, "log": {}}
         state = {  # what a checkpoint holds (and the process-global generators)

@@ -164,6 +164,11 @@ class Learner(nn.Module, ABC):
         self.num_updates = 0
 
     @property
+    def device(self) -> torch.device:
+        """Where the networks live (``make_learner``'s ``device``): replay batches go there."""
+        return next(self.parameters()).device
+
+    @property
     def cnn(self) -> ConvSpec:
         """The CNN applied to image observations, from ``cfg.cnn_*``."""
         cfg = self.cfg
