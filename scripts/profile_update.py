@@ -1,0 +1,141 @@
+"""One stage's gradient update in isolation: its first call (compilation and CUDA-graph
+recording included) and its steady-state cost, per ``compile`` mode.
+
+``profile_stage.py`` times updates inside a training run, where a learner's first compiled
+calls are part of the update phase. Here each stage's learner updates on one replay batch of
+its own env (collected as the stage loop collects its first batch) ``--updates`` times after
+``--warmup`` calls, synchronised with the device, so that the per-update cost and the
+one-off compilation are read apart.
+
+    python scripts/profile_update.py [OVERRIDE ...] --stages gridworld:4 cargo:0
+        [--compile off default reduce-overhead] [--updates 200]
+
+Each ``TASK:STAGE`` is built from the task's config with the overrides (``device=cuda`` for the
+GPU); a stage below the last reads an untrained next-stage value (its cost does not depend on
+the values).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from _benchmark import compose_config
+from torchrl.data import TensorDictReplayBuffer
+
+from torchrl_stages.collector import StageCollector
+from torchrl_stages.config import register_configs
+from torchrl_stages.experiment import build_task
+from torchrl_stages.learners import make_learner
+from torchrl_stages.replay import GatherStorage
+
+
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def replay_batch(task, stage: int, learner) -> object:
+    """A replay sample of ``stage``'s first collected batch, as its stage loop draws one."""
+    cfg = task.stage_cfg(stage)
+    next_value = None
+    if stage < task.num_stages - 1:
+        nxt = make_learner(task.stage_cfg(stage + 1), task.specs(stage + 1), device=task.device)
+        next_value = nxt.value()
+    env = task.stage_env(stage, cfg.num_envs, next_value)
+    collector = StageCollector(
+        env,
+        learner.exploration_policy,
+        frames_per_batch=cfg.frames_per_batch,
+        total_frames=cfg.frames_per_batch,
+    )
+    batch = next(iter(collector))
+    buffer = TensorDictReplayBuffer(storage=GatherStorage(cfg.buffer_size, device=learner.device))
+    buffer.extend(batch.reshape(-1).select(*learner.loss.in_keys, strict=False))
+    return buffer.sample(cfg.batch_size)
+
+
+def profile(spec: str, mode: str, overrides: list[str], updates: int, warmup: int) -> dict:
+    task_name, stage = spec.split(":")
+    stage = int(stage)
+    cfg = compose_config(task_name, *overrides)
+    torch.set_num_threads(int(cfg.threads))
+    torch.manual_seed(int(cfg.seed))
+    torch._dynamo.reset()
+    task = build_task(cfg)
+    learner = make_learner(task.stage_cfg(stage), task.specs(stage), mode, task.device)
+    device = learner.device
+    batch = replay_batch(task, stage, learner)
+    start = time.perf_counter()
+    learner.update(batch)
+    synchronize(device)
+    first = time.perf_counter() - start
+    for _ in range(warmup):
+        learner.update(batch)
+    synchronize(device)
+    start = time.perf_counter()
+    for _ in range(updates):
+        learner.update(batch)
+    synchronize(device)
+    per_update = (time.perf_counter() - start) / updates
+    return {
+        "task": task_name,
+        "stage": stage,
+        "algo": learner.algo,
+        "compile": mode,
+        "device": str(device),
+        "batch_size": int(batch.batch_size[0]),
+        "first_call_s": first,
+        "ms_per_update": per_update * 1e3,
+        "updates_per_s": 1.0 / per_update,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--stages", nargs="+", default=["gridworld:4", "cargo:0", "manipulator:0"])
+    parser.add_argument("--compile", nargs="+", default=["off", "reduce-overhead"])
+    parser.add_argument("--updates", type=int, default=200)
+    parser.add_argument("--warmup", type=int, default=20)
+    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("overrides", nargs="*")
+    args = parser.parse_args()
+    misplaced = [word for word in (*args.stages, *args.compile) if "=" in word]
+    if misplaced:  # --stages and --compile take every word after them
+        parser.error(f"{misplaced} are Hydra overrides: put them before --stages and --compile")
+    register_configs()
+    out = args.out or Path(tempfile.mkdtemp(prefix="profile_update_"))
+    out.mkdir(parents=True, exist_ok=True)
+    command = "python " + shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
+    gpu = f", {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""
+    machine = f"torch {torch.__version__}, {os.cpu_count()} CPUs{gpu}"
+    print(f"{command}\n{machine}", flush=True)
+    header = ["task", "stage", "algo", "compile", "first call (s)", "ms per update", "updates/s"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    rows = []
+    for spec in args.stages:
+        for mode in args.compile:
+            row = profile(spec, mode, args.overrides, args.updates, args.warmup)
+            rows.append(row)
+            cells = [row["task"], str(row["stage"]), row["algo"], mode]
+            cells += [f"{row['first_call_s']:.1f}", f"{row['ms_per_update']:.2f}"]
+            cells.append(f"{row['updates_per_s']:.0f}")
+            lines.append("| " + " | ".join(cells) + " |")
+            print(lines[-1], flush=True)
+            (out / "rows.json").write_text(json.dumps(rows, indent=2))
+    table = ["```text", f"$ {command}", "```", "", *lines, "", f"- {machine}"]
+    (out / "table.md").write_text("\n".join(table) + "\n")
+    print(f"wrote {out / 'rows.json'} and {out / 'table.md'}")
+
+
+if __name__ == "__main__":
+    main()
