@@ -40,6 +40,8 @@ OVERRIDES = [
     *[f"task.stages.s{k}.{key}={value}" for k in (0, 1) for key, value in TINY.items()],
     "checkpoint_every=256",
     "eval.plots=false",
+    # STAGES_TEST_DEVICE=cuda runs these on a GPU (CI has none)
+    f"device={os.environ.get('STAGES_TEST_DEVICE', 'cpu')}",
 ]
 
 
