@@ -96,6 +96,12 @@ def profile(task: str, compile: str, threads: int | None, overrides: list[str], 
         "total_seconds": total,
         "stages": rows,
         "success_rate": result["success_rate"],
+        # the task report's scalar bars (the grid world's path length and value error, ...)
+        "task_metrics": {
+            k: v
+            for k, v in result.get("task_metrics", {}).items()
+            if isinstance(v, int | float | bool)
+        },
     }
 
 
@@ -164,6 +170,12 @@ def main() -> None:
             f"{run['total_seconds']:.1f} s in all (training, evaluation, figures), "
             f"success {run['success_rate']:.1%}"
         )
+        if run["task_metrics"]:
+            bars = [
+                f"{k}={v if isinstance(v, bool) else f'{v:.4g}'}"
+                for k, v in run["task_metrics"].items()
+            ]
+            print("  " + ", ".join(bars))
     (out / "rows.json").write_text(json.dumps(runs, indent=2))
     note = speed_note(speed, machine_speed())
     print(note)
