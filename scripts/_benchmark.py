@@ -31,6 +31,29 @@ def compose_config(task: str, *overrides: str) -> DictConfig:
         return compose("config", overrides=[f"task={task}", *overrides])
 
 
+# environment variables that change what a timed run measures, shown in front of its command
+TIMING_ENV = ("TORCHINDUCTOR_CACHE_DIR", "OMP_NUM_THREADS", "CUDA_VISIBLE_DEVICES")
+
+
+def _launch_environ() -> dict[str, str]:
+    """The environment the process was started with: importing torchrl sets
+    ``TORCHINDUCTOR_CACHE_DIR`` in ``os.environ`` (Linux keeps the original in /proc)."""
+    try:
+        raw = Path("/proc/self/environ").read_bytes().decode(errors="replace")
+    except OSError:
+        return dict(os.environ)
+    return dict(item.split("=", 1) for item in raw.split("\0") if "=" in item)
+
+
+def command_line() -> str:
+    """This script's command as typed, with the :data:`TIMING_ENV` variables it was launched
+    with (an empty inductor cache makes a compiled run pay its compilation) in front."""
+    launch = _launch_environ()
+    env = [f"{name}={shlex.quote(launch[name])}" for name in TIMING_ENV if name in launch]
+    argv = shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
+    return " ".join([*env, "python", argv])
+
+
 def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespace:
     """``--seeds``, ``--variants``, ``--out`` (default: a temporary directory) and extra Hydra
     overrides for every run; ``extra`` adds ``--name default`` options."""
@@ -52,7 +75,7 @@ def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespac
     register_configs()
     args.out = args.out or Path(tempfile.mkdtemp(prefix="benchmark_"))
     args.out.mkdir(parents=True, exist_ok=True)
-    args.command = "python " + shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
+    args.command = command_line()
     print(
         f"{args.command}\ntorch {torch.__version__}, {os.cpu_count()} CPUs (torch threads: "
         f"the config's `threads`); runs in {args.out}",

@@ -19,14 +19,12 @@ import argparse
 import itertools
 import json
 import os
-import shlex
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
-from _benchmark import compose_config, machine_speed, speed_note
+from _benchmark import command_line, compose_config, machine_speed, speed_note
 
 from torchrl_stages.config import register_configs
 from torchrl_stages.experiment import Experiment
@@ -98,9 +96,7 @@ def profile(task: str, compile: str, threads: int | None, overrides: list[str], 
         "success_rate": result["success_rate"],
         # the task report's scalar bars (the grid world's path length and value error, ...)
         "task_metrics": {
-            k: v
-            for k, v in result.get("task_metrics", {}).items()
-            if isinstance(v, int | float | bool)
+            k: v for k, v in result.get("task_metrics", {}).items() if isinstance(v, int | float)
         },
     }
 
@@ -132,7 +128,7 @@ def main() -> None:
     register_configs()
     out = args.out or Path(tempfile.mkdtemp(prefix="profile_"))
     out.mkdir(parents=True, exist_ok=True)
-    command = "python " + shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
+    command = command_line()
     print(f"{command}\ntorch {torch.__version__}, {os.cpu_count()} CPUs; runs in {out}")
     header = [
         "threads",
@@ -146,7 +142,7 @@ def main() -> None:
         "frames/s",
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    runs = []
+    runs, summaries = [], []
     speed = machine_speed()
     for threads, mode in itertools.product(args.threads, args.compile):
         run = profile(args.task, mode, threads, args.overrides, out)
@@ -165,21 +161,22 @@ def main() -> None:
             ]
             lines.append("| " + " | ".join(cells) + " |")
         print("\n".join(lines[-len(run["stages"]) :]), flush=True)
-        print(
-            f"{args.task}, threads={run['threads']}, compile={mode}: "
+        summary = (
+            f"- {args.task}, threads={run['threads']}, compile={mode}: "
             f"{run['total_seconds']:.1f} s in all (training, evaluation, figures), "
             f"success {run['success_rate']:.1%}"
         )
         if run["task_metrics"]:
-            bars = [
+            summary += "; " + ", ".join(
                 f"{k}={v if isinstance(v, bool) else f'{v:.4g}'}"
                 for k, v in run["task_metrics"].items()
-            ]
-            print("  " + ", ".join(bars))
+            )
+        summaries.append(summary)
+        print(summary, flush=True)
     (out / "rows.json").write_text(json.dumps(runs, indent=2))
     note = speed_note(speed, machine_speed())
     print(note)
-    table = ["```text", f"$ {command}", "```", "", *lines, "", note]
+    table = ["```text", f"$ {command}", "```", "", *lines, "", *summaries, note]
     (out / "table.md").write_text("\n".join(table) + "\n")
     print(f"wrote {out / 'rows.json'} and {out / 'table.md'}")
 

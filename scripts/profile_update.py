@@ -1,11 +1,15 @@
-"""One stage's gradient update in isolation: its first call (compilation and CUDA-graph
-recording included) and its steady-state cost, per ``compile`` mode.
+"""One stage's gradient update in isolation: its first call and its steady-state cost, per
+``compile`` mode.
 
-``profile_stage.py`` times updates inside a training run, where a learner's first compiled
-calls are part of the update phase. Here each stage's learner updates on one replay batch of
-its own env (collected as the stage loop collects its first batch) ``--updates`` times after
-``--warmup`` calls, synchronised with the device, so that the per-update cost and the
-one-off compilation are read apart.
+``profile_stage.py`` times updates inside a training run, where a learner's compilation is part
+of the update phase. Here each stage's learner updates on one replay batch of its own env
+(collected as the stage loop collects its first batch) once, then ``--warmup`` times, then
+``--updates`` times, synchronised with the device, so that the one-off cost and the per-update
+cost are read apart. The first call is the loss's compilation with ``compile`` on (for TD3 the
+critic's only: its actor loss runs from the second update, ``policy_update_delay``) and lazy
+set-up (optimizer state, CUDA libraries) with ``compile=off``; ``reduce-overhead`` records its
+CUDA graphs on the second call, in the warm-up. An update includes its target update (timed
+apart in ``profile_stage.py``).
 
     python scripts/profile_update.py [OVERRIDE ...] --stages gridworld:4 cargo:0
         [--compile off default reduce-overhead] [--updates 200]
@@ -20,29 +24,33 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shlex
-import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
-from _benchmark import compose_config
+from _benchmark import command_line, compose_config, machine_speed, speed_note
+from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import register_configs
-from torchrl_stages.experiment import build_task
-from torchrl_stages.learners import make_learner
+from torchrl_stages.experiment import build_task, compile_mode
+from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.replay import GatherStorage
+from torchrl_stages.task import StagedTask
+
+MODES = ("auto", "off", "default", "reduce-overhead", "max-autotune")
 
 
 def synchronize(device: torch.device) -> None:
+    """Waits for the device's queued work (a GPU's; nothing to wait for on CPU)."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
 
-def replay_batch(task, stage: int, learner) -> object:
+def replay_batch(task: StagedTask, stage: int, learner: Learner) -> TensorDictBase:
     """A replay sample of ``stage``'s first collected batch, as its stage loop draws one."""
     cfg = task.stage_cfg(stage)
     next_value = None
@@ -55,6 +63,7 @@ def replay_batch(task, stage: int, learner) -> object:
         learner.exploration_policy,
         frames_per_batch=cfg.frames_per_batch,
         total_frames=cfg.frames_per_batch,
+        init_random_frames=cfg.init_random_frames,
     )
     batch = next(iter(collector))
     buffer = TensorDictReplayBuffer(storage=GatherStorage(cfg.buffer_size, device=learner.device))
@@ -62,10 +71,14 @@ def replay_batch(task, stage: int, learner) -> object:
     return buffer.sample(cfg.batch_size)
 
 
-def profile(spec: str, mode: str, overrides: list[str], updates: int, warmup: int) -> dict:
+def profile(
+    spec: str, mode: str, overrides: list[str], updates: int, warmup: int
+) -> dict[str, Any]:
+    """Times the update of ``spec`` (``TASK:STAGE``) under ``compile=mode``; returns its row."""
     task_name, stage = spec.split(":")
     stage = int(stage)
-    cfg = compose_config(task_name, *overrides)
+    cfg = compose_config(task_name, *overrides, f"compile={mode}")
+    mode = compile_mode(cfg)  # auto resolved for the device
     torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(int(cfg.seed))
     torch._dynamo.reset()
@@ -73,6 +86,7 @@ def profile(spec: str, mode: str, overrides: list[str], updates: int, warmup: in
     learner = make_learner(task.stage_cfg(stage), task.specs(stage), mode, task.device)
     device = learner.device
     batch = replay_batch(task, stage, learner)
+    synchronize(device)
     start = time.perf_counter()
     learner.update(batch)
     synchronize(device)
@@ -103,7 +117,9 @@ def main() -> None:
         description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--stages", nargs="+", default=["gridworld:4", "cargo:0", "manipulator:0"])
-    parser.add_argument("--compile", nargs="+", default=["off", "reduce-overhead"])
+    parser.add_argument(
+        "--compile", nargs="+", default=["off", "reduce-overhead"], help=f"modes among {MODES}"
+    )
     parser.add_argument("--updates", type=int, default=200)
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--out", type=Path, default=None)
@@ -112,13 +128,19 @@ def main() -> None:
     misplaced = [word for word in (*args.stages, *args.compile) if "=" in word]
     if misplaced:  # --stages and --compile take every word after them
         parser.error(f"{misplaced} are Hydra overrides: put them before --stages and --compile")
+    unknown = [mode for mode in args.compile if mode not in MODES]
+    if unknown:
+        parser.error(f"--compile {unknown}: not compile modes; choose among {list(MODES)}")
+    if any(word.split("=")[0].lstrip("+") == "compile" for word in args.overrides):
+        parser.error("set the compile modes with --compile, not a compile= override")
     register_configs()
     out = args.out or Path(tempfile.mkdtemp(prefix="profile_update_"))
     out.mkdir(parents=True, exist_ok=True)
-    command = "python " + shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
+    command = command_line()
     gpu = f", {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""
     machine = f"torch {torch.__version__}, {os.cpu_count()} CPUs{gpu}"
     print(f"{command}\n{machine}", flush=True)
+    speed = machine_speed()
     header = ["task", "stage", "algo", "compile", "first call (s)", "ms per update", "updates/s"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     rows = []
@@ -132,7 +154,9 @@ def main() -> None:
             lines.append("| " + " | ".join(cells) + " |")
             print(lines[-1], flush=True)
             (out / "rows.json").write_text(json.dumps(rows, indent=2))
-    table = ["```text", f"$ {command}", "```", "", *lines, "", f"- {machine}"]
+    note = speed_note(speed, machine_speed())
+    print(note)
+    table = ["```text", f"$ {command}", "```", "", *lines, "", f"- {machine}", note]
     (out / "table.md").write_text("\n".join(table) + "\n")
     print(f"wrote {out / 'rows.json'} and {out / 'table.md'}")
 

@@ -4,6 +4,7 @@ writes the rows and the table it prints, and refuses Hydra overrides placed afte
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -33,13 +34,14 @@ TINY_GRID = [
 ]
 
 
-def run_script(name: str, *args: str) -> subprocess.CompletedProcess:
+def run_script(name: str, *args: str, env: dict[str, str] | None = None):
     return subprocess.run(
         [sys.executable, str(SCRIPTS / name), *args],
         capture_output=True,
         text=True,
         timeout=300,
         stdin=subprocess.DEVNULL,
+        env=None if env is None else {**os.environ, **env},
     )
 
 
@@ -58,6 +60,7 @@ def test_profile_update_times_each_stage(tmp_path):
         "1",
         "--out",
         str(tmp_path),
+        env={"TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "inductor")},
     )
     assert done.returncode == 0, done.stderr[-3000:]
     rows = json.loads((tmp_path / "rows.json").read_text())
@@ -69,7 +72,9 @@ def test_profile_update_times_each_stage(tmp_path):
         assert row["batch_size"] == 32 and row["device"] == "cpu"
         assert row["ms_per_update"] > 0 and row["first_call_s"] > 0
     table = (tmp_path / "table.md").read_text()
-    assert "$ python " in table and "profile_update.py" in table
+    # the command as run: an inductor cache directory changes what a first call costs
+    assert f"$ TORCHINDUCTOR_CACHE_DIR={tmp_path / 'inductor'} python " in table
+    assert "profile_update.py" in table and "machine speed" in table
     assert table.count("| gridworld |") == 2
 
 
@@ -83,6 +88,7 @@ def test_profile_stage_breaks_a_run_into_phases(tmp_path):
         assert row["updates_per_s"] > 0 and row["frames_per_s"] > 0
     assert run["task_metrics"]["optimal_steps_from_origin"] == 18  # the 10 x 10 grid's shortest
     assert "optimal_steps_from_origin=18" in done.stdout
+    assert "optimal_steps_from_origin=18" in (tmp_path / "table.md").read_text()
     assert (tmp_path / "table.md").read_text().count("| 1 | off |") == 2
 
 
@@ -91,3 +97,15 @@ def test_an_override_after_the_compile_list_is_refused(script, tmp_path):
     done = run_script(script, "--compile", "off", "device=cpu", "--out", str(tmp_path))
     assert done.returncode == 2
     assert "device=cpu" in done.stderr and "before" in done.stderr
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--compile", "fast"], "not compile modes"),
+        (["compile=default"], "--compile, not a compile= override"),
+    ],
+)
+def test_profile_update_refuses_unknown_modes_and_a_compile_override(args, message, tmp_path):
+    done = run_script("profile_update.py", *args, "--out", str(tmp_path))
+    assert done.returncode == 2 and message in done.stderr
