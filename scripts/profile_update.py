@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import tempfile
 import time
 from pathlib import Path
@@ -131,6 +132,9 @@ def main() -> None:
     unknown = [mode for mode in args.compile if mode not in MODES]
     if unknown:
         parser.error(f"--compile {unknown}: not compile modes; choose among {list(MODES)}")
+    malformed = [spec for spec in args.stages if not re.fullmatch(r"[\w-]+:\d+", spec)]
+    if malformed:
+        parser.error(f"--stages {malformed}: each is TASK:STAGE, e.g. gridworld:4 or cargo:0")
     if any(word.split("=")[0].lstrip("+") == "compile" for word in args.overrides):
         parser.error("set the compile modes with --compile, not a compile= override")
     register_configs()

@@ -104,8 +104,9 @@ def test_an_override_after_the_compile_list_is_refused(script, tmp_path):
     [
         (["--compile", "fast"], "not compile modes"),
         (["compile=default"], "--compile, not a compile= override"),
+        (["--stages", "gridworld"], "each is TASK:STAGE"),
     ],
 )
-def test_profile_update_refuses_unknown_modes_and_a_compile_override(args, message, tmp_path):
+def test_profile_update_refuses_bad_arguments(args, message, tmp_path):
     done = run_script("profile_update.py", *args, "--out", str(tmp_path))
     assert done.returncode == 2 and message in done.stderr
