@@ -3,6 +3,7 @@ writes the rows and the table it prints, and refuses Hydra overrides placed afte
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import subprocess
@@ -92,11 +93,23 @@ def test_profile_stage_breaks_a_run_into_phases(tmp_path):
     assert (tmp_path / "table.md").read_text().count("| 1 | off |") == 2
 
 
+def main_of(script: str, monkeypatch):
+    """The ``main`` of a script in ``scripts/``, imported in this process (argument errors exit
+    before anything runs, so the refusals need no subprocess)."""
+    monkeypatch.syspath_prepend(str(SCRIPTS))
+    module = importlib.import_module(script.removesuffix(".py"))
+    return module.main
+
+
 @pytest.mark.parametrize("script", ["profile_stage.py", "profile_update.py"])
-def test_an_override_after_the_compile_list_is_refused(script, tmp_path):
-    done = run_script(script, "--compile", "off", "device=cpu", "--out", str(tmp_path))
-    assert done.returncode == 2
-    assert "device=cpu" in done.stderr and "before" in done.stderr
+def test_an_override_after_the_compile_list_is_refused(script, monkeypatch, capsys):
+    main = main_of(script, monkeypatch)
+    monkeypatch.setattr(sys, "argv", [script, "--compile", "off", "device=cpu"])
+    with pytest.raises(SystemExit) as raised:
+        main()
+    assert raised.value.code == 2
+    err = capsys.readouterr().err
+    assert "device=cpu" in err and "before" in err
 
 
 @pytest.mark.parametrize(
@@ -107,6 +120,9 @@ def test_an_override_after_the_compile_list_is_refused(script, tmp_path):
         (["--stages", "gridworld"], "each is TASK:STAGE"),
     ],
 )
-def test_profile_update_refuses_bad_arguments(args, message, tmp_path):
-    done = run_script("profile_update.py", *args, "--out", str(tmp_path))
-    assert done.returncode == 2 and message in done.stderr
+def test_profile_update_refuses_bad_arguments(args, message, monkeypatch, capsys):
+    main = main_of("profile_update.py", monkeypatch)
+    monkeypatch.setattr(sys, "argv", ["profile_update.py", *args])
+    with pytest.raises(SystemExit) as raised:
+        main()
+    assert raised.value.code == 2 and message in capsys.readouterr().err
