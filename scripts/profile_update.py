@@ -33,13 +33,12 @@ from typing import Any
 import torch
 from _benchmark import command_line, compose_config, machine_speed, speed_note
 from tensordict import TensorDictBase
-from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import register_configs
 from torchrl_stages.experiment import build_task, compile_mode
 from torchrl_stages.learners import Learner, make_learner
-from torchrl_stages.replay import GatherStorage
+from torchrl_stages.replay import stage_replay_buffer
 from torchrl_stages.task import StagedTask
 
 MODES = ("auto", "off", "default", "reduce-overhead", "max-autotune")
@@ -67,7 +66,7 @@ def replay_batch(task: StagedTask, stage: int, learner: Learner) -> TensorDictBa
         init_random_frames=cfg.init_random_frames,
     )
     batch = next(iter(collector))
-    buffer = TensorDictReplayBuffer(storage=GatherStorage(cfg.buffer_size, device=learner.device))
+    buffer = stage_replay_buffer(cfg.buffer_size, learner.device)
     buffer.extend(batch.reshape(-1).select(*learner.loss.in_keys, strict=False))
     return buffer.sample(cfg.batch_size)
 

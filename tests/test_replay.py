@@ -5,6 +5,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
+from torchrl_stages import replay as replay_module
 from torchrl_stages import stage as stage_module
 from torchrl_stages.config import DQNConfig
 from torchrl_stages.learners import DQNLearner
@@ -99,7 +100,8 @@ def test_stage_runs_equal_with_lazy_tensor_storage(monkeypatch):
         return learner.state_dict()
 
     gathered = train()
-    monkeypatch.setattr(stage_module, "GatherStorage", LazyTensorStorage)
+    # the stage loop's buffers are built by replay.stage_replay_buffer
+    monkeypatch.setattr(replay_module, "GatherStorage", LazyTensorStorage)
     plain = train()
     assert gathered.keys() == plain.keys()
     for key in plain:

@@ -32,7 +32,7 @@ from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.replay import GatherStorage
+from torchrl_stages.replay import stage_replay_buffer
 from torchrl_stages.stage import (
     DivergenceError,
     StageResult,
@@ -110,8 +110,9 @@ class JointTrainer:
     def _buffer(self, m: int) -> TensorDictReplayBuffer:
         cfg, n = self.task.stage_cfg(m), self.task.num_stages
         next_value = self.learners[m + 1].value(live=True) if m + 1 < n else None
-        return TensorDictReplayBuffer(
-            storage=GatherStorage(int(cfg.buffer_size), device=self.learners[m].device),
+        return stage_replay_buffer(
+            cfg.buffer_size,
+            self.learners[m].device,
             batch_size=int(cfg.batch_size),
             transform=StageRewardTransform(m, n, next_value=next_value, gamma=self.gammas[m]),
         )

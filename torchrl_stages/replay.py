@@ -1,4 +1,4 @@
-"""Replay storage of the stage loops."""
+"""Replay storage and buffers of the stage loops."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from typing import Any
 
 import torch
 from tensordict import is_tensor_collection
-from torchrl.data import LazyTensorStorage
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 
 class GatherStorage(LazyTensorStorage):
@@ -44,3 +44,17 @@ class GatherStorage(LazyTensorStorage):
             # indices drawn from [0, len) (the sampler's): the unfilled tail is never read
             return storage.apply(lambda x: x.index_select(0, index), batch_size=index.shape)
         return super().get(index)
+
+
+def stage_replay_buffer(
+    size: int, device: torch.device | str, **kwargs: Any
+) -> TensorDictReplayBuffer:
+    """A stage loop's replay buffer: a :class:`GatherStorage` of ``size`` transitions on
+    ``device`` (the learner's, where its batches are read); ``kwargs`` go to the buffer.
+
+    Examples:
+        >>> rb = stage_replay_buffer(100, "cpu", batch_size=4)
+        >>> type(rb.storage).__name__, rb.storage.max_size
+        ('GatherStorage', 100)
+    """
+    return TensorDictReplayBuffer(storage=GatherStorage(int(size), device=device), **kwargs)

@@ -16,7 +16,6 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
@@ -27,7 +26,7 @@ from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
-from torchrl_stages.replay import GatherStorage
+from torchrl_stages.replay import stage_replay_buffer
 from torchrl_stages.transforms import NonFiniteValueError
 
 
@@ -274,8 +273,7 @@ class StageTrainer:
         # draws random numbers in between (TD3's target smoothing); one storage read, not n
         steps = int(cfg.updates_per_batch)
         draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
-        storage = GatherStorage(cfg.buffer_size, device=learner.device)
-        buffer = TensorDictReplayBuffer(storage=storage)
+        buffer = stage_replay_buffer(cfg.buffer_size, learner.device)
         monitor = _EvalMonitor(cfg)
         counters = {"next_eval": first_evaluation(cfg), "seconds": 0.0, "log": {}}
         state = {  # what a checkpoint holds (and the process-global generators)
