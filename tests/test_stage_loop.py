@@ -390,3 +390,27 @@ def test_train_backward_hands_a_frozen_target_value_to_the_previous_stage(monkey
         transform = next(t for t in env.transform if isinstance(t, StageTransform))
         assert transform.train_stage == 0
         assert torch.allclose(out(transform.next_value), expected)
+
+
+@pytest.mark.parametrize("gammas", ["homo", "hetero"])
+def test_grid_world_stage_evaluation_depends_on_the_weights_only(hydra_compose, gammas):
+    # what lets the grid world stop a stage at its first passing evaluation (patience: 1): the
+    # env is deterministic and every start state is evaluated, so the evaluation is exact, not
+    # a sample that a second evaluation of the same weights could contradict
+    cfg = hydra_compose("task=gridworld", f"task/gammas={gammas}", "task.env.size=10")
+    task = StagedTask(cfg.task)
+    stage = 0
+    scfg = task.stage_cfg(stage)
+    assert scfg.patience == 1
+    torch.manual_seed(0)
+    learner = DQNLearner(scfg, task.specs(stage))
+    next_value = DQNLearner(task.stage_cfg(stage + 1), task.specs(stage + 1)).value()
+    results = []
+    for seed in (0, 1):
+        eval_env = task.stage_eval_env(stage, next_value)
+        eval_env.set_seed(seed)
+        env = task.stage_env(stage, 4, next_value)
+        trainer = StageTrainer(stage, learner, env, eval_env, scfg)
+        results.append(trainer.evaluate(frames=0))
+    assert results[0] == results[1]
+    assert eval_env.batch_size.numel() == len(task.start_states(stage)["start_cell"])
