@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import pytest
@@ -13,7 +14,7 @@ from torch import nn
 
 from torchrl_stages.config import DQNConfig
 from torchrl_stages.learners import DDPGLearner, DQNLearner, Learner, TD3Learner
-from torchrl_stages.schedule import train_backward
+from torchrl_stages.schedule import train_backward, train_stage
 from torchrl_stages.stage import StageTrainer
 from torchrl_stages.task import StagedTask
 from torchrl_stages.transforms import StageTransform
@@ -390,6 +391,29 @@ def test_train_backward_hands_a_frozen_target_value_to_the_previous_stage(monkey
         transform = next(t for t in env.transform if isinstance(t, StageTransform))
         assert transform.train_stage == 0
         assert torch.allclose(out(transform.next_value), expected)
+
+
+def test_train_stage_is_the_stage_of_a_backward_run():
+    # a stage trained alone, given the next stage's value, is that stage of a whole run with the
+    # same seed (what scripts/benchmark_stage.py relies on): the same weights and result
+    task = _task(dataclasses.replace(_tiny_dqn(), eval_every=128))
+    learners, results = train_backward(task, seed=5)
+    last, last_result = train_stage(task, 1, seed=5)
+    first, first_result = train_stage(task, 0, learners[1].value(), seed=5)
+    for alone, result, k in ((first, first_result, 0), (last, last_result, 1)):
+        assert result.success_rate is not None  # evaluated: its eval env's seed matters too
+        assert (result.frames, result.updates, result.success_rate, result.value_error) == (
+            results[k].frames,
+            results[k].updates,
+            results[k].success_rate,
+            results[k].value_error,
+        )
+        whole = learners[k].state_dict()
+        assert all(torch.equal(v, whole[key]) for key, v in alone.state_dict().items())
+    other, _ = train_stage(task, 1, seed=6)
+    assert not all(torch.equal(v, last.state_dict()[key]) for key, v in other.state_dict().items())
+    with pytest.raises(ValueError, match="pass next_value"):
+        train_stage(task, 0, seed=5)
 
 
 @pytest.mark.parametrize("gammas", ["homo", "hetero"])

@@ -5,7 +5,7 @@ from torchrl_stages.gym_env import GymStageEnv, threshold_stage
 from torchrl_stages.learners import DDPGLearner, DQNLearner, Learner, StageSpecs, TD3Learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.rundir import load_policy, load_run
-from torchrl_stages.schedule import train_backward
+from torchrl_stages.schedule import train_backward, train_stage
 from torchrl_stages.stage import StageTrainer
 from torchrl_stages.sweeps import summarize_sweep
 from torchrl_stages.targets import target_value
@@ -35,6 +35,7 @@ __all__ = [
     "target_value",
     "threshold_stage",
     "train_backward",
+    "train_stage",
     "with_params",
 ]
 __version__ = "0.1.0"

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Protocol
 
 import torch
 from omegaconf import DictConfig
+from tensordict.nn import TensorDictModuleBase
 from torchrl.record.loggers import Logger
 
 from torchrl_stages.checkpoint import StageCheckpoints
@@ -80,38 +82,82 @@ def train_backward(
         if done is not None:
             learners[k], results[k] = done
         else:
-            cfg = task.stage_cfg(k)
-            torch.manual_seed(seed + k)
-            env = task.stage_env(k, cfg.num_envs, next_value)
-            env.set_seed(seed + k)
-            eval_env = task.stage_eval_env(k, next_value)
-            eval_env.set_seed(seed + 10_000 + k)
-            learner = make_learner(cfg, task.specs(k), compile, task.device)
             on_evaluate = None
             if probe is not None and k == 0:
 
-                def on_evaluate(frames: int, learner=learner, before=frames_before) -> None:
+                def on_evaluate(learner: Learner, frames: int, before=frames_before) -> None:
                     probe([learner, *learners[1:]], before + frames)
 
-            trainer = StageTrainer(
+            learners[k], results[k] = train_stage(
+                task,
                 k,
-                learner,
-                env,
-                eval_env,
-                cfg,
+                next_value,
+                seed=seed,
                 logger=logger,
                 progress=progress,
-                name=task.stage_names[k],
                 checkpoints=store.begin(k) if store is not None else None,
                 on_evaluate=on_evaluate,
+                compile=compile,
             )
-            results[k] = trainer.train()
-            learners[k] = learner
             if store is not None:
-                store.save(k, learner, results[k])
+                store.save(k, learners[k], results[k])
         next_value = learners[k].value()
         frames_before += results[k].frames
     return learners, results
+
+
+def train_stage(
+    task: StagedTask,
+    stage: int,
+    next_value: TensorDictModuleBase | None = None,
+    *,
+    seed: int = 0,
+    logger: Logger | None = None,
+    progress: bool = False,
+    checkpoints: StageCheckpoints | None = None,
+    on_evaluate: Callable[[Learner, int], None] | None = None,
+    compile: str = "off",
+) -> tuple[Learner, StageResult]:
+    """Trains stage ``stage`` of ``task`` on its own, as the backward schedule does.
+
+    ``next_value`` is the frozen value of stage ``stage + 1`` (``None`` for the last stage).
+    The global generator and the training env are seeded with ``seed + stage``, the evaluation
+    env with ``seed + 10_000 + stage``: with the same ``next_value``, the stage is the one a
+    whole backward run with ``seed`` trains (what ``scripts/benchmark_stage.py`` relies on).
+    ``on_evaluate(learner, frames)`` runs after each of the stage's evaluations. A missing or
+    superfluous ``next_value`` fails in :class:`~torchrl_stages.transforms.StageTransform`.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.config import DQNConfig
+        >>> from torchrl_stages.task import StagedTask
+        >>> cfg = DQNConfig(frames=128, frames_per_batch=64, num_envs=8, batch_size=16)
+        >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 5, "num_stages": 1}
+        >>> task = StagedTask(OmegaConf.create({"name": "g", "stages": {"a": cfg}, "env": env}))
+        >>> learner, result = train_stage(task, 0, seed=3)  # the last (and only) stage
+        >>> result.frames, result.stage
+        (128, 0)
+    """
+    cfg = task.stage_cfg(stage)
+    torch.manual_seed(seed + stage)
+    env = task.stage_env(stage, cfg.num_envs, next_value)
+    env.set_seed(seed + stage)
+    eval_env = task.stage_eval_env(stage, next_value)
+    eval_env.set_seed(seed + 10_000 + stage)
+    learner = make_learner(cfg, task.specs(stage), compile, task.device)
+    trainer = StageTrainer(
+        stage,
+        learner,
+        env,
+        eval_env,
+        cfg,
+        logger=logger,
+        progress=progress,
+        name=task.stage_names[stage],
+        checkpoints=checkpoints,
+        on_evaluate=None if on_evaluate is None else functools.partial(on_evaluate, learner),
+    )
+    return learner, trainer.train()
 
 
 def flat_config(task: StagedTask) -> DictConfig:
