@@ -52,12 +52,11 @@ def train_backward(
     """Trains stages N-1, ..., 0 of ``task`` in turn (the paper's backward schedule).
 
     Stage k's episodes start inside stage k; its transition reward uses the frozen value of the
-    already trained stage k+1 (its target networks). Each stage seeds the global generator with
-    ``seed + k`` and its envs with ``seed + k`` (training) and ``seed + 10_000 + k``
-    (evaluation), so a stage's training does not depend on how the ones after it were reached
-    (trained now, or loaded by a resumed run). ``store`` (optional) skips stages that are
-    already trained, checkpoints the one in progress and keeps each finished stage. Returns
-    learners and results in stage order.
+    already trained stage k+1 (its target networks). Each stage is :func:`train_stage`, seeded
+    from ``seed`` and its index alone, so a stage's training does not depend on how the ones
+    after it were reached (trained now, or loaded by a resumed run). ``store`` (optional)
+    skips stages that are already trained, checkpoints the one in progress and keeps each
+    finished stage. Returns learners and results in stage order.
 
     Examples:
         >>> from omegaconf import OmegaConf
