@@ -146,6 +146,15 @@ class GridWorldEnv(StageStarts, EnvBase):
             raise ValueError(f"start_cell has cells outside the {self.size}x{self.size} grid.")
         self._start_cell = cells[:, 0] * self.size + cells[:, 1]
 
+    @property
+    def can_step_finished(self) -> bool:
+        """Whether a rollout may step a finished element on instead of resetting it, with no
+        effect on anything it reads (:func:`~torchrl_stages.evaluate.rollout_first_episodes`):
+        true with fixed starts (``start_cell`` and no ``start_stage``), where a reset draws
+        nothing from ``rng`` and the moves are deterministic, as in the evaluation envs
+        (:meth:`start_states`)."""
+        return self._start_cell is not None and self._start_stage is None
+
     def _sample_starts(self) -> torch.Tensor:
         """Flat start cells (``row * size + col``), one per (flattened) batch element."""
         n, dev, w = self._n, self.device, self.stage_width

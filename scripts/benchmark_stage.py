@@ -6,7 +6,10 @@ trains stage K of a task for every (variant, seed): ``torchrl_stages.schedule.tr
 with the run's config plus the variant's Hydra overrides, seeded as the backward schedule seeds
 the stage, so that a row is stage K of a whole run with that seed, given the same stage K+1.
 For K < N-1, ``--next-run`` names a finished run directory whose stage K+1 supplies the value
-(the same for every row); the last stage needs none.
+(the same for every row); the last stage needs none. Each row reports the evaluation the
+stage ends with (its stop, or its best evaluation when the budget ran out): success, value
+error and mean discounted return, the objective of a stage without an early stop (cargo's
+slider).
 
 A variant is ``NAME:OVERRIDE ...`` (``base:`` for the config as it is), e.g.
 
@@ -40,6 +43,7 @@ COLUMNS = [
     "train (s)",
     "success",
     "value error",
+    "return",
     "early stop",
 ]
 
@@ -120,6 +124,7 @@ def main() -> None:
 
     def cells(row: dict) -> list[str]:
         success, error = row["success_rate"], row["value_error"]
+        ret = row.get("discounted_return")
         return [
             row["variant"],
             str(row["seed"]),
@@ -128,6 +133,7 @@ def main() -> None:
             f"{row['seconds']:.1f}",
             "-" if success is None else f"{success:.1%}",
             "-" if error is None else f"{error:.4f}",
+            "-" if ret is None else f"{ret:.4f}",
             "yes" if row["early_stopped"] else "no",
         ]
 
@@ -137,6 +143,7 @@ def main() -> None:
             mine = [r for r in rows if r["variant"] == name]
             frames = [r["frames"] for r in mine]
             errors = [r["value_error"] for r in mine if r["value_error"] is not None]
+            returns = [r["discounted_return"] for r in mine if r["discounted_return"] is not None]
             notes.append(
                 f"- {name} ({shlex.join(overrides[name]) or 'no override'}): frames median "
                 f"{statistics.median(frames):.0f}, mean {statistics.mean(frames):.0f}; updates "
@@ -144,6 +151,11 @@ def main() -> None:
                 f"{statistics.median(r['seconds'] for r in mine):.1f} s; early stops "
                 f"{sum(r['early_stopped'] for r in mine)}/{len(mine)}"
                 + (f"; max value error {max(errors):.4f}" if errors else "")
+                + (
+                    f"; return median {statistics.median(returns):.4f}, min {min(returns):.4f}"
+                    if returns
+                    else ""
+                )
             )
         return notes
 

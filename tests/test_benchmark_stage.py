@@ -40,13 +40,23 @@ def test_a_stage_alone_is_the_stage_of_a_whole_run(tmp_path, monkeypatch):
     assert done.returncode == 0, done.stderr[-3000:]
     base, fast = json.loads((out / "rows.json").read_text())
     assert (base["variant"], base["seed"], base["stage"]) == ("base", 4, 0)
-    for key in ("frames", "updates", "success_rate", "value_error", "early_stopped"):
+    keys = (
+        "frames",
+        "updates",
+        "success_rate",
+        "value_error",
+        "discounted_return",
+        "early_stopped",
+    )
+    for key in keys:
         assert base[key] == whole[0][key], key
+    assert base["discounted_return"] is not None
     assert fast["variant"] == "fast" and fast["value_error"] != base["value_error"]
     table = (out / "table.md").read_text()
     assert table.count("| base | 4 |") == 1 and table.count("| fast | 4 |") == 1
     assert "- fast (task.stages.s0.lr=1e-2 task.stages.s0.tau=0.5): frames median" in table
     assert "- base (no override)" in table and "machine speed" in table
+    assert f"return median {base['discounted_return']:.4f}" in table
 
 
 @pytest.mark.parametrize(

@@ -8,6 +8,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
+from torchrl_stages.config import DQNConfig
 from torchrl_stages.evaluate import EpisodeStats, discounted_return, episode_stats, evaluate_task
 from torchrl_stages.task import StagedTask
 
@@ -188,3 +189,82 @@ def test_evaluate_task_counts_failures_at_the_time_limit():
     assert evaluation.steps_per_stage.tolist() == [[7, 0]] * SIZE
     summary = evaluation.summary()
     assert summary["success_rate"] == 0.0 and summary["mean_steps_success"] is None
+
+
+def _grid_task(size: int = 10) -> StagedTask:
+    return StagedTask(
+        OmegaConf.create(
+            {
+                "name": "grid",
+                "stages": {"a": DQNConfig(gamma=0.9), "b": DQNConfig(gamma=0.9)},
+                "env": {
+                    "_target_": "torchrl_stages.envs.GridWorldEnv",
+                    "size": size,
+                    "num_stages": 2,
+                    "max_steps": 40,
+                },
+            }
+        )
+    )
+
+
+def _scripted_grid_policy() -> TensorDictModule:
+    """Down to the last row, then right; up (blocked: stuck for good) from row 0. Episodes end
+    after different numbers of steps, or never."""
+
+    def act(observation: torch.Tensor) -> torch.Tensor:
+        row = (observation[..., 0] * 5.0).round().long()
+        down_or_right = torch.where(row < 9, 1, 3)
+        return torch.where(row == 0, 0, down_or_right)
+
+    return TensorDictModule(act, ["observation"], ["action"])
+
+
+@pytest.mark.parametrize("stage", [None, 0, 1])
+def test_rollouts_step_finished_grid_elements_on_with_the_same_first_episodes(stage, monkeypatch):
+    """A grid world with fixed starts steps its finished elements on instead of resetting them:
+    every first episode (length, success, return) is the one a rollout with resets gives."""
+    from torchrl.envs import TransformedEnv
+
+    from torchrl_stages.envs import GridWorldEnv
+    from torchrl_stages.evaluate import rollout_first_episodes
+
+    task, policy = _grid_task(), _scripted_grid_policy()
+    # stage 0's transition reward reads a stage-1 value: one that depends on the state
+    value = TensorDictModule(lambda obs: obs[..., :1] * 0.1, ["observation"], ["state_value"])
+
+    def make_env():
+        if stage is None:
+            return task.task_env()
+        return task.stage_eval_env(stage, value if stage == 0 else None)
+
+    def rollout():
+        return rollout_first_episodes(make_env(), policy, 40)
+
+    assert make_env().can_step_finished
+    with monkeypatch.context() as patch:
+        patch.setattr(TransformedEnv, "step_and_maybe_reset", None)  # the path must not reset
+        stepped_on = rollout()
+    with monkeypatch.context() as patch:
+        patch.setattr(GridWorldEnv, "can_step_finished", False)
+        reference = rollout()
+    a, b = episode_stats(stepped_on), episode_stats(reference)
+    assert len(set(b.length.tolist())) > 2 and b.success.any() and not b.success.all()
+    assert torch.equal(a.length, b.length) and torch.equal(a.success, b.success)
+    assert torch.equal(a.ret, b.ret)
+    assert torch.equal(
+        discounted_return(stepped_on, a.length, 0.9), discounted_return(reference, b.length, 0.9)
+    )
+
+
+def test_only_fixed_grid_starts_let_a_rollout_step_finished_elements():
+    """Random starts draw from the env's generator at every reset: skipping a reset would
+    change what later resets draw, so those envs reset their finished elements."""
+    from torchrl_stages.envs import GridWorldEnv
+
+    assert GridWorldEnv((2,), size=10, num_stages=2, start_cell=(0, 0)).can_step_finished
+    assert not GridWorldEnv((2,), size=10, num_stages=2).can_step_finished
+    assert not GridWorldEnv((2,), size=10, num_stages=2, start_stage=1).can_step_finished
+    assert not GridWorldEnv(
+        (2,), size=10, num_stages=2, start_cell=(0, 0), start_stage=1
+    ).can_step_finished

@@ -86,3 +86,21 @@ def test_keep_best_by_return_prefers_the_highest_discounted_return():
         monitor.record(learner, success, error, 0, ret)
     assert monitor.restore_best(learner)  # success first, then return (not value error)
     assert learner.weight.item() == 3.0 and monitor.final == (1.0, 0.2)
+    assert monitor.final_return == 0.4  # the return of the evaluation it restored
+
+
+def test_final_return_is_that_of_the_evaluation_the_stage_ends_with():
+    stopping = _EvalMonitor(_cfg(success_threshold=1.0, value_tolerance=None, patience=1))
+    assert not stopping.record(_learner(0.0), 0.5, 0.1, 0, 0.7)
+    assert stopping.record(_learner(0.0), 1.0, 0.1, 0, 0.3)
+    assert stopping.final_return == 0.3  # its stop, not its best return
+    budget = _EvalMonitor(_cfg(success_threshold=1.0, patience=3))
+    budget.record(_learner(0.0), 1.0, 0.02, 0, 0.6)
+    budget.record(_learner(0.0), 0.8, 0.01, 0, 0.9)
+    assert budget.final == (1.0, 0.02) and budget.final_return == 0.6  # its best evaluation
+    restored = _EvalMonitor(_cfg(success_threshold=1.0, patience=3))
+    restored.load_state_dict(budget.state_dict())
+    assert restored.final_return == 0.6
+    old = {k: v for k, v in budget.state_dict().items() if not k.endswith("_return")}
+    restored.load_state_dict(old)  # a checkpoint from before the returns were kept
+    assert restored.final == (1.0, 0.02) and restored.final_return is None

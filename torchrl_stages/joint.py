@@ -184,6 +184,7 @@ class JointTrainer:
                 bool(last.get("early_stopped", False)),
                 bool(last.get("restored_best", False)),
                 dict(watch.seconds),
+                last.get("discounted_return"),
             )
             for m, learner in enumerate(self.learners)
         ]
@@ -262,6 +263,7 @@ class JointTrainer:
                 "frames": collector.frames,
                 "success_rate": success,
                 "value_error": value_error,
+                "discounted_return": monitor.final_return,
                 "early_stopped": monitor.stopped,
                 "restored_best": restored,
             }

@@ -62,6 +62,8 @@ class StageResult:
     restored_best: bool = False  # budget ran out; the best evaluated weights were restored
     # wall-clock seconds per phase: collect, sample, update, evaluate, log
     timing: dict[str, float] = field(default_factory=dict)
+    # mean discounted return of the greedy episodes at that evaluation (the stage's objective)
+    discounted_return: float | None = None
 
 
 def progress_bar(initial: int, total: int, desc: str, enabled: bool) -> tqdm:
@@ -141,17 +143,20 @@ class _EvalMonitor:
         self.best_is_last = False
         self.best_state: dict | None = None
         self.last: tuple[float, float] | None = None
+        self.best_return: float | None = None  # mean discounted return of those evaluations
+        self.last_return: float | None = None
 
     def record(
         self, learner: Learner, success: float, value_error: float, frames: int, ret: float = 0.0
     ) -> bool:
         """Records one evaluation; returns whether the stage should stop now."""
         cfg = self.cfg
-        self.last = (success, value_error)
+        self.last, self.last_return = (success, value_error), ret
         score = (success, ret if cfg.keep_best_by == "return" else -value_error)
         self.best_is_last = cfg.keep_best and (self.best_score is None or score > self.best_score)
         if self.best_is_last:
             self.best_score, self.best = score, (success, value_error)
+            self.best_return = ret
             self.best_state = copy.deepcopy(learner.state_dict())
         met = (
             cfg.success_threshold is not None
@@ -162,14 +167,23 @@ class _EvalMonitor:
         self.stopped = self.streak >= cfg.patience and frames >= cfg.min_frames
         return self.stopped
 
-    _FIELDS = ("streak", "stopped", "best", "best_score", "best_is_last", "last")
+    _FIELDS = (
+        "streak",
+        "stopped",
+        "best",
+        "best_score",
+        "best_is_last",
+        "last",
+        "best_return",
+        "last_return",
+    )
 
     def state_dict(self) -> dict:
         return {**{f: getattr(self, f) for f in self._FIELDS}, "best_state": self.best_state}
 
     def load_state_dict(self, state: dict) -> None:
         for f in self._FIELDS:
-            value = state[f]
+            value = state.get(f)  # checkpoints from before the returns were kept lack them
             setattr(self, f, tuple(value) if isinstance(value, list) else value)
         self.best_state = state["best_state"]
 
@@ -193,6 +207,13 @@ class _EvalMonitor:
         if self.stopped or self.best is None:
             return self.last
         return self.best  # restore_best puts these weights back
+
+    @property
+    def final_return(self) -> float | None:
+        """Mean discounted return of the evaluation :attr:`final` reports."""
+        if self.stopped or self.best is None:
+            return self.last_return
+        return self.best_return
 
 
 class StageTrainer:
@@ -345,6 +366,7 @@ class StageTrainer:
             monitor.stopped,
             restored,
             dict(watch.seconds),
+            monitor.final_return,
         )
 
     @functools.cached_property

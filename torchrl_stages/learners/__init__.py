@@ -4,7 +4,7 @@ import contextlib
 
 import torch
 
-from torchrl_stages.learners.base import Learner, StageSpecs
+from torchrl_stages.learners.base import FusedAdam, Learner, StageSpecs
 from torchrl_stages.learners.ddpg import DDPGLearner
 from torchrl_stages.learners.dqn import DQNLearner
 from torchrl_stages.learners.td3 import TD3Learner
@@ -29,6 +29,7 @@ __all__ = [
     "LEARNERS",
     "DDPGLearner",
     "DQNLearner",
+    "FusedAdam",
     "Learner",
     "StageSpecs",
     "TD3Learner",
