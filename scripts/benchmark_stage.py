@@ -124,7 +124,7 @@ def main() -> None:
 
     def cells(row: dict) -> list[str]:
         success, error = row["success_rate"], row["value_error"]
-        ret = row.get("discounted_return")
+        ret = row["discounted_return"]
         return [
             row["variant"],
             str(row["seed"]),

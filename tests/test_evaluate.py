@@ -227,7 +227,7 @@ def test_rollouts_step_finished_grid_elements_on_with_the_same_first_episodes(st
     from torchrl.envs import TransformedEnv
 
     from torchrl_stages.envs import GridWorldEnv
-    from torchrl_stages.evaluate import rollout_first_episodes
+    from torchrl_stages.evaluate import can_step_finished, rollout_first_episodes
 
     task, policy = _grid_task(), _scripted_grid_policy()
     # stage 0's transition reward reads a stage-1 value: one that depends on the state
@@ -241,7 +241,7 @@ def test_rollouts_step_finished_grid_elements_on_with_the_same_first_episodes(st
     def rollout():
         return rollout_first_episodes(make_env(), policy, 40)
 
-    assert make_env().can_step_finished
+    assert can_step_finished(make_env())
     with monkeypatch.context() as patch:
         patch.setattr(TransformedEnv, "step_and_maybe_reset", None)  # the path must not reset
         stepped_on = rollout()
@@ -259,12 +259,24 @@ def test_rollouts_step_finished_grid_elements_on_with_the_same_first_episodes(st
 
 def test_only_fixed_grid_starts_let_a_rollout_step_finished_elements():
     """Random starts draw from the env's generator at every reset: skipping a reset would
-    change what later resets draw, so those envs reset their finished elements."""
-    from torchrl_stages.envs import GridWorldEnv
+    change what later resets draw, so those envs reset their finished elements. So do batched
+    envs (which forward attribute lookups to their workers) and envs under any transform but
+    ``StageTransform`` (a transform may keep state across steps or elements)."""
+    from torchrl.envs import SerialEnv, StepCounter, TransformedEnv
 
-    assert GridWorldEnv((2,), size=10, num_stages=2, start_cell=(0, 0)).can_step_finished
-    assert not GridWorldEnv((2,), size=10, num_stages=2).can_step_finished
-    assert not GridWorldEnv((2,), size=10, num_stages=2, start_stage=1).can_step_finished
-    assert not GridWorldEnv(
-        (2,), size=10, num_stages=2, start_cell=(0, 0), start_stage=1
-    ).can_step_finished
+    from torchrl_stages.envs import GridWorldEnv
+    from torchrl_stages.evaluate import can_step_finished
+
+    def grid(**kw):
+        return GridWorldEnv((2,), size=10, num_stages=2, **kw)
+
+    assert can_step_finished(grid(start_cell=(0, 0)))
+    assert not can_step_finished(grid())
+    assert not can_step_finished(grid(start_stage=1))
+    assert not can_step_finished(grid(start_cell=(0, 0), start_stage=1))
+    assert not can_step_finished(TransformedEnv(grid(start_cell=(0, 0)), StepCounter(5)))
+    serial = SerialEnv(2, lambda: GridWorldEnv((1,), size=10, num_stages=2, start_cell=(0, 0)))
+    assert not can_step_finished(serial)  # before and after its workers start
+    serial.set_seed(0)
+    assert not can_step_finished(serial)
+    serial.close()

@@ -116,6 +116,9 @@ def test_joint_schedule_runs_every_phase_and_updates_every_stage():
     assert [p["start_stage"] for p in phases] == [1, 0]
     assert all(r.updates > 0 for r in results)
     assert results[1].frames > results[0].frames  # stage 1 also gets phase 0's episodes
+    # every stage reports the last phase's evaluation (its whole-task episodes)
+    assert phases[-1]["discounted_return"] is not None
+    assert all(r.discounted_return == phases[-1]["discounted_return"] for r in results)
 
 
 class StartlessGrid(GridWorldEnv):

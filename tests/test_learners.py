@@ -145,8 +145,9 @@ def _adam_pair(**kw):
     torch.manual_seed(0)
     nets = [torch.nn.Sequential(torch.nn.Linear(5, 8), torch.nn.ReLU(), torch.nn.Linear(8, 2))]
     nets.append(copy.deepcopy(nets[0]))
-    reference = torch.optim.Adam(nets[0].parameters(), lr=1e-2, fused=True, **kw)
-    return nets, reference, FusedAdam(nets[1].parameters(), lr=1e-2, **kw)
+    kw = {"lr": 1e-2, **kw}
+    reference = torch.optim.Adam(nets[0].parameters(), fused=True, **kw)
+    return nets, reference, FusedAdam(nets[1].parameters(), **kw)
 
 
 def _adam_steps(nets, optimizers, steps=6):
@@ -164,12 +165,14 @@ def _adam_steps(nets, optimizers, steps=6):
 @pytest.mark.parametrize("kw", [{}, {"weight_decay": 0.1, "betas": (0.8, 0.99), "eps": 1e-6}])
 def test_fused_adam_direct_step_is_torchs_fused_adam_bit_for_bit(kw):
     nets, reference, direct = _adam_pair(**kw)
-    calls = []
-    kernel = torch._fused_adam_
+    calls, adam_steps = [], []
+    kernel, adam_step = torch._fused_adam_, direct.step
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(torch, "_fused_adam_", lambda *a, **k: calls.append(1) or kernel(*a, **k))
+        patch.setattr(direct, "step", lambda: adam_steps.append(1) or adam_step())
         _adam_steps(nets, [reference, direct])
     assert len(calls) == 2 * 6  # both optimizers ran the kernel at every step
+    assert len(adam_steps) == 1  # Adam.step only for the first (it creates the state)
     for a, b in zip(nets[0].parameters(), nets[1].parameters(), strict=True):
         assert torch.equal(a, b)
     for a, b in zip(reference.state.values(), direct.state.values(), strict=True):
@@ -194,8 +197,27 @@ def test_fused_adam_direct_step_runs_adam_step_where_it_must():
     before = nets[1][2].weight.clone()
     _adam_steps([nets[1]], [direct], steps=1)
     assert not torch.equal(before, nets[1][2].weight)
-    _, reference, amsgrad = _adam_pair(amsgrad=True)
-    assert not amsgrad._direct()
+    for kw in ({"amsgrad": True}, {"maximize": True}, {"lr": torch.tensor(1e-2)}):
+        nets, _, other = _adam_pair(**kw)
+        _adam_steps([nets[1]], [other], steps=1)
+        assert not other._direct(), kw
+    # the state of a non-fused Adam turns fused off: direct_step is then that Adam's step
+    nets, _, direct = _adam_pair()
+    plain = torch.optim.Adam(nets[0].parameters(), lr=1e-2)
+    _adam_steps([nets[0]], [plain], steps=2)
+    nets[1].load_state_dict(nets[0].state_dict())
+    direct.load_state_dict(copy.deepcopy(plain.state_dict()))
+    assert not direct._direct()
+    _adam_steps(nets, [plain, direct], steps=2)
+    pairs = zip(nets[0].parameters(), nets[1].parameters(), strict=True)
+    assert all(torch.equal(a, b) for a, b in pairs)
+    # an empty parameter group is skipped, as Adam.step skips it
+    nets, reference, direct = _adam_pair()
+    for optimizer in (reference, direct):
+        optimizer.add_param_group({"params": []})
+    _adam_steps(nets, [reference, direct], steps=3)
+    pairs = zip(nets[0].parameters(), nets[1].parameters(), strict=True)
+    assert all(torch.equal(a, b) for a, b in pairs)
 
 
 def test_total_grad_norm_is_torchs_total_norm():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -9,13 +10,46 @@ from typing import TYPE_CHECKING, Any
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import EnvBase
+from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_stages.transforms import StageTransform
 
 if TYPE_CHECKING:
     from torchrl_stages.task import StagedTask
 
 CHUNK = 250  # whole-task episodes per batched rollout (bounds the memory of long rollouts)
+
+
+def can_step_finished(env: EnvBase) -> bool:
+    """Whether :func:`rollout_first_episodes` may step ``env``'s finished elements on instead
+    of resetting them, with the same first episodes.
+
+    True when the class of the innermost env defines ``can_step_finished`` and it is ``True``
+    on the env (stepping a finished element is legal, and neither that step nor a skipped reset
+    changes another element or what a later reset draws, e.g. a
+    :class:`~torchrl_stages.envs.GridWorldEnv` with fixed starts) and every transform around it
+    is a :class:`~torchrl_stages.transforms.StageTransform` (no state across elements or steps).
+    Batched envs (``SerialEnv``, ``ParallelEnv``) and any other transform: ``False``.
+
+    Examples:
+        >>> from torchrl_stages.envs import GridWorldEnv
+        >>> can_step_finished(GridWorldEnv((2,), start_cell=(0, 0)))
+        True
+        >>> can_step_finished(GridWorldEnv((2,)))  # random starts: resets draw from its rng
+        False
+    """
+    transforms: list = []
+    while isinstance(env, TransformedEnv):
+        transform = env.transform
+        transforms += list(transform) if isinstance(transform, Compose) else [transform]
+        env = env.base_env
+    if not all(isinstance(t, StageTransform) for t in transforms):
+        return False
+    # declared by the env's own class: batched envs and wrappers forward unknown attributes
+    if inspect.getattr_static(type(env), "can_step_finished", None) is None:
+        return False
+    return env.can_step_finished is True
 
 
 @torch.no_grad()
@@ -25,23 +59,25 @@ def rollout_first_episodes(
     """Greedy rollout ``[*batch, T]`` until every batch element has finished one episode.
 
     Elements that finish early are reset and keep stepping; :func:`episode_stats` reads only each
-    element's first episode. ``T <= max_steps``. An env whose ``can_step_finished`` is true
-    (e.g. a :class:`~torchrl_stages.envs.GridWorldEnv` with fixed starts) steps its finished
-    elements on instead of resetting them: the same first episodes without torchrl's partial
-    reset, which costs about as much as a step.
+    element's first episode. ``T <= max_steps``. Where :func:`can_step_finished` holds (the grid
+    world's evaluation envs) finished elements step on instead: the same first episodes without
+    torchrl's partial reset, which costs about as much as a step.
     """
     steps = []
     finished = torch.zeros(env.batch_size, dtype=torch.bool, device=env.device)
-    reset_finished = not getattr(env, "can_step_finished", False)
+    reset_finished = not can_step_finished(env)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
         for _ in range(max_steps):
             td = policy(td)
             if reset_finished:
                 td, td_next = env.step_and_maybe_reset(td)
-            else:  # what step_and_maybe_reset hands on, without the partial reset
+            else:  # step_and_maybe_reset without the reset (torchrl's rollout does the same)
                 td = env.step(td)
                 td_next = env._step_mdp(td)
+                hooks = getattr(env, "_post_step_mdp_hooks", None)
+                if hooks is not None:
+                    td, td_next = hooks(td, td_next)
             steps.append(td)
             finished |= td.get(("next", "done")).reshape(env.batch_size)
             if finished.all():

@@ -62,7 +62,8 @@ class StageResult:
     restored_best: bool = False  # budget ran out; the best evaluated weights were restored
     # wall-clock seconds per phase: collect, sample, update, evaluate, log
     timing: dict[str, float] = field(default_factory=dict)
-    # mean discounted return of the greedy episodes at that evaluation (the stage's objective)
+    # mean discounted return of the greedy episodes at that evaluation: the stage's objective
+    # (the joint schedule: that of the whole-task episodes of its last phase, for every stage)
     discounted_return: float | None = None
 
 
@@ -147,12 +148,19 @@ class _EvalMonitor:
         self.last_return: float | None = None
 
     def record(
-        self, learner: Learner, success: float, value_error: float, frames: int, ret: float = 0.0
+        self,
+        learner: Learner,
+        success: float,
+        value_error: float,
+        frames: int,
+        ret: float | None = None,
     ) -> bool:
-        """Records one evaluation; returns whether the stage should stop now."""
+        """Records one evaluation (``ret``: its mean discounted return); returns whether the
+        stage should stop now."""
         cfg = self.cfg
         self.last, self.last_return = (success, value_error), ret
-        score = (success, ret if cfg.keep_best_by == "return" else -value_error)
+        by_return = 0.0 if ret is None else ret
+        score = (success, by_return if cfg.keep_best_by == "return" else -value_error)
         self.best_is_last = cfg.keep_best and (self.best_score is None or score > self.best_score)
         if self.best_is_last:
             self.best_score, self.best = score, (success, value_error)
@@ -183,7 +191,8 @@ class _EvalMonitor:
 
     def load_state_dict(self, state: dict) -> None:
         for f in self._FIELDS:
-            value = state.get(f)  # checkpoints from before the returns were kept lack them
+            # checkpoints from before the returns were kept lack those two fields
+            value = state.get(f) if f.endswith("_return") else state[f]
             setattr(self, f, tuple(value) if isinstance(value, list) else value)
         self.best_state = state["best_state"]
 

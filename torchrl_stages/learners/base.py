@@ -12,7 +12,11 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torch.optim.optimizer import _global_optimizer_post_hooks, _global_optimizer_pre_hooks
+from torch.optim.optimizer import (
+    ParamsT,
+    _global_optimizer_post_hooks,
+    _global_optimizer_pre_hooks,
+)
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
 from torchrl.objectives import SoftUpdate
 
@@ -106,10 +110,11 @@ class FusedAdam(torch.optim.Adam):
     have a gradient; on the way it runs optimizer hooks, a profiler annotation and a grouping
     of the tensors by device and dtype, Python that costs more than the kernel itself on small
     networks. When none of that applies (no
-    hooks, every parameter with a gradient and optimizer state, one device and dtype, a float
-    learning rate, plain Adam) :meth:`direct_step` makes the same kernel call with the same
-    arguments, so the update is the same bit for bit; otherwise it runs ``step``, which is
-    ``Adam.step``. The state is ``Adam``'s: checkpoints load into either class.
+    hooks, fused groups, every parameter with a gradient and optimizer state, one device and
+    dtype, a float learning rate, plain Adam) :meth:`direct_step` makes the same kernel call with
+    the same arguments, so the update is the same bit for bit; otherwise it runs ``step``, which
+    is ``Adam.step``. The state is ``Adam``'s: checkpoints load into either class (a non-fused
+    Adam's state turns ``fused`` off, and ``Adam.step`` then steps as that Adam would).
 
     Examples:
         >>> import torch
@@ -123,17 +128,20 @@ class FusedAdam(torch.optim.Adam):
         2
     """
 
-    def __init__(self, params, lr: float = 1e-3, **kwargs: Any) -> None:
+    def __init__(self, params: ParamsT, lr: float = 1e-3, **kwargs: Any) -> None:
         super().__init__(params, lr=lr, fused=True, **kwargs)
 
     def _direct(self) -> bool:
         """Whether :meth:`direct_step` can call the kernel itself (see the class docstring)."""
+        # the hook registries are torch's own (private, stable in the pinned torch 2.13)
         if self._optimizer_step_pre_hooks or self._optimizer_step_post_hooks:
             return False
         if _global_optimizer_pre_hooks or _global_optimizer_post_hooks:
             return False
         kinds = set()
         for group in self.param_groups:
+            if not group["fused"]:  # e.g. the state of a non-fused Adam was loaded
+                return False
             if isinstance(group["lr"], torch.Tensor) or group["amsgrad"] or group["maximize"]:
                 return False
             if group["differentiable"] or group.get("decoupled_weight_decay", False):
@@ -152,6 +160,8 @@ class FusedAdam(torch.optim.Adam):
             return
         for group in self.param_groups:
             params = group["params"]
+            if not params:
+                continue
             states = [self.state[p] for p in params]
             steps = [state["step"] for state in states]
             beta1, beta2 = group["betas"]
@@ -176,9 +186,12 @@ class FusedAdam(torch.optim.Adam):
 
 
 def total_grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
-    """``torch.nn.utils.get_total_norm(grads)`` (the 2-norm of all gradients): on one device
-    and dtype the same two ops without its grouping of the tensors (a quarter of its cost)."""
-    if len({(g.device, g.dtype) for g in grads}) != 1:
+    """``torch.nn.utils.get_total_norm(grads)`` (the 2-norm of all gradients): for plain
+    tensors on one CPU or CUDA device and dtype the same two ops (``torch._foreach_norm``, then
+    the norm of the norms) without its grouping of the tensors; otherwise torch's function."""
+    kinds = {(g.device, g.dtype) for g in grads}
+    plain = all(type(g) is torch.Tensor and g.device.type in ("cpu", "cuda") for g in grads)
+    if len(kinds) != 1 or not plain:
         return torch.nn.utils.get_total_norm(grads)
     return torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
 
