@@ -109,12 +109,12 @@ class FusedAdam(torch.optim.Adam):
     ``Adam.step`` with ``fused=True`` ends in ``torch._fused_adam_`` over the parameters that
     have a gradient; on the way it runs optimizer hooks, a profiler annotation and a grouping
     of the tensors by device and dtype, Python that costs more than the kernel itself on small
-    networks. When none of that applies (no
-    hooks, fused groups, every parameter with a gradient and optimizer state, one device and
-    dtype, a float learning rate, plain Adam) :meth:`direct_step` makes the same kernel call with
-    the same arguments, so the update is the same bit for bit; otherwise it runs ``step``, which
-    is ``Adam.step``. The state is ``Adam``'s: checkpoints load into either class (a non-fused
-    Adam's state turns ``fused`` off, and ``Adam.step`` then steps as that Adam would).
+    networks. When none of that applies (no hooks, fused groups, every parameter with a gradient
+    and optimizer state, one device and dtype, a float learning rate, plain Adam)
+    :meth:`direct_step` makes the same kernel call with the same arguments, so the update is the
+    same bit for bit; otherwise it runs ``step``, which is ``Adam.step``. The state is
+    ``Adam``'s: checkpoints load into either class (a non-fused Adam's state turns ``fused``
+    off, and ``Adam.step`` then steps as that Adam would).
 
     Examples:
         >>> import torch
