@@ -185,15 +185,25 @@ def test_resume_refuses_overrides_that_change_the_finished_work(runs):
     assert snapshot(reference) == before
 
 
-def test_overwrite_replaces_the_run(runs):
+def test_overwrite_replaces_the_run_and_deletes_only_what_it_wrote(runs):
     root, reference, _ = runs
     replaced = root / "replaced"
     shutil.copytree(reference, replaced)
-    (replaced / "trajectories.png").write_bytes(b"old figure")
+    mine = {  # files of the user's, with the names of a run's files
+        "trajectories.png": b"my figure",
+        "csv_notes/notes.txt": b"notes",
+        ".hydra/mine.yaml": b"a: 1",
+    }
+    for name, data in mine.items():
+        (replaced / name).parent.mkdir(parents=True, exist_ok=True)
+        (replaced / name).write_bytes(data)
+    (replaced / "metrics.csv").write_text("name,step,value\nstale,0,0\n")
     result = run(replaced, "overwrite=true")
     assert result.returncode == 0, result.stderr[-3000:]
-    assert not (replaced / "trajectories.png").exists()  # eval.plots=false: nothing drew it
-    assert_same_run(reference, replaced)
+    assert (replaced / "trajectories.png").read_bytes() == b"my figure"
+    assert (replaced / "csv_notes" / "notes.txt").read_bytes() == b"notes"
+    assert not (replaced / ".hydra" / "mine.yaml").exists()  # .hydra/ is the run's own
+    assert_same_run(reference, replaced)  # metrics.csv rewritten from scratch
 
 
 def test_damaged_stage_checkpoint_names_the_file_and_the_fix(runs, capsys):

@@ -2,21 +2,30 @@
 
 A checkpoint holds everything the stage loop needs to go on as if it had never stopped: the
 learner (weights, target networks, optimizers, exploration state, update count), the replay
-buffer (``dumps``/``loads``), the collector (frames, running episodes, the env's state and
-generator), the evaluation env's generator, the early-stop and best-weights bookkeeping, the
-loop's counters, every process-global generator (``GlobalRNGState``: torch, numpy, Python) and
-the length of every log file. ``torchrl.checkpoint.Checkpoint`` writes each one into a staging
-directory and renames it into place, so a checkpoint on disk is always whole;
-``CheckpointRotation`` keeps the last few.
+buffer, the collector (frames, running episodes, the env's state and generator), the
+evaluation env's generator, the early-stop and best-weights bookkeeping, the loop's counters,
+every process-global generator (``GlobalRNGState``: torch, numpy, Python) and the length of
+every log file. ``torchrl.checkpoint.Checkpoint`` writes each one into a staging directory and
+renames it into place, so a checkpoint on disk is always whole; ``CheckpointRotation`` keeps
+the last few.
+
+Every component is stored as tensors and JSON (tensordict's memory-mapped directory format),
+never as a pickle, with the SHA-256 of each of its files. A checkpoint is verified before it
+is read: a file that is not a payload (``.json``, ``.memmap``), was never written there, or
+whose bytes changed makes it damaged, and :meth:`StageCheckpoints.latest` falls back to the
+one before.
 """
 
 from __future__ import annotations
 
+import logging
+import re
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import torch
 from torchrl.checkpoint import (
     Checkpoint,
     CheckpointError,
@@ -25,7 +34,19 @@ from torchrl.checkpoint import (
     StateDictCheckpointAdapter,
 )
 
+from torchrl_stages.integrity import (
+    DamagedFileError,
+    ensure_free_space,
+    verify_checksums,
+    write_checksums,
+)
+
 PREFIX = "frames"
+MANIFEST = "manifest.json"  # torchrl.checkpoint's own record of the components
+#: the only files a component may hold: tensordict's memory-mapped tensors and JSON
+PAYLOAD_SUFFIXES = (".json", ".memmap")
+
+log = logging.getLogger("torchrl_stages")
 
 
 class StateOf:
@@ -52,13 +73,52 @@ class CheckpointDamagedError(RuntimeError):
     """A checkpoint on disk cannot be read back."""
 
 
+class TensorStateAdapter(StateDictCheckpointAdapter):
+    """torchrl's state-dict adapter in its tensor + JSON format (no pickle), with the
+    SHA-256 of every file it writes, verified before it reads them back."""
+
+    def __init__(self) -> None:
+        super().__init__(payload_format="directory")
+
+    def save(self, component: Any, path: Path, *, args: tuple, kwargs: Mapping) -> Any:
+        state = component.state_dict(*args, **kwargs)
+        ensure_free_space(path.parent, _nbytes(state))
+        super().save(StateOf(lambda: state, None), path, args=(), kwargs={})
+        write_checksums(path)
+        return state
+
+    def load(self, component: Any, path: Path, **kwargs: Any) -> Any:
+        verify_checksums(path, PAYLOAD_SUFFIXES)
+        return super().load(component, path, **kwargs)
+
+
+def verify_checkpoint(path: Path) -> None:
+    """Raises :class:`~torchrl_stages.integrity.DamagedFileError` unless every file of the
+    checkpoint ``path`` is its manifest or a verified payload file of one of its components."""
+    try:
+        components = Checkpoint.manifest(path)["components"]
+        dirs = {path / record["path"] for record in components.values()}
+    except (CheckpointError, OSError, KeyError, TypeError, ValueError) as err:
+        raise DamagedFileError(path / MANIFEST, f"unreadable ({type(err).__name__})") from err
+    for file in path.rglob("*"):
+        if file.is_dir() and not file.is_symlink():
+            continue
+        if file != path / MANIFEST and not any(d in file.parents for d in dirs):
+            raise DamagedFileError(file, "a file that was never written there")
+    for directory in dirs:
+        if path not in directory.parents or ".." in directory.relative_to(path).parts:
+            raise DamagedFileError(path / MANIFEST, "a component outside the checkpoint")
+        verify_checksums(directory, PAYLOAD_SUFFIXES)
+
+
 class StageCheckpoints:
     """The rotated checkpoints of one stage in ``directory`` (``frames-<frames>`` entries).
 
     Args:
         directory: where this stage's checkpoints live (e.g. ``RUN/checkpoints/stage_3``).
-        every: frames between two checkpoints (``0``: never).
+        every: frames between two checkpoints (``0``: only when asked, e.g. on a signal).
         keep: how many of the newest checkpoints to keep.
+        on_save: called with the path of every checkpoint written (a run's bookkeeping).
 
     Examples:
         >>> import tempfile, torch
@@ -72,56 +132,120 @@ class StageCheckpoints:
         True
     """
 
-    def __init__(self, directory: str | Path, every: int, keep: int = 2) -> None:
+    def __init__(
+        self,
+        directory: str | Path,
+        every: int,
+        keep: int = 2,
+        on_save: Callable[[Path], None] | None = None,
+    ) -> None:
         self.directory = Path(directory)
         self.every, self.keep = int(every), int(keep)
+        self.on_save = on_save
         self._next = self.every
+        self._verified: Path | None = None
 
     def due(self, frames: int) -> bool:
         """Whether a checkpoint is due after ``frames`` frames (one per ``every`` frames)."""
         return self.every > 0 and frames >= self._next
 
-    def _checkpoint(self, components: dict[str, Any]) -> Checkpoint:
-        ckpt = Checkpoint(format="directory", rng=GlobalRNGState())
-        torch_payload = StateDictCheckpointAdapter(payload_format="torch")
-        for name, component in components.items():
-            stateful = hasattr(component, "state_dict") and not hasattr(component, "dump")
-            ckpt.register(name, component, adapter=torch_payload if stateful else None)
+    def _checkpoint(self, components: Mapping[str, Any]) -> Checkpoint:
+        ckpt = Checkpoint(format="directory")
+        adapter = TensorStateAdapter()
+        for name, component in {**components, "rng": GlobalRNGState()}.items():
+            if not hasattr(component, "state_dict"):  # a plain dict (counters)
+                component = StateOf(lambda c=component: dict(c), component.update)
+            ckpt.register(name, component, adapter=adapter)
         return ckpt
 
-    def save(self, frames: int, components: dict[str, Any]) -> Path:
-        """Writes a checkpoint at ``frames`` (atomically) and prunes the old ones. Empty replay
-        buffers are left out (an empty storage cannot be dumped; loading leaves it empty)."""
-        components = {
-            k: v for k, v in components.items() if not (hasattr(v, "dump") and len(v) == 0)
-        }
-        rotation = CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX)
-        path = rotation.save(self._checkpoint(components), step=int(frames))
+    def _rotation(self) -> CheckpointRotation:
+        return CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX)
+
+    def save(self, frames: int, components: Mapping[str, Any]) -> Path:
+        """Writes a checkpoint at ``frames`` (atomically) and prunes the old ones."""
+        path = self._rotation().save(self._checkpoint(components), step=int(frames))
         self._next = (frames // self.every + 1) * self.every if self.every > 0 else 0
+        self._verified = path
+        if self.on_save is not None:
+            self.on_save(path)
         return path
 
     def latest(self) -> Path | None:
-        """The newest checkpoint of this stage, if any."""
+        """The newest checkpoint of this stage that is whole, if any.
+
+        A damaged one (see :func:`verify_checkpoint`) is skipped with a warning that names it;
+        when every checkpoint is damaged, :class:`CheckpointDamagedError` says what to delete.
+        """
         if not self.directory.is_dir():
             return None
-        return CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX).latest()
+        candidates = sorted(  # every entry of the rotation's form, readable or not
+            (p for p in self.directory.iterdir() if re.fullmatch(rf"{PREFIX}-\d+", p.name)),
+            key=_frames,
+            reverse=True,
+        )
+        if not candidates or candidates[0] == self._verified:
+            return candidates[0] if candidates else None
+        damaged = []
+        for path in candidates:
+            try:
+                verify_checkpoint(path)
+            except DamagedFileError as err:
+                damaged.append(err)
+                log.warning(
+                    "checkpoint %s is damaged (%s: %s); it is not used", path, err.path, err.reason
+                )
+                continue
+            if damaged:
+                log.warning("resuming from the checkpoint before it: %s", path)
+            self._verified = path
+            return path
+        err = damaged[0]
+        raise CheckpointDamagedError(
+            f"{err.path} is damaged ({err.reason}), and no other checkpoint of "
+            f"{self.directory} is whole. Fix: delete {self.directory} to restart this stage"
+        )
 
-    def load(self, path: Path, components: dict[str, Any]) -> Path:
+    def load(self, path: Path, components: Mapping[str, Any]) -> Path:
         """Restores those of ``components`` that the checkpoint ``path`` holds (and the global
         generators)."""
         try:
+            if path != self._verified:
+                verify_checkpoint(path)
+                self._verified = path
             saved = Checkpoint.manifest(path)["components"]
-            self._checkpoint({k: v for k, v in components.items() if k in saved}).load(path)
-        except (CheckpointError, OSError, RuntimeError, ValueError, KeyError) as err:
+            selected = {k: v for k, v in components.items() if k in saved}
+            self._checkpoint(selected).load(path)
+        except DamagedFileError as err:
+            raise CheckpointDamagedError(
+                f"{err.path} is damaged ({err.reason}). Fix: delete {path} to resume from the "
+                f"checkpoint before it, or delete {self.directory} to restart this stage"
+            ) from err
+        except (CheckpointError, OSError, RuntimeError, ValueError, KeyError, TypeError) as err:
             raise CheckpointDamagedError(
                 f"{path} cannot be read back ({type(err).__name__}: {str(err)[:200]}). Fix: "
                 f"delete it to resume from the checkpoint before it, or delete {self.directory} "
                 "to restart this stage"
             ) from err
-        frames = int(path.name.removeprefix(f"{PREFIX}-").removesuffix(".torchrl"))
+        frames = _frames(path)
         self._next = (frames // self.every + 1) * self.every if self.every > 0 else 0
         return path
 
     def clear(self) -> None:
         """Removes this stage's checkpoints (once the stage's final file is written)."""
         shutil.rmtree(self.directory, ignore_errors=True)
+        self._verified = None
+
+
+def _frames(path: Path) -> int:
+    return int(path.name.removeprefix(f"{PREFIX}-").removesuffix(".torchrl"))
+
+
+def _nbytes(state: Any) -> int:
+    """Bytes of the tensors in a state (what its payload files take on disk)."""
+    if isinstance(state, torch.Tensor):
+        return state.numel() * state.element_size()
+    if isinstance(state, Mapping):
+        return sum(_nbytes(v) for v in state.values())
+    if isinstance(state, list | tuple):
+        return sum(_nbytes(v) for v in state)
+    return 0

@@ -4,7 +4,9 @@
 All are thin shells over the library: :class:`torchrl_stages.experiment.Experiment` trains,
 :func:`torchrl_stages.rundir.load_run` and :func:`torchrl_stages.reports.evaluate_run`
 re-evaluate, :func:`torchrl_stages.sweeps.summarize_sweep` summarizes. Exit codes: 0 done,
-2 invalid config or directory, 3 training diverged.
+1 failed (the env or other code raised, or returned NaN), 2 invalid config, refused or
+damaged directory, or a file that cannot be written, 3 training diverged, 128 + N stopped by
+signal N with a checkpoint (143 SIGTERM, 130 SIGINT, 138 SIGUSR1).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import argparse
 import atexit
 import sys
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -22,30 +25,45 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import register_configs
 from torchrl_stages.experiment import Experiment
+from torchrl_stages.preemption import Interrupted
 from torchrl_stages.reports import evaluate_run, format_summary
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
-from torchrl_stages.stage import DivergenceError
+from torchrl_stages.stage import DivergenceError, EnvError
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.validate import ConfigError, validate_sweeper
 
-EXIT_INVALID, EXIT_DIVERGED = 2, 3
+EXIT_FAILED, EXIT_INVALID, EXIT_DIVERGED = 1, 2, 3
 
 
 class JobFailed(RuntimeError):
     """A multirun job that failed; its directory's ``status.json`` says why."""
 
 
-def _write_hydra_files(cfg: DictConfig, run_dir: Path) -> None:
+def _hydra_files(cfg: DictConfig) -> dict[str, Any]:
     """What Hydra writes to ``.hydra/`` (its ``output_subdir`` is off, see ``conf/config.yaml``):
     the composed config, Hydra's config and the command-line overrides."""
     hydra_cfg = HydraConfig.get()
+    return {
+        "config.yaml": cfg,
+        "hydra.yaml": OmegaConf.create({"hydra": hydra_cfg}),
+        "overrides.yaml": hydra_cfg.overrides.task,
+    }
+
+
+def _write_hydra_files(cfg: DictConfig, run_dir: Path) -> None:
+    """``.hydra/`` of a job that never started (a multirun's invalid job)."""
     out = run_dir / ".hydra"
     out.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, out / "config.yaml")
-    OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), out / "hydra.yaml")
-    OmegaConf.save(hydra_cfg.overrides.task, out / "overrides.yaml")
+    for name, node in _hydra_files(cfg).items():
+        OmegaConf.save(node, out / name)
+
+
+def _one_line(err: BaseException) -> str:
+    lines = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {lines[-1] if lines else ''}"
 
 
 def _fail(run_dir: Path, status: str, message: str, code: int, write_status: bool) -> None:
@@ -67,23 +85,46 @@ def _train_app(cfg: DictConfig) -> float:
     try:
         if multirun:  # a sweeper that optimizes must optimize the objective's direction
             validate_sweeper(HydraConfig.get().sweeper, cfg)
-        experiment = Experiment(cfg, run_dir)
+        experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
     except RunDirError as err:  # the directory holds another run: touch nothing there
         _fail(run_dir, "refused", str(err), EXIT_INVALID, write_status=False)
     except ConfigError as err:
         if multirun:
             _write_hydra_files(cfg, run_dir)
         _fail(run_dir, "invalid", f"invalid config: {err}", EXIT_INVALID, write_status=False)
-    if not experiment.resuming:
-        _write_hydra_files(cfg, run_dir)
-    try:
+    except OSError as err:
+        _fail(run_dir, "refused", _cannot_write(err, run_dir), EXIT_INVALID, write_status=False)
+    try:  # how a run that does not finish ended is in its status.json (Experiment.run)
         result = experiment.run()
+    except Interrupted as err:
+        print(
+            f"stages-train: {err}; its checkpoint is written. Fix: continue it with the same "
+            f"command and resume=true (hydra.run.dir={run_dir})",
+            file=sys.stderr,
+        )
+        sys.exit(err.exit_code)
     except DivergenceError as err:
-        _fail(run_dir, "diverged", str(err), EXIT_DIVERGED, write_status=True)
-    except RunDirError as err:
-        _fail(run_dir, "failed", str(err), EXIT_INVALID, write_status=True)
+        _fail(run_dir, "diverged", str(err), EXIT_DIVERGED, write_status=False)
+    except (RunDirError, CheckpointDamagedError) as err:
+        _fail(run_dir, "failed", str(err), EXIT_INVALID, write_status=False)
+    except OSError as err:
+        _fail(run_dir, "failed", _cannot_write(err, run_dir), EXIT_INVALID, write_status=False)
+    except EnvError as err:
+        _fail(run_dir, "failed", str(err), EXIT_FAILED, write_status=False)
+    except Exception as err:  # the env's (or other user code's) own exception: its traceback
+        traceback.print_exc()
+        _fail(run_dir, "failed", _one_line(err), EXIT_FAILED, write_status=False)
     print(format_summary(result, run_dir))
     return objective_value(result, cfg)
+
+
+def _cannot_write(err: OSError, run_dir: Path) -> str:
+    """One line for a file that could not be written (disk full, read-only, permissions)."""
+    where = err.filename or run_dir
+    return (
+        f"cannot write {where}: {err.strerror or err}. Fix: free space on that disk or make it "
+        f"writable, then rerun with resume=true (or pick another hydra.run.dir)"
+    )
 
 
 def objective_value(result: dict[str, Any], cfg: DictConfig) -> float:
@@ -126,19 +167,41 @@ def evaluate(argv: list[str] | None = None) -> None:
         "envs that enumerate their starts are evaluated from each one)",
     )
     parser.add_argument("--no-plots", action="store_true", help="skip the figures")
+    parser.add_argument(
+        "--trust",
+        action="store_true",
+        help="load a run whose config names code of its own (task=gym, task=custom, a config "
+        "directory of yours): its env is imported and called. Only for runs you made or checked",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    directory = RunDir(args.run_dir)
+    lock = None
     try:
-        run = load_run(args.run_dir)
+        if directory.holds_run():  # a second process would write the same files
+            lock = directory.lock()
+        run = load_run(args.run_dir, trust=args.trust)
+        if args.episodes is not None:
+            run.cfg.eval.episodes = args.episodes
+        if args.no_plots:
+            run.cfg.eval.plots = False
+        previous = directory.read_eval() or {}
+        training = previous.get("training")
+        if not isinstance(training, dict):  # rebuilt from what the run directory keeps
+            training = {**directory.training_time(), "stages": run.results}
+        before = directory.listing()
+        result = evaluate_run(run.cfg, run.task, run.learners, args.run_dir, training=training)
+        if directory.has_record():
+            directory.claim_new(before)
     except RunDirError as err:
         print(f"stages-eval: {err}", file=sys.stderr)
         sys.exit(EXIT_INVALID)
-    if args.episodes is not None:
-        run.cfg.eval.episodes = args.episodes
-    if args.no_plots:
-        run.cfg.eval.plots = False
-    training = {"stages": run.results}
-    result = evaluate_run(run.cfg, run.task, run.learners, args.run_dir, training=training)
+    except OSError as err:
+        print(f"stages-eval: {_cannot_write(err, args.run_dir)}", file=sys.stderr)
+        sys.exit(EXIT_INVALID)
+    finally:
+        if lock is not None:
+            lock.release()
     print(format_summary(result, args.run_dir))
 
 

@@ -1,8 +1,8 @@
 """One training run, start to end: the library API behind ``stages-train``.
 
-:class:`Experiment` validates a config, checks its run directory, builds the task, trains every
-stage (backward schedule) with periodic checkpoints, resumes an interrupted run, and evaluates.
-The CLI, ``stages-eval``, the benchmark scripts and Python users all go through it.
+:class:`Experiment` validates a config, takes and checks its run directory, builds the task,
+trains every stage with periodic checkpoints, resumes an interrupted run, and evaluates. The
+CLI, ``stages-eval``, the benchmark scripts and Python users all go through it.
 """
 
 from __future__ import annotations
@@ -15,18 +15,20 @@ from typing import Any
 
 import torch
 from hydra.errors import InstantiationException
-from omegaconf import DictConfig
-from torchrl.record.loggers import Logger
+from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.integrity import atomic_write
 from torchrl_stages.joint import JointTrainer
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import make_logger
+from torchrl_stages.preemption import Interrupted, check, handle_signals
 from torchrl_stages.reports import EVAL_SEED_OFFSET, evaluate_run, probe_task
-from torchrl_stages.rundir import RunDir, RunDirError, config_differences, load_stage
+from torchrl_stages.rundir import STATUS_FILE, RunDir, RunDirError, config_differences, load_stage
 from torchrl_stages.schedule import train_backward, train_flat
-from torchrl_stages.stage import StageResult
+from torchrl_stages.stage import DivergenceError, StageResult
 from torchrl_stages.task import StagedTask
+from torchrl_stages.threads import hold_threads
 from torchrl_stages.validate import ConfigError, validate_config, validate_task
 
 log = logging.getLogger("torchrl_stages")
@@ -67,17 +69,39 @@ def build_task(cfg: DictConfig) -> StagedTask:
     return task
 
 
+def frozen_stages(schedule: str, finished: set[int], num_stages: int) -> set[int]:
+    """The stages whose config a resumed run may not change: those a finished stage depends
+    on. In the backward schedule stage k is trained from its own config and the values of the
+    stages after it; the joint and flat schedules train every stage at once.
+
+    Examples:
+        >>> sorted(frozen_stages("backward", {3, 4}, 5)), sorted(frozen_stages("joint", set(), 5))
+        ([3, 4], [])
+    """
+    if not finished:
+        return set()
+    if schedule == "backward":
+        return set(range(min(finished), num_stages))
+    return set(range(num_stages))
+
+
 class Experiment:
     """Trains and evaluates one run of ``cfg`` in ``run_dir``.
 
     Everything is checked when the experiment is built, before anything is written: the config
     (:class:`~torchrl_stages.validate.ConfigError`) and the run directory
-    (:class:`~torchrl_stages.rundir.RunDirError`): a directory that already holds a run is
-    refused unless ``resume`` (continue it: finished stages are loaded, the stage in progress
-    goes on from its last checkpoint, and the config must be the one it started with) or
-    ``overwrite`` (replace it). Both default to ``cfg.resume`` / ``cfg.overwrite``. With
-    ``resume`` and no run in the directory, a new run starts (the same command can be relaunched
-    after any interruption).
+    (:class:`~torchrl_stages.rundir.RunDirError`), which it locks until the run ends (one
+    process per directory). A directory that already holds a run is refused unless ``resume``
+    (continue it: finished stages are loaded, the stage in progress goes on from its last
+    checkpoint; keys of stages that no finished stage depends on may change, and those stages
+    restart) or ``overwrite`` (replace it: exactly the files its record lists are deleted).
+    Both default to ``cfg.resume`` / ``cfg.overwrite``. With ``resume`` and no run in the
+    directory, a new run starts (the same command can be relaunched after any interruption).
+    ``hydra_files`` (``{name: config}``) are written to ``.hydra/`` when the run starts or its
+    config changes (what ``stages-train`` records of Hydra).
+
+    While it runs, SIGTERM, SIGINT and SIGUSR1 stop it at the next batch with a checkpoint
+    (:mod:`torchrl_stages.preemption`), and the torch thread count is held at ``cfg.threads``.
 
     Examples:
         >>> from hydra import compose, initialize_config_module
@@ -97,8 +121,10 @@ class Experiment:
         *,
         resume: bool | None = None,
         overwrite: bool | None = None,
+        hydra_files: dict[str, Any] | None = None,
     ) -> None:
         self.cfg = cfg
+        self.hydra_files = dict(hydra_files or {})
         self.run_dir = RunDir(run_dir)
         self.resume = bool(cfg.get("resume", False) if resume is None else resume)
         self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
@@ -108,14 +134,28 @@ class Experiment:
                 "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "
                 "overwrite=true replaces it"
             )
-        self.resuming = self._check_run_dir()
-        self.task = build_task(cfg)
-        self.logger: Logger | None = None
+        self.restarted: dict[int, list[str]] = {}  # resumed stages whose config changed
+        self._lock = self.run_dir.lock()
+        try:
+            self.resuming = self._check_run_dir()
+            self.task = build_task(cfg)
+        except BaseException:
+            self._lock.release(remove=self._lock.created_dir)
+            raise
+        self.logger = None
+
+    def close(self) -> None:
+        """Releases the run directory (:meth:`run` does it when it ends)."""
+        self._lock.release()
 
     def _check_run_dir(self) -> bool:
         """Whether this continues a run; raises :class:`RunDirError` if it must not proceed."""
         run = self.run_dir
-        if not run.holds_run() or self.overwrite:
+        if not run.holds_run():
+            return False
+        if self.overwrite:
+            if not run.has_record():
+                run.clear()  # raises: nothing in a directory without a record is deleted
             return False
         if not self.resume:
             raise RunDirError(
@@ -124,26 +164,104 @@ class Experiment:
             )
         saved = run.read_config()
         changed = config_differences(saved, self.cfg, ignore=RESUMABLE_CHANGES)
-        if changed:
+        names = list(self.cfg.task.stages)
+        finished = {k for k in range(len(names)) if run.stage_file(k).is_file()}
+        frozen = frozen_stages(self.cfg.schedule.name, finished, len(names))
+        refused = []
+        for key in changed:
+            parts = key.split(".")
+            is_stage = parts[:2] == ["task", "stages"] and len(parts) > 3
+            stage = names.index(parts[2]) if is_stage and parts[2] in names else None
+            if stage is None or stage in frozen or parts[2] not in saved.task.stages:
+                refused.append(key)
+            else:
+                self.restarted.setdefault(stage, []).append(key)
+        if refused:
             raise RunDirError(
                 f"resume=true: the config differs from {run.config_file} in "
-                f"{', '.join(changed)}; a resumed run keeps the config it started with. Fix: "
-                "rerun with the overrides the run was started with, or train into a new "
-                "directory"
+                f"{', '.join(refused)}; a resumed run keeps what its finished stages were "
+                "trained with (stages that have not finished, and that no finished stage "
+                "depends on, may change). Fix: rerun with the overrides the run was started "
+                "with, or train into a new directory"
             )
         return True
 
     # ------------------------------------------------------------------ the run
     def run(self) -> dict[str, Any]:
-        """Trains every stage (or what is left of them) and evaluates; returns ``eval.json``."""
+        """Trains every stage (or what is left of them) and evaluates; returns ``eval.json``.
+
+        How it ended is in the run's record (its launches) and, when it did not finish, in
+        ``status.json``: ``interrupted`` (:class:`~torchrl_stages.preemption.Interrupted`),
+        ``diverged`` (:class:`~torchrl_stages.stage.DivergenceError`) or ``failed``."""
+        try:
+            with handle_signals(), hold_threads(int(self.cfg.threads)):
+                self._prepare()
+                return self._run()
+        except Interrupted as err:
+            self._ended("interrupted", str(err), signal=err.signal_name)
+            raise
+        except DivergenceError as err:
+            self._ended("diverged", str(err))
+            raise
+        except Exception as err:
+            lines = str(err).strip().splitlines()
+            self._ended("failed", f"{type(err).__name__}: {lines[-1] if lines else ''}")
+            raise
+        finally:
+            self.close()
+
+    def _ended(self, outcome: str, reason: str, **extra: Any) -> None:
+        """Records how a launch that did not finish ended (best effort: the disk may be the
+        cause)."""
+        try:
+            self.run_dir.update_launch(outcome)
+            self.run_dir.write_status(outcome, reason, **extra)
+        except OSError:
+            pass
+
+    def _prepare(self) -> None:
+        """Writes what a run starts with: a fresh record and config, or the changes a resumed
+        run may make."""
         cfg, run = self.cfg, self.run_dir
+        self._lock.announce()
         if self.overwrite and run.holds_run():
-            run.clear()
+            removed = run.clear()
+            log.info("overwrite=true: removed %s", ", ".join(removed) or "nothing")
+        if self.resuming and not run.has_record():
+            run.adopt_legacy()  # a run of a version without a record
+        if not self.resuming or self.restarted:
+            self._write_hydra_files()
         if not self.resuming:
             run.write_config(cfg)
-        torch.set_num_threads(int(cfg.threads))
+        elif self.restarted:
+            schedule = cfg.schedule.name
+            for stage, keys in sorted(self.restarted.items()):
+                log.info(
+                    "resume=true: %s changed; stage %d had not finished and restarts",
+                    ", ".join(keys),
+                    stage,
+                )
+                run.clear_checkpoints("joint" if schedule == "joint" else stage)
+            if schedule == "flat":
+                run.clear_checkpoints(0)
+            run.write_config(cfg)
+        run.begin_launch()
+
+    def _write_hydra_files(self) -> None:
+        if not self.hydra_files:
+            return
+        self.run_dir.claim(".hydra")
+        out = self.run_dir.path / ".hydra"
+        out.mkdir(parents=True, exist_ok=True)
+        for name, node in self.hydra_files.items():
+            atomic_write(out / name, lambda tmp, node=node: OmegaConf.save(node, tmp))
+
+    def _run(self) -> dict[str, Any]:
+        cfg, run = self.cfg, self.run_dir
         logging.getLogger("torchrl").setLevel(logging.WARNING)
+        before = run.listing()
         self.logger = make_logger(cfg, run.path)
+        run.claim_new(before)  # metrics.csv, and a backend's own files
         start, schedule, phases = time.perf_counter(), cfg.schedule.name, None
         kwargs = {
             "seed": int(cfg.seed),
@@ -172,18 +290,24 @@ class Experiment:
             learners, results = train_flat(self.task, store=self, **kwargs)
         else:
             learners, results = train_backward(self.task, store=self, **kwargs)
-        training = {
-            "schedule": schedule,
-            "seconds": time.perf_counter() - start,
-            "stages": [asdict(r) for r in results],
-        }
+        check("the whole-task evaluation")  # a stop asked for during the last stage's save
+        run.update_launch("done")
+        training = {"schedule": schedule, **run.training_time()}
+        training["stages"] = [asdict(r) for r in results]
         if phases is not None:
             training["phases"] = phases
+        before = run.listing()
+        run.claim("eval.json")
         result = evaluate_run(cfg, self.task, learners, run.path, training=training)
+        run.claim_new(before)  # the task's figures
         if self.logger is not None:  # the run's whole-task evaluation, after all its frames
+            rewind = getattr(self.logger, "rewind", None)
+            if self.resuming and rewind is not None:  # rows of an earlier final evaluation
+                rewind(run.read_stage(0)["log"])
             frames = sum(r.frames for r in results)
             for key in ("success_rate", "mean_return", "mean_steps"):
                 self.logger.log_scalar(f"eval/final/{key}", result[key], step=frames)
+        (run.path / STATUS_FILE).unlink(missing_ok=True)  # an earlier launch's outcome
         return result
 
     def _train_joint(self, **kwargs: Any) -> tuple[list[Learner], list[StageResult], list]:
@@ -191,7 +315,8 @@ class Experiment:
         task, run = self.task, self.run_dir
         if self.resuming and all(run.stage_file(k).is_file() for k in range(task.num_stages)):
             stages = [self.finished(k) for k in range(task.num_stages)]
-            return [s[0] for s in stages], [s[1] for s in stages], []
+            phases = list(run.record.get("phases", []))
+            return [s[0] for s in stages], [s[1] for s in stages], phases
         checkpoints = run.checkpoints(
             "joint", int(self.cfg.checkpoint_every), int(self.cfg.checkpoint_keep)
         )
@@ -213,6 +338,7 @@ class Experiment:
                 phase["value_error"] if phase["value_error"] is not None else float("nan"),
                 " (early stop)" if phase["early_stopped"] else " (budget used, best restored)",
             )
+        run.record["phases"] = phases  # kept for a resumed launch's eval.json
         for k in range(task.num_stages):
             self.save(k, learners[k], results[k])
         run.clear_checkpoints("joint")
@@ -258,6 +384,7 @@ class Experiment:
             log=position() if position is not None else {},
         )
         self.run_dir.clear_checkpoints(stage)
+        self.run_dir.update_launch()
         quality = (
             f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
             if result.success_rate is not None

@@ -32,16 +32,18 @@ from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.policy import StackedPolicy
+from torchrl_stages.preemption import Interrupted, requested
 from torchrl_stages.replay import stage_replay_buffer
 from torchrl_stages.stage import (
-    DivergenceError,
     StageResult,
     Stopwatch,
     _EvalMonitor,
     first_evaluation,
     progress_bar,
+    stage_failure,
 )
 from torchrl_stages.task import StagedTask
+from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import NonFiniteValueError, StageRewardTransform, StageTransform
 
 TAGS: tuple[NestedKey, ...] = (
@@ -232,6 +234,7 @@ class JointTrainer:
             for batch in watch.timed("collect", collector):
                 frames = collector.frames
                 counters["frames"] += batch.numel()
+                keep_threads()
                 with watch("collect"):
                     self._route(batch, counters["stored"])
                 losses = self._update(counters["stored"], watch)
@@ -248,11 +251,18 @@ class JointTrainer:
                     stop = monitor.record(team, success, value_error, frames, ret)
                 if stop:
                     break
-                if self.checkpoints is not None and self.checkpoints.due(counters["frames"]):
+                signum = requested()
+                if self.checkpoints is not None and (
+                    self.checkpoints.due(counters["frames"]) or signum is not None
+                ):
                     with watch("checkpoint"):
                         counters["seconds"] = time.perf_counter() - t0
                         counters["log"] = self._log_position()
                         self.checkpoints.save(counters["frames"], state)
+                if signum is not None:
+                    raise Interrupted(
+                        signum, f"the joint phase from stage {k} at {counters['frames']} frames"
+                    )
         finally:
             bar.close()
         restored = monitor.restore_best(team)
@@ -297,7 +307,11 @@ class JointTrainer:
                         losses[m].append(learner.update(sample))
                 learner.check_finite()
             except (NonFiniteError, NonFiniteValueError) as err:
-                raise DivergenceError(m, self.task.stage_names[m], learner.algo, err) from err
+                buffer = self.buffers[m]
+                stored = buffer.storage[: len(buffer)] if len(buffer) else None
+                raise stage_failure(
+                    err, m, self.task.stage_names[m], learner.algo, stored, learner.specs.action_key
+                ) from err
         return losses
 
     @functools.cached_property
@@ -311,6 +325,7 @@ class JointTrainer:
         """Greedy whole-task episodes from stage-k starts: success, merged value error and
         merged discounted return (logged under ``eval/joint_<k>/``)."""
         cfg = self.task.stage_cfg(k)
+        keep_threads()
         policy = StackedPolicy([learner.policy for learner in self.learners])
         max_steps = int(getattr(eval_env.base_env, "max_steps", 1000))
         if cfg.eval_max_steps:  # each stage an episode crosses may take eval_max_steps

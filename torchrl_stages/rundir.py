@@ -1,21 +1,27 @@
 """A run directory on disk: its files, writing them safely, and reading them back.
 
 A run directory holds ``config.yaml`` (the resolved config), ``stage_<k>.pt`` for every
-finished stage, ``checkpoints/stage_<k>/`` for the stage in progress, ``metrics.csv``,
-``eval.json``, figures, and ``status.json`` when a run failed. Files are written atomically
-(a temporary file, then a rename); reading a damaged one raises :class:`RunDirError` naming the
+finished stage, ``checkpoints/`` for the stage in progress, ``metrics.csv``, ``eval.json``,
+figures, ``status.json`` when a run did not finish, and ``.stages/``: the run's record
+(``run.json``: every entry the package wrote, the SHA-256 of the stage files and of
+``config.yaml``, every launch's wall-clock) and the lock that keeps a second process out.
+
+Files are written atomically (a temporary file unique to the process, then a rename); a
+failed write leaves no temporary file. A run directory is untrusted data when it is read back:
+checksums are verified, a config may only instantiate what its task ships with (see
+:func:`check_trusted`), and a damaged or foreign file raises :class:`RunDirError` naming the
 file and the fix.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import pickle
+import re
 import shutil
-import zipfile
-from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, fields
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -25,30 +31,32 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.config import TrainConfig
+from torchrl_stages.integrity import atomic_write, sha256_file
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.policy import StackedPolicy
+from torchrl_stages.runlock import LOCK_DIR, RunLock, RunLockedError
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
+from torchrl_stages.validate import ConfigError, validate_config
 
 CONFIG_FILE = "config.yaml"
 EVAL_FILE = "eval.json"
 METRICS_FILE = "metrics.csv"
 STATUS_FILE = "status.json"
 CHECKPOINTS = "checkpoints"
-# what a run writes besides figures (``overwrite=true`` removes these and the figures)
-RUN_ENTRIES = (CONFIG_FILE, EVAL_FILE, METRICS_FILE, STATUS_FILE, CHECKPOINTS, "csv", ".hydra")
-FIGURES = ("*.png", "value_map.npy")
+RECORD_FILE = "run.json"  # in .stages/
+#: names of a run's files: a directory holding any of them (or a stage file) holds a run
+RUN_MARKERS = (CONFIG_FILE, EVAL_FILE, METRICS_FILE, CHECKPOINTS)
+#: what runs of versions without a record wrote (adopted when such a run is resumed)
+LEGACY_ENTRIES = (*RUN_MARKERS, STATUS_FILE, "csv", ".hydra")
+LEGACY_PATTERNS = ("stage_*.pt", "*.png", "value_map.npy")
+RECORD_FORMAT = "torchrl-stages run"
 
 
 class RunDirError(RuntimeError):
-    """A run directory cannot be used as asked: it already holds a run, a file in it is
-    damaged, or a resumed run's config differs from the one it was started with."""
-
-
-def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    write(tmp)
-    os.replace(tmp, path)
+    """A run directory cannot be used as asked: it already holds a run, another process holds
+    it, a file in it is damaged or foreign, or its config names code it may not run."""
 
 
 def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
@@ -81,8 +89,91 @@ def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...]
     ]
 
 
+# ---------------------------------------------------------------------- what a config may run
+_TASK_NAME = re.compile(r"^[A-Za-z0-9_]+$")
+
+
+def _targets(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """``(dotted key, value)`` of every ``_target_`` under ``node`` (mappings and lists)."""
+    if isinstance(node, dict):
+        for key, item in node.items():
+            path = f"{prefix}.{key}" if prefix else str(key)
+            if key == "_target_":
+                yield path, item
+            else:
+                yield from _targets(item, path)
+    elif isinstance(node, list):
+        for index, item in enumerate(node):
+            yield from _targets(item, f"{prefix}.{index}")
+
+
+def shipped_targets(task_name: str) -> dict[str, str] | None:
+    """What the package's own ``conf/task/<task_name>.yaml`` instantiates (its env and
+    whole-task eval env, ``{dotted key: _target_}``), or ``None`` when that is not fixed by
+    the package: no such task, or a task that leaves its env to the user (``???``)."""
+    if not _TASK_NAME.match(task_name):
+        return None
+    source = resources.files("torchrl_stages.conf").joinpath("task", f"{task_name}.yaml")
+    if not source.is_file():
+        return None
+    shipped = yaml.safe_load(source.read_text()) or {}
+    nodes = {key: shipped.get(key) or {} for key in ("env", "eval_env")}
+    return None if _leaves_missing(nodes) else dict(_targets({"task": nodes}))
+
+
+def _leaves_missing(node: Any) -> bool:
+    """Whether a value under ``node`` is ``???`` (left to the user)."""
+    if isinstance(node, dict):
+        return any(_leaves_missing(v) for v in node.values())
+    if isinstance(node, list):
+        return any(_leaves_missing(v) for v in node)
+    return node == "???"
+
+
+def check_trusted(cfg: DictConfig, source: Path) -> None:
+    """Refuses a loaded config that would instantiate anything its task does not ship with.
+
+    Every ``_target_`` of the config (at any depth, env keyword arguments included) must be
+    one of the package's own task config (:func:`shipped_targets`), at the same key. Runs of
+    your own env (``task=gym``, ``task=custom``, a config directory of yours) name code of
+    yours to import: loading them needs ``trust=True``.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"task": {"name": "gridworld", "env": {
+        ...     "_target_": "torchrl_stages.envs.GridWorldEnv", "size": 25}}})
+        >>> check_trusted(cfg, Path("run/config.yaml"))
+        >>> cfg.task.env.size = {"_target_": "os.system", "_args_": ["echo hi"]}
+        >>> check_trusted(cfg, Path("run/config.yaml"))
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.rundir.RunDirError: run/config.yaml: task.env.size._target_='os.system' ...
+    """
+    container = OmegaConf.to_container(cfg, resolve=False)
+    task_name = str((container.get("task") or {}).get("name", ""))
+    allowed = shipped_targets(task_name)
+    fix = (
+        "Fix: if you made this run (or checked what it imports), load it with trust=True "
+        "(stages-eval --trust)"
+    )
+    if allowed is None:
+        raise RunDirError(
+            f"{source}: task '{task_name}' is not one the package ships with a fixed env, so "
+            "loading it would import and call code that the run directory names (a run "
+            f"directory is untrusted data). {fix}"
+        )
+    for key, target in _targets(container):
+        if allowed.get(key) != target:
+            expected = f"'{allowed[key]}'" if key in allowed else "nothing there"
+            raise RunDirError(
+                f"{source}: {key}={target!r} is not what task '{task_name}' instantiates "
+                f"({expected}); loading a run never runs code its files name. {fix}"
+            )
+
+
+# ---------------------------------------------------------------------- the directory
 class RunDir:
-    """The files of one run directory.
+    """The files of one run directory and its record.
 
     Examples:
         >>> import tempfile
@@ -93,6 +184,8 @@ class RunDir:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        self._record: dict[str, Any] | None = None
+        self._launch_start: float | None = None
 
     def stage_file(self, stage: int) -> Path:
         return self.path / f"stage_{stage}.pt"
@@ -101,34 +194,172 @@ class RunDir:
     def config_file(self) -> Path:
         return self.path / CONFIG_FILE
 
+    @property
+    def record_file(self) -> Path:
+        return self.path / LOCK_DIR / RECORD_FILE
+
     def holds_run(self) -> bool:
         """Whether a run was started here (a config, a stage, checkpoints, metrics or eval)."""
-        names = (CONFIG_FILE, EVAL_FILE, METRICS_FILE, CHECKPOINTS)
-        return any((self.path / n).exists() for n in names) or any(self.path.glob("stage_*.pt"))
+        return any((self.path / n).exists() for n in RUN_MARKERS) or any(
+            self.path.glob("stage_*.pt")
+        )
+
+    def lock(self) -> RunLock:
+        """Takes this directory's lock (one process at a time); :class:`RunDirError` names the
+        process that holds it."""
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            return RunLock(self.path).acquire()
+        except RunLockedError as err:
+            raise RunDirError(str(err)) from None
+
+    # ------------------------------------------------------------------ the record
+    def has_record(self) -> bool:
+        return self.record_file.is_file()
+
+    @property
+    def record(self) -> dict[str, Any]:
+        """``.stages/run.json``: ``entries`` (what the package wrote here, with checksums),
+        ``launches`` and ``phases`` (a joint run's). A missing one reads as empty."""
+        if self._record is None:
+            self._record = self._read_record()
+        return self._record
+
+    def _read_record(self) -> dict[str, Any]:
+        empty = {"format": RECORD_FORMAT, "version": 1, "entries": {}, "launches": []}
+        if not self.has_record():
+            return empty
+        try:
+            record = json.loads(self.record_file.read_text())
+            if record.get("format") != RECORD_FORMAT or not isinstance(record["entries"], dict):
+                raise ValueError("not a run record")
+            if not isinstance(record.get("launches", []), list):
+                raise ValueError("launches is not a list")
+        except (OSError, ValueError, KeyError, AttributeError, UnicodeDecodeError) as err:
+            raise RunDirError(
+                f"{self.record_file} is damaged ({type(err).__name__}: {err}). Fix: restore it "
+                "from a copy of the run, or retrain into a new directory"
+            ) from err
+        return {**empty, **record}
+
+    def _save_record(self) -> None:
+        (self.path / LOCK_DIR).mkdir(parents=True, exist_ok=True)
+        text = json.dumps(self.record, indent=1)
+        atomic_write(self.record_file, lambda tmp: tmp.write_text(text))
+
+    def claim(self, *names: str) -> None:
+        """Records top-level entries as written by the package (before they are written:
+        ``overwrite=true`` deletes exactly what is recorded)."""
+        entries = self.record["entries"]
+        new = [name for name in names if name not in entries]
+        for name in new:
+            entries[name] = {}
+        if new or not self.has_record():
+            self._save_record()
+
+    def listing(self) -> set[str]:
+        """The top-level entries of the directory now."""
+        return {p.name for p in self.path.iterdir()} if self.path.is_dir() else set()
+
+    def claim_new(self, before: set[str]) -> None:
+        """Claims the top-level entries that appeared since the ``before`` listing (figures,
+        a logger backend's directory), written while this process held the lock."""
+        self.claim(*sorted(self.listing() - before - {LOCK_DIR}))
+
+    def adopt_legacy(self) -> None:
+        """Claims what a run written without a record holds (resuming such a run)."""
+        names = [n for n in LEGACY_ENTRIES if (self.path / n).exists()]
+        names += [p.name for pattern in LEGACY_PATTERNS for p in self.path.glob(pattern)]
+        self.claim(*sorted(names))
+
+    def _write_verified(self, name: str, write: Callable[[Path], None]) -> Path:
+        """Writes the top-level file ``name`` atomically with its checksum in the record."""
+        path = self.path / name
+        self.claim(name)
+
+        def write_and_record(tmp: Path) -> None:
+            write(tmp)
+            self.record["entries"][name] = {"sha256": sha256_file(tmp)}
+            self._save_record()
+
+        atomic_write(path, write_and_record)
+        return path
+
+    def _verify(self, name: str, fix: str) -> None:
+        """Raises :class:`RunDirError` if ``name`` differs from the checksum recorded when it
+        was written (files without a recorded checksum pass)."""
+        try:
+            expected = self._read_record()["entries"].get(name, {}).get("sha256")
+        except AttributeError:
+            expected = None
+        if expected is not None and sha256_file(self.path / name) != expected:
+            raise RunDirError(
+                f"{self.path / name} is damaged (its bytes differ from those written, by their "
+                f"SHA-256 in {self.record_file}). Fix: {fix}"
+            )
+
+    # ------------------------------------------------------------------ launches
+    def begin_launch(self) -> None:
+        """Starts this process's entry in the record's ``launches``."""
+        self._launch_start = time.perf_counter()
+        started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        self.record["launches"].append({"started": started, "seconds": 0.0, "outcome": "running"})
+        self._save_record()
+
+    def update_launch(self, outcome: str | None = None) -> None:
+        """Records this launch's wall-clock so far (and its outcome: ``done``,
+        ``interrupted``, ``diverged``, ``failed``); a killed launch keeps its last update."""
+        if self._launch_start is None:
+            return
+        launch = self.record["launches"][-1]
+        launch["seconds"] = time.perf_counter() - self._launch_start
+        if outcome is not None:
+            launch["outcome"] = outcome
+            self._launch_start = None
+        self._save_record()
+
+    def training_time(self) -> dict[str, Any]:
+        """Every launch (start, seconds, outcome) and their summed ``seconds``."""
+        launches = [dict(launch) for launch in self._read_record()["launches"]]
+        seconds = sum(float(launch.get("seconds", 0.0)) for launch in launches)
+        return {"seconds": seconds, "launches": launches}
 
     # ------------------------------------------------------------------ config
     def write_config(self, cfg: DictConfig) -> None:
         """Writes the resolved config; :func:`load_run` rebuilds everything from it."""
         self.path.mkdir(parents=True, exist_ok=True)
-        _atomic_write(self.config_file, lambda tmp: OmegaConf.save(cfg, tmp, resolve=True))
+        self._write_verified(CONFIG_FILE, lambda tmp: OmegaConf.save(cfg, tmp, resolve=True))
 
     def read_config(self) -> DictConfig:
-        """The run's resolved config; a missing or damaged file raises :class:`RunDirError`."""
+        """The run's config as written (``.hydra/config.yaml`` when ``config.yaml`` is
+        missing); a damaged or incomplete one raises :class:`RunDirError`."""
         path = self.config_file
+        fix = (
+            "restore it from the run's .hydra/config.yaml (or a copy of the run), or retrain "
+            "into a new directory"
+        )
         if not path.is_file():
-            raise RunDirError(
-                f"{path} not found: {self.path} is not a torchrl-stages run directory (pass the "
-                "directory that `stages-train` printed at the end)."
-            )
+            path = self.path / ".hydra" / CONFIG_FILE
+            if not path.is_file():
+                raise RunDirError(
+                    f"{self.config_file} not found: {self.path} is not a torchrl-stages run "
+                    "directory (pass the directory that `stages-train` printed at the end)."
+                )
+        else:
+            self._verify(CONFIG_FILE, fix)
         try:
             cfg = OmegaConf.load(path)
-            if not isinstance(cfg, DictConfig) or "task" not in cfg or "stages" not in cfg.task:
+            if not isinstance(cfg, DictConfig):
+                raise ValueError("it is not a mapping")
+            missing = [f.name for f in fields(TrainConfig) if f.name not in cfg]
+            if missing:
+                raise ValueError(f"it lacks {', '.join(missing)}")
+            if not isinstance(cfg.task.get("stages"), DictConfig) or not cfg.task.stages:
                 raise ValueError("it has no task.stages")
         except (yaml.YAMLError, OmegaConfBaseException, ValueError, UnicodeDecodeError) as err:
             raise RunDirError(
                 f"{path} is damaged (not a complete stages-train config: "
-                f"{type(err).__name__}: {str(err).splitlines()[0]}). Fix: restore it from the "
-                f"run's .hydra/config.yaml, or retrain into a new directory."
+                f"{type(err).__name__}: {str(err).splitlines()[0]}). Fix: {fix}"
             ) from err
         return cfg
 
@@ -141,71 +372,118 @@ class RunDir:
         result: StageResult,
         log: dict[str, int] | None = None,
     ) -> Path:
-        """Writes ``stage_<k>.pt`` atomically: weights (targets included), optimizers,
-        exploration state, counters, the stage's result and ``log`` (the logger's file sizes
-        when the stage ended, where a resumed run rewinds them to). Never a non-finite one."""
+        """Writes ``stage_<k>.pt`` atomically with its checksum: weights (targets included),
+        optimizers, exploration state, counters, the stage's result and ``log`` (the logger's
+        file sizes when the stage ended, where a resumed run rewinds them to). Never a
+        non-finite one."""
         learner.check_finite()
-        path = self.stage_file(stage)
         state = {"stage": stage, "name": name, "algo": learner.algo, "result": asdict(result)}
         state["log"] = dict(log or {})
-        _atomic_write(path, lambda tmp: torch.save({**state, **learner.checkpoint()}, tmp))
-        return path
+        payload = {**state, **learner.checkpoint()}
+        return self._write_verified(self.stage_file(stage).name, lambda t: torch.save(payload, t))
 
     def read_stage(self, stage: int, map_location: Any = "cpu") -> dict[str, Any] | None:
-        """The content of ``stage_<k>.pt`` (``None`` if the stage has not finished)."""
+        """The content of ``stage_<k>.pt`` (``None`` if the stage has not finished), after
+        checking its checksum, its content and the stage it records."""
         path = self.stage_file(stage)
         if not path.is_file():
             return None
+        fix = (
+            f"delete it and rerun the same stages-train command with hydra.run.dir={self.path} "
+            f"resume=true to retrain stage {stage}"
+        )
+        self._verify(path.name, fix)
         try:
             state = torch.load(path, map_location=map_location, weights_only=True)
-            if not isinstance(state, dict) or "model" not in state:
+            if not isinstance(state, dict) or not isinstance(state.get("model"), dict):
                 raise ValueError("it holds no stage checkpoint")
-        except (
-            pickle.UnpicklingError,
-            RuntimeError,
-            EOFError,
-            ValueError,
-            zipfile.BadZipFile,
-            OSError,
-        ) as err:
+            if not isinstance(state.get("result"), dict) or not isinstance(state.get("log"), dict):
+                raise ValueError("it holds no stage result")
+        except Exception as err:  # noqa: BLE001 - any failure to read it means it is damaged
             raise RunDirError(
                 f"{path} is damaged (truncated or not a stage checkpoint: {type(err).__name__}). "
-                f"Fix: delete it and rerun the same stages-train command with "
-                f"hydra.run.dir={self.path} resume=true to retrain stage {stage}."
+                f"Fix: {fix}"
             ) from err
+        if state.get("stage") != stage:
+            raise RunDirError(
+                f"{path} holds stage {state.get('stage')!r}, not stage {stage} (renamed or "
+                f"copied from elsewhere). Fix: {fix}"
+            )
         return state
 
     def checkpoints(self, stage: int | str, every: int, keep: int) -> StageCheckpoints:
         """The periodic checkpoints of stage ``stage`` in progress (``"joint"``: of the joint
-        schedule, all stages at once)."""
+        schedule, all stages at once); each one written updates this launch's wall-clock."""
+        self.claim(CHECKPOINTS)
         name = stage if isinstance(stage, str) else f"stage_{stage}"
-        return StageCheckpoints(self.path / CHECKPOINTS / name, every, keep)
+        return StageCheckpoints(
+            self.path / CHECKPOINTS / name, every, keep, on_save=lambda _: self.update_launch()
+        )
 
     def clear_checkpoints(self, stage: int | str) -> None:
-        """Drops stage ``stage``'s checkpoints (once ``stage_<k>.pt`` is written)."""
-        self.checkpoints(stage, 0, 1).clear()
+        """Drops stage ``stage``'s checkpoints (once ``stage_<k>.pt`` is written, or when a
+        resumed run changed the stage's config)."""
+        name = stage if isinstance(stage, str) else f"stage_{stage}"
+        shutil.rmtree(self.path / CHECKPOINTS / name, ignore_errors=True)
         root = self.path / CHECKPOINTS
         if root.is_dir() and not any(root.iterdir()):
             root.rmdir()
 
-    # ------------------------------------------------------------------ status
-    def write_status(self, status: str, reason: str | None = None) -> None:
-        """``status.json``: how the run ended (``failed`` / ``diverged`` with the reason)."""
+    # ------------------------------------------------------------------ status, eval
+    def write_status(self, status: str, reason: str | None = None, **extra: Any) -> None:
+        """``status.json``: how the run ended when it did not finish (``failed``,
+        ``diverged``, ``interrupted`` with its ``signal``, ...) and why."""
         self.path.mkdir(parents=True, exist_ok=True)
-        text = json.dumps({"status": status, "reason": reason}, indent=2)
-        _atomic_write(self.path / STATUS_FILE, lambda tmp: tmp.write_text(text))
+        text = json.dumps({"status": status, "reason": reason, **extra}, indent=2)
+        self.claim(STATUS_FILE)
+        atomic_write(self.path / STATUS_FILE, lambda tmp: tmp.write_text(text))
 
-    def clear(self) -> None:
-        """Removes a previous run's files (``overwrite=true``); Hydra's log stays."""
-        for name in RUN_ENTRIES:
+    def read_eval(self) -> dict[str, Any] | None:
+        """``eval.json`` if it is a readable JSON object, else ``None``."""
+        try:
+            data = json.loads((self.path / EVAL_FILE).read_text())
+        except (OSError, ValueError, UnicodeDecodeError):
+            return None
+        return data if isinstance(data, dict) else None
+
+    def clear(self) -> list[str]:
+        """Removes a previous run (``overwrite=true``): exactly the entries its record lists,
+        nothing else; returns them. A directory holding a run but no record is refused."""
+        if not self.has_record():
+            found = sorted(n for n in [*RUN_MARKERS, STATUS_FILE] if (self.path / n).exists())
+            found += sorted(p.name for p in self.path.glob("stage_*.pt"))
+            raise RunDirError(
+                f"overwrite=true: {self.path} holds {', '.join(found)} but no "
+                f"{LOCK_DIR}/{RECORD_FILE}, the record of what torchrl-stages wrote there, so "
+                "nothing in it is deleted. Fix: delete those files yourself, or pick another "
+                "hydra.run.dir"
+            )
+        entries = self.record["entries"]
+        foreign = [n for n in RUN_MARKERS if (self.path / n).exists() and n not in entries]
+        foreign += [p.name for p in self.path.glob("stage_*.pt") if p.name not in entries]
+        if foreign:
+            raise RunDirError(
+                f"overwrite=true: {self.path} holds {', '.join(sorted(foreign))}, which its "
+                f"record ({LOCK_DIR}/{RECORD_FILE}) does not list as written by torchrl-stages, "
+                "so nothing in it is deleted. Fix: delete those files yourself, or pick another "
+                "hydra.run.dir"
+            )
+        removed = []
+        for name in sorted(entries):
             entry = self.path / name
-            if entry.is_dir():
+            if "/" in name or name in ("", ".", "..", LOCK_DIR):
+                continue  # a record lists top-level names only
+            if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry)
-            elif entry.exists():
+            elif entry.exists() or entry.is_symlink():
                 entry.unlink()
-        for pattern in ("stage_*.pt", *FIGURES):
-            for entry in self.path.glob(pattern):
-                entry.unlink()
+            else:
+                continue
+            removed.append(name)
+        self.record.update(entries={}, launches=[])
+        self.record.pop("phases", None)
+        self._save_record()
+        return removed
 
 
 @dataclass
@@ -228,7 +506,8 @@ def load_stage(
     learner = make_learner(task.stage_cfg(stage), task.specs(stage), device=device)
     try:
         learner.load_checkpoint(state)
-    except (KeyError, RuntimeError, ValueError) as err:
+        StageResult(**state["result"])
+    except (KeyError, RuntimeError, ValueError, TypeError) as err:
         raise RunDirError(
             f"{run.stage_file(stage)} does not match the run's config.yaml ({type(err).__name__}: "
             f"{str(err).splitlines()[0][:200]}). Fix: restore the config it was trained with, or "
@@ -237,8 +516,33 @@ def load_stage(
     return learner, state["result"]
 
 
-def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> LoadedRun:
+def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> DictConfig:
+    """The run's config, checked: what it may instantiate (unless ``trust``) and every value
+    (as ``stages-train`` checks them), for loading on ``device``."""
+    cfg = run.read_config()
+    source = run.config_file if run.config_file.is_file() else run.path / ".hydra" / CONFIG_FILE
+    if not trust:
+        check_trusted(cfg, source)
+    try:
+        checked = cfg.copy()  # as it would run here: on this device, with no logger
+        checked.device, checked.logger.backend = str(device), "none"
+        validate_config(checked)
+    except (ConfigError, OmegaConfBaseException, TypeError, ValueError) as err:
+        raise RunDirError(
+            f"{source} is not a valid config ({str(err).splitlines()[0]}). Fix: restore it "
+            "from the run's .hydra/config.yaml, or retrain into a new directory"
+        ) from err
+    return cfg
+
+
+def load_run(
+    run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
+) -> LoadedRun:
     """Config, task, trained learners and training results of a finished run directory.
+
+    The directory is untrusted data: its config may only instantiate what its task ships with
+    (:func:`check_trusted`; ``trust=True`` lifts that, for runs of your own env), checksums are
+    verified and nothing in it is unpickled.
 
     Examples:
         >>> from torchrl_stages import load_run  # doctest: +SKIP
@@ -246,8 +550,15 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> LoadedR
         >>> run.learners[0].policy, run.task.task_env(8)  # doctest: +SKIP
     """
     run = RunDir(run_dir)
-    cfg = run.read_config()
-    task = StagedTask(cfg.task, device=device)
+    cfg = read_run_config(run, device, trust)
+    try:
+        task = StagedTask(cfg.task, device=device)
+    except Exception as err:  # noqa: BLE001 - the run's env cannot be built here
+        raise RunDirError(
+            f"{run.path}: cannot build the env of task '{cfg.task.name}' "
+            f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}). Fix: "
+            "install what the run's env needs (see its config.yaml task.env)"
+        ) from err
     if cfg.get("schedule", {}).get("name") == "flat":  # one learner acts in every stage
         stages = [load_stage(run, task, 0, device)] * task.num_stages
     else:
@@ -262,13 +573,25 @@ def load_run(run_dir: str | Path, device: str | torch.device = "cpu") -> LoadedR
     return LoadedRun(cfg, task, [s[0] for s in stages], [s[1] for s in stages])
 
 
-def load_policy(run_dir: str | Path, device: str | torch.device = "cpu") -> StackedPolicy:
-    """The greedy stacked policy of a finished run.
+def load_policy(
+    run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
+) -> StackedPolicy:
+    """The greedy stacked policy of a finished run (``trust``: see :func:`load_run`).
 
     Examples:
         >>> from torchrl_stages import load_policy  # doctest: +SKIP
         >>> policy = load_policy("outputs/2026-11-21/16-00-00")  # doctest: +SKIP
         >>> env.rollout(200, policy)  # an env tagged by StageTransform  # doctest: +SKIP
     """
-    run = load_run(run_dir, device)
+    run = load_run(run_dir, device, trust=trust)
     return StackedPolicy([learner.policy for learner in run.learners])
+
+
+__all__ = [
+    "LoadedRun",
+    "RunDir",
+    "RunDirError",
+    "check_trusted",
+    "load_policy",
+    "load_run",
+]

@@ -26,8 +26,69 @@ from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
+from torchrl_stages.preemption import Interrupted, requested
 from torchrl_stages.replay import stage_replay_buffer
-from torchrl_stages.transforms import NonFiniteValueError
+from torchrl_stages.threads import keep_threads
+from torchrl_stages.transforms import NonFiniteInputError, NonFiniteValueError
+
+
+class EnvError(RuntimeError):
+    """The env returned a NaN or infinite observation or reward: the env's fault, not the
+    learner's. The message names the entry and the stage.
+
+    Attributes:
+        stage: the stage whose training found it.
+        key: the env's entry that is not finite.
+    """
+
+    def __init__(self, stage: int, name: str, key: NestedKey, cause: str = "") -> None:
+        where = f" ({cause})" if cause else ""
+        super().__init__(
+            f"stage {stage} ({name}): the env returned a non-finite {key!r}{where}. Nothing "
+            f"of stage {stage} was saved. Fix: the env's step/reset must return finite "
+            "observations and rewards (check it with torchrl's check_env_specs and a rollout)"
+        )
+        self.stage, self.key = stage, key
+
+
+def non_finite_entries(td: TensorDictBase, skip: Sequence[NestedKey] = ()) -> list[NestedKey]:
+    """The floating-point entries of ``td`` holding a NaN or an infinity (``skip`` aside).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict(obs=torch.tensor([[0.0, float("nan")]]), action=torch.ones(1, 1),
+        ...                 batch_size=[1])
+        >>> non_finite_entries(td)
+        ['obs']
+    """
+    skip_keys = {(k,) if isinstance(k, str) else tuple(k) for k in skip}
+    found = []
+    for key, value in td.items(True, True):
+        tup = (key,) if isinstance(key, str) else tuple(key)
+        if tup in skip_keys or tup[-1:] in skip_keys or not value.is_floating_point():
+            continue
+        if not bool(torch.isfinite(value).all()):
+            found.append(key)
+    return found
+
+
+def stage_failure(
+    err: FloatingPointError,
+    stage: int,
+    name: str,
+    algo: str,
+    stored: TensorDictBase | None,
+    action_key: NestedKey,
+) -> RuntimeError:
+    """The error a non-finite loss, gradient or value becomes: :class:`EnvError` when the
+    env's own data (``stored``: the transitions the stage trained on) holds the NaN or
+    infinity, else :class:`DivergenceError`."""
+    if isinstance(err, NonFiniteInputError):
+        return EnvError(stage, name, err.key, "the next stage's value of it is not finite")
+    bad = non_finite_entries(stored, skip=[action_key]) if stored is not None else []
+    if bad:
+        return EnvError(stage, name, bad[0], f"found in the replay buffer after: {err}")
+    return DivergenceError(stage, name, algo, err)
 
 
 class DivergenceError(RuntimeError):
@@ -325,6 +386,7 @@ class StageTrainer:
         try:
             for batch in watch.timed("collect", collector):
                 frames = collector.frames
+                keep_threads()
                 with watch("collect"):
                     if self.postproc is not None:
                         batch = self.postproc(batch)
@@ -354,13 +416,22 @@ class StageTrainer:
                     stop = monitor.record(learner, success, value_error, frames, ret)
                 if stop:
                     break
-                if self.checkpoints is not None and self.checkpoints.due(frames):
+                signum = requested()
+                if self.checkpoints is not None and (
+                    self.checkpoints.due(frames) or signum is not None
+                ):
                     with watch("checkpoint"):
                         counters["seconds"] = time.perf_counter() - start
                         counters["log"] = self._log_position()
                         self.checkpoints.save(frames, state)
+                if signum is not None:
+                    where = f"stage {self.stage} ({self.name}) at {frames} frames"
+                    raise Interrupted(signum, where)
         except (NonFiniteError, NonFiniteValueError) as err:
-            raise DivergenceError(self.stage, self.name, learner.algo, err) from err
+            stored = buffer.storage[: len(buffer)] if len(buffer) else None
+            raise stage_failure(
+                err, self.stage, self.name, learner.algo, stored, learner.specs.action_key
+            ) from err
         finally:
             bar.close()
         restored = monitor.restore_best(learner)
@@ -395,6 +466,7 @@ class StageTrainer:
         stage's objective.
         """
         cfg = self.cfg
+        keep_threads()
         max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
         stats, rollout = evaluate_policy(self.eval_env, self.learner.policy, max_steps)
         summary = stats.summary()

@@ -22,6 +22,21 @@ class NonFiniteValueError(FloatingPointError):
     """The next stage's value of a transition is NaN or infinite."""
 
 
+class NonFiniteInputError(NonFiniteValueError):
+    """The next stage's value is not finite because its input, an entry of s_{t+1} that the
+    env returned, is NaN or infinite (the env's fault, not the networks').
+
+    Attributes:
+        key: the env's entry that is not finite.
+    """
+
+    def __init__(self, key: NestedKey, stage: int) -> None:
+        self.key = key
+        super().__init__(
+            f"the env returned a non-finite {key!r} on a transition out of stage {stage}"
+        )
+
+
 class _Keys(Protocol):
     stage_key: NestedKey
     transition_key: NestedKey
@@ -30,6 +45,10 @@ class _Keys(Protocol):
     truncated_key: NestedKey
     done_key: NestedKey
     value_key: NestedKey
+
+
+def _as_tuple(key: NestedKey) -> tuple[str, ...]:
+    return (key,) if isinstance(key, str) else tuple(key)
 
 
 @torch.no_grad()
@@ -64,6 +83,9 @@ def apply_stage_view(
         td_in = next_td.select(*next_value.in_keys).clone(False)
         value = next_value(td_in).get(keys.value_key).to(reward.dtype).reshape(reward.shape)
         if not bool(torch.isfinite(value[bootstrap]).all()):
+            for key, entry in next_td.select(*next_value.in_keys).items(True, True):
+                if entry.is_floating_point() and not bool(torch.isfinite(entry).all()):
+                    raise NonFiniteInputError(("next", *_as_tuple(key)), stage)
             raise NonFiniteValueError(
                 f"the value of stage {stage + 1}, V(s_t+1), is not finite on a transition out "
                 f"of stage {stage}: stage {stage + 1}'s networks diverged, so stage {stage}'s "

@@ -19,6 +19,7 @@ import torch
 from omegaconf import DictConfig
 
 from torchrl_stages.evaluate import evaluate_task
+from torchrl_stages.integrity import atomic_write
 from torchrl_stages.learners import Learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.reports import cargo, gridworld, manipulator
@@ -97,7 +98,8 @@ def evaluate_run(
 
         plot_learning_curves(run_dir / "metrics.csv", run_dir / "learning_curves.png")
     result = strict_json(result)
-    (run_dir / EVAL_FILE).write_text(json.dumps(result, indent=2, allow_nan=False))
+    text = json.dumps(result, indent=2, allow_nan=False)
+    atomic_write(run_dir / EVAL_FILE, lambda tmp: tmp.write_text(text))
     return result
 
 

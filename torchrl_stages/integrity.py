@@ -1,0 +1,152 @@
+"""Checksums of the files a run writes, verified before anything is read back.
+
+A run directory is untrusted data when it is loaded: a file may be truncated by a full disk,
+damaged by a copy, or crafted. Every stage file and every checkpoint component is recorded
+with its SHA-256 when it is written; reading it back first checks that the bytes are those.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import shutil
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+#: the checksum file of a directory of payload files (one entry per file, relative path)
+CHECKSUMS = "sha256.json"
+
+
+class DamagedFileError(RuntimeError):
+    """A file differs from what was recorded when it was written (or was never recorded).
+
+    Attributes:
+        path: the file (or directory) at fault.
+    """
+
+    def __init__(self, path: str | Path, reason: str) -> None:
+        super().__init__(f"{path}: {reason}")
+        self.path = Path(path)
+        self.reason = reason
+
+
+def sha256_file(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes, as hex.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> f = pathlib.Path(tempfile.mkdtemp()) / "a"
+        >>> _ = f.write_bytes(b"abc")
+        >>> sha256_file(f)[:16]
+        'ba7816bf8f01cfea'
+    """
+    digest = hashlib.sha256()
+    with Path(path).open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _files(directory: Path) -> list[str]:
+    return sorted(
+        p.relative_to(directory).as_posix()
+        for p in directory.rglob("*")
+        if p.is_file() or p.is_symlink()
+    )
+
+
+def write_checksums(directory: str | Path) -> dict[str, str]:
+    """Records the SHA-256 of every file under ``directory`` in its ``sha256.json``."""
+    directory = Path(directory)
+    sums = {name: sha256_file(directory / name) for name in _files(directory) if name != CHECKSUMS}
+    (directory / CHECKSUMS).write_text(json.dumps(sums, indent=1, sort_keys=True))
+    return sums
+
+
+def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> None:
+    """Checks the files under ``directory`` against its ``sha256.json``: the same files, the
+    same bytes, and (with ``suffixes``) only files with those endings. Raises
+    :class:`DamagedFileError` naming the first file that differs.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> _ = (d / "x.json").write_text("{}")
+        >>> _ = write_checksums(d)
+        >>> verify_checksums(d, suffixes=(".json",))
+        >>> _ = (d / "x.json").write_text("{ }")
+        >>> verify_checksums(d)
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.integrity.DamagedFileError: ...x.json: its bytes differ from those written
+    """
+    directory = Path(directory)
+    record = directory / CHECKSUMS
+    try:
+        sums = json.loads(record.read_text())
+        if not isinstance(sums, dict) or not all(isinstance(v, str) for v in sums.values()):
+            raise ValueError("not a mapping of file names to checksums")
+    except FileNotFoundError:
+        raise DamagedFileError(
+            directory, f"it has no {CHECKSUMS} (not written by this version)"
+        ) from None
+    except (OSError, ValueError, UnicodeDecodeError) as err:
+        raise DamagedFileError(record, f"unreadable ({type(err).__name__})") from err
+    present = [name for name in _files(directory) if name != CHECKSUMS]
+    for name in present:
+        path = directory / name
+        if name not in sums:
+            raise DamagedFileError(path, "a file that was never written there")
+        if path.is_symlink():
+            raise DamagedFileError(path, "a link where a file was written")
+        if suffixes and not name.endswith(suffixes):
+            raise DamagedFileError(path, f"not a payload file ({', '.join(suffixes)})")
+    for name, expected in sums.items():
+        path = directory / name
+        if name not in present:
+            raise DamagedFileError(path, "missing")
+        if sha256_file(path) != expected:
+            raise DamagedFileError(path, "its bytes differ from those written")
+
+
+def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """Writes ``path`` through a temporary file of this process's own, then renames it into
+    place; on any error the temporary file is removed and ``path`` is left as it was (an
+    ``OSError`` names ``path``).
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> f = pathlib.Path(tempfile.mkdtemp()) / "a.txt"
+        >>> atomic_write(f, lambda tmp: tmp.write_text("whole"))
+        >>> f.read_text(), [p.name for p in f.parent.iterdir()]
+        ('whole', ['a.txt'])
+    """
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except OSError as err:
+        if err.filename is None:
+            err.filename = str(path)
+        raise
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def ensure_free_space(directory: Path, nbytes: int) -> None:
+    """Raises ``OSError(ENOSPC)`` naming ``directory`` when its disk has less than ``nbytes``
+    free: writing memory-mapped files there would end the process with SIGBUS instead."""
+    existing = Path(directory)
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    free = shutil.disk_usage(existing).free
+    if nbytes > free:
+        raise OSError(
+            errno.ENOSPC,
+            f"{os.strerror(errno.ENOSPC)} ({nbytes / 2**20:.1f} MiB needed, "
+            f"{free / 2**20:.1f} MiB free)",
+            str(directory),
+        )

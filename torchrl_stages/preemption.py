@@ -1,0 +1,93 @@
+"""Pre-emption: SIGTERM, SIGINT and SIGUSR1 end a run cleanly at the next safe point.
+
+Schedulers ask a job to stop before they kill it (SLURM and ``scancel`` send SIGTERM, or the
+signal of ``--signal``); a terminal sends SIGINT. Inside :func:`handle_signals` such a signal
+only records a request: the training loops finish the update in progress, write a checkpoint
+(whatever ``checkpoint_every`` says) and raise :class:`Interrupted`, which ``stages-train``
+turns into ``status.json`` (``interrupted``) and exit code ``128 + signal number``. The same
+command with ``resume=true`` then continues bitwise where the run stopped. A second signal
+gets the default behaviour (an immediate end), for a user who does not want to wait.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+#: the signals that request a clean stop
+SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGUSR1)
+
+_requested: int | None = None
+
+
+class Interrupted(Exception):  # noqa: N818 - an outcome, not an error
+    """A run stopped on a signal after saving what it needs to resume.
+
+    Attributes:
+        signum: the signal's number.
+        where: what was interrupted, e.g. ``stage 1 (s1) at 1536 frames``.
+    """
+
+    def __init__(self, signum: int, where: str) -> None:
+        self.signum, self.where = int(signum), where
+        super().__init__(f"interrupted by {self.signal_name} in {where}")
+
+    @property
+    def signal_name(self) -> str:
+        return signal.Signals(self.signum).name
+
+    @property
+    def exit_code(self) -> int:
+        """``128 + signal number``: 143 for SIGTERM, 130 for SIGINT, 138 for SIGUSR1."""
+        return 128 + self.signum
+
+
+def requested() -> int | None:
+    """The signal that asked the run to stop (``None``: none did)."""
+    return _requested
+
+
+def check(where: str) -> None:
+    """Raises :class:`Interrupted` if a stop was requested (call it at a point where the
+    state needed to resume is on disk)."""
+    if _requested is not None:
+        raise Interrupted(_requested, where)
+
+
+@contextmanager
+def handle_signals() -> Iterator[None]:
+    """Records SIGTERM, SIGINT and SIGUSR1 as stop requests while the block runs (main
+    thread only; elsewhere the block runs with the handlers it has).
+
+    Examples:
+        >>> import os, signal
+        >>> with handle_signals():
+        ...     os.kill(os.getpid(), signal.SIGUSR1)
+        ...     signal.Signals(requested()).name
+        'SIGUSR1'
+        >>> requested() is None
+        True
+    """
+    global _requested
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.getsignal(signum) for signum in SIGNALS}
+
+    def on_signal(signum: int, frame: object) -> None:
+        global _requested
+        _requested = signum
+        for other, handler in previous.items():  # a second signal ends the process
+            signal.signal(other, handler)
+
+    _requested = None
+    for signum in SIGNALS:
+        signal.signal(signum, on_signal)
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        _requested = None
