@@ -66,7 +66,7 @@ def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespac
         if isinstance(default, bool):
             parser.add_argument(f"--{name}", action="store_true")
         else:
-            parser.add_argument(f"--{name}", type=int, default=default)
+            parser.add_argument(f"--{name}", type=type(default), default=default)
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument(
         "overrides", nargs="*", help="extra Hydra overrides for every run, e.g. task.env.size=20"

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 TIMEOUT_S = 300
 TINY = {
@@ -280,3 +281,177 @@ def test_joint_schedule_kill_and_resume_is_bitwise_equal(tmp_path):
     resumed = run(killed, "schedule=joint", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert_same_run(reference, killed)
+
+
+# ---------------------------------------------------------------------- pre-emption
+def _wait(ready, proc: subprocess.Popen) -> None:
+    deadline = time.monotonic() + TIMEOUT_S
+    while not ready():
+        assert proc.poll() is None, "the run ended too early"
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+
+
+def _in_stage(run_dir: Path, stage: int):
+    metrics = run_dir / "metrics.csv"
+    return lambda: metrics.is_file() and f"train/stage_{stage}/" in metrics.read_text()
+
+
+def _stop(
+    proc: subprocess.Popen, signum: int, seed: int
+) -> tuple[subprocess.CompletedProcess, float]:
+    """Sends ``signum`` after a random delay; returns the finished process and how long it
+    took to exit after the signal."""
+    import random
+
+    time.sleep(random.Random(seed).uniform(0.0, 0.25))
+    sent = time.monotonic()
+    proc.send_signal(signum)
+    result = finish(proc)
+    return result, time.monotonic() - sent
+
+
+@pytest.mark.parametrize("seed", [11])
+def test_sigterm_mid_stage_checkpoints_and_resume_is_bitwise_equal(runs, seed):
+    root, reference, _ = runs
+    stopped = root / f"sigterm_{seed}"
+    proc = spawn(stopped, "checkpoint_every=0")  # no periodic checkpoint: the signal's only
+    _wait(_in_stage(stopped, 1), proc)
+    result, seconds = _stop(proc, signal.SIGTERM, seed)
+    assert result.returncode == 128 + signal.SIGTERM, (seed, result.stderr[-2000:])
+    assert seconds < 10
+    assert "Traceback" not in result.stderr and "resume=true" in result.stderr
+    status = json.loads((stopped / "status.json").read_text())
+    assert status["status"] == "interrupted" and status["signal"] == "SIGTERM"
+    written = list((stopped / "checkpoints").rglob("frames-*"))
+    assert written or (stopped / "stage_0.pt").is_file(), "nothing saved"
+    resumed = run(stopped, "checkpoint_every=0", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert_same_run(reference, stopped)
+    assert not (stopped / "status.json").exists()
+    launches = json.loads((stopped / "eval.json").read_text())["training"]["launches"]
+    assert [x["outcome"] for x in launches] == ["interrupted", "done"]
+
+
+def test_sigint_ends_with_one_line_and_its_exit_code(tmp_path):
+    proc = spawn(tmp_path / "run")
+    _wait(_in_stage(tmp_path / "run", 1), proc)
+    result, _ = _stop(proc, signal.SIGINT, 0)
+    assert result.returncode == 128 + signal.SIGINT
+    lines = [line for line in result.stderr.splitlines() if line.startswith("stages-train:")]
+    assert len(lines) == 1 and "interrupted by SIGINT" in lines[0]
+    assert "Traceback" not in result.stderr and "KeyboardInterrupt" not in result.stderr
+
+
+def test_sigterm_during_the_joint_schedule_resumes_bitwise(tmp_path):
+    reference, stopped = tmp_path / "joint_reference", tmp_path / "joint_stopped"
+    ref = spawn(reference, "schedule=joint")
+    proc = spawn(stopped, "schedule=joint", "checkpoint_every=0")
+    metrics = stopped / "metrics.csv"
+    _wait(lambda: metrics.is_file() and "train/joint_0/" in metrics.read_text(), proc)
+    result, seconds = _stop(proc, signal.SIGTERM, 5)
+    assert result.returncode == 128 + signal.SIGTERM, result.stderr[-2000:]
+    assert seconds < 10 and list((stopped / "checkpoints" / "joint").glob("frames-*"))
+    assert finish(ref).returncode == 0
+    resumed = run(stopped, "schedule=joint", "checkpoint_every=0", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert_same_run(reference, stopped)
+
+
+# ---------------------------------------------------------------------- one writer
+def test_a_second_process_in_the_same_directory_exits_2_naming_the_first(tmp_path):
+    first = spawn(tmp_path / "run")
+    lock = tmp_path / "run" / ".stages" / "lock"
+    _wait(lambda: lock.is_file() and lock.read_text().strip(), first)
+    second = run(tmp_path / "run", "seed=1")
+    assert second.returncode == 2
+    assert f"in use by another process (process {first.pid} on" in second.stderr
+    assert finish(first).returncode == 0
+    assert OmegaConf.load(tmp_path / "run" / "config.yaml").seed == 0
+
+
+# ---------------------------------------------------------------------- damaged checkpoints
+def test_a_damaged_newest_checkpoint_falls_back_to_the_one_before(runs):
+    root, reference, killed = runs
+    damaged = root / "damaged_checkpoint"
+    shutil.copytree(killed, damaged)
+    checkpoints = sorted((damaged / "checkpoints" / "stage_1").glob("frames-*"))
+    assert len(checkpoints) >= 2
+    storage = max(
+        (p for p in checkpoints[-1].rglob("*.memmap") if "replay_buffer" in str(p)),
+        key=lambda p: p.stat().st_size,
+    )
+    storage.write_bytes(storage.read_bytes()[: storage.stat().st_size // 2])  # truncated
+    result = run(damaged, "resume=true")
+    assert result.returncode == 0, result.stderr[-3000:]
+    logs = result.stdout + result.stderr
+    assert "is damaged" in logs and storage.name in logs
+    assert f"resuming from the checkpoint before it: {checkpoints[-2]}" in logs
+    assert_same_run(reference, damaged)
+
+
+def test_every_checkpoint_damaged_exits_2_with_one_line(runs):
+    root, _, killed = runs
+    damaged = root / "all_damaged"
+    shutil.copytree(killed, damaged)
+    for ckpt in (damaged / "checkpoints" / "stage_1").glob("frames-*"):
+        (ckpt / "manifest.json").write_text("{")
+    result = run(damaged, "resume=true")
+    assert result.returncode == 2
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("stages-train: ") and "manifest.json is damaged" in last
+    assert "Fix: delete" in last and "Traceback" not in result.stderr
+
+
+def test_resume_with_a_config_naming_other_code_is_refused(runs, tmp_path):
+    root, reference, _ = runs
+    tampered = root / "tampered"
+    shutil.copytree(reference, tampered)
+    marker = tmp_path / "ran"
+    cfg = OmegaConf.load(tampered / "config.yaml")
+    cfg.task.env.size = {"_target_": "os.makedirs", "name": str(marker)}
+    OmegaConf.save(cfg, tampered / "config.yaml")
+    result = run(tampered, "resume=true")
+    assert result.returncode == 2 and "config.yaml is damaged" in result.stderr
+    (tampered / ".stages" / "run.json").unlink()  # no checksum: the config itself is compared
+    result = run(tampered, "resume=true")
+    assert result.returncode == 2 and "task.env.size" in result.stderr
+    assert not marker.exists()
+
+
+# ---------------------------------------------------------------------- a file that cannot grow
+def _file_size_limit(limit: int):
+    def preexec() -> None:
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    return preexec
+
+
+@pytest.mark.parametrize("checkpoint_every", [0, 256])
+def test_a_write_that_fails_names_the_file_leaves_no_temporary_and_resumes(
+    runs, tmp_path, checkpoint_every
+):
+    _, reference, _ = runs
+    run_dir = tmp_path / "run"
+    extra = f"checkpoint_every={checkpoint_every}"
+    argv = [stages_train(), *OVERRIDES, f"hydra.run.dir={run_dir}", extra]
+    result = subprocess.run(
+        argv,
+        cwd=tmp_path,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        preexec_fn=_file_size_limit(150_000),  # a stage file or a checkpoint is larger
+    )
+    assert result.returncode == 2, result.stderr[-2000:]
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("stages-train: cannot write ") and "File too large" in last
+    assert ("stage_1.pt" if checkpoint_every == 0 else "checkpoints") in last
+    assert not [p for p in run_dir.rglob("*") if p.name.endswith(".tmp") or ".stage-" in p.name]
+    assert json.loads((run_dir / "status.json").read_text())["status"] == "failed"
+    resumed = run(run_dir, extra, "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert_same_run(reference, run_dir)

@@ -18,6 +18,7 @@ one before.
 
 from __future__ import annotations
 
+import errno
 import logging
 import re
 import shutil
@@ -83,7 +84,10 @@ class TensorStateAdapter(StateDictCheckpointAdapter):
     def save(self, component: Any, path: Path, *, args: tuple, kwargs: Mapping) -> Any:
         state = component.state_dict(*args, **kwargs)
         ensure_free_space(path.parent, _nbytes(state))
-        super().save(StateOf(lambda: state, None), path, args=(), kwargs={})
+        try:
+            super().save(StateOf(lambda: state, None), path, args=(), kwargs={})
+        except RuntimeError as err:  # tensordict's memory-mapped writes report OS errors so
+            raise OSError(errno.EIO, str(err).splitlines()[0], str(path)) from err
         write_checksums(path)
         return state
 

@@ -154,8 +154,7 @@ class Experiment:
         if not run.holds_run():
             return False
         if self.overwrite:
-            if not run.has_record():
-                run.clear()  # raises: nothing in a directory without a record is deleted
+            run.check_clearable()
             return False
         if not self.resume:
             raise RunDirError(
@@ -195,10 +194,13 @@ class Experiment:
         ``diverged`` (:class:`~torchrl_stages.stage.DivergenceError`) or ``failed``."""
         try:
             with handle_signals(), hold_threads(int(self.cfg.threads)):
-                self._prepare()
-                return self._run()
-        except Interrupted as err:
-            self._ended("interrupted", str(err), signal=err.signal_name)
+                try:
+                    self._prepare()
+                    return self._run()
+                except Interrupted as err:  # recorded before a launcher's handler runs
+                    self._ended("interrupted", str(err), signal=err.signal_name)
+                    raise
+        except Interrupted:
             raise
         except DivergenceError as err:
             self._ended("diverged", str(err))
@@ -233,7 +235,10 @@ class Experiment:
             self._write_hydra_files()
         if not self.resuming:
             run.write_config(cfg)
-        elif self.restarted:
+        elif not run.config_file.is_file():  # checked against .hydra/config.yaml: the same
+            log.warning("%s was missing: restored from .hydra/config.yaml", run.config_file)
+            run.write_config(cfg)
+        if self.restarted:
             schedule = cfg.schedule.name
             for stage, keys in sorted(self.restarted.items()):
                 log.info(

@@ -304,6 +304,7 @@ class JointTrainer:
                     with watch("sample"):
                         sample = self.buffers[m].sample()  # stage m's view, computed now
                     with watch("update"):
+                        keep_threads()
                         losses[m].append(learner.update(sample))
                 learner.check_finite()
             except (NonFiniteError, NonFiniteValueError) as err:

@@ -6,7 +6,11 @@ only records a request: the training loops finish the update in progress, write 
 (whatever ``checkpoint_every`` says) and raise :class:`Interrupted`, which ``stages-train``
 turns into ``status.json`` (``interrupted``) and exit code ``128 + signal number``. The same
 command with ``resume=true`` then continues bitwise where the run stopped. A second signal
-gets the default behaviour (an immediate end), for a user who does not want to wait.
+gets the handler that was there before (the default: an immediate end), for a user who does
+not want to wait.
+
+A handler installed before (a launcher's, e.g. submitit's requeue on its pre-emption signal)
+is not lost: it runs once the block has ended on that signal, after the checkpoint is written.
 """
 
 from __future__ import annotations
@@ -90,4 +94,7 @@ def handle_signals() -> Iterator[None]:
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-        _requested = None
+        received, _requested = _requested, None
+        handler = previous.get(received)
+        if callable(handler) and handler is not signal.default_int_handler:
+            handler(received, None)  # the launcher's own reaction, now that state is saved

@@ -15,7 +15,9 @@ file and the fix.
 
 from __future__ import annotations
 
+import io
 import json
+import logging
 import re
 import shutil
 import time
@@ -52,6 +54,8 @@ RUN_MARKERS = (CONFIG_FILE, EVAL_FILE, METRICS_FILE, CHECKPOINTS)
 LEGACY_ENTRIES = (*RUN_MARKERS, STATUS_FILE, "csv", ".hydra")
 LEGACY_PATTERNS = ("stage_*.pt", "*.png", "value_map.npy")
 RECORD_FORMAT = "torchrl-stages run"
+
+log = logging.getLogger("torchrl_stages")
 
 
 class RunDirError(RuntimeError):
@@ -345,6 +349,7 @@ class RunDir:
                     f"{self.config_file} not found: {self.path} is not a torchrl-stages run "
                     "directory (pass the directory that `stages-train` printed at the end)."
                 )
+            log.warning("%s is missing: reading %s instead", self.config_file, path)
         else:
             self._verify(CONFIG_FILE, fix)
         try:
@@ -379,8 +384,11 @@ class RunDir:
         learner.check_finite()
         state = {"stage": stage, "name": name, "algo": learner.algo, "result": asdict(result)}
         state["log"] = dict(log or {})
-        payload = {**state, **learner.checkpoint()}
-        return self._write_verified(self.stage_file(stage).name, lambda t: torch.save(payload, t))
+        buffer = io.BytesIO()  # written by Python's file IO: a failed write is an OSError
+        torch.save({**state, **learner.checkpoint()}, buffer)
+        return self._write_verified(
+            self.stage_file(stage).name, lambda tmp: tmp.write_bytes(buffer.getbuffer())
+        )
 
     def read_stage(self, stage: int, map_location: Any = "cpu") -> dict[str, Any] | None:
         """The content of ``stage_<k>.pt`` (``None`` if the stage has not finished), after
@@ -446,9 +454,10 @@ class RunDir:
             return None
         return data if isinstance(data, dict) else None
 
-    def clear(self) -> list[str]:
-        """Removes a previous run (``overwrite=true``): exactly the entries its record lists,
-        nothing else; returns them. A directory holding a run but no record is refused."""
+    def check_clearable(self) -> None:
+        """Raises :class:`RunDirError` unless :meth:`clear` would remove every file of the run:
+        a directory holding a run's files but no record, or files its record does not list,
+        is refused and nothing in it is deleted."""
         if not self.has_record():
             found = sorted(n for n in [*RUN_MARKERS, STATUS_FILE] if (self.path / n).exists())
             found += sorted(p.name for p in self.path.glob("stage_*.pt"))
@@ -468,6 +477,12 @@ class RunDir:
                 "so nothing in it is deleted. Fix: delete those files yourself, or pick another "
                 "hydra.run.dir"
             )
+
+    def clear(self) -> list[str]:
+        """Removes a previous run (``overwrite=true``): exactly the entries its record lists,
+        nothing else; returns them (see :meth:`check_clearable`)."""
+        self.check_clearable()
+        entries = self.record["entries"]
         removed = []
         for name in sorted(entries):
             entry = self.path / name

@@ -400,6 +400,7 @@ class StageTrainer:
                             samples = drawn.split(cfg.batch_size)
                         for sample in samples:
                             with watch("update"):
+                                keep_threads()
                                 losses.append(learner.update(sample))
                     learner.check_finite()
                 with watch("log"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import math
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -162,8 +163,22 @@ def _check_stage(key: str, s: DictConfig) -> None:
         non_negative("noise_clip")
 
 
+def _check_finite(node: object, prefix: str) -> None:
+    """Refuses a NaN or infinite float anywhere under ``node`` (``lr=inf``, ``gamma=nan``):
+    no key of the package means anything by them."""
+    if isinstance(node, DictConfig | ListConfig):
+        items = node.items() if isinstance(node, DictConfig) else enumerate(node)
+        for key, value in items:
+            _check_finite(value, f"{prefix}.{key}" if prefix else str(key))
+    elif isinstance(node, float) and not math.isfinite(node):
+        _check(False, prefix, node, "must be a finite number", f"set {prefix} to a finite value")
+
+
 def validate_config(cfg: DictConfig) -> None:
     """Checks what can be checked without building the env."""
+    _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
+    for name in ("eval", "objective"):
+        _check_finite(cfg.get(name), name)
     for key in _missing_keys(cfg.task.get("env"), "task.env"):
         _check(
             False,

@@ -1,0 +1,434 @@
+"""A run directory is untrusted data, and a run fails loudly for the right reason.
+
+In-process tests on one tiny two-stage 10 x 10 grid-world run (trained once per module and
+copied): what loading trusts, damaged files, the record of what the package wrote, the lock,
+errors that name the env, non-finite values, retrying after a failure, bookkeeping across
+launches and the held thread count. ``tests/test_resume.py`` has the subprocess ones (signals,
+two processes, kill and resume).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import pickle
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import hydra_config
+from omegaconf import OmegaConf
+
+from torchrl_stages import threads
+from torchrl_stages.checkpoint import CheckpointDamagedError, StageCheckpoints
+from torchrl_stages.cli import evaluate
+from torchrl_stages.experiment import Experiment
+from torchrl_stages.integrity import atomic_write
+from torchrl_stages.rundir import RunDirError, load_run
+from torchrl_stages.stage import DivergenceError, EnvError
+from torchrl_stages.validate import ConfigError
+
+TINY = {
+    "frames": 512,
+    "frames_per_batch": 128,
+    "num_envs": 16,
+    "init_random_frames": 128,
+    "batch_size": 32,
+    "updates_per_batch": 2,
+    "eval_every": 256,
+    "eval_episodes": 4,
+    "min_frames": 0,
+}
+OVERRIDES = [
+    "task.env.size=10",
+    "task.env.num_stages=2",
+    *[f"~task.stages.s{k}" for k in (2, 3, 4)],
+    *[f"task.stages.s{k}.{key}={value}" for k in (0, 1) for key, value in TINY.items()],
+    "checkpoint_every=256",
+    "eval.plots=false",
+    "progress=false",
+]
+
+
+def compose(*overrides: str):
+    with hydra_config() as compose_fn:
+        return compose_fn(*OVERRIDES, *overrides)
+
+
+def train(run_dir: Path, *overrides: str, **kwargs) -> dict:
+    cfg = compose(*overrides)  # .hydra/config.yaml as stages-train writes it
+    return Experiment(cfg, run_dir, hydra_files={"config.yaml": cfg}, **kwargs).run()
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("faults") / "run"
+    train(run_dir)
+    return run_dir
+
+
+@pytest.fixture
+def copy(finished, tmp_path):
+    """A fresh copy of the finished run."""
+    target = tmp_path / "run"
+    shutil.copytree(finished, target)
+    return target
+
+
+def one_line_eval(run_dir: Path, capsys, *extra: str) -> str:
+    """``stages-eval RUN_DIR`` that must fail with exit 2 and one line; returns it."""
+    with pytest.raises(SystemExit) as info:
+        evaluate([str(run_dir), "--no-plots", *extra])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+def edit_config(run_dir: Path, edit) -> None:
+    cfg = OmegaConf.load(run_dir / "config.yaml")
+    edit(cfg)
+    OmegaConf.save(cfg, run_dir / "config.yaml")
+
+
+# ---------------------------------------------------------------------- 1. what loading trusts
+def test_a_config_naming_other_code_is_refused_and_runs_nothing(copy, tmp_path, capsys):
+    marker = tmp_path / "ran"
+
+    def inject(cfg):  # a nested node of the env's keyword arguments
+        cfg.task.env.size = {"_target_": "os.makedirs", "name": str(marker)}
+
+    edit_config(copy, inject)
+    (copy / ".stages" / "run.json").unlink()  # no checksum to catch the edit
+    with pytest.raises(RunDirError, match=r"task\.env\.size\._target_='os\.makedirs'"):
+        load_run(copy)
+    err = one_line_eval(copy, capsys)
+    assert "task.env.size._target_" in err and "--trust" in err
+    assert not marker.exists()
+    with pytest.raises(RunDirError):  # trusted: the config runs (and then fails to build)
+        load_run(copy, trust=True)
+    assert marker.is_dir()
+
+
+def test_a_replaced_env_target_is_refused(copy):
+    edit_config(copy, lambda cfg: setattr(cfg.task.env, "_target_", "builtins.exec"))
+    (copy / ".stages" / "run.json").unlink()
+    with pytest.raises(RunDirError, match="builtins.exec.*torchrl_stages.envs.GridWorldEnv"):
+        load_run(copy)
+
+
+def test_a_run_of_your_own_env_loads_with_trust(copy):
+    def custom(cfg):
+        cfg.task.name = "custom"
+
+    edit_config(copy, custom)
+    (copy / ".stages" / "run.json").unlink()
+    with pytest.raises(RunDirError, match="task 'custom'.*trust=True"):
+        load_run(copy)
+    assert len(load_run(copy, trust=True).learners) == 2
+
+
+def _pickle_bomb(marker: Path) -> bytes:
+    class Bomb:
+        def __reduce__(self):
+            return (os.makedirs, (str(marker),))
+
+    return pickle.dumps(Bomb())
+
+
+@pytest.mark.parametrize("name", ["prefetch.pkl", "state.pt", "state/other.pickle"])
+def test_a_checkpoint_holding_a_pickle_is_never_unpickled(copy, tmp_path, name):
+    marker = tmp_path / "ran"
+    ckpts = StageCheckpoints(copy / "checkpoints" / "stage_0", every=1)
+    net = torch.nn.Linear(2, 1)
+    path = ckpts.save(1, {"net": net, "counters": {"frames": 1}})
+    component = next((path / "components").glob("*net"))
+    (component / name).parent.mkdir(parents=True, exist_ok=True)
+    (component / name).write_bytes(_pickle_bomb(marker))
+    fresh = StageCheckpoints(copy / "checkpoints" / "stage_0", every=1)
+    with pytest.raises(CheckpointDamagedError, match=name.split("/")[-1]):
+        fresh.latest()
+    with pytest.raises(CheckpointDamagedError):
+        fresh.load(path, {"net": net, "counters": {"frames": 1}})
+    assert not marker.exists()
+
+
+def test_checkpoints_hold_tensors_and_json_only(tmp_path):
+    ckpts = StageCheckpoints(tmp_path, every=1)
+    path = ckpts.save(1, {"net": torch.nn.Linear(2, 1), "counters": {"frames": 1, "x": [1.5]}})
+    suffixes = {p.suffix for p in path.rglob("*") if p.is_file()}
+    assert suffixes <= {".json", ".memmap"}, suffixes
+
+
+# ---------------------------------------------------------------------- 2. what overwrite deletes
+def test_overwrite_refuses_a_directory_without_a_record(copy):
+    (copy / ".stages" / "run.json").unlink()
+    (copy / "notes.png").write_bytes(b"mine")
+    before = sorted(p.relative_to(copy).as_posix() for p in copy.rglob("*"))
+    with pytest.raises(RunDirError, match=r"overwrite=true: .* no \.stages/run\.json"):
+        Experiment(compose(), copy, overwrite=True)
+    assert sorted(p.relative_to(copy).as_posix() for p in copy.rglob("*")) == before
+
+
+def test_overwrite_refuses_run_files_its_record_does_not_list(copy):
+    record = json.loads((copy / ".stages" / "run.json").read_text())
+    del record["entries"]["stage_1.pt"]
+    (copy / ".stages" / "run.json").write_text(json.dumps(record))
+    with pytest.raises(RunDirError, match="stage_1.pt, which its record"):
+        Experiment(compose(), copy, overwrite=True)
+    assert (copy / "stage_1.pt").is_file() and (copy / "config.yaml").is_file()
+
+
+# ---------------------------------------------------------------------- 3. one writer
+def test_a_second_experiment_in_a_held_directory_is_refused(tmp_path):
+    first = Experiment(compose(), tmp_path / "run")
+    try:
+        with pytest.raises(RunDirError, match="in use by another process"):
+            Experiment(compose(), tmp_path / "run")
+    finally:
+        first.close()
+    Experiment(compose(), tmp_path / "run").close()  # free again
+
+
+def test_temporary_files_are_unique_per_process_and_never_left(tmp_path):
+    target = tmp_path / "stage_0.pt"
+    seen = []
+
+    def fail(tmp: Path) -> None:
+        seen.append(tmp.name)
+        tmp.write_bytes(b"half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(OSError) as info:
+        atomic_write(target, fail)
+    assert info.value.filename == str(target)
+    assert str(os.getpid()) in seen[0] and seen[0] != ".stage_0.pt.tmp"
+    assert list(tmp_path.iterdir()) == []
+
+
+# ---------------------------------------------------------------------- 5. damaged state
+def test_a_stage_file_holding_text_names_the_file(copy, capsys):
+    (copy / "stage_1.pt").write_text("not a checkpoint " * 100)
+    (copy / ".stages" / "run.json").unlink()  # no checksum: the content itself is checked
+    err = one_line_eval(copy, capsys)
+    assert "stage_1.pt is damaged" in err and "resume=true" in err and "KeyError" not in err
+
+
+def test_a_stage_file_of_another_stage_is_refused(copy, capsys):
+    shutil.copy(copy / "stage_0.pt", copy / "stage_1.pt")
+    (copy / ".stages" / "run.json").unlink()
+    assert "holds stage 0, not stage 1" in one_line_eval(copy, capsys)
+
+
+def test_a_changed_stage_file_fails_its_checksum(copy, capsys):
+    data = bytearray((copy / "stage_1.pt").read_bytes())
+    data[-100] ^= 1  # a bit flipped inside the file
+    (copy / "stage_1.pt").write_bytes(bytes(data))
+    assert "differ from those written" in one_line_eval(copy, capsys)
+
+
+def test_a_missing_config_is_read_from_hydra_and_restored_on_resume(copy):
+    (copy / "config.yaml").unlink()
+    assert len(load_run(copy).learners) == 2
+    train(copy, resume=True)
+    assert (copy / "config.yaml").is_file()
+
+
+def test_a_full_disk_names_the_path_and_leaves_no_temporary_file(tmp_path, monkeypatch):
+    ckpts = StageCheckpoints(tmp_path / "ckpt", every=1)
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=10))
+    with pytest.raises(OSError, match="No space left on device") as info:
+        ckpts.save(1, {"net": torch.nn.Linear(64, 64)})
+    assert str(tmp_path / "ckpt") in info.value.filename
+    assert [p.name for p in (tmp_path / "ckpt").iterdir()] == []  # no staging directory
+
+
+# ---------------------------------------------------------------------- 6. the real cause
+def test_non_finite_values_are_refused_at_validation():
+    for key, value in [("task.stages.s0.lr", "inf"), ("task.stages.s1.gamma", "nan")]:
+        with pytest.raises(ConfigError, match=f"{key}={value}: must be a finite number"):
+            Experiment(compose(f"{key}={value}"), "never-written")
+    assert not Path("never-written").exists()
+
+
+class NaNAfter:
+    """Wraps an env's step: from the ``after``-th call on, the observation is NaN."""
+
+    def __init__(self, after: int, key: str = "observation") -> None:
+        self.after, self.key, self.calls = after, key, 0
+
+    def __call__(self, step):
+        def wrapped(td):
+            out = step(td)
+            self.calls += 1
+            if self.calls >= self.after:
+                out[self.key] = torch.full_like(out[self.key], float("nan"))
+            return out
+
+        return wrapped
+
+
+@pytest.mark.parametrize("key", ["observation", "reward"])
+def test_an_env_returning_nan_is_blamed_not_the_learner(tmp_path, monkeypatch, key):
+    from torchrl_stages.envs import GridWorldEnv
+
+    patch = NaNAfter(after=20, key=key)
+    original = GridWorldEnv._step
+    monkeypatch.setattr(GridWorldEnv, "_step", lambda self, td: patch(original.__get__(self))(td))
+    run_dir = tmp_path / "run"
+    match = f"stage 1 \\(s1\\): the env returned a non-finite \\('next', '{key}'\\)"
+    with pytest.raises(EnvError, match=match):
+        train(run_dir)
+    status = json.loads((run_dir / "status.json").read_text())
+    assert status["status"] == "failed" and "non-finite" in status["reason"]
+    assert not list(run_dir.glob("stage_*.pt"))
+
+
+def test_an_env_that_raises_leaves_a_failed_status(tmp_path, monkeypatch):
+    from torchrl_stages.envs import GridWorldEnv
+
+    def broken(self, td):
+        raise RuntimeError("the simulator lost its license\nserver said: no")
+
+    monkeypatch.setattr(GridWorldEnv, "_step", broken)
+    with pytest.raises(RuntimeError):
+        train(tmp_path / "run")
+    status = json.loads((tmp_path / "run" / "status.json").read_text())
+    assert status == {"status": "failed", "reason": "RuntimeError: server said: no"}
+    launches = json.loads((tmp_path / "run" / ".stages" / "run.json").read_text())["launches"]
+    assert launches[-1]["outcome"] == "failed"
+
+
+# ---------------------------------------------------------------------- 7. retry what still holds
+def test_after_a_divergence_the_stage_retrains_with_a_changed_key(tmp_path):
+    run_dir = tmp_path / "run"
+    with pytest.raises(DivergenceError):
+        train(run_dir, "task.stages.s0.lr=1e30")
+    stage_1 = (run_dir / "stage_1.pt").read_bytes()
+    train(run_dir, resume=True)  # s0's lr back to its default: stage 1 is kept
+    assert (run_dir / "stage_1.pt").read_bytes() == stage_1
+    assert OmegaConf.load(run_dir / "config.yaml").task.stages.s0.lr == compose().task.stages.s0.lr
+    reference = tmp_path / "reference"
+    train(reference)
+    for k in (0, 1):
+        a, b = (torch.load(d / f"stage_{k}.pt", weights_only=True) for d in (run_dir, reference))
+        assert all(torch.equal(a["model"][n], b["model"][n]) for n in a["model"])
+
+
+def test_a_finished_stage_keeps_its_config(copy):
+    with pytest.raises(RunDirError, match=r"task\.stages\.s1\.lr; a resumed run keeps"):
+        Experiment(compose("task.stages.s1.lr=0.5"), copy, resume=True)
+    with pytest.raises(RunDirError, match=r"in seed"):
+        Experiment(compose("seed=4"), copy, resume=True)
+
+
+# ---------------------------------------------------------------------- 8. bookkeeping
+def test_resuming_a_finished_run_logs_its_final_rows_once(copy):
+    metrics = (copy / "metrics.csv").read_text()
+    train(copy, resume=True)
+    assert (copy / "metrics.csv").read_text() == metrics
+    assert metrics.count("eval/final/success_rate") == 1
+
+
+def test_every_launch_is_counted_and_re_evaluation_keeps_training(copy, capsys):
+    before = json.loads((copy / "eval.json").read_text())["training"]
+    train(copy, resume=True)
+    training = json.loads((copy / "eval.json").read_text())["training"]
+    assert len(training["launches"]) == 2 == len(before["launches"]) + 1
+    assert training["seconds"] == pytest.approx(sum(x["seconds"] for x in training["launches"]))
+    assert training["seconds"] >= before["seconds"]
+    evaluate([str(copy), "--no-plots"])
+    capsys.readouterr()
+    assert json.loads((copy / "eval.json").read_text())["training"] == training
+
+
+# ---------------------------------------------------------------------- 9. threads held
+def _close_a_batched_env() -> None:
+    """What torchrl does when a batched env closes (also when one is garbage-collected in the
+    middle of a stage): ``torch.set_num_threads`` to more threads."""
+    from torchrl.envs import SerialEnv
+
+    from torchrl_stages.envs import GridWorldEnv
+
+    env = SerialEnv(2, lambda: GridWorldEnv((1,), size=10, num_stages=2))
+    env.rollout(1)
+    env.close()
+
+
+@pytest.mark.parametrize("schedule", ["backward", "joint"])
+def test_the_thread_count_is_held_in_every_update_and_evaluation(tmp_path, monkeypatch, schedule):
+    from torchrl_stages import evaluate as evaluation
+    from torchrl_stages.learners import DQNLearner as Learner
+
+    seen = {"update": [], "evaluation": []}
+    update, rollout = Learner.update, evaluation.evaluate_policy
+
+    def spy_update(self, sample):
+        seen["update"].append(torch.get_num_threads())
+        out = update(self, sample)
+        _close_a_batched_env()
+        return out
+
+    def spy_rollout(*args, **kwargs):
+        seen["evaluation"].append(torch.get_num_threads())
+        out = rollout(*args, **kwargs)
+        _close_a_batched_env()
+        return out
+
+    monkeypatch.setattr(Learner, "update", spy_update)
+    for module in ("torchrl_stages.stage", "torchrl_stages.joint"):
+        monkeypatch.setattr(f"{module}.evaluate_policy", spy_rollout)
+    _close_a_batched_env()
+    assert torch.get_num_threads() == 2  # the effect held against
+    Experiment(compose("threads=1", f"schedule={schedule}"), tmp_path / "run").run()
+    assert len(seen["update"]) > 10 and len(seen["evaluation"]) >= 2
+    assert set(seen["update"]) == {1} and set(seen["evaluation"]) == {1}
+    torch.set_num_threads(1)
+
+
+def test_hold_threads_puts_the_count_back():
+    with threads.hold_threads(1):
+        torch.set_num_threads(2)
+        threads.keep_threads()
+        assert torch.get_num_threads() == 1
+    threads.keep_threads()  # nothing held: no-op
+
+
+# ---------------------------------------------------------------------- 4. signals, in process
+def test_a_signal_checkpoints_then_hands_over_to_the_handler_before(finished, tmp_path):
+    import signal
+
+    from torchrl_stages.learners import DQNLearner
+    from torchrl_stages.preemption import Interrupted
+
+    run_dir, seen, calls = tmp_path / "run", [], []
+    update = DQNLearner.update
+
+    def signalling_update(self, sample):
+        calls.append(1)
+        if len(calls) == 30:  # in the middle of stage 1
+            os.kill(os.getpid(), signal.SIGUSR1)
+        return update(self, sample)
+
+    def launcher(signum, frame):  # e.g. submitit's requeue: it finds the state saved
+        checkpoints = list((run_dir / "checkpoints").rglob("frames-*"))
+        status = json.loads((run_dir / "status.json").read_text())
+        seen.append((signum, bool(checkpoints), status["status"], status["signal"]))
+
+    previous = signal.signal(signal.SIGUSR1, launcher)
+    try:
+        DQNLearner.update = signalling_update
+        with pytest.raises(Interrupted, match="SIGUSR1 in stage 1 \\(s1\\)") as info:
+            train(run_dir, "checkpoint_every=0")
+    finally:
+        DQNLearner.update = update
+        signal.signal(signal.SIGUSR1, previous)
+    assert info.value.exit_code == 128 + signal.SIGUSR1
+    assert seen == [(signal.SIGUSR1, True, "interrupted", "SIGUSR1")]
+    train(run_dir, "checkpoint_every=0", resume=True)
+    for k in (0, 1):
+        a, b = (torch.load(d / f"stage_{k}.pt", weights_only=True) for d in (run_dir, finished))
+        assert all(torch.equal(a["model"][n], b["model"][n]) for n in a["model"])
