@@ -365,11 +365,11 @@ def test_experiment_rejects_threads_zero_with_config_error(hydra_compose, no_tra
 
 
 def test_threads_default_to_the_tasks_and_an_override_wins(hydra_compose):
-    assert hydra_compose().threads == 1  # the grid world's 64-unit layers
-    assert hydra_compose("task=manipulator").threads == 2
-    assert hydra_compose("task=cargo").threads == 2
-    assert hydra_compose("task=cargo", "threads=1").threads == 1
-    assert hydra_compose("task=manipulator", "task.threads=1").threads == 1
+    # one thread everywhere: two collapse beside a busy process (scripts/benchmark_threads.py)
+    for task in ("gridworld", "manipulator", "cargo"):
+        assert hydra_compose(f"task={task}").threads == 1
+    assert hydra_compose("task=cargo", "threads=2").threads == 2
+    assert hydra_compose("task=manipulator", "task.threads=2").threads == 2
 
 
 def test_only_stages_whose_values_are_learned_from_check_them(hydra_compose):

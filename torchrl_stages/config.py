@@ -138,9 +138,9 @@ class TaskConfig:
     eval_env: dict[str, Any] = field(default_factory=dict)
     stages: dict[str, Any] = field(default_factory=dict)
     eval_episodes: int = 100  # this task's default for eval.episodes
-    # this task's default for `threads`: the torch intra-op threads its networks train fastest
-    # with (measured on 2 cores, README "Speed": 1 for the grid world's 64-unit layers, 2 for the
-    # manipulator's 256-unit layers and cargo's CNNs)
+    # this task's default for `threads` (torch intra-op threads). 1 for every shipped task: two
+    # threads train the manipulator 1.5x and cargo 1.2x faster on two free cores, but 3-4x slower
+    # than one beside a busy process (scripts/benchmark_threads.py, README "Speed")
     threads: int = 1
     # whether the env can start an episode inside a chosen stage (`start_stage=k`); without
     # stage starts only schedule=joint applies, as one phase from the task's own starts
