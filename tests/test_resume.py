@@ -151,6 +151,10 @@ def test_kill_mid_stage_then_resume_is_bitwise_equal(runs):
     assert "resuming from" in result.stderr + result.stdout
     assert_same_run(reference, resumed)
     assert not (resumed / "checkpoints").exists()  # dropped once the stages are written
+    training = json.loads((resumed / "eval.json").read_text())["training"]
+    killed_launch, last = training["launches"]
+    assert killed_launch["outcome"] == "running" and killed_launch["seconds"] > 0
+    assert training["seconds"] == pytest.approx(killed_launch["seconds"] + last["seconds"])
 
 
 def test_kill_between_stages_then_resume_is_bitwise_equal(runs):
@@ -263,21 +267,43 @@ def test_multirun_survives_an_invalid_job(tmp_path):
     assert "task.stages.s0.gamma=1.5" in overrides
 
 
-def test_joint_schedule_kill_and_resume_is_bitwise_equal(tmp_path):
-    reference, killed = tmp_path / "joint_reference", tmp_path / "joint_killed"
+@pytest.fixture(scope="module")
+def joint(tmp_path_factory):
+    """The joint schedule's reference run, a run SIGKILLed in its second phase and one stopped
+    by SIGTERM in it (no periodic checkpoint: the signal's is its only one), started together."""
+    root = tmp_path_factory.mktemp("joint")
+    reference, killed, stopped = root / "reference", root / "killed", root / "stopped"
     ref = spawn(reference, "schedule=joint")
     proc = spawn(killed, "schedule=joint")
-    checkpoints = killed / "checkpoints" / "joint"
-    # the second phase (from stage 0) is under way: a checkpoint past stage 1's budget exists
-    kill_when(
-        proc,
-        lambda: any(
+    term = spawn(stopped, "schedule=joint", "checkpoint_every=0")
+    checkpoints, metrics = killed / "checkpoints" / "joint", stopped / "metrics.csv"
+    # the second phase (from stage 0) is under way in both: a checkpoint past stage 1's budget
+    # exists, a row of phase 0 is logged
+    due = {
+        "kill": lambda: any(
             int(p.name.split("-")[1]) > TINY["frames"] for p in checkpoints.glob("frames-*")
         ),
-        delay=0.05,
-    )
+        "term": lambda: metrics.is_file() and "train/joint_0/" in metrics.read_text(),
+    }
+    deadline, stopped_result = time.monotonic() + TIMEOUT_S, None
+    while due:
+        assert time.monotonic() < deadline
+        if "kill" in due and due["kill"]():
+            del due["kill"]
+            kill_when(proc, lambda: True, delay=0.05)
+        if "term" in due and due["term"]():
+            del due["term"]
+            stopped_result = _stop(term, signal.SIGTERM, 5)
+        assert proc.poll() is None or "kill" not in due, "the run ended before it was killed"
+        assert term.poll() is None or "term" not in due, "the run ended before it was stopped"
+        time.sleep(0.005)
     result = finish(ref)
     assert result.returncode == 0, result.stderr[-3000:]
+    return reference, killed, stopped, stopped_result
+
+
+def test_joint_schedule_kill_and_resume_is_bitwise_equal(joint):
+    reference, killed, _, _ = joint
     resumed = run(killed, "schedule=joint", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert_same_run(reference, killed)
@@ -343,16 +369,10 @@ def test_sigint_ends_with_one_line_and_its_exit_code(tmp_path):
     assert "Traceback" not in result.stderr and "KeyboardInterrupt" not in result.stderr
 
 
-def test_sigterm_during_the_joint_schedule_resumes_bitwise(tmp_path):
-    reference, stopped = tmp_path / "joint_reference", tmp_path / "joint_stopped"
-    ref = spawn(reference, "schedule=joint")
-    proc = spawn(stopped, "schedule=joint", "checkpoint_every=0")
-    metrics = stopped / "metrics.csv"
-    _wait(lambda: metrics.is_file() and "train/joint_0/" in metrics.read_text(), proc)
-    result, seconds = _stop(proc, signal.SIGTERM, 5)
+def test_sigterm_during_the_joint_schedule_resumes_bitwise(joint):
+    reference, _, stopped, (result, seconds) = joint
     assert result.returncode == 128 + signal.SIGTERM, result.stderr[-2000:]
     assert seconds < 10 and list((stopped / "checkpoints" / "joint").glob("frames-*"))
-    assert finish(ref).returncode == 0
     resumed = run(stopped, "schedule=joint", "checkpoint_every=0", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert_same_run(reference, stopped)

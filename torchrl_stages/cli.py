@@ -67,11 +67,11 @@ def _one_line(err: BaseException) -> str:
 
 
 def _fail(run_dir: Path, status: str, message: str, code: int, write_status: bool) -> None:
-    """Reports a failed job: one line on stderr; in a multirun, ``status.json`` in its
-    directory and an exception, so the sweep goes on with the other jobs and exits non-zero."""
+    """Reports a failed job: one line on stderr (``write_status``: also ``status.json``); in a
+    multirun an exception, so the sweep goes on with the other jobs and exits non-zero."""
     print(f"stages-train: {message}", file=sys.stderr)
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
-    if multirun or write_status:
+    if write_status:
         RunDir(run_dir).write_status(status, message)
     if multirun:
         raise JobFailed(f"{run_dir}: {message}")
@@ -86,12 +86,12 @@ def _train_app(cfg: DictConfig) -> float:
         if multirun:  # a sweeper that optimizes must optimize the objective's direction
             validate_sweeper(HydraConfig.get().sweeper, cfg)
         experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
-    except RunDirError as err:  # the directory holds another run: touch nothing there
+    except RunDirError as err:  # the directory holds another run (or process): touch nothing
         _fail(run_dir, "refused", str(err), EXIT_INVALID, write_status=False)
     except ConfigError as err:
-        if multirun:
+        if multirun:  # the job's own fresh directory: the sweep summary shows why
             _write_hydra_files(cfg, run_dir)
-        _fail(run_dir, "invalid", f"invalid config: {err}", EXIT_INVALID, write_status=False)
+        _fail(run_dir, "invalid", f"invalid config: {err}", EXIT_INVALID, write_status=multirun)
     except OSError as err:
         _fail(run_dir, "refused", _cannot_write(err, run_dir), EXIT_INVALID, write_status=False)
     try:  # how a run that does not finish ended is in its status.json (Experiment.run)

@@ -32,12 +32,12 @@ from torchrl_stages.evaluate import discounted_return, evaluate_policy
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.preemption import Interrupted, requested
 from torchrl_stages.replay import stage_replay_buffer
 from torchrl_stages.stage import (
     StageResult,
     Stopwatch,
     _EvalMonitor,
+    checkpoint_or_stop,
     first_evaluation,
     progress_bar,
     stage_failure,
@@ -251,18 +251,16 @@ class JointTrainer:
                     stop = monitor.record(team, success, value_error, frames, ret)
                 if stop:
                     break
-                signum = requested()
-                if self.checkpoints is not None and (
-                    self.checkpoints.due(counters["frames"]) or signum is not None
-                ):
-                    with watch("checkpoint"):
-                        counters["seconds"] = time.perf_counter() - t0
-                        counters["log"] = self._log_position()
-                        self.checkpoints.save(counters["frames"], state)
-                if signum is not None:
-                    raise Interrupted(
-                        signum, f"the joint phase from stage {k} at {counters['frames']} frames"
-                    )
+                checkpoint_or_stop(
+                    self.checkpoints,
+                    counters["frames"],
+                    state,
+                    lambda: counters.update(
+                        seconds=time.perf_counter() - t0, log=self._log_position()
+                    ),
+                    f"the joint phase from stage {k}",
+                    watch,
+                )
         finally:
             bar.close()
         restored = monitor.restore_best(team)
@@ -308,11 +306,8 @@ class JointTrainer:
                         losses[m].append(learner.update(sample))
                 learner.check_finite()
             except (NonFiniteError, NonFiniteValueError) as err:
-                buffer = self.buffers[m]
-                stored = buffer.storage[: len(buffer)] if len(buffer) else None
-                raise stage_failure(
-                    err, m, self.task.stage_names[m], learner.algo, stored, learner.specs.action_key
-                ) from err
+                name = self.task.stage_names[m]
+                raise stage_failure(err, m, name, learner, self.buffers[m]) from err
         return losses
 
     @functools.cached_property

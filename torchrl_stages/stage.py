@@ -16,6 +16,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
+from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
@@ -73,22 +74,18 @@ def non_finite_entries(td: TensorDictBase, skip: Sequence[NestedKey] = ()) -> li
 
 
 def stage_failure(
-    err: FloatingPointError,
-    stage: int,
-    name: str,
-    algo: str,
-    stored: TensorDictBase | None,
-    action_key: NestedKey,
+    err: FloatingPointError, stage: int, name: str, learner: Learner, buffer: ReplayBuffer
 ) -> RuntimeError:
     """The error a non-finite loss, gradient or value becomes: :class:`EnvError` when the
-    env's own data (``stored``: the transitions the stage trained on) holds the NaN or
-    infinity, else :class:`DivergenceError`."""
+    env's own data (the transitions in the stage's ``buffer``, its actions aside) holds the NaN
+    or infinity, else :class:`DivergenceError`."""
     if isinstance(err, NonFiniteInputError):
         return EnvError(stage, name, err.key, "the next stage's value of it is not finite")
-    bad = non_finite_entries(stored, skip=[action_key]) if stored is not None else []
+    stored = buffer.storage[: len(buffer)] if len(buffer) else None
+    bad = non_finite_entries(stored, skip=[learner.specs.action_key]) if stored is not None else []
     if bad:
         return EnvError(stage, name, bad[0], f"found in the replay buffer after: {err}")
-    return DivergenceError(stage, name, algo, err)
+    return DivergenceError(stage, name, learner.algo, err)
 
 
 class DivergenceError(RuntimeError):
@@ -185,6 +182,26 @@ class Stopwatch:
 
 
 _END = object()
+
+
+def checkpoint_or_stop(
+    checkpoints: StageCheckpoints | None,
+    frames: int,
+    state: dict,
+    before_save: Callable[[], None],
+    where: str,
+    watch: Stopwatch,
+) -> None:
+    """The end of a loop's iteration: writes a checkpoint when one is due or a stop was asked
+    for (:mod:`torchrl_stages.preemption`), then raises :class:`Interrupted` in the latter case
+    (``before_save`` updates what the checkpoint records of the loop)."""
+    signum = requested()
+    if checkpoints is not None and (checkpoints.due(frames) or signum is not None):
+        with watch("checkpoint"):
+            before_save()
+            checkpoints.save(frames, state)
+    if signum is not None:
+        raise Interrupted(signum, f"{where} at {frames} frames")
 
 
 class _EvalMonitor:
@@ -417,22 +434,18 @@ class StageTrainer:
                     stop = monitor.record(learner, success, value_error, frames, ret)
                 if stop:
                     break
-                signum = requested()
-                if self.checkpoints is not None and (
-                    self.checkpoints.due(frames) or signum is not None
-                ):
-                    with watch("checkpoint"):
-                        counters["seconds"] = time.perf_counter() - start
-                        counters["log"] = self._log_position()
-                        self.checkpoints.save(frames, state)
-                if signum is not None:
-                    where = f"stage {self.stage} ({self.name}) at {frames} frames"
-                    raise Interrupted(signum, where)
+                checkpoint_or_stop(
+                    self.checkpoints,
+                    frames,
+                    state,
+                    lambda: counters.update(
+                        seconds=time.perf_counter() - start, log=self._log_position()
+                    ),
+                    f"stage {self.stage} ({self.name})",
+                    watch,
+                )
         except (NonFiniteError, NonFiniteValueError) as err:
-            stored = buffer.storage[: len(buffer)] if len(buffer) else None
-            raise stage_failure(
-                err, self.stage, self.name, learner.algo, stored, learner.specs.action_key
-            ) from err
+            raise stage_failure(err, self.stage, self.name, learner, buffer) from err
         finally:
             bar.close()
         restored = monitor.restore_best(learner)

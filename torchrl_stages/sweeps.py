@@ -288,8 +288,8 @@ def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
     """One job directory: overrides, seed, status and the numbers of its ``eval.json``.
 
     The status is ``done`` when ``eval.json`` exists (and no newer ``status.json``), the
-    ``status`` of ``status.json`` (``invalid``, ``diverged``, ``failed``, ``refused``) with its
-    reason, else ``incomplete`` (still running, or killed).
+    ``status`` of ``status.json`` (``invalid``, ``interrupted``, ``diverged``, ``failed``) with
+    its reason, else ``incomplete`` (still running, or killed).
     """
     path = Path(path)
     root = Path(sweep_dir) if sweep_dir is not None else path.parent
