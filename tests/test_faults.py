@@ -26,7 +26,7 @@ from torchrl_stages.checkpoint import CheckpointDamagedError, StageCheckpoints
 from torchrl_stages.cli import evaluate
 from torchrl_stages.experiment import Experiment
 from torchrl_stages.integrity import atomic_write
-from torchrl_stages.rundir import RunDirError, load_run
+from torchrl_stages.rundir import RunDir, RunDirError, load_run
 from torchrl_stages.stage import DivergenceError, EnvError
 from torchrl_stages.sweeps import read_job
 from torchrl_stages.validate import ConfigError
@@ -441,3 +441,91 @@ def test_a_signal_checkpoints_then_hands_over_to_the_handler_before(finished, tm
     for k in (0, 1):
         a, b = (torch.load(d / f"stage_{k}.pt", weights_only=True) for d in (run_dir, finished))
         assert all(torch.equal(a["model"][n], b["model"][n]) for n in a["model"])
+
+
+# ---------------------------------------------------------------------- hostile files, continued
+@pytest.mark.parametrize("escape", ["", "\\"])
+def test_an_interpolation_that_would_build_a_target_is_refused(copy, tmp_path, escape):
+    marker = tmp_path / "ran"
+    text = (copy / "config.yaml").read_text()
+    create = f"{escape}${{oc.create:{{_target_: os.makedirs, name: {marker}}}}}"
+    text = text.replace("size: 10", f"size: '{create}'", 1)
+    (copy / "config.yaml").write_text(text)
+    (copy / ".stages" / "run.json").unlink()
+    with pytest.raises(RunDirError, match="interpolation"):
+        load_run(copy)
+    assert not marker.exists()
+
+
+def test_a_linked_checkpoints_directory_is_refused_and_nothing_is_deleted(copy, tmp_path):
+    victim = tmp_path / "victim"
+    (victim / "stage_0").mkdir(parents=True)
+    (victim / "stage_0" / "keep.txt").write_text("mine")
+    (copy / "checkpoints").symlink_to(victim, target_is_directory=True)
+    with pytest.raises(RunDirError, match="checkpoints is a symbolic link"):
+        Experiment(compose(), copy, resume=True)
+    with pytest.raises(RunDirError, match="symbolic link"):
+        RunDir(copy).clear_checkpoints(0)
+    assert (victim / "stage_0" / "keep.txt").read_text() == "mine"
+
+
+def test_a_file_kept_as_it_was_when_a_rewrite_was_killed_still_verifies(copy):
+    run = RunDir(copy)
+    with run.lock():
+        run.write_config(OmegaConf.load(copy / "config.yaml"))  # the same bytes: one checksum
+        old = (copy / "config.yaml").read_bytes()
+        cfg = OmegaConf.load(copy / "config.yaml")
+        cfg.eval.plots = True  # a resumed run rewriting its config
+        run.write_config(cfg)
+    (copy / "config.yaml").write_bytes(old)  # as if killed between the record and the rename
+    assert run.read_config().eval.plots is False
+    (copy / "config.yaml").write_bytes(old.replace(b"plots: false", b"plots: maybe"))
+    with pytest.raises(RunDirError, match="differ from those written"):
+        run.read_config()
+
+
+@pytest.mark.parametrize("edit", ["task: 5", "eval: 3", "schedule: flat"])
+def test_a_config_of_the_wrong_shape_is_one_line(copy, capsys, edit):
+    key = edit.split(":")[0]
+    cfg = OmegaConf.load(copy / "config.yaml")
+    cfg[key] = OmegaConf.create(edit)[key]
+    OmegaConf.save(cfg, copy / "config.yaml")
+    (copy / ".stages" / "run.json").unlink()
+    assert "is damaged" in one_line_eval(copy, capsys)
+
+
+def test_a_damaged_record_is_one_line(copy, capsys):
+    record = json.loads((copy / ".stages" / "run.json").read_text())
+    record["launches"] = ["x"]
+    (copy / ".stages" / "run.json").write_text(json.dumps(record))
+    assert "run.json is damaged" in one_line_eval(copy, capsys)
+
+
+def test_stages_in_another_order_are_refused(copy):
+    cfg = OmegaConf.load(copy / "config.yaml")
+    stages = cfg.task.stages
+    cfg.task.stages = {"s1": stages.s1, "s0": stages.s0}
+    OmegaConf.save(cfg, copy / "config.yaml")
+    (copy / ".stages" / "run.json").unlink()
+    with pytest.raises(RunDirError, match="holds stage 's0', but the run's stage 0 is 's1'"):
+        load_run(copy)
+    with pytest.raises(RunDirError, match=r"task\.stages \(their order\)"):
+        Experiment(compose(), copy, resume=True)
+
+
+def test_a_stop_during_the_final_evaluation_ends_it_before_the_next_chunk(monkeypatch):
+    import signal
+
+    from torchrl_stages import preemption
+    from torchrl_stages.evaluate import evaluate_task
+    from torchrl_stages.experiment import build_task
+    from torchrl_stages.learners import make_learner
+    from torchrl_stages.policy import StackedPolicy
+    from torchrl_stages.preemption import Interrupted
+
+    task = build_task(compose())
+    policy = StackedPolicy([make_learner(task.stage_cfg(k), task.specs(k)).policy for k in (0, 1)])
+    monkeypatch.setattr(preemption, "_requested", signal.SIGTERM)
+    with pytest.raises(Interrupted, match="the whole-task evaluation"):
+        evaluate_task(task, policy, 8, seed=0, interruptible=True)
+    assert evaluate_task(task, policy, 8, seed=0).stats.length.numel() == 10  # every start

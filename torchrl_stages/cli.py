@@ -27,7 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import register_configs
-from torchrl_stages.experiment import Experiment
+from torchrl_stages.experiment import Experiment, one_line
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.reports import evaluate_run, format_summary
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
@@ -51,19 +51,6 @@ def _hydra_files(cfg: DictConfig) -> dict[str, Any]:
         "hydra.yaml": OmegaConf.create({"hydra": hydra_cfg}),
         "overrides.yaml": hydra_cfg.overrides.task,
     }
-
-
-def _write_hydra_files(cfg: DictConfig, run_dir: Path) -> None:
-    """``.hydra/`` of a job that never started (a multirun's invalid job)."""
-    out = run_dir / ".hydra"
-    out.mkdir(parents=True, exist_ok=True)
-    for name, node in _hydra_files(cfg).items():
-        OmegaConf.save(node, out / name)
-
-
-def _one_line(err: BaseException) -> str:
-    lines = str(err).strip().splitlines()
-    return f"{type(err).__name__}: {lines[-1] if lines else ''}"
 
 
 def _fail(run_dir: Path, status: str, message: str, code: int, write_status: bool) -> None:
@@ -90,7 +77,7 @@ def _train_app(cfg: DictConfig) -> float:
         _fail(run_dir, "refused", str(err), EXIT_INVALID, write_status=False)
     except ConfigError as err:
         if multirun:  # the job's own fresh directory: the sweep summary shows why
-            _write_hydra_files(cfg, run_dir)
+            RunDir(run_dir).write_hydra_files(_hydra_files(cfg))
         _fail(run_dir, "invalid", f"invalid config: {err}", EXIT_INVALID, write_status=multirun)
     except OSError as err:
         _fail(run_dir, "refused", _cannot_write(err, run_dir), EXIT_INVALID, write_status=False)
@@ -98,8 +85,8 @@ def _train_app(cfg: DictConfig) -> float:
         result = experiment.run()
     except Interrupted as err:
         print(
-            f"stages-train: {err}; its checkpoint is written. Fix: continue it with the same "
-            f"command and resume=true (hydra.run.dir={run_dir})",
+            f"stages-train: {err}; what it needs to continue is written. Fix: continue it with "
+            f"the same command and resume=true (hydra.run.dir={run_dir})",
             file=sys.stderr,
         )
         sys.exit(err.exit_code)
@@ -113,7 +100,7 @@ def _train_app(cfg: DictConfig) -> float:
         _fail(run_dir, "failed", str(err), EXIT_FAILED, write_status=False)
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
-        _fail(run_dir, "failed", _one_line(err), EXIT_FAILED, write_status=False)
+        _fail(run_dir, "failed", one_line(err), EXIT_FAILED, write_status=False)
     print(format_summary(result, run_dir))
     return objective_value(result, cfg)
 

@@ -13,6 +13,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_stages.preemption import check
 from torchrl_stages.transforms import StageTransform
 
 if TYPE_CHECKING:
@@ -195,15 +196,23 @@ def _last_steps(rollout: TensorDictBase, length: torch.Tensor) -> TensorDictBase
 
 @torch.no_grad()
 def evaluate_task(
-    task: StagedTask, policy: TensorDictModuleBase, episodes: int, seed: int
+    task: StagedTask,
+    policy: TensorDictModuleBase,
+    episodes: int,
+    seed: int,
+    *,
+    interruptible: bool = False,
 ) -> TaskEvaluation:
     """Greedy whole-task episodes of ``policy``: one from every whole-task start state when the
     env enumerates them (``episodes`` is then ignored), else ``episodes`` from random starts,
-    in batched chunks of :data:`CHUNK` seeded from ``seed``."""
+    in batched chunks of :data:`CHUNK` seeded from ``seed``. ``interruptible``: a stop asked
+    for by a signal (:mod:`torchrl_stages.preemption`) ends it before the next chunk."""
     all_starts = task.start_states(None) is not None
     sizes = [None] if all_starts else [min(CHUNK, episodes - i) for i in range(0, episodes, CHUNK)]
     stats, per_stage, final, first = [], [], [], None
     for i, size in enumerate(sizes):
+        if interruptible:  # a resumed run evaluates again
+            check("the whole-task evaluation")
         env = task.task_env(size)
         env.set_seed(seed + i)
         chunk, rollout = evaluate_policy(env, policy, int(getattr(env.base_env, "max_steps", 1000)))

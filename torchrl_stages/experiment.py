@@ -15,16 +15,22 @@ from typing import Any
 
 import torch
 from hydra.errors import InstantiationException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from torchrl_stages.checkpoint import StageCheckpoints
-from torchrl_stages.integrity import atomic_write
 from torchrl_stages.joint import JointTrainer
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import make_logger
 from torchrl_stages.preemption import Interrupted, check, handle_signals
 from torchrl_stages.reports import EVAL_SEED_OFFSET, evaluate_run, probe_task
-from torchrl_stages.rundir import STATUS_FILE, RunDir, RunDirError, config_differences, load_stage
+from torchrl_stages.rundir import (
+    METRICS_FILE,
+    STATUS_FILE,
+    RunDir,
+    RunDirError,
+    config_differences,
+    load_stage,
+)
 from torchrl_stages.schedule import train_backward, train_flat
 from torchrl_stages.stage import DivergenceError, StageResult
 from torchrl_stages.task import StagedTask
@@ -43,6 +49,18 @@ RESUMABLE_CHANGES = (
     "checkpoint_every",
     "checkpoint_keep",
 )
+
+
+def one_line(err: BaseException) -> str:
+    """An exception as one line: its type and the last line of its message (what
+    ``status.json`` keeps of a failure).
+
+    Examples:
+        >>> one_line(RuntimeError("loading the map" + chr(10) + "file not found: a.txt"))
+        'RuntimeError: file not found: a.txt'
+    """
+    lines = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {lines[-1] if lines else ''}"
 
 
 def compile_mode(cfg: DictConfig) -> str:
@@ -164,6 +182,8 @@ class Experiment:
         saved = run.read_config()
         changed = config_differences(saved, self.cfg, ignore=RESUMABLE_CHANGES)
         names = list(self.cfg.task.stages)
+        if names != list(saved.task.stages):  # the same keys in another order
+            changed = ["task.stages (their order)", *changed]
         finished = {k for k in range(len(names)) if run.stage_file(k).is_file()}
         frozen = frozen_stages(self.cfg.schedule.name, finished, len(names))
         refused = []
@@ -206,8 +226,7 @@ class Experiment:
             self._ended("diverged", str(err))
             raise
         except Exception as err:
-            lines = str(err).strip().splitlines()
-            self._ended("failed", f"{type(err).__name__}: {lines[-1] if lines else ''}")
+            self._ended("failed", one_line(err))
             raise
         finally:
             self.close()
@@ -231,8 +250,8 @@ class Experiment:
             log.info("overwrite=true: removed %s", ", ".join(removed) or "nothing")
         if self.resuming and not run.has_record():
             run.adopt_legacy()  # a run of a version without a record
-        if not self.resuming or self.restarted:
-            self._write_hydra_files()
+        if self.hydra_files and (not self.resuming or self.restarted):
+            run.write_hydra_files(self.hydra_files)
         if not self.resuming:
             run.write_config(cfg)
         elif not run.config_file.is_file():  # checked against .hydra/config.yaml: the same
@@ -252,21 +271,13 @@ class Experiment:
             run.write_config(cfg)
         run.begin_launch()
 
-    def _write_hydra_files(self) -> None:
-        if not self.hydra_files:
-            return
-        self.run_dir.claim(".hydra")
-        out = self.run_dir.path / ".hydra"
-        out.mkdir(parents=True, exist_ok=True)
-        for name, node in self.hydra_files.items():
-            atomic_write(out / name, lambda tmp, node=node: OmegaConf.save(node, tmp))
-
     def _run(self) -> dict[str, Any]:
         cfg, run = self.cfg, self.run_dir
         logging.getLogger("torchrl").setLevel(logging.WARNING)
+        run.claim(METRICS_FILE, *(["csv"] if cfg.logger.backend == "csv" else []))
         before = run.listing()
         self.logger = make_logger(cfg, run.path)
-        run.claim_new(before)  # metrics.csv, and a backend's own files
+        run.claim_new(before)  # a backend's own files
         start, schedule, phases = time.perf_counter(), cfg.schedule.name, None
         kwargs = {
             "seed": int(cfg.seed),

@@ -127,7 +127,9 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
     try:
         write(tmp)
+        _fsync(tmp)  # on disk before it replaces anything (a machine crash keeps one of the two)
         os.replace(tmp, path)
+        _fsync(path.parent)
     except OSError as err:
         if err.filename is None:
             err.filename = str(path)
@@ -150,3 +152,14 @@ def ensure_free_space(directory: Path, nbytes: int) -> None:
             f"{free / 2**20:.1f} MiB free)",
             str(directory),
         )
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError:  # a directory on a file system that cannot sync it
+        if not path.is_dir():
+            raise
+    finally:
+        os.close(fd)

@@ -40,7 +40,7 @@ from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.runlock import LOCK_DIR, RunLock, RunLockedError
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
-from torchrl_stages.validate import ConfigError, validate_config
+from torchrl_stages.validate import ConfigError, missing_keys, validate_config
 
 CONFIG_FILE = "config.yaml"
 EVAL_FILE = "eval.json"
@@ -52,7 +52,16 @@ RECORD_FILE = "run.json"  # in .stages/
 RUN_MARKERS = (CONFIG_FILE, EVAL_FILE, METRICS_FILE, CHECKPOINTS)
 #: what runs of versions without a record wrote (adopted when such a run is resumed)
 LEGACY_ENTRIES = (*RUN_MARKERS, STATUS_FILE, "csv", ".hydra")
-LEGACY_PATTERNS = ("stage_*.pt", "*.png", "value_map.npy")
+LEGACY_PATTERNS = ("stage_*.pt",)
+#: the figures earlier versions wrote (the shipped tasks' reports and the learning curves)
+LEGACY_FIGURES = (
+    "learning_curves.png",
+    "trajectories.png",
+    "value_map.png",
+    "value_map.npy",
+    "manipulator.png",
+    "cargo.png",
+)
 RECORD_FORMAT = "torchrl-stages run"
 
 log = logging.getLogger("torchrl_stages")
@@ -111,6 +120,18 @@ def _targets(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
             yield from _targets(item, f"{prefix}.{index}")
 
 
+def _interpolations(node: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
+    """``(dotted key, text)`` of every string under ``node`` that holds ``${``."""
+    if isinstance(node, dict):
+        for key, item in node.items():
+            yield from _interpolations(item, f"{prefix}.{key}" if prefix else str(key))
+    elif isinstance(node, list):
+        for index, item in enumerate(node):
+            yield from _interpolations(item, f"{prefix}.{index}")
+    elif isinstance(node, str) and "${" in node:
+        yield prefix, node
+
+
 def shipped_targets(task_name: str) -> dict[str, str] | None:
     """What the package's own ``conf/task/<task_name>.yaml`` instantiates (its env and
     whole-task eval env, ``{dotted key: _target_}``), or ``None`` when that is not fixed by
@@ -122,16 +143,9 @@ def shipped_targets(task_name: str) -> dict[str, str] | None:
         return None
     shipped = yaml.safe_load(source.read_text()) or {}
     nodes = {key: shipped.get(key) or {} for key in ("env", "eval_env")}
-    return None if _leaves_missing(nodes) else dict(_targets({"task": nodes}))
-
-
-def _leaves_missing(node: Any) -> bool:
-    """Whether a value under ``node`` is ``???`` (left to the user)."""
-    if isinstance(node, dict):
-        return any(_leaves_missing(v) for v in node.values())
-    if isinstance(node, list):
-        return any(_leaves_missing(v) for v in node)
-    return node == "???"
+    if missing_keys(OmegaConf.create(nodes), "task"):  # ??? : left to the user
+        return None
+    return dict(_targets({"task": nodes}))
 
 
 def check_trusted(cfg: DictConfig, source: Path) -> None:
@@ -211,6 +225,7 @@ class RunDir:
     def lock(self) -> RunLock:
         """Takes this directory's lock (one process at a time); :class:`RunDirError` names the
         process that holds it."""
+        self.check_no_links()
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             return RunLock(self.path).acquire()
@@ -237,8 +252,12 @@ class RunDir:
             record = json.loads(self.record_file.read_text())
             if record.get("format") != RECORD_FORMAT or not isinstance(record["entries"], dict):
                 raise ValueError("not a run record")
-            if not isinstance(record.get("launches", []), list):
-                raise ValueError("launches is not a list")
+            launches = record.get("launches", [])
+            if not isinstance(launches, list) or not all(
+                isinstance(x, dict) and isinstance(x.get("seconds", 0.0), int | float)
+                for x in launches
+            ):
+                raise ValueError("launches is not a list of launches")
         except (OSError, ValueError, KeyError, AttributeError, UnicodeDecodeError) as err:
             raise RunDirError(
                 f"{self.record_file} is damaged ({type(err).__name__}: {err}). Fix: restore it "
@@ -272,7 +291,7 @@ class RunDir:
 
     def adopt_legacy(self) -> None:
         """Claims what a run written without a record holds (resuming such a run)."""
-        names = [n for n in LEGACY_ENTRIES if (self.path / n).exists()]
+        names = [n for n in (*LEGACY_ENTRIES, *LEGACY_FIGURES) if (self.path / n).exists()]
         names += [p.name for pattern in LEGACY_PATTERNS for p in self.path.glob(pattern)]
         self.claim(*sorted(names))
 
@@ -283,7 +302,12 @@ class RunDir:
 
         def write_and_record(tmp: Path) -> None:
             write(tmp)
-            self.record["entries"][name] = {"sha256": sha256_file(tmp)}
+            # the bytes on disk until the rename below: a kill in between leaves them valid
+            previous = self.record["entries"].get(name, {}).get("sha256")
+            entry = {"sha256": sha256_file(tmp)}
+            if previous is not None and previous != entry["sha256"]:
+                entry["previous"] = previous
+            self.record["entries"][name] = entry
             self._save_record()
 
         atomic_write(path, write_and_record)
@@ -293,10 +317,11 @@ class RunDir:
         """Raises :class:`RunDirError` if ``name`` differs from the checksum recorded when it
         was written (files without a recorded checksum pass)."""
         try:
-            expected = self._read_record()["entries"].get(name, {}).get("sha256")
+            entry = self._read_record()["entries"].get(name, {})
+            expected = {entry.get("sha256"), entry.get("previous")} - {None}
         except AttributeError:
-            expected = None
-        if expected is not None and sha256_file(self.path / name) != expected:
+            expected = set()
+        if expected and sha256_file(self.path / name) not in expected:
             raise RunDirError(
                 f"{self.path / name} is damaged (its bytes differ from those written, by their "
                 f"SHA-256 in {self.record_file}). Fix: {fix}"
@@ -334,31 +359,45 @@ class RunDir:
         self.path.mkdir(parents=True, exist_ok=True)
         self._write_verified(CONFIG_FILE, lambda tmp: OmegaConf.save(cfg, tmp, resolve=True))
 
+    @property
+    def config_source(self) -> Path:
+        """The file the config is read from: ``config.yaml``, or ``.hydra/config.yaml`` (the
+        composed config Hydra recorded) when it is missing."""
+        hydra = self.path / ".hydra" / CONFIG_FILE
+        return hydra if not self.config_file.is_file() and hydra.is_file() else self.config_file
+
     def read_config(self) -> DictConfig:
-        """The run's config as written (``.hydra/config.yaml`` when ``config.yaml`` is
-        missing); a damaged or incomplete one raises :class:`RunDirError`."""
-        path = self.config_file
+        """The run's config, resolved and checked against the schema (``.hydra/config.yaml``
+        when ``config.yaml`` is missing); a damaged or incomplete one, or one that holds an
+        interpolation (``${...}``: a saved config is resolved, and resolving untrusted text
+        can build nodes), raises :class:`RunDirError`."""
+        path = self.config_source
         fix = (
             "restore it from the run's .hydra/config.yaml (or a copy of the run), or retrain "
             "into a new directory"
         )
         if not path.is_file():
-            path = self.path / ".hydra" / CONFIG_FILE
-            if not path.is_file():
-                raise RunDirError(
-                    f"{self.config_file} not found: {self.path} is not a torchrl-stages run "
-                    "directory (pass the directory that `stages-train` printed at the end)."
-                )
-            log.warning("%s is missing: reading %s instead", self.config_file, path)
-        else:
+            raise RunDirError(
+                f"{self.config_file} not found: {self.path} is not a torchrl-stages run "
+                "directory (pass the directory that `stages-train` printed at the end)."
+            )
+        if path == self.config_file:
             self._verify(CONFIG_FILE, fix)
+        else:
+            log.warning("%s is missing: reading %s instead", self.config_file, path)
         try:
-            cfg = OmegaConf.load(path)
-            if not isinstance(cfg, DictConfig):
+            loaded = OmegaConf.load(path)
+            if not isinstance(loaded, DictConfig):
                 raise ValueError("it is not a mapping")
+            container = OmegaConf.to_container(loaded, resolve=True)
+            interpolation = next(_interpolations(container), None)
+            if interpolation is not None:
+                raise ValueError(f"{interpolation[0]} holds an interpolation, {interpolation[1]!r}")
+            cfg = OmegaConf.create(container)
             missing = [f.name for f in fields(TrainConfig) if f.name not in cfg]
             if missing:
                 raise ValueError(f"it lacks {', '.join(missing)}")
+            OmegaConf.merge(OmegaConf.structured(TrainConfig), cfg)  # keys and types
             if not isinstance(cfg.task.get("stages"), DictConfig) or not cfg.task.stages:
                 raise ValueError("it has no task.stages")
         except (yaml.YAMLError, OmegaConfBaseException, ValueError, UnicodeDecodeError) as err:
@@ -431,11 +470,36 @@ class RunDir:
     def clear_checkpoints(self, stage: int | str) -> None:
         """Drops stage ``stage``'s checkpoints (once ``stage_<k>.pt`` is written, or when a
         resumed run changed the stage's config)."""
-        name = stage if isinstance(stage, str) else f"stage_{stage}"
-        shutil.rmtree(self.path / CHECKPOINTS / name, ignore_errors=True)
+        self.check_no_links()
+        self.checkpoints(stage, 0, 1).clear()
         root = self.path / CHECKPOINTS
         if root.is_dir() and not any(root.iterdir()):
             root.rmdir()
+
+    def check_no_links(self) -> None:
+        """Raises :class:`RunDirError` if an entry the package reads or writes here is a
+        symbolic link (it would read or write, or delete, what the link points to)."""
+        entries = [self.path / n for n in (*LEGACY_ENTRIES, LOCK_DIR)]
+        entries += [*self.path.glob("stage_*.pt"), *self.path.glob("*.png")]
+        entries.append(self.path / "value_map.npy")
+        for entry in entries:
+            inner = entry.rglob("*") if entry.is_dir() and not entry.is_symlink() else []
+            for path in [entry, *inner]:
+                if path.is_symlink():
+                    raise RunDirError(
+                        f"{path} is a symbolic link: a run directory's own files are never "
+                        "links (writing or deleting through it would touch another place). "
+                        "Fix: replace it with the file itself, or pick another directory"
+                    )
+
+    def write_hydra_files(self, files: dict[str, Any]) -> None:
+        """``.hydra/<name>`` for each ``{name: config}`` (what ``stages-train`` records of
+        Hydra: the composed config, Hydra's config, the command-line overrides)."""
+        self.claim(".hydra")
+        out = self.path / ".hydra"
+        out.mkdir(parents=True, exist_ok=True)
+        for name, node in files.items():
+            atomic_write(out / name, lambda tmp, node=node: OmegaConf.save(node, tmp))
 
     # ------------------------------------------------------------------ status, eval
     def write_status(self, status: str, reason: str | None = None, **extra: Any) -> None:
@@ -518,6 +582,12 @@ def load_stage(
     state = run.read_stage(stage, map_location=device)
     if state is None:
         return None
+    if state.get("name") not in (task.stage_names[stage], "flat"):
+        raise RunDirError(
+            f"{run.stage_file(stage)} holds stage {state.get('name')!r}, but the run's stage "
+            f"{stage} is {task.stage_names[stage]!r}. Fix: restore the config it was trained "
+            "with, or delete the file and resume the run to retrain the stage."
+        )
     learner = make_learner(task.stage_cfg(stage), task.specs(stage), device=device)
     try:
         learner.load_checkpoint(state)
@@ -535,14 +605,14 @@ def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> Dic
     """The run's config, checked: what it may instantiate (unless ``trust``) and every value
     (as ``stages-train`` checks them), for loading on ``device``."""
     cfg = run.read_config()
-    source = run.config_file if run.config_file.is_file() else run.path / ".hydra" / CONFIG_FILE
+    source = run.config_source
     if not trust:
         check_trusted(cfg, source)
     try:
         checked = cfg.copy()  # as it would run here: on this device, with no logger
         checked.device, checked.logger.backend = str(device), "none"
         validate_config(checked)
-    except (ConfigError, OmegaConfBaseException, TypeError, ValueError) as err:
+    except (ConfigError, OmegaConfBaseException, AttributeError, TypeError, ValueError) as err:
         raise RunDirError(
             f"{source} is not a valid config ({str(err).splitlines()[0]}). Fix: restore it "
             "from the run's .hydra/config.yaml, or retrain into a new directory"

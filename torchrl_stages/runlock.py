@@ -63,8 +63,10 @@ class RunLock:
         directory = self.file.parent
         self.created_dir = not directory.exists()
         directory.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.file, os.O_RDWR | os.O_CREAT, 0o644)
-        if fcntl is not None:
+        while True:
+            fd = os.open(self.file, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
+            if fcntl is None:
+                break
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -75,6 +77,12 @@ class RunLock:
                     "process at a time trains or evaluates a run directory. Fix: wait for it "
                     "to end (or stop it), or pick another hydra.run.dir"
                 ) from None
+            try:  # the file locked is still the lock file (a refused process may remove it)
+                if os.stat(self.file).st_ino == os.fstat(fd).st_ino:
+                    break
+            except FileNotFoundError:
+                pass
+            os.close(fd)
         self._fd = fd
         return self
 

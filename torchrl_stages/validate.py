@@ -179,7 +179,7 @@ def validate_config(cfg: DictConfig) -> None:
     _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
     for name in ("eval", "objective"):
         _check_finite(cfg.get(name), name)
-    for key in _missing_keys(cfg.task.get("env"), "task.env"):
+    for key in missing_keys(cfg.task.get("env"), "task.env"):
         _check(
             False,
             key,
@@ -301,8 +301,14 @@ def validate_config(cfg: DictConfig) -> None:
         _check_stage(f"task.stages.{name}", stage)
 
 
-def _missing_keys(node: object, prefix: str) -> list[str]:
-    """Dotted keys under ``node`` whose value is ``???`` (to be set by the user)."""
+def missing_keys(node: object, prefix: str) -> list[str]:
+    """Dotted keys under ``node`` whose value is ``???`` (to be set by the user).
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> missing_keys(OmegaConf.create({"env": {"id": "???", "n": 2}}), "task")
+        ['task.env.id']
+    """
     if not isinstance(node, DictConfig):
         return []
     out = []
@@ -310,7 +316,7 @@ def _missing_keys(node: object, prefix: str) -> list[str]:
         if OmegaConf.is_missing(node, key):
             out.append(f"{prefix}.{key}")
         else:
-            out += _missing_keys(node[key], f"{prefix}.{key}")
+            out += missing_keys(node[key], f"{prefix}.{key}")
     return out
 
 

@@ -83,7 +83,7 @@ def evaluate_run(
     """
     policy = StackedPolicy([learner.policy for learner in learners])
     evaluation = evaluate_task(
-        task, policy, int(cfg.eval.episodes), int(cfg.seed) + EVAL_SEED_OFFSET
+        task, policy, int(cfg.eval.episodes), int(cfg.seed) + EVAL_SEED_OFFSET, interruptible=True
     )
     result: dict[str, Any] = {
         "task": cfg.task.name,
