@@ -230,12 +230,11 @@ def test_total_grad_norm_is_torchs_total_norm():
     assert total_grad_norm([]).item() == 0.0
 
 
-@pytest.mark.parametrize("fast_update", [True, False])
 @pytest.mark.parametrize("algo", list(ALGOS))
-def test_only_td3_updates_draw_random_numbers(algo, fast_update):
+def test_only_td3_updates_draw_random_numbers(algo):
     """The stage loop draws a batch's minibatches at once for learners whose update leaves
     torch's generator alone (``update_draws_random`` false): it must be true of them."""
-    learner = make(algo, fast_update=fast_update)
+    learner = make(algo)
     batch = batch_for(learner.specs)
     learner.update(batch.clone())  # past any first-call setup
     for _ in range(2):  # the TD3 actor's delayed update included
@@ -309,11 +308,11 @@ def saturate(learner, bias: float) -> None:
 def test_saturation_penalty_is_zero_inside_the_bound(algo):
     learner = make(algo, saturation_penalty=1.0)
     saturate(learner, 1.5)
-    _, penalty = learner.with_saturation_penalty(learner.loss, batch_for(learner.specs))
+    penalty = learner.penalty(learner.actor_module(*learner.inputs(batch_for(learner.specs))))
     assert penalty.item() == 0.0
     off = make(algo, saturation_penalty=0.0)
-    _, nothing = off.with_saturation_penalty(off.loss, batch_for(off.specs))
-    assert nothing == 0.0  # 0 adds nothing and skips the hook
+    nothing = off.penalty(off.actor_module(*off.inputs(batch_for(off.specs))))
+    assert nothing == 0.0  # 0 adds nothing
 
 
 @pytest.mark.parametrize("algo", ["ddpg", "td3"])
@@ -325,7 +324,7 @@ def test_saturation_penalty_pulls_a_saturated_actor_back(algo):
     )
     saturate(learner, 6.0)  # tanh'(6) = 2.5e-5: the actor loss alone barely moves it
     batch = batch_for(learner.specs)
-    _, penalty = learner.with_saturation_penalty(learner.loss, batch)
+    penalty = learner.penalty(learner.actor_module(*learner.inputs(batch)))
     assert penalty.item() == pytest.approx((6.0 - 2.0) ** 2, rel=1e-5)
     last = [m for m in learner.actor.modules() if isinstance(m, torch.nn.Linear)][-1]
     for _ in range(20):

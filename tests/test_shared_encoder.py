@@ -18,7 +18,6 @@ from torchrl.data import Bounded
 
 from torchrl_stages.config import DDPGConfig, TD3Config
 from torchrl_stages.learners import DDPGLearner, StageSpecs, TD3Learner
-from torchrl_stages.validate import ConfigError
 
 # a 1 x 6 x 6 image and a 2-vector, like the cargo stages' window and target
 IMAGE = StageSpecs(
@@ -228,18 +227,3 @@ def test_ddpg_losses_on_the_shared_encoder():
         action = learner.squash(learner._target_actor(*obs_td.values()))
         want = critic(learner, target_heads, 0, target, *obs_td.values(), action)
     torch.testing.assert_close(learner.value()(obs_td)["state_value"], want)
-
-
-@pytest.mark.parametrize("algo", ["ddpg", "td3"])
-def test_shared_encoder_needs_the_fast_update(hydra_compose, algo):
-    with pytest.raises(ValueError, match="fast_update=true"):
-        make(algo=algo, fast_update=False)
-    from torchrl_stages.experiment import build_task
-
-    slider = "task.stages.slider"
-    cfg = hydra_compose(
-        "task=cargo", f"{slider}.shared_encoder=true", f"{slider}.fast_update=false"
-    )
-    with pytest.raises(ConfigError, match="task.stages.slider.shared_encoder") as info:
-        build_task(cfg)
-    assert "Fix:" in str(info.value)

@@ -31,9 +31,6 @@ class StageConfig:
     # (1: constant); late, small steps let the values settle instead of oscillating
     lr_end_factor: float = 1.0
     max_grad_norm: float | None = None  # clip each optimizer's gradient norm (null: no clip)
-    # compute the loss on plain tensors (what the torchrl loss module computes, without its
-    # TensorDict overhead: 2-5x cheaper updates for small networks); false: call the loss module
-    fast_update: bool = True
     # Adam's fused kernel (torch.optim.Adam(fused=True): one op for all parameters instead of
     # ~10 per tensor): the same update up to float rounding, cheaper where the networks are
     # small; false: torch's default Adam
@@ -104,8 +101,8 @@ class DDPGConfig(StageConfig):
     # one input encoder (the CNN of image observations) for the actor and the critic(s),
     # trained by the critic loss alone; the actor reads its features detached (as SAC-AE and
     # DrQ do). An update then encodes s and s' once each (s' with the target encoder) instead
-    # of once per network (TD3: five). A different network from separate encoders; needs
-    # fast_update. Without an image input or fourier_features there is no encoder to share.
+    # of once per network (TD3: five). A different network from separate encoders. Without an
+    # image input or fourier_features there is no encoder to share.
     shared_encoder: bool = False
 
 
@@ -226,7 +223,7 @@ class TrainConfig:
     # most that much of the stage (about a minute of training on the shipped tasks)
     checkpoint_every: int = 50_000
     checkpoint_keep: int = 2  # newest checkpoints kept per stage
-    # torch.compile of every learner's fast update: auto (measured: off on CPU, where compiling
+    # torch.compile of every learner's loss: auto (measured: off on CPU, where compiling
     # costs more than it saves on these small networks; reduce-overhead, i.e. CUDA graphs, on a
     # GPU) | off | default | reduce-overhead | max-autotune
     compile: str = "auto"

@@ -149,14 +149,6 @@ def _check_stage(key: str, s: DictConfig) -> None:
         non_negative("sigma_init")
         non_negative("sigma_end")
         non_negative("annealing_frames")
-        _check(
-            s.fast_update or not s.shared_encoder,
-            f"{key}.shared_encoder",
-            s.shared_encoder,
-            "needs the fast update (torchrl's losses would train a shared encoder with the "
-            "actor loss)",
-            f"set {key}.fast_update=true or {key}.shared_encoder=false",
-        )
     if s.algo == "td3":
         positive("policy_update_delay", 2)
         non_negative("policy_noise")

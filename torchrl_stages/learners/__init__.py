@@ -18,7 +18,7 @@ def make_learner(
     cfg, specs: StageSpecs, compile: str = "off", device: str | torch.device | None = None
 ) -> Learner:
     """Builds the learner named by ``cfg.algo`` (``dqn``, ``ddpg`` or ``td3``); ``compile``:
-    ``torch.compile`` mode of its fast update (``off``, ``default``, ``reduce-overhead``...);
+    ``torch.compile`` mode of its update's loss (``off``, ``default``, ``reduce-overhead``...);
     ``device``: where every tensor it builds lives (networks, targets, bounds; default: torch's
     default device), the device of the envs it acts in."""
     with torch.device(device) if device is not None else contextlib.nullcontext():

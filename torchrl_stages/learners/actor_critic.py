@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import TypeVar
-
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
@@ -24,7 +21,6 @@ from torchrl_stages.learners.base import (
 from torchrl_stages.learners.networks import SharedEncoderCritic, mlp
 from torchrl_stages.values import with_params
 
-T = TypeVar("T")
 SATURATION = 2.0  # pre-tanh magnitude beyond which `saturation_penalty` applies (tanh(2) = 0.96)
 
 
@@ -48,11 +44,6 @@ class ActorCriticLearner(Learner):
         )
         # the critics read the actor's encoder when it is shared (and there is one to share)
         self.shared_encoder = bool(cfg.shared_encoder) and hasattr(actor_net, "encoder")
-        if self.shared_encoder and not cfg.fast_update:
-            raise ValueError(
-                "shared_encoder=true needs fast_update=true: torchrl's losses would train the "
-                "shared encoder with the actor loss, not the critic's"
-            )
         self.critic = ValueOperator(
             SharedEncoderCritic(actor_net.encoder, action_dim, cells)
             if self.shared_encoder
@@ -72,8 +63,8 @@ class ActorCriticLearner(Learner):
         self.loss = self.make_loss(cfg, spec)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
         self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
-        # the fast path: tensors in and out, the target actor reading the loss module's target
-        # parameters (kept out of the module tree: no second copy in state_dict)
+        # the losses' networks: tensors in and out, the target actor reading the loss module's
+        # target parameters (kept out of the module tree: no second copy in state_dict)
         low, high = spec.space.low, spec.space.high
         self.__dict__["_bounds"] = (low, high, bool((low != -1).any() or (high != 1).any()))
         target_actor = self.loss.target_actor_network_params.get(("module", "0", "module"))
@@ -83,7 +74,7 @@ class ActorCriticLearner(Learner):
             "actor": self.adam(actor_params, cfg.actor_lr),
             "critic": self.adam(critic_params, cfg.lr),
         }
-        self.make_fast_path()
+        self.make_losses()
 
     @classmethod
     def check_action_spec(cls, spec: TensorSpec) -> str | None:
@@ -151,39 +142,14 @@ class ActorCriticLearner(Learner):
     def make_loss(self, cfg: DDPGConfig, spec: TensorSpec) -> LossModule:
         raise NotImplementedError
 
-    def make_fast_path(self) -> None:
-        """Sets up the tensor-only loss functions of ``cfg.fast_update``."""
+    def make_losses(self) -> None:
+        """Sets up the loss functions the update runs: what the torchrl loss module computes,
+        on plain tensors."""
         raise NotImplementedError
 
     def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """The loss module's trainable (actor, critic) parameters."""
         raise NotImplementedError
-
-    def with_saturation_penalty(
-        self, loss_fn: Callable[[TensorDictBase], T], batch: TensorDictBase
-    ) -> tuple[T, torch.Tensor | float]:
-        """``loss_fn(batch)`` and ``cfg.saturation_penalty`` times the mean of
-        ``relu(|u| - SATURATION)^2`` over the pre-tanh outputs ``u`` of the trained actor in it.
-
-        Without the penalty an actor can drive ``u`` deep into tanh saturation, where its gradient
-        vanishes and the policy stays at an action bound for good (e.g. a robot that only turns
-        one way). Inside ``|u| <= SATURATION`` (``|action| <= 0.96`` of the bound) it is zero.
-        """
-        if self.cfg.saturation_penalty <= 0:
-            return loss_fn(batch), 0.0
-        captured: list[torch.Tensor] = []
-
-        def keep(module, args, out) -> None:
-            if out.get("_actor_param").requires_grad:  # the trained actor, not the target one
-                captured.append(out.get("_actor_param"))
-
-        handle = self.actor[0].register_forward_hook(keep)
-        try:
-            out = loss_fn(batch)
-        finally:
-            handle.remove()
-        excess = (captured[-1].abs() - SATURATION).clamp_min(0.0)
-        return out, self.cfg.saturation_penalty * excess.pow(2).mean()
 
     def anneal_exploration(self, frames: int) -> None:
         cfg = self.cfg

@@ -288,8 +288,8 @@ class Learner(nn.Module, ABC):
         return [td.get(key) for key in self.specs.observation_keys]
 
     def compiled(self, fn):
-        """``fn`` through ``torch.compile`` unless :attr:`compile_mode` is ``"off"`` (the fast
-        path's loss function; ``"reduce-overhead"`` uses CUDA graphs on a GPU)."""
+        """``fn`` (an update's loss function) through ``torch.compile`` unless
+        :attr:`compile_mode` is ``"off"``; ``"reduce-overhead"`` uses CUDA graphs on a GPU."""
         if self.compile_mode == "off":
             return fn
         return torch.compile(fn, mode=None if self.compile_mode == "default" else self.compile_mode)

@@ -16,7 +16,8 @@ from torchrl_stages.values import ActorCriticValue, with_params
 
 
 class DDPGLearner(ActorCriticLearner):
-    """DDPG for one stage, on torchrl's ``DDPGLoss`` (target actor and critic).
+    """DDPG for one stage: its parameters (and their targets) in torchrl's ``DDPGLoss``, its
+    update on :meth:`_plain_losses`, what that module computes on plain tensors.
 
     Examples:
         >>> from torchrl.data import Bounded
@@ -44,13 +45,13 @@ class DDPGLearner(ActorCriticLearner):
     def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         return self.split_parameters(self.loss.actor_network_params, self.loss.value_network_params)
 
-    def make_fast_path(self) -> None:
+    def make_losses(self) -> None:
         target_critic = self.with_target_encoder(self.loss.target_value_network_params)
         self.__dict__["_target_critic"] = with_params(
             self.critic_module, target_critic.get("module"), live=True
         )
         losses = self._shared_losses if self.shared_encoder else self._plain_losses
-        self._fast_losses = self.compiled(losses)
+        self._losses = self.compiled(losses)
 
     def _plain_losses(
         self, batch: TensorDictBase
@@ -100,19 +101,14 @@ class DDPGLearner(ActorCriticLearner):
         return -q.mean(), loss_value, self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        if self.cfg.fast_update:
-            loss_actor, loss_value, penalty = self._fast_losses(batch)
-            out = {"loss_actor": loss_actor, "loss_value": loss_value}
-        else:
-            out, penalty = self.with_saturation_penalty(self.loss, batch)
-        self._check_losses(loss_actor=out["loss_actor"], loss_value=out["loss_value"])
-        # Sum only the loss terms: other entries (pred_value, ...) are not detached.
-        self._step(out["loss_actor"] + out["loss_value"] + penalty)
+        loss_actor, loss_value, penalty = self._losses(batch)
+        self._check_losses(loss_actor=loss_actor, loss_value=loss_value)
+        self._step(loss_actor + loss_value + penalty)
         self.target_updater.step()
         self.num_updates += 1
         return {
-            "loss_actor": detached_copy(out["loss_actor"]),
-            "loss_value": detached_copy(out["loss_value"]),
+            "loss_actor": detached_copy(loss_actor),
+            "loss_value": detached_copy(loss_value),
             "grad_norm_actor": self.grad_norms["actor"],
             "grad_norm_critic": self.grad_norms["critic"],
         }

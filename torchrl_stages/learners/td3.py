@@ -16,7 +16,8 @@ from torchrl_stages.values import ActorCriticValue, with_params
 
 
 class TD3Learner(ActorCriticLearner):
-    """TD3 for one stage, on torchrl's ``TD3Loss`` (twin critics, delayed actor updates).
+    """TD3 for one stage (twin critics, delayed actor updates): its parameters (and their
+    targets) in torchrl's ``TD3Loss``, its update on what that module computes, on plain tensors.
 
     Examples:
         >>> from torchrl.data import Bounded
@@ -55,13 +56,13 @@ class TD3Learner(ActorCriticLearner):
             self.loss.actor_network_params, self.loss.qvalue_network_params
         )
 
-    def make_fast_path(self) -> None:
+    def make_losses(self) -> None:
         if self.shared_encoder:
-            self._fast_value_loss = self.compiled(self._shared_value_loss)
-            self._fast_actor_loss = self.compiled(self._shared_actor_loss)
+            self._value_loss = self.compiled(self._shared_value_loss)
+            self._actor_loss = self.compiled(self._shared_actor_loss)
         else:
-            self._fast_value_loss = self.compiled(self._plain_value_loss)
-            self._fast_actor_loss = self.compiled(self._plain_actor_loss)
+            self._value_loss = self.compiled(self._plain_value_loss)
+            self._actor_loss = self.compiled(self._plain_actor_loss)
 
     def _critics(self, params, *inputs: torch.Tensor, module=None) -> list[torch.Tensor]:
         """``Q_i(inputs)`` of every critic in the stacked ``params`` (``[num_critics, ...]``),
@@ -145,18 +146,12 @@ class TD3Learner(ActorCriticLearner):
         return -q.mean(), self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        if self.cfg.fast_update:
-            loss_q = self._fast_value_loss(batch)
-        else:
-            loss_q, _ = self.loss.value_loss(batch)
+        loss_q = self._value_loss(batch)
         self._check_losses(loss_qvalue=loss_q)
         self._step(loss_q, "critic")
         out = {"loss_qvalue": detached_copy(loss_q), "grad_norm_critic": self.grad_norms["critic"]}
         if (self.num_updates + 1) % self.cfg.policy_update_delay == 0:
-            if self.cfg.fast_update:
-                loss_actor, penalty = self._fast_actor_loss(batch)
-            else:
-                (loss_actor, _), penalty = self.with_saturation_penalty(self.loss.actor_loss, batch)
+            loss_actor, penalty = self._actor_loss(batch)
             self._check_losses(loss_actor=loss_actor)
             self._step(loss_actor + penalty, "actor")
             self.optimizers["critic"].zero_grad(set_to_none=True)

@@ -1,8 +1,9 @@
-"""The fast update path (``fast_update``) computes what torchrl's loss modules compute.
+"""Each algorithm's loss, the one its update runs, computes what torchrl's loss module does.
 
 Each check builds a learner, moves its target networks away from the online ones (so that a
-path reading the wrong parameters shows), and compares the losses and the gradients of the
-fast path with the loss module's own forward on the same batch.
+loss reading the wrong parameters shows), and compares the losses and the gradients of the
+learner's loss with the torchrl loss module's own forward (the reference) on the same weights
+and batch.
 """
 
 from __future__ import annotations
@@ -55,6 +56,15 @@ def grads(params) -> list[torch.Tensor | None]:
     return [None if p.grad is None else p.grad.clone() for p in params.values(True, True)]
 
 
+def reference_penalty(learner, data) -> torch.Tensor | float:
+    """``saturation_penalty * mean(relu(|u| - 2)^2)`` over the trained actor's pre-tanh outputs
+    ``u`` on the batch (what the actor-critic losses add), computed here on its own."""
+    if learner.cfg.saturation_penalty <= 0:
+        return 0.0
+    u = learner.actor_module(*learner.inputs(data))
+    return learner.cfg.saturation_penalty * (u.abs() - 2.0).clamp_min(0.0).pow(2).mean()
+
+
 def assert_same_grads(a, b) -> None:
     assert len(a) == len(b)
     for x, y in zip(a, b, strict=True):
@@ -66,7 +76,7 @@ def assert_same_grads(a, b) -> None:
 @pytest.mark.parametrize("double", [True, False])
 @pytest.mark.parametrize("dueling", [True, False])
 @pytest.mark.parametrize("loss_function", ["l2", "smooth_l1"])
-def test_dqn_fast_loss_is_the_dqn_loss(double, dueling, loss_function):
+def test_dqn_loss_is_torchrls_dqn_loss(double, dueling, loss_function):
     cfg = DQNConfig(
         double_dqn=double, dueling=dueling, fourier_features=3, loss_function=loss_function
     )
@@ -84,7 +94,7 @@ def test_dqn_fast_loss_is_the_dqn_loss(double, dueling, loss_function):
 
 
 @pytest.mark.parametrize("penalty", [0.0, 1.0])
-def test_ddpg_fast_losses_are_the_ddpg_loss(penalty):
+def test_ddpg_losses_are_torchrls_ddpg_loss(penalty):
     learner = DDPGLearner(OmegaConf.structured(DDPGConfig(saturation_penalty=penalty)), CONTINUOUS)
     perturb(learner.loss.target_value_network_params)
     perturb(learner.loss.target_actor_network_params)
@@ -92,7 +102,7 @@ def test_ddpg_fast_losses_are_the_ddpg_loss(penalty):
         for p in learner.actor_module.parameters():
             p.mul_(3)
     data = batch(3, torch.rand(64, 2) * 2 - 1)
-    out, expected_penalty = learner.with_saturation_penalty(learner.loss, data.clone())
+    out, expected_penalty = learner.loss(data.clone()), reference_penalty(learner, data)
     (out["loss_actor"] + out["loss_value"] + expected_penalty).backward()
     params = [learner.loss.actor_network_params, learner.loss.value_network_params]
     expected = [g for p in params for g in grads(p)]
@@ -107,7 +117,7 @@ def test_ddpg_fast_losses_are_the_ddpg_loss(penalty):
 
 
 @pytest.mark.parametrize("penalty", [0.0, 1.0])
-def test_td3_fast_losses_are_the_td3_loss(penalty):
+def test_td3_losses_are_torchrls_td3_loss(penalty):
     learner = TD3Learner(OmegaConf.structured(TD3Config(saturation_penalty=penalty)), CONTINUOUS)
     perturb(learner.loss.target_qvalue_network_params)
     perturb(learner.loss.target_actor_network_params)
@@ -125,8 +135,9 @@ def test_td3_fast_losses_are_the_td3_loss(penalty):
     assert_same_grads(grads(critics), expected)
     for optimizer in learner.optimizers.values():
         optimizer.zero_grad()
-    (loss_actor, _), expected_penalty = learner.with_saturation_penalty(
-        learner.loss.actor_loss, data.clone()
+    (loss_actor, _), expected_penalty = (
+        learner.loss.actor_loss(data.clone()),
+        reference_penalty(learner, data),
     )
     (loss_actor + expected_penalty).backward()
     expected = grads(learner.loss.actor_network_params) + grads(critics)
@@ -152,7 +163,7 @@ def test_fused_soft_update_moves_targets_by_tau():
 
 
 def compiled_learner(name: str, compile: str):
-    """A learner of each fast path: DQN (dueling, Fourier features), DDPG, and TD3 with the
+    """A learner of each algorithm: DQN (dueling, Fourier features), DDPG, and TD3 with the
     cargo slider's shared CNN encoder; its replay batches; and how many losses it compiles."""
     if name == "dqn":
         cfg = DQNConfig(dueling=True, fourier_features=2)
@@ -167,8 +178,8 @@ def compiled_learner(name: str, compile: str):
 
 
 @pytest.mark.parametrize("name", ["dqn", "ddpg", "td3"])
-def test_compiled_fast_path_is_one_graph_and_the_same_updates(name, monkeypatch):
-    """``compile`` != off runs each fast-path loss through ``torch.compile``. Dynamo's eager
+def test_compiled_losses_are_one_graph_and_the_same_updates(name, monkeypatch):
+    """``compile`` != off runs each loss through ``torch.compile``. Dynamo's eager
     backend stands in for inductor here (its code generation takes about 15 s per learner on a
     CPU): the capture is the same, each loss must be one graph without a break (a break splits
     the CUDA graphs of ``reduce-overhead``), and the updates must equal ``compile=off``'s bit
@@ -195,14 +206,14 @@ def test_compiled_fast_path_is_one_graph_and_the_same_updates(name, monkeypatch)
 
 @pytest.mark.parametrize("name", ["dqn", "ddpg", "td3"])
 def test_update_returns_losses_the_next_replay_cannot_overwrite(name):
-    """Under ``compile=reduce-overhead`` each fast-path loss is a CUDA graph's static output,
+    """Under ``compile=reduce-overhead`` each loss is a CUDA graph's static output,
     rewritten by the graph's next replay while the stage still holds the batch's losses for
-    its log. Writing over every output of the fast path after the update stands in for that
+    its log. Writing over every output of the losses after the update stands in for that
     replay: the losses the update returned must not change."""
     torch.manual_seed(0)
     learner, data, _ = compiled_learner(name, "off")
     outputs = []
-    for attr in ("_fast_loss", "_fast_losses", "_fast_value_loss", "_fast_actor_loss"):
+    for attr in ("_loss_fn", "_losses", "_value_loss", "_actor_loss"):
         if hasattr(learner, attr):
             fn = getattr(learner, attr)
 
