@@ -21,9 +21,9 @@ import torch
 from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 
-from torchrl_stages.config import register_configs
 from torchrl_stages.envs import measure_throughput
 from torchrl_stages.experiment import Experiment
+from torchrl_stages.store import register_configs
 
 
 def compose_config(task: str, *overrides: str) -> DictConfig:

@@ -30,10 +30,10 @@ from pathlib import Path
 import torch
 from _benchmark import command_line, compose_config, run_table
 
-from torchrl_stages.config import register_configs
 from torchrl_stages.experiment import build_task, compile_mode
 from torchrl_stages.rundir import load_run
 from torchrl_stages.schedule import train_stage
+from torchrl_stages.store import register_configs
 
 COLUMNS = [
     "variant",

@@ -26,9 +26,9 @@ from pathlib import Path
 import torch
 from _benchmark import command_line, compose_config, machine_speed, speed_note
 
-from torchrl_stages.config import register_configs
 from torchrl_stages.experiment import Experiment
 from torchrl_stages.learners.base import FusedSoftUpdate
+from torchrl_stages.store import register_configs
 
 PHASES = ("collect", "sample", "update", "target_update", "evaluate", "log", "checkpoint")
 

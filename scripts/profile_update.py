@@ -35,10 +35,10 @@ from _benchmark import command_line, compose_config, machine_speed, speed_note
 from tensordict import TensorDictBase
 
 from torchrl_stages.collector import StageCollector
-from torchrl_stages.config import register_configs
 from torchrl_stages.experiment import build_task, compile_mode
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.replay import stage_replay_buffer
+from torchrl_stages.store import register_configs
 from torchrl_stages.task import StagedTask
 
 MODES = ("auto", "off", "default", "reduce-overhead", "max-autotune")

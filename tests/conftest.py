@@ -15,7 +15,7 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
-from torchrl_stages.config import register_configs
+from torchrl_stages.store import register_configs
 
 torch.set_num_threads(1)
 
@@ -76,6 +76,20 @@ TINY_STAGE = {  # per-stage budgets that train any stage in about a second
     "eval_episodes": 4,
     "min_frames": 0,
 }
+
+
+def tiny_grid(stage: dict | None = None) -> list[str]:
+    """Overrides of a two-stage 10 x 10 grid world whose two stages train on ``stage``'s keys
+    (default :data:`TINY_STAGE`), without figures or progress bars."""
+    keys = TINY_STAGE if stage is None else stage
+    return [
+        "task.env.size=10",
+        "task.env.num_stages=2",
+        *[f"~task.stages.s{k}" for k in (2, 3, 4)],
+        *[f"task.stages.s{k}.{key}={value}" for k in (0, 1) for key, value in keys.items()],
+        "eval.plots=false",
+        "progress=false",
+    ]
 
 
 @pytest.fixture

@@ -15,16 +15,12 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import DictConfig, OmegaConf
 
 import torchrl_stages.experiment
-from torchrl_stages.config import (
-    ALGO_SCHEMAS,
-    DDPGConfig,
-    DQNConfig,
-    LoggerConfig,
-    TD3Config,
-    as_dataclass,
-)
+from torchrl_stages.config import LoggerConfig, as_dataclass
 from torchrl_stages.experiment import Experiment, build_task
-from torchrl_stages.learners import make_learner
+from torchrl_stages.learners import ALGORITHMS, make_learner
+from torchrl_stages.learners.ddpg import DDPGConfig
+from torchrl_stages.learners.dqn import DQNConfig
+from torchrl_stages.learners.td3 import TD3Config
 from torchrl_stages.validate import ConfigError, validate_config
 
 CONF = importlib.resources.files("torchrl_stages.conf")
@@ -71,7 +67,7 @@ def test_shipped_groups_are_found():
     assert {"homo", "hetero"} <= set(GAMMAS)
     assert {"dqn", "ddpg", "td3"} <= set(ALGOS)
     assert {"csv", "none"} <= set(LOGGERS)
-    assert set(ALGOS) == set(ALGO_SCHEMAS)
+    assert set(ALGOS) == set(ALGORITHMS)
 
 
 def test_default_config(hydra_compose):
@@ -126,7 +122,7 @@ def test_every_algo_option_composes_on_a_stage(hydra_compose, algo):
     cfg = hydra_compose(f"algo@task.stages.{stage}={algo}", "task/gammas=hetero")
     node = cfg.task.stages[stage]
     assert node.algo == algo
-    assert OmegaConf.get_type(node) is ALGO_SCHEMAS[algo]
+    assert OmegaConf.get_type(node) is ALGORITHMS[algo].Config
     # the task's per-stage values and the gammas preset still apply on top of the new schema
     assert node.frames == GRID_FRAMES
     assert node.gamma == 0.9  # hetero

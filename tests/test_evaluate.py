@@ -8,8 +8,8 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
-from torchrl_stages.config import DQNConfig
 from torchrl_stages.evaluate import EpisodeStats, discounted_return, episode_stats, evaluate_task
+from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.task import StagedTask
 
 T = 5

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY_STAGE, hydra_config
+from conftest import TINY_STAGE, hydra_config, tiny_grid
 from omegaconf import OmegaConf
 
 from torchrl_stages import threads
@@ -32,15 +32,7 @@ from torchrl_stages.sweeps import read_job
 from torchrl_stages.validate import ConfigError
 
 TINY = {**TINY_STAGE, "frames": 512, "updates_per_batch": 2, "eval_every": 256}
-OVERRIDES = [
-    "task.env.size=10",
-    "task.env.num_stages=2",
-    *[f"~task.stages.s{k}" for k in (2, 3, 4)],
-    *[f"task.stages.s{k}.{key}={value}" for k in (0, 1) for key, value in TINY.items()],
-    "checkpoint_every=256",
-    "eval.plots=false",
-    "progress=false",
-]
+OVERRIDES = [*tiny_grid(TINY), "checkpoint_every=256"]
 
 
 def compose(*overrides: str):
@@ -370,7 +362,7 @@ def _close_a_batched_env() -> None:
 @pytest.mark.parametrize("schedule", ["backward", "joint"])
 def test_the_thread_count_is_held_in_every_update_and_evaluation(tmp_path, monkeypatch, schedule):
     from torchrl_stages import evaluate as evaluation
-    from torchrl_stages.learners import DQNLearner as Learner
+    from torchrl_stages.learners.dqn import DQNLearner as Learner
 
     seen = {"update": [], "evaluation": []}
     update, rollout = Learner.update, evaluation.evaluate_policy
@@ -410,7 +402,7 @@ def test_hold_threads_puts_the_count_back():
 def test_a_signal_checkpoints_then_hands_over_to_the_handler_before(finished, tmp_path):
     import signal
 
-    from torchrl_stages.learners import DQNLearner
+    from torchrl_stages.learners.dqn import DQNLearner
     from torchrl_stages.preemption import Interrupted
 
     run_dir, seen, calls = tmp_path / "run", [], []

@@ -19,9 +19,8 @@ from line_env import line_stage, unbatched_line
 from omegaconf import OmegaConf
 
 from torchrl_stages import GymStageEnv, StagedTask, StageTrainer
-from torchrl_stages.config import DQNConfig
 from torchrl_stages.experiment import build_task
-from torchrl_stages.learners import DQNLearner
+from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
 from torchrl_stages.validate import ConfigError
 
 TESTS = Path(__file__).resolve().parent

@@ -7,9 +7,9 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torchrl_stages.config import DQNConfig
 from torchrl_stages.envs import GridWorldEnv
 from torchrl_stages.joint import JointTrainer
+from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.schedule import train_flat
 from torchrl_stages.stage import Stopwatch
 from torchrl_stages.task import StagedTask

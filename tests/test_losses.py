@@ -16,9 +16,11 @@ from test_shared_encoder import IMAGE, SMALL
 from test_shared_encoder import batch as image_batch
 from torchrl.data import Bounded, Categorical
 
-from torchrl_stages.config import DDPGConfig, DQNConfig, TD3Config
 from torchrl_stages.experiment import compile_mode
-from torchrl_stages.learners import DDPGLearner, DQNLearner, StageSpecs, TD3Learner
+from torchrl_stages.learners import StageSpecs
+from torchrl_stages.learners.ddpg import DDPGConfig, DDPGLearner
+from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
+from torchrl_stages.learners.td3 import TD3Config, TD3Learner
 
 DISCRETE = StageSpecs(["observation"], 2, "action", Categorical(4))
 # non-trivial bounds: the actor's tanh is rescaled into them

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 from omegaconf import OmegaConf
 
-from torchrl_stages.config import DQNConfig
 from torchrl_stages.envs import gridworld_optimal_values
+from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.reports.gridworld import merged_value_map
 from torchrl_stages.schedule import train_backward
 from torchrl_stages.task import StagedTask

@@ -7,8 +7,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_stages import replay as replay_module
 from torchrl_stages import stage as stage_module
-from torchrl_stages.config import DQNConfig
-from torchrl_stages.learners import DQNLearner
+from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
 from torchrl_stages.replay import GatherStorage
 from torchrl_stages.task import StagedTask
 

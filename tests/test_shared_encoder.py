@@ -16,8 +16,9 @@ from tensordict import TensorDict
 from torch.func import functional_call
 from torchrl.data import Bounded
 
-from torchrl_stages.config import DDPGConfig, TD3Config
-from torchrl_stages.learners import DDPGLearner, StageSpecs, TD3Learner
+from torchrl_stages.learners import StageSpecs
+from torchrl_stages.learners.ddpg import DDPGConfig, DDPGLearner
+from torchrl_stages.learners.td3 import TD3Config, TD3Learner
 
 # a 1 x 6 x 6 image and a 2-vector, like the cargo stages' window and target
 IMAGE = StageSpecs(

@@ -4,7 +4,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import nn
 
-from torchrl_stages.config import DQNConfig
+from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.stage import _EvalMonitor
 
 

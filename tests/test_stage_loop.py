@@ -12,8 +12,10 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from torchrl_stages.config import DQNConfig
-from torchrl_stages.learners import DDPGLearner, DQNLearner, Learner, TD3Learner
+from torchrl_stages.learners import Learner
+from torchrl_stages.learners.ddpg import DDPGLearner
+from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
+from torchrl_stages.learners.td3 import TD3Learner
 from torchrl_stages.schedule import train_backward, train_stage
 from torchrl_stages.stage import StageTrainer
 from torchrl_stages.task import StagedTask

@@ -10,8 +10,10 @@ from torch import nn
 from torchrl.data import Bounded, Categorical
 from torchrl.modules import MLP, QValueActor, ValueOperator
 
-from torchrl_stages.config import DDPGConfig, DQNConfig, TD3Config
-from torchrl_stages.learners import DDPGLearner, DQNLearner, StageSpecs, TD3Learner
+from torchrl_stages.learners import StageSpecs
+from torchrl_stages.learners.ddpg import DDPGConfig, DDPGLearner
+from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
+from torchrl_stages.learners.td3 import TD3Config, TD3Learner
 from torchrl_stages.transforms import freeze
 from torchrl_stages.values import ActorCriticValue, QMaxValue, with_params
 

@@ -2,7 +2,13 @@
 
 from torchrl_stages.experiment import Experiment
 from torchrl_stages.gym_env import GymStageEnv, threshold_stage
-from torchrl_stages.learners import DDPGLearner, DQNLearner, Learner, StageSpecs, TD3Learner
+from torchrl_stages.learners import (
+    ALGORITHMS,
+    Learner,
+    StageSpecs,
+    make_learner,
+    register_algorithm,
+)
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.rundir import load_policy, load_run
 from torchrl_stages.schedule import train_backward, train_stage
@@ -14,9 +20,8 @@ from torchrl_stages.transforms import StageRewardTransform, StageTransform, free
 from torchrl_stages.values import ActorCriticValue, QMaxValue, with_params
 
 __all__ = [
+    "ALGORITHMS",
     "ActorCriticValue",
-    "DDPGLearner",
-    "DQNLearner",
     "Experiment",
     "GymStageEnv",
     "Learner",
@@ -27,10 +32,11 @@ __all__ = [
     "StageTransform",
     "StackedPolicy",
     "StagedTask",
-    "TD3Learner",
     "freeze",
     "load_policy",
     "load_run",
+    "make_learner",
+    "register_algorithm",
     "summarize_sweep",
     "target_value",
     "threshold_stage",

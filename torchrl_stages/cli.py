@@ -26,12 +26,12 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
-from torchrl_stages.config import register_configs
 from torchrl_stages.experiment import Experiment, one_line
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.reports import evaluate_run, format_summary
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
 from torchrl_stages.stage import DivergenceError, EnvError
+from torchrl_stages.store import register_configs
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.validate import ConfigError, validate_sweeper
 

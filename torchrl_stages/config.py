@@ -1,10 +1,11 @@
-"""Configuration schemas, registered in Hydra's ConfigStore.
+"""Configuration schemas and the checks every config value goes through.
 
 The YAML files in ``conf/`` only pick groups and override these defaults; the dataclasses are the
 single source of truth for what a key means and what it defaults to. Every stage of a task is one
-entry of ``task.stages`` holding an algorithm schema (:class:`DQNConfig`, :class:`DDPGConfig` or
-:class:`TD3Config`), so ``task.stages.s3.lr=3e-4`` and ``algo@task.stages.s0=td3`` work from the
-command line and a typo fails at composition.
+entry of ``task.stages`` holding an algorithm's schema (a subclass of :class:`StageConfig`
+defined next to its learner in ``torchrl_stages/learners/<algo>.py``), so
+``task.stages.s3.lr=3e-4`` and ``algo@task.stages.s0=<algo>`` work from the command line and a
+typo fails at composition (``torchrl_stages.store.register_configs``).
 """
 
 from __future__ import annotations
@@ -12,9 +13,57 @@ from __future__ import annotations
 from dataclasses import dataclass, field, is_dataclass
 from typing import Any
 
-from hydra.core.config_store import ConfigStore
 from omegaconf import II, MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
+
+
+class ConfigError(ValueError):
+    """An invalid configuration, found before training starts."""
+
+
+def check(ok: bool, key: str, value: object, rule: str, fix: str) -> None:
+    """Raises :class:`ConfigError` ``"{key}={value!r}: {rule}. Fix: {fix}"`` unless ``ok``.
+
+    Examples:
+        >>> check(True, "seed", 0, "must be >= 0", "set seed=0")
+        >>> check(False, "seed", -1, "must be >= 0", "set seed=0")
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.config.ConfigError: seed=-1: must be >= 0. Fix: set seed=0
+    """
+    if not ok:
+        raise ConfigError(f"{key}={value!r}: {rule}. Fix: {fix}")
+
+
+class StageChecks:
+    """Range checks of one stage's keys, each error naming ``{key}.{field}`` and the fix.
+
+    Examples:
+        >>> checks = StageChecks("task.stages.s0", {"lr": 0.0, "gamma": 0.9})
+        >>> checks.fraction("gamma", low_open=True)
+        >>> checks.positive("lr", 1e-3)
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.config.ConfigError: task.stages.s0.lr=0.0: must be > 0. Fix: ...
+    """
+
+    def __init__(self, key: str, cfg: Any) -> None:
+        self.key, self.cfg = key, cfg
+
+    def __call__(self, ok: bool, field: str, rule: str, fix: str) -> None:
+        check(ok, f"{self.key}.{field}", self.cfg[field], rule, fix)
+
+    def positive(self, field: str, example: object) -> None:
+        self(self.cfg[field] > 0, field, "must be > 0", f"set {self.key}.{field}={example}")
+
+    def non_negative(self, field: str) -> None:
+        self(self.cfg[field] >= 0, field, "must be >= 0", f"set {self.key}.{field}=0 or more")
+
+    def fraction(self, field: str, low_open: bool = False) -> None:
+        v = self.cfg[field]
+        ok = (0 < v <= 1) if low_open else (0 <= v <= 1)
+        rule = "must be in (0, 1]" if low_open else "must be in [0, 1]"
+        self(ok, field, rule, f"set {self.key}.{field} to a value in that range")
 
 
 @dataclass
@@ -24,7 +73,11 @@ class StageConfig:
     Budgets are counted in env frames (summed over the stage env's batch).
     """
 
-    algo: str = MISSING
+    algo: str = MISSING  # a registered algorithm (torchrl_stages.learners.ALGORITHMS)
+    # your own learner class instead of the algorithm's (it keeps the keys of `algo`):
+    # {_target_: my_pkg.MyLearner, my_key: 1}; the class is called with (cfg, specs, compile=,
+    # my_key=1) and subclasses torchrl_stages.learners.Learner
+    learner: dict[str, Any] = field(default_factory=dict)
     gamma: float = 0.99  # this stage's discount (also used for its transition reward)
     lr: float = 1e-3  # learning rate (the critic's, for actor-critic algorithms)
     # every learning rate decays linearly to this fraction of its start value over `frames`
@@ -65,62 +118,6 @@ class StageConfig:
     keep_best: bool = True  # budget exhausted: restore the best evaluated weights
     # "best" = highest success, then: value_error (lowest) | return (highest mean discounted)
     keep_best_by: str = "value_error"
-
-
-@dataclass
-class DQNConfig(StageConfig):
-    """DQN stage (discrete actions): torchrl's ``DQNLoss`` with an epsilon-greedy collector."""
-
-    algo: str = "dqn"
-    double_dqn: bool = True  # double-DQN targets (torchrl's DQNLoss(double_dqn=...))
-    # dueling Q-network: separate state-value and advantage heads. Where actions differ by little
-    # (a blocked move in the grid world costs 1 - gamma of the value) the advantages are learned
-    # apart from the value they would otherwise be lost in, and the greedy action stops flipping.
-    dueling: bool = True
-    loss_function: str = "l2"  # l1 | l2 | smooth_l1
-    eps_init: float = 1.0
-    eps_end: float = 0.05
-    annealing_frames: int = 20_000  # frames over which epsilon decays linearly
-
-
-@dataclass
-class DDPGConfig(StageConfig):
-    """DDPG stage (continuous, bounded actions): ``DDPGLoss`` with Gaussian exploration."""
-
-    algo: str = "ddpg"
-    actor_lr: float = 1e-3
-    loss_function: str = "l2"
-    sigma_init: float = 0.5  # exploration noise std (in action units) at the start
-    sigma_end: float = 0.1
-    annealing_frames: int = 20_000
-    # weight of mean(relu(|pre-tanh actor output| - 2)^2) in the actor loss: keeps the actor out
-    # of deep tanh saturation, where its gradient vanishes and the actor stays at an action bound
-    # for good (the manipulator's fine stage failed from one elbow configuration without it, the
-    # cargo slider circled); zero inside |action| <= 0.96 of the bound (0: off)
-    saturation_penalty: float = 1.0
-    # one input encoder (the CNN of image observations) for the actor and the critic(s),
-    # trained by the critic loss alone; the actor reads its features detached (as SAC-AE and
-    # DrQ do). An update then encodes s and s' once each (s' with the target encoder) instead
-    # of once per network (TD3: five). A different network from separate encoders. Without an
-    # image input or fourier_features there is no encoder to share.
-    shared_encoder: bool = False
-
-
-@dataclass
-class TD3Config(DDPGConfig):
-    """TD3 stage: twin critics, target policy smoothing and delayed actor updates."""
-
-    algo: str = "td3"
-    policy_noise: float = 0.2
-    noise_clip: float = 0.5
-    policy_update_delay: int = 2
-
-
-ALGO_SCHEMAS: dict[str, type[StageConfig]] = {
-    "dqn": DQNConfig,
-    "ddpg": DDPGConfig,
-    "td3": TD3Config,
-}
 
 
 @dataclass
@@ -240,9 +237,9 @@ def as_dataclass(cfg: Any) -> Any:
 
     Examples:
         >>> from omegaconf import OmegaConf
-        >>> cfg = as_dataclass(OmegaConf.structured(DQNConfig(gamma=0.9)))
+        >>> cfg = as_dataclass(OmegaConf.structured(StageConfig(algo="mine", gamma=0.9)))
         >>> type(cfg).__name__, cfg.gamma
-        ('DQNConfig', 0.9)
+        ('StageConfig', 0.9)
     """
     if isinstance(cfg, DictConfig) and is_dataclass(OmegaConf.get_type(cfg)):
         try:
@@ -250,13 +247,3 @@ def as_dataclass(cfg: Any) -> Any:
         except OmegaConfBaseException:  # e.g. a missing value: keep the node (errors on read)
             return cfg
     return cfg
-
-
-def register_configs() -> None:
-    """Registers the schemas in Hydra's ConfigStore (YAML files extend them by name)."""
-    cs = ConfigStore.instance()
-    cs.store(name="train_schema", node=TrainConfig)
-    cs.store(group="logger", name="logger_schema", node=LoggerConfig)
-    cs.store(group="schedule", name="schedule_schema", node=ScheduleConfig)
-    for name, schema in ALGO_SCHEMAS.items():
-        cs.store(group="algo", name=f"{name}_schema", node=schema)

@@ -123,7 +123,7 @@ class Experiment:
 
     Examples:
         >>> from hydra import compose, initialize_config_module
-        >>> from torchrl_stages.config import register_configs
+        >>> from torchrl_stages.store import register_configs
         >>> register_configs()
         >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
         ...     cfg = compose("config", overrides=["experiment=smoke"])  # doctest: +SKIP

@@ -70,7 +70,7 @@ class JointTrainer:
 
     Examples:
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_stages.config import DQNConfig
+        >>> from torchrl_stages.learners.dqn import DQNConfig
         >>> from torchrl_stages.task import StagedTask
         >>> tiny = DQNConfig(frames=512, frames_per_batch=128, num_envs=16,
         ...                  init_random_frames=128, batch_size=32, eval_every=0)
@@ -122,7 +122,7 @@ class JointTrainer:
     def _stored_keys(self, m: int) -> list[NestedKey]:
         """What stage m's buffer keeps: its loss's entries, the stage tags, and what the next
         stage's value reads from s_{t+1}."""
-        keys = [*self.learners[m].loss.in_keys, *TAGS]
+        keys = [*self.learners[m].replay_keys, *TAGS]
         transform = self.buffers[m].transform[0]
         if transform.next_value is not None:
             keys += [

@@ -60,7 +60,7 @@ def train_backward(
 
     Examples:
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_stages.config import DQNConfig
+        >>> from torchrl_stages.learners.dqn import DQNConfig
         >>> from torchrl_stages.task import StagedTask
         >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16,
         ...                  init_random_frames=128, batch_size=32, eval_every=0)
@@ -128,7 +128,7 @@ def train_stage(
 
     Examples:
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_stages.config import DQNConfig
+        >>> from torchrl_stages.learners.dqn import DQNConfig
         >>> from torchrl_stages.task import StagedTask
         >>> cfg = DQNConfig(frames=128, frames_per_batch=64, num_envs=8, batch_size=16)
         >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 5, "num_stages": 1}
@@ -186,7 +186,7 @@ def train_flat(
 
     Examples:
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_stages.config import DQNConfig
+        >>> from torchrl_stages.learners.dqn import DQNConfig
         >>> from torchrl_stages.task import StagedTask
         >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16, gamma=0.9,
         ...                  init_random_frames=128, batch_size=32, eval_every=0)

@@ -85,7 +85,7 @@ def stage_failure(
     bad = non_finite_entries(stored, skip=[learner.specs.action_key]) if stored is not None else []
     if bad:
         return EnvError(stage, name, bad[0], f"found in the replay buffer after: {err}")
-    return DivergenceError(stage, name, learner.algo, err)
+    return DivergenceError(stage, name, learner, err)
 
 
 class DivergenceError(RuntimeError):
@@ -96,12 +96,12 @@ class DivergenceError(RuntimeError):
     stage has been saved.
     """
 
-    def __init__(self, stage: int, name: str, algo: str, cause: FloatingPointError) -> None:
+    def __init__(self, stage: int, name: str, learner: Learner, cause: FloatingPointError) -> None:
         key = f"task.stages.{name}"
-        rates = f"{key}.lr" if algo == "dqn" else f"{key}.lr or {key}.actor_lr"
+        rates = " or ".join(f"{key}.{k}" for k in learner.lr_keys)
         super().__init__(
-            f"stage {stage} ({name}, {algo}) diverged: {cause}. Nothing of stage {stage} was "
-            f"saved. Fix: lower {rates}, or set {key}.max_grad_norm"
+            f"stage {stage} ({name}, {learner.algo}) diverged: {cause}. Nothing of stage "
+            f"{stage} was saved. Fix: lower {rates}, or set {key}.max_grad_norm"
         )
         self.stage = stage
 
@@ -319,8 +319,7 @@ class StageTrainer:
 
     Examples:
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_stages.config import DQNConfig
-        >>> from torchrl_stages.learners import DQNLearner
+        >>> from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
         >>> from torchrl_stages.task import StagedTask
         >>> task = StagedTask(OmegaConf.create({
         ...     "name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
@@ -355,7 +354,7 @@ class StageTrainer:
         self.on_evaluate = on_evaluate
         self.gammas = gammas
         self.postproc = postproc
-        self.keys = list(dict.fromkeys([*learner.loss.in_keys, *extra_keys]))
+        self.keys = list(dict.fromkeys([*learner.replay_keys, *extra_keys]))
         self.stage = stage
         self.learner = learner
         self.env = env

@@ -9,20 +9,19 @@ k+1's loss into the frozen ``V_{k+1}(s)`` module that
 from __future__ import annotations
 
 from tensordict.nn import TensorDictModuleBase
-from torchrl.objectives import DDPGLoss, DQNLoss, LossModule, TD3Loss
+from torchrl.objectives import LossModule
 
-from torchrl_stages.values import ActorCriticValue, QMaxValue, with_params
+from torchrl_stages.learners import ALGORITHMS
 
 __all__ = ["target_value"]
 
 
 def target_value(loss: LossModule, *, live: bool = False) -> TensorDictModuleBase:
-    """``V(s)`` from the *target* networks of a torchrl loss, writing ``"state_value"``.
-
-    * ``DQNLoss``: ``max_a Q_target(s, a)`` (:class:`~torchrl_stages.values.QMaxValue`);
-    * ``DDPGLoss``: ``Q_target(s, mu_target(s))``;
-    * ``TD3Loss``: the minimum of the twin target critics at ``mu_target(s)``
-      (:class:`~torchrl_stages.values.ActorCriticValue`).
+    """``V(s)`` from the *target* networks of a torchrl loss, writing ``"state_value"``: what
+    the algorithm whose :attr:`~torchrl_stages.learners.Learner.torchrl_loss` it is hands to the
+    stage before it (:meth:`~torchrl_stages.learners.Learner.value_from_loss`; e.g.
+    ``max_a Q_target(s, a)`` for ``DQNLoss``, the minimum of the twin target critics at
+    ``mu_target(s)`` for ``TD3Loss``).
 
     The module holds a copy of the target parameters (``live=True``: it reads them in place
     and follows the target updater, as the joint schedule needs). The loss must have been
@@ -43,21 +42,12 @@ def target_value(loss: LossModule, *, live: bool = False) -> TensorDictModuleBas
         >>> value(td)["state_value"].shape
         torch.Size([5, 1])
     """
-    if isinstance(loss, TD3Loss):
-        params = loss.target_qvalue_network_params
-        critics = [
-            with_params(loss.qvalue_network, params[i], live=live) for i in range(params.shape[0])
-        ]
-        actor = with_params(loss.actor_network, loss.target_actor_network_params, live=live)
-        return ActorCriticValue(actor, critics)
-    if isinstance(loss, DDPGLoss):
-        actor = with_params(loss.actor_network, loss.target_actor_network_params, live=live)
-        critic = with_params(loss.value_network, loss.target_value_network_params, live=live)
-        return ActorCriticValue(actor, [critic])
-    if isinstance(loss, DQNLoss):
-        qnet = with_params(loss.value_network, loss.target_value_network_params, live=live)
-        return QMaxValue(qnet)
+    for cls in type(loss).__mro__:  # the most derived loss class an algorithm names
+        for learner in ALGORITHMS.values():
+            if learner.torchrl_loss is cls:
+                return learner.value_from_loss(loss, live=live)
+    known = ", ".join(c.torchrl_loss.__name__ for c in ALGORITHMS.values() if c.torchrl_loss)
     raise TypeError(
-        f"target_value supports DQNLoss, DDPGLoss and TD3Loss, got {type(loss).__name__}; "
-        "build the value module yourself with QMaxValue / ActorCriticValue and with_params"
+        f"target_value supports {known}, got {type(loss).__name__}; build the value module "
+        "yourself with QMaxValue / ActorCriticValue and with_params"
     )

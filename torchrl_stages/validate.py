@@ -8,52 +8,27 @@ import math
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_stages.learners import LEARNERS
+from torchrl_stages.config import ConfigError, StageChecks, check
+from torchrl_stages.learners import ALGORITHMS, learner_class
 
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
-LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
 SCHEDULES = ("backward", "joint", "flat")
 COMPILE_MODES = ("auto", "off", "default", "reduce-overhead", "max-autotune")
 OBJECTIVE_METRICS = ("success_rate", "mean_return", "mean_steps")
 DIRECTIONS = ("maximize", "minimize")
 
 
-class ConfigError(ValueError):
-    """An invalid configuration, found before training starts."""
-
-
-def _check(ok: bool, key: str, value: object, rule: str, fix: str) -> None:
-    if not ok:
-        raise ConfigError(f"{key}={value!r}: {rule}. Fix: {fix}")
-
-
 def _check_stage(key: str, s: DictConfig) -> None:
-    """Ranges of one stage's hyper-parameters (``key`` is e.g. ``task.stages.s3``)."""
-
-    def positive(field: str, example: object) -> None:
-        v = s[field]
-        _check(v > 0, f"{key}.{field}", v, "must be > 0", f"set {key}.{field}={example}")
-
-    def non_negative(field: str) -> None:
-        v = s[field]
-        _check(v >= 0, f"{key}.{field}", v, "must be >= 0", f"set {key}.{field}=0 or more")
-
-    def fraction(field: str, low_open: bool = False) -> None:
-        v = s[field]
-        ok = (0 < v <= 1) if low_open else (0 <= v <= 1)
-        rule = "must be in (0, 1]" if low_open else "must be in [0, 1]"
-        _check(ok, f"{key}.{field}", v, rule, f"set {key}.{field} to a value in that range")
-
-    _check(
-        s.algo in LEARNERS,
-        f"{key}.algo",
-        s.algo,
-        f"unknown algorithm (known: {', '.join(LEARNERS)})",
-        f"select one with algo@{key}=dqn|ddpg|td3",
-    )
-    fraction("gamma", low_open=True)
-    fraction("tau", low_open=True)
+    """One stage's keys (``key`` is e.g. ``task.stages.s3``): those every stage has, then its
+    algorithm's own (:meth:`~torchrl_stages.learners.Learner.validate`)."""
+    try:
+        learner = learner_class(s)
+    except ConfigError as err:
+        raise ConfigError(f"{key}.{err}") from None
+    checks = StageChecks(key, s)
+    checks.fraction("gamma", low_open=True)
+    checks.fraction("tau", low_open=True)
     for field, example in [
         ("lr", 1e-3),
         ("num_envs", 64),
@@ -64,95 +39,67 @@ def _check_stage(key: str, s: DictConfig) -> None:
         ("eval_episodes", 64),
         ("patience", 1),
     ]:
-        positive(field, example)
+        checks.positive(field, example)
     for field in ("init_random_frames", "updates_per_batch", "eval_every", "min_frames"):
-        non_negative(field)
-    _check(
+        checks.non_negative(field)
+    checks(
         len(s.num_cells) > 0 and all(c > 0 for c in s.num_cells),
-        f"{key}.num_cells",
-        list(s.num_cells),
+        "num_cells",
         "needs at least one positive layer width",
         f"set {key}.num_cells=[64,64]",
     )
     defaults = {"cnn_channels": "[16,32]", "cnn_kernels": "[3,3]", "cnn_strides": "[1,2]"}
     cnn = {field: list(s[field]) for field in defaults}
     for field, values in cnn.items():
-        _check(
+        checks(
             len(values) > 0 and all(v > 0 for v in values),
-            f"{key}.{field}",
-            values,
+            field,
             "must hold positive integers (one per conv layer)",
             f"set {key}.{field}={defaults[field]}",
         )
-    _check(
+    checks(
         len(set(map(len, cnn.values()))) == 1,
-        f"{key}.cnn_channels",
-        cnn["cnn_channels"],
+        "cnn_channels",
         f"needs one entry per conv layer, like {key}.cnn_kernels={cnn['cnn_kernels']} and "
         f"{key}.cnn_strides={cnn['cnn_strides']}",
         "give cnn_channels, cnn_kernels and cnn_strides the same length",
     )
-    _check(
+    checks(
         s.frames_per_batch % s.num_envs == 0,
-        f"{key}.frames_per_batch",
-        s.frames_per_batch,
+        "frames_per_batch",
         f"must be a multiple of {key}.num_envs={s.num_envs}",
         f"set {key}.frames_per_batch={max(1, s.frames_per_batch // s.num_envs) * s.num_envs}",
     )
-    _check(
+    checks(
         s.frames >= s.frames_per_batch,
-        f"{key}.frames",
-        s.frames,
+        "frames",
         f"is smaller than one collector batch ({key}.frames_per_batch={s.frames_per_batch})",
         f"raise {key}.frames or lower {key}.frames_per_batch",
     )
-    _check(
+    checks(
         s.batch_size <= s.buffer_size,
-        f"{key}.batch_size",
-        s.batch_size,
+        "batch_size",
         f"exceeds {key}.buffer_size={s.buffer_size}",
         f"lower {key}.batch_size",
     )
-    _check(
-        s.loss_function in LOSS_FUNCTIONS,
-        f"{key}.loss_function",
-        s.loss_function,
-        f"unknown (known: {', '.join(LOSS_FUNCTIONS)})",
-        f"set {key}.loss_function=l2",
-    )
-    _check(
+    checks(
         s.keep_best_by in ("value_error", "return"),
-        f"{key}.keep_best_by",
-        s.keep_best_by,
+        "keep_best_by",
         "unknown (known: value_error, return)",
         f"set {key}.keep_best_by=value_error",
     )
     if s.success_threshold is not None:
-        fraction("success_threshold")
+        checks.fraction("success_threshold")
     if s.eval_max_steps is not None:
-        positive("eval_max_steps", 100)
+        checks.positive("eval_max_steps", 100)
     if s.value_tolerance is not None:
-        _check(
+        checks(
             s.value_tolerance >= 0,
-            f"{key}.value_tolerance",
-            s.value_tolerance,
+            "value_tolerance",
             "must be >= 0 (or null)",
             f"set {key}.value_tolerance=0.02 or null",
         )
-    if s.algo == "dqn":
-        fraction("eps_init")
-        fraction("eps_end")
-        non_negative("annealing_frames")
-    else:
-        positive("actor_lr", 1e-3)
-        non_negative("saturation_penalty")
-        non_negative("sigma_init")
-        non_negative("sigma_end")
-        non_negative("annealing_frames")
-    if s.algo == "td3":
-        positive("policy_update_delay", 2)
-        non_negative("policy_noise")
-        non_negative("noise_clip")
+    learner.validate(checks)
 
 
 def _check_finite(node: object, prefix: str) -> None:
@@ -163,7 +110,7 @@ def _check_finite(node: object, prefix: str) -> None:
         for key, value in items:
             _check_finite(value, f"{prefix}.{key}" if prefix else str(key))
     elif isinstance(node, float) and not math.isfinite(node):
-        _check(False, prefix, node, "must be a finite number", f"set {prefix} to a finite value")
+        check(False, prefix, node, "must be a finite number", f"set {prefix} to a finite value")
 
 
 def validate_config(cfg: DictConfig) -> None:
@@ -172,14 +119,14 @@ def validate_config(cfg: DictConfig) -> None:
     for name in ("eval", "objective"):
         _check_finite(cfg.get(name), name)
     for key in missing_keys(cfg.task.get("env"), "task.env"):
-        _check(
+        check(
             False,
             key,
             "???",
             f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)",
             f"set it on the command line: {key}=...",
         )
-    _check(
+    check(
         cfg.logger.backend in LOGGER_BACKENDS,
         "logger.backend",
         cfg.logger.backend,
@@ -187,38 +134,38 @@ def validate_config(cfg: DictConfig) -> None:
         "select one with logger=csv",
     )
     package = LOGGER_PACKAGES.get(cfg.logger.backend)
-    _check(
+    check(
         package is None or importlib.util.find_spec(package) is not None,
         "logger.backend",
         cfg.logger.backend,
         f"needs the '{package}' package, which is not installed",
         f"pip install {package}, or use logger=csv",
     )
-    _check(cfg.threads >= 1, "threads", cfg.threads, "must be >= 1", "set threads=1")
+    check(cfg.threads >= 1, "threads", cfg.threads, "must be >= 1", "set threads=1")
     objective = cfg.get("objective")
     if objective is not None:
-        _check(
+        check(
             objective.metric in OBJECTIVE_METRICS,
             "objective.metric",
             objective.metric,
             f"unknown (known: {', '.join(OBJECTIVE_METRICS)}: entries of eval.json)",
             "set objective.metric=success_rate",
         )
-        _check(
+        check(
             objective.direction in DIRECTIONS,
             "objective.direction",
             objective.direction,
             "must be maximize or minimize",
             f"set objective.direction=maximize (or minimize, e.g. for {OBJECTIVE_METRICS[2]})",
         )
-    _check(
+    check(
         cfg.schedule.name in SCHEDULES,
         "schedule.name",
         cfg.schedule.name,
         f"unknown schedule (known: {', '.join(SCHEDULES)})",
         "select one with schedule=backward|joint|flat",
     )
-    _check(
+    check(
         cfg.schedule.name != "backward" or cfg.task.get("stage_starts", True),
         "schedule",
         cfg.schedule.name,
@@ -226,21 +173,21 @@ def validate_config(cfg: DictConfig) -> None:
         "which the backward schedule needs",
         "use schedule=joint (one phase from the task's own starts)",
     )
-    _check(
+    check(
         cfg.checkpoint_every >= 0,
         "checkpoint_every",
         cfg.checkpoint_every,
         "must be >= 0 (0: no checkpoints)",
         "set checkpoint_every=50000",
     )
-    _check(
+    check(
         cfg.compile in COMPILE_MODES,
         "compile",
         cfg.compile,
         f"unknown (known: {', '.join(COMPILE_MODES)})",
         "set compile=auto",
     )
-    _check(
+    check(
         cfg.checkpoint_keep >= 1,
         "checkpoint_keep",
         cfg.checkpoint_keep,
@@ -252,8 +199,8 @@ def validate_config(cfg: DictConfig) -> None:
     except (RuntimeError, TypeError):
         device = None
     fix = "set device=cpu (or cuda)"
-    _check(device is not None, "device", cfg.device, "is not a torch device", fix)
-    _check(
+    check(device is not None, "device", cfg.device, "is not a torch device", fix)
+    check(
         device.type != "cuda" or torch.cuda.is_available(),
         "device",
         cfg.device,
@@ -261,21 +208,21 @@ def validate_config(cfg: DictConfig) -> None:
         "set device=cpu",
     )
     count = torch.cuda.device_count() if device.type == "cuda" else 0
-    _check(
+    check(
         device.type != "cuda" or device.index is None or device.index < count,
         "device",
         cfg.device,
         f"names a GPU this machine does not have (it has {count})",
         "set device=cuda (the first GPU) or a lower index",
     )
-    _check(
+    check(
         cfg.eval.episodes >= 1,
         "eval.episodes",
         cfg.eval.episodes,
         "must be >= 1",
         "set eval.episodes=100",
     )
-    _check(
+    check(
         len(cfg.task.stages) > 0,
         "task.stages",
         dict(cfg.task.stages),
@@ -283,12 +230,12 @@ def validate_config(cfg: DictConfig) -> None:
         "pick a task with stages, e.g. task=gridworld",
     )
     for name, stage in cfg.task.stages.items():
-        _check(
+        check(
             isinstance(stage, DictConfig) and "algo" in stage,
             f"task.stages.{name}",
             stage,
             "is not a stage learner config",
-            f"select one with algo@task.stages.{name}=dqn",
+            f"select one with algo@task.stages.{name}=<algo> ({'|'.join(ALGORITHMS)})",
         )
         _check_stage(f"task.stages.{name}", stage)
 
@@ -320,7 +267,7 @@ def validate_env_protocol(cfg: DictConfig, env) -> None:
         "accept the batch_size keyword and build a batched env of that size (e.g. with "
         "torchrl's SerialEnv), or use task=gym for a gymnasium env (torchrl_stages.GymStageEnv)"
     )
-    _check(
+    check(
         tuple(env.batch_size) == (1,),
         "task.env._target_",
         target,
@@ -329,14 +276,14 @@ def validate_env_protocol(cfg: DictConfig, env) -> None:
         fix,
     )
     num_stages = getattr(env, "num_stages", None)
-    _check(
+    check(
         isinstance(num_stages, int) and num_stages >= 1,
         "task.env._target_",
         target,
         f"the env has no positive integer num_stages attribute (got {num_stages!r})",
         "give the env class a num_stages attribute (the number of stages it runs through)",
     )
-    _check(
+    check(
         hasattr(env, "stage_fn") and (env.stage_fn is None or callable(env.stage_fn)),
         "task.env._target_",
         target,
@@ -351,19 +298,19 @@ def validate_task(cfg: DictConfig, task) -> None:
     algorithm against the built env's specs."""
     validate_env_protocol(cfg, task.probe)
     names = list(cfg.task.stages)
-    _check(
+    check(
         len(names) == task.num_stages,
         "task.stages",
         names,
         f"task '{cfg.task.name}' has {task.num_stages} stages but {len(names)} are configured",
         f"configure exactly {task.num_stages} stages (add them with "
-        f"+algo@task.stages.NAME=dqn or remove extra ones with ~task.stages.NAME)",
+        f"+algo@task.stages.NAME=<algo> or remove extra ones with ~task.stages.NAME)",
     )
     if cfg.schedule.name == "flat":
         first = task.specs(0)
         for k, name in enumerate(names):
             specs = task.specs(k)
-            _check(
+            check(
                 specs.action_key == first.action_key
                 and list(specs.observation_keys) == list(first.observation_keys),
                 "schedule",
@@ -375,12 +322,12 @@ def validate_task(cfg: DictConfig, task) -> None:
                 "task.env.robots=[propelled] ~task.stages.slider), or use schedule=backward",
             )
     for k, name in enumerate(names):
-        algo = cfg.task.stages[name].algo
-        problem = LEARNERS[algo].check_action_spec(task.specs(k).action_spec)
-        _check(
+        stage = cfg.task.stages[name]
+        problem = learner_class(stage).check_action_spec(task.specs(k).action_spec)
+        check(
             problem is None,
             f"task.stages.{name}.algo",
-            algo,
+            stage.algo,
             str(problem),
             f"override it with algo@task.stages.{name}=<algo>",
         )
@@ -402,14 +349,14 @@ def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
         >>> validate_sweeper(OmegaConf.create({"direction": "maximize"}), cfg)
         Traceback (most recent call last):
         ...
-        torchrl_stages.validate.ConfigError: hydra.sweeper.direction='maximize': ...
+        torchrl_stages.config.ConfigError: hydra.sweeper.direction='maximize': ...
     """
     if sweeper is None or sweeper.get("direction") is None:
         return
     objective = cfg.objective
     direction = sweeper.direction
     if not isinstance(direction, str) and isinstance(direction, list | tuple | ListConfig):
-        _check(
+        check(
             False,
             "hydra.sweeper.direction",
             [_direction_name(d) for d in direction],
@@ -417,7 +364,7 @@ def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
             f"set hydra.sweeper.direction={objective.direction}",
         )
     name = _direction_name(direction)
-    _check(
+    check(
         name == objective.direction,
         "hydra.sweeper.direction",
         name,

@@ -1,37 +1,103 @@
-"""Per-stage learners: one class per algorithm behind the :class:`Learner` interface."""
+"""Per-stage learners: one module per algorithm, each registered in :data:`ALGORITHMS`.
+
+An algorithm is one module of this package holding its config dataclass, its
+:class:`Learner` subclass (accepted action spaces, checks, stage value, learning-rate keys)
+and its ``@register_algorithm``; every module here is imported on import, so adding a file
+(plus its ``conf/algo/<name>.yaml``) is all an algorithm takes. A learner class of your own
+package trains a stage without registering: ``task.stages.<stage>.learner._target_`` (see
+:func:`learner_class`).
+"""
 
 import contextlib
+import importlib
+import pkgutil
+from collections.abc import Mapping
+from typing import Any
 
 import torch
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf
 
-from torchrl_stages.learners.base import FusedAdam, Learner, StageSpecs
-from torchrl_stages.learners.ddpg import DDPGLearner
-from torchrl_stages.learners.dqn import DQNLearner
-from torchrl_stages.learners.td3 import TD3Learner
+from torchrl_stages.config import ConfigError
+from torchrl_stages.learners.base import (
+    ALGORITHMS,
+    FusedAdam,
+    Learner,
+    StageSpecs,
+    register_algorithm,
+)
 
-LEARNERS: dict[str, type[Learner]] = {
-    cls.algo: cls for cls in (DQNLearner, DDPGLearner, TD3Learner)
-}
+for _module in pkgutil.iter_modules(__path__):  # each algorithm module registers itself
+    importlib.import_module(f"{__name__}.{_module.name}")
+
+
+def _field(cfg: Any, name: str) -> Any:
+    """A key of a stage config: a mapping (``DictConfig``, dict) or its dataclass."""
+    return cfg.get(name) if isinstance(cfg, Mapping) else getattr(cfg, name, None)
+
+
+def learner_class(cfg: Any) -> type[Learner]:
+    """The learner class of a stage config: the one ``cfg.learner._target_`` names (a class
+    of your own, imported here), else the registered algorithm ``cfg.algo``. Raises
+    :class:`~torchrl_stages.config.ConfigError` naming the key and the fix.
+
+    Examples:
+        >>> learner_class({"algo": "dqn"}).algo
+        'dqn'
+        >>> learner_class({"algo": "dqn", "learner": {"_target_": "no_such.Learner"}})
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.config.ConfigError: learner._target_='no_such.Learner': ...
+    """
+    target = (_field(cfg, "learner") or {}).get("_target_")
+    if target is None:
+        name = _field(cfg, "algo")
+        if name not in ALGORITHMS:
+            raise ConfigError(
+                f"algo={name!r}: unknown algorithm (known: {', '.join(ALGORITHMS)}). Fix: "
+                f"select one with algo@task.stages.<stage>={'|'.join(ALGORITHMS)}"
+            )
+        return ALGORITHMS[name]
+    try:
+        cls = get_class(str(target))
+    except Exception as err:  # noqa: BLE001 - Hydra wraps import errors in several types
+        cause = err.__cause__ or err
+        raise ConfigError(
+            f"learner._target_={target!r}: cannot import it ({type(cause).__name__}: "
+            f"{str(cause).splitlines()[0] if str(cause) else ''}). Fix: name a class of an "
+            "importable module (pip install your package, or add its directory to PYTHONPATH)"
+        ) from None
+    if not (isinstance(cls, type) and issubclass(cls, Learner)):
+        raise ConfigError(
+            f"learner._target_={target!r}: is not a subclass of torchrl_stages.learners.Learner. "
+            "Fix: subclass it (each module of torchrl_stages/learners/ is a whole example)"
+        )
+    return cls
 
 
 def make_learner(
     cfg, specs: StageSpecs, compile: str = "off", device: str | torch.device | None = None
 ) -> Learner:
-    """Builds the learner named by ``cfg.algo`` (``dqn``, ``ddpg`` or ``td3``); ``compile``:
-    ``torch.compile`` mode of its update's loss (``off``, ``default``, ``reduce-overhead``...);
-    ``device``: where every tensor it builds lives (networks, targets, bounds; default: torch's
-    default device), the device of the envs it acts in."""
+    """Builds the learner of stage config ``cfg`` (:func:`learner_class`; a ``learner`` node's
+    other keys are its keyword arguments); ``compile``: ``torch.compile`` mode of its update's
+    loss (``off``, ``default``, ``reduce-overhead``...); ``device``: where every tensor it
+    builds lives (networks, targets, bounds; default: torch's default device), the device of
+    the envs it acts in."""
+    cls = learner_class(cfg)
+    node = _field(cfg, "learner") or {}
+    if isinstance(node, DictConfig):
+        node = OmegaConf.to_container(node, resolve=True)
+    kwargs = {k: v for k, v in node.items() if k != "_target_"}
     with torch.device(device) if device is not None else contextlib.nullcontext():
-        return LEARNERS[cfg.algo](cfg, specs, compile=compile)
+        return cls(cfg, specs, compile=compile, **kwargs)
 
 
 __all__ = [
-    "LEARNERS",
-    "DDPGLearner",
-    "DQNLearner",
+    "ALGORITHMS",
     "FusedAdam",
     "Learner",
     "StageSpecs",
-    "TD3Learner",
+    "learner_class",
     "make_learner",
+    "register_algorithm",
 ]

@@ -1,6 +1,8 @@
-"""Pieces shared by the deterministic actor-critic learners (DDPG, TD3)."""
+"""What the deterministic actor-critic algorithms share: their keys and their learner base."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -10,18 +12,41 @@ from torchrl.data import TensorSpec
 from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
 from torchrl.objectives import LossModule, ValueEstimators
 
-from torchrl_stages.config import DDPGConfig
+from torchrl_stages.config import StageChecks, StageConfig
 from torchrl_stages.learners.base import (
     FusedSoftUpdate,
     Learner,
     StageSpecs,
-    is_continuous,
+    check_loss_function,
     linear_schedule,
 )
 from torchrl_stages.learners.networks import SharedEncoderCritic, mlp
 from torchrl_stages.values import with_params
 
 SATURATION = 2.0  # pre-tanh magnitude beyond which `saturation_penalty` applies (tanh(2) = 0.96)
+
+
+@dataclass
+class ActorCriticConfig(StageConfig):
+    """The keys of a deterministic actor-critic stage (continuous, bounded actions) with
+    Gaussian exploration; ``lr`` is the critic's."""
+
+    actor_lr: float = 1e-3
+    loss_function: str = "l2"
+    sigma_init: float = 0.5  # exploration noise std (in action units) at the start
+    sigma_end: float = 0.1
+    annealing_frames: int = 20_000
+    # weight of mean(relu(|pre-tanh actor output| - 2)^2) in the actor loss: keeps the actor out
+    # of deep tanh saturation, where its gradient vanishes and the actor stays at an action bound
+    # for good (the manipulator's fine stage failed from one elbow configuration without it, the
+    # cargo slider circled); zero inside |action| <= 0.96 of the bound (0: off)
+    saturation_penalty: float = 1.0
+    # one input encoder (the CNN of image observations) for the actor and the critic(s),
+    # trained by the critic loss alone; the actor reads its features detached (as SAC-AE and
+    # DrQ do). An update then encodes s and s' once each (s' with the target encoder) instead
+    # of once per network (five with twin critics). A different network from separate
+    # encoders. Without an image input or fourier_features there is no encoder to share.
+    shared_encoder: bool = False
 
 
 class ActorCriticLearner(Learner):
@@ -32,7 +57,10 @@ class ActorCriticLearner(Learner):
     module, the value estimator, the optimizers and the soft target updater.
     """
 
-    def __init__(self, cfg: DDPGConfig, specs: StageSpecs, *, compile: str = "off") -> None:
+    action_spaces = ("continuous",)
+    lr_keys = ("lr", "actor_lr")
+
+    def __init__(self, cfg: ActorCriticConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
         spec = specs.action_spec
         action_dim = spec.shape[-1]
@@ -77,13 +105,11 @@ class ActorCriticLearner(Learner):
         self.make_losses()
 
     @classmethod
-    def check_action_spec(cls, spec: TensorSpec) -> str | None:
-        if not is_continuous(spec):
-            return (
-                f"{cls.algo.upper()} needs a bounded continuous action space (Bounded float), "
-                f"got {type(spec).__name__}; use algo dqn for this stage"
-            )
-        return None
+    def validate(cls, checks: StageChecks) -> None:
+        check_loss_function(checks)
+        checks.positive("actor_lr", 1e-3)
+        for field in ("saturation_penalty", "sigma_init", "sigma_end", "annealing_frames"):
+            checks.non_negative(field)
 
     @property
     def actor_module(self) -> nn.Module:
@@ -139,7 +165,7 @@ class ActorCriticLearner(Learner):
         excess = (u.abs() - SATURATION).clamp_min(0.0)
         return self.cfg.saturation_penalty * excess.pow(2).mean()
 
-    def make_loss(self, cfg: DDPGConfig, spec: TensorSpec) -> LossModule:
+    def make_loss(self, cfg: ActorCriticConfig, spec: TensorSpec) -> LossModule:
         raise NotImplementedError
 
     def make_losses(self) -> None:

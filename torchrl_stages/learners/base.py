@@ -20,7 +20,7 @@ from torch.optim.optimizer import (
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
 from torchrl.objectives import SoftUpdate
 
-from torchrl_stages.config import StageConfig, as_dataclass
+from torchrl_stages.config import StageChecks, StageConfig, as_dataclass
 from torchrl_stages.learners.networks import ConvSpec
 
 
@@ -206,6 +206,19 @@ def td0_target(
     return reward + discount * alive * next_value
 
 
+LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
+
+
+def check_loss_function(checks: StageChecks) -> None:
+    """A stage's ``loss_function`` is one :func:`distance` knows."""
+    checks(
+        checks.cfg["loss_function"] in LOSS_FUNCTIONS,
+        "loss_function",
+        f"unknown (known: {', '.join(LOSS_FUNCTIONS)})",
+        f"set {checks.key}.loss_function=l2",
+    )
+
+
 def distance(pred: torch.Tensor, target: torch.Tensor, loss_function: str) -> torch.Tensor:
     """torchrl's ``distance_loss`` (l1, l2 or smooth_l1), elementwise."""
     if loss_function == "l2":
@@ -230,13 +243,61 @@ def linear_schedule(start: float, end: float, frames: int, horizon: int) -> floa
     return end + (start - end) * max(0.0, 1.0 - frames / horizon)
 
 
+#: every algorithm by its name in configs (``algo: <name>``), filled by :func:`register_algorithm`
+ALGORITHMS: dict[str, type[Learner]] = {}
+
+
+def register_algorithm(cls: type[Learner]) -> type[Learner]:
+    """Class decorator: makes a :class:`Learner` subclass an algorithm known by its
+    :attr:`Learner.algo` name to the CLI (``algo@task.stages.<stage>=<name>``), the config
+    store, validation, the help text and the value adapters. Its :attr:`Learner.Config` is the
+    schema of its stages' keys.
+
+    Examples:
+        >>> from dataclasses import dataclass
+        >>> from torchrl_stages.config import StageConfig
+        >>> @dataclass
+        ... class NoopConfig(StageConfig):
+        ...     algo: str = "noop"
+        >>> @register_algorithm
+        ... class Noop(Learner):
+        ...     algo, Config = "noop", NoopConfig
+        >>> ALGORITHMS.pop("noop") is Noop
+        True
+    """
+    name = cls.algo
+    if not name or not isinstance(cls.Config, type) or cls.Config.algo != name:
+        raise TypeError(
+            f"{cls.__name__}: an algorithm needs a name (algo) and a Config dataclass whose "
+            f"algo field defaults to it, got algo={name!r}, Config={cls.Config!r}"
+        )
+    if ALGORITHMS.get(name, cls) is not cls:
+        raise ValueError(f"algorithm {name!r} is registered twice ({ALGORITHMS[name]}, {cls})")
+    ALGORITHMS[name] = cls
+    return cls
+
+
+def action_space_kind(spec: TensorSpec) -> str:
+    """``"discrete"`` (Categorical, OneHot), ``"continuous"`` (bounded float) or the spec's
+    class name."""
+    if is_discrete(spec):
+        return "discrete"
+    if is_continuous(spec):
+        return "continuous"
+    return type(spec).__name__
+
+
 class Learner(nn.Module, ABC):
     """One stage's algorithm: networks, exploration, loss, optimizers and target updater.
 
-    Subclasses build these from a :class:`~torchrl_stages.config.StageConfig` and
-    :class:`StageSpecs` and implement :meth:`update`, :meth:`anneal_exploration` and
-    :meth:`value`. The loop in
-    :mod:`torchrl_stages.stage` only talks to this interface, so all algorithms share it.
+    An algorithm is one module of :mod:`torchrl_stages.learners`: a subclass that names itself
+    (:attr:`algo`), declares its config dataclass (:attr:`Config`), the action spaces it
+    accepts (:attr:`action_spaces`), its learning-rate keys (:attr:`lr_keys`) and its own
+    validation (:meth:`validate`), builds its networks from a
+    :class:`~torchrl_stages.config.StageConfig` and :class:`StageSpecs`, implements
+    :meth:`update`, :meth:`anneal_exploration` and :meth:`value` (the ``V(s)`` it hands to the
+    stage before it), and is registered with :func:`register_algorithm`. The loops in
+    :mod:`torchrl_stages.stage` and :mod:`torchrl_stages.joint` only talk to this interface.
 
     Attributes:
         policy: the greedy (deterministic) policy, used for evaluation and the stacked policy.
@@ -244,9 +305,17 @@ class Learner(nn.Module, ABC):
         optimizers: named optimizers, saved with checkpoints.
     """
 
-    #: the algorithm's name in configs (``algo: dqn``)
+    #: the algorithm's name in configs (``algo: <name>``)
     algo: str = ""
-    #: whether :meth:`update` draws from torch's global generator (TD3's target smoothing
+    #: the schema of its stages' keys
+    Config: type[StageConfig] = StageConfig
+    #: the action spaces it acts in (:func:`action_space_kind`)
+    action_spaces: tuple[str, ...] = ()
+    #: its learning-rate keys (what a diverged stage's error message suggests lowering)
+    lr_keys: tuple[str, ...] = ("lr",)
+    #: the torchrl loss module whose target networks :meth:`value_from_loss` reads
+    torchrl_loss: type | None = None
+    #: whether :meth:`update` draws from torch's global generator (a target policy's smoothing
     #: noise); if not, the stage loop samples all of a batch's minibatches in one draw
     update_draws_random: bool = False
 
@@ -262,6 +331,16 @@ class Learner(nn.Module, ABC):
         self.num_updates = 0
 
     @property
+    def replay_keys(self) -> list[NestedKey]:
+        """The entries of a transition its update reads, what a stage's replay buffer keeps:
+        the observations, the action, and ``next``'s observations, reward, ``done`` and
+        ``terminated``."""
+        obs = list(self.specs.observation_keys)
+        following = [("next", k) if isinstance(k, str) else ("next", *k) for k in obs]
+        done = [("next", "reward"), ("next", "done"), ("next", "terminated")]
+        return [*obs, self.specs.action_key, *following, *done]
+
+    @property
     def device(self) -> torch.device:
         """Where the networks live (``make_learner``'s ``device``): replay batches go there."""
         return next(self.parameters()).device
@@ -275,7 +354,25 @@ class Learner(nn.Module, ABC):
     @classmethod
     def check_action_spec(cls, spec: TensorSpec) -> str | None:
         """Why this algorithm cannot act on ``spec`` (``None`` when it can)."""
-        return None
+        kind = action_space_kind(spec)
+        if not cls.action_spaces or kind in cls.action_spaces:
+            return None
+        others = [name for name, c in ALGORITHMS.items() if kind in c.action_spaces]
+        return (
+            f"{cls.algo} needs a {' or '.join(cls.action_spaces)} action space, got "
+            f"{type(spec).__name__}" + (f"; use algo {' or '.join(others)}" if others else "")
+        )
+
+    @classmethod
+    def validate(cls, checks: StageChecks) -> None:
+        """The algorithm's own checks of a stage's keys, beyond every stage's (raise
+        :class:`~torchrl_stages.config.ConfigError` through ``checks``)."""
+
+    @classmethod
+    def value_from_loss(cls, loss: Any, live: bool = False) -> TensorDictModuleBase:
+        """``V(s)`` from the target networks of a :attr:`torchrl_loss` of this algorithm (see
+        :func:`torchrl_stages.targets.target_value`)."""
+        raise NotImplementedError(f"{cls.algo} has no value from a torchrl loss")
 
     @abstractmethod
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:

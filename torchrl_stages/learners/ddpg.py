@@ -1,6 +1,8 @@
-"""DDPG stage learner (continuous, bounded actions)."""
+"""DDPG for continuous-action stages: its config, learner and value."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -9,20 +11,28 @@ from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
 
-from torchrl_stages.config import DDPGConfig
-from torchrl_stages.learners.actor_critic import ActorCriticLearner
-from torchrl_stages.learners.base import detached_copy, distance, td0_target
+from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
+from torchrl_stages.learners.base import detached_copy, distance, register_algorithm, td0_target
 from torchrl_stages.values import ActorCriticValue, with_params
 
 
+@dataclass
+class DDPGConfig(ActorCriticConfig):
+    """DDPG stage (continuous, bounded actions): ``DDPGLoss``'s objective with Gaussian
+    exploration."""
+
+    algo: str = "ddpg"
+
+
+@register_algorithm
 class DDPGLearner(ActorCriticLearner):
     """DDPG for one stage: its parameters (and their targets) in torchrl's ``DDPGLoss``, its
     update on :meth:`_plain_losses`, what that module computes on plain tensors.
 
     Examples:
         >>> from torchrl.data import Bounded
-        >>> from torchrl_stages.config import DDPGConfig
-        >>> from torchrl_stages.learners import DDPGLearner, StageSpecs
+        >>> from torchrl_stages.learners import StageSpecs
+        >>> from torchrl_stages.learners.ddpg import DDPGConfig, DDPGLearner
         >>> specs = StageSpecs(["observation"], 3, "action", Bounded(-1.0, 1.0, shape=(2,)))
         >>> learner = DDPGLearner(DDPGConfig(), specs)
         >>> sorted(learner.optimizers)
@@ -30,6 +40,15 @@ class DDPGLearner(ActorCriticLearner):
     """
 
     algo = "ddpg"
+    Config = DDPGConfig
+    torchrl_loss = DDPGLoss
+
+    @classmethod
+    def value_from_loss(cls, loss: DDPGLoss, live: bool = False) -> TensorDictModuleBase:
+        """``Q_target(s, mu_target(s))`` of a ``DDPGLoss`` with target networks."""
+        actor = with_params(loss.actor_network, loss.target_actor_network_params, live=live)
+        critic = with_params(loss.value_network, loss.target_value_network_params, live=live)
+        return ActorCriticValue(actor, [critic])
 
     def make_loss(self, cfg: DDPGConfig, spec: TensorSpec) -> DDPGLoss:
         loss = DDPGLoss(

@@ -1,30 +1,50 @@
-"""DQN stage learner (discrete actions)."""
+"""DQN (double, dueling) for discrete-action stages: its config, learner, checks and value."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torch import nn
-from torchrl.data import OneHot, TensorSpec
+from torchrl.data import OneHot
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, ValueEstimators
 
-from torchrl_stages.config import DQNConfig
+from torchrl_stages.config import StageChecks, StageConfig
 from torchrl_stages.learners.base import (
     FusedSoftUpdate,
     Learner,
     StageSpecs,
+    check_loss_function,
     detached_copy,
     distance,
-    is_discrete,
     linear_schedule,
+    register_algorithm,
     td0_target,
 )
 from torchrl_stages.learners.networks import qvalue_net
 from torchrl_stages.values import QMaxValue, with_params
 
 
+@dataclass
+class DQNConfig(StageConfig):
+    """DQN stage (discrete actions): ``DQNLoss``'s objective with an epsilon-greedy collector."""
+
+    algo: str = "dqn"
+    double_dqn: bool = True  # double-DQN targets (torchrl's DQNLoss(double_dqn=...))
+    # dueling Q-network: separate state-value and advantage heads. Where actions differ by little
+    # (a blocked move in the grid world costs 1 - gamma of the value) the advantages are learned
+    # apart from the value they would otherwise be lost in, and the greedy action stops flipping.
+    dueling: bool = True
+    loss_function: str = "l2"  # l1 | l2 | smooth_l1
+    eps_init: float = 1.0
+    eps_end: float = 0.05
+    annealing_frames: int = 20_000  # frames over which epsilon decays linearly
+
+
+@register_algorithm
 class DQNLearner(Learner):
     """DQN (optionally double DQN) for one stage.
 
@@ -35,8 +55,8 @@ class DQNLearner(Learner):
 
     Examples:
         >>> from torchrl.data import Categorical
-        >>> from torchrl_stages.config import DQNConfig
-        >>> from torchrl_stages.learners import DQNLearner, StageSpecs
+        >>> from torchrl_stages.learners import StageSpecs
+        >>> from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
         >>> specs = StageSpecs(["observation"], 2, "action", Categorical(4))
         >>> learner = DQNLearner(DQNConfig(gamma=0.9), specs)
         >>> learner.value().out_keys
@@ -44,6 +64,9 @@ class DQNLearner(Learner):
     """
 
     algo = "dqn"
+    Config = DQNConfig
+    action_spaces = ("discrete",)
+    torchrl_loss = DQNLoss
 
     def __init__(self, cfg: DQNConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
@@ -93,13 +116,18 @@ class DQNLearner(Learner):
         return self.qnet.module[0].module
 
     @classmethod
-    def check_action_spec(cls, spec: TensorSpec) -> str | None:
-        if not is_discrete(spec):
-            return (
-                f"DQN needs a discrete action space (Categorical or OneHot), got "
-                f"{type(spec).__name__}; use algo ddpg or td3 for this stage"
-            )
-        return None
+    def validate(cls, checks: StageChecks) -> None:
+        check_loss_function(checks)
+        checks.fraction("eps_init")
+        checks.fraction("eps_end")
+        checks.non_negative("annealing_frames")
+
+    @classmethod
+    def value_from_loss(cls, loss: DQNLoss, live: bool = False) -> TensorDictModuleBase:
+        """``max_a Q_target(s, a)`` of a ``DQNLoss`` with target networks."""
+        return QMaxValue(
+            with_params(loss.value_network, loss.target_value_network_params, live=live)
+        )
 
     def _plain_loss(self, batch: TensorDictBase) -> torch.Tensor:
         """What ``DQNLoss`` computes, on plain tensors: ``(Q(s, a) - y)`` under the loss
@@ -142,5 +170,4 @@ class DQNLearner(Learner):
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         """``max_a Q_target(s, a)``."""
-        target = self.loss.target_value_network_params
-        return QMaxValue(with_params(self.qnet, target, live=live))
+        return self.value_from_loss(self.loss, live=live)

@@ -1,6 +1,8 @@
-"""TD3 stage learner (continuous, bounded actions)."""
+"""TD3 for continuous-action stages: its config, learner, checks and value."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -9,20 +11,31 @@ from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import TD3Loss
 
-from torchrl_stages.config import TD3Config
-from torchrl_stages.learners.actor_critic import ActorCriticLearner
-from torchrl_stages.learners.base import detached_copy, distance, td0_target
+from torchrl_stages.config import StageChecks
+from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
+from torchrl_stages.learners.base import detached_copy, distance, register_algorithm, td0_target
 from torchrl_stages.values import ActorCriticValue, with_params
 
 
+@dataclass
+class TD3Config(ActorCriticConfig):
+    """TD3 stage: twin critics, target policy smoothing and delayed actor updates."""
+
+    algo: str = "td3"
+    policy_noise: float = 0.2
+    noise_clip: float = 0.5
+    policy_update_delay: int = 2
+
+
+@register_algorithm
 class TD3Learner(ActorCriticLearner):
     """TD3 for one stage (twin critics, delayed actor updates): its parameters (and their
     targets) in torchrl's ``TD3Loss``, its update on what that module computes, on plain tensors.
 
     Examples:
         >>> from torchrl.data import Bounded
-        >>> from torchrl_stages.config import TD3Config
-        >>> from torchrl_stages.learners import StageSpecs, TD3Learner
+        >>> from torchrl_stages.learners import StageSpecs
+        >>> from torchrl_stages.learners.td3 import TD3Config, TD3Learner
         >>> specs = StageSpecs(["observation"], 3, "action", Bounded(-1.0, 1.0, shape=(2,)))
         >>> learner = TD3Learner(TD3Config(), specs)
         >>> len(learner.value().critics)
@@ -30,7 +43,26 @@ class TD3Learner(ActorCriticLearner):
     """
 
     algo = "td3"
+    Config = TD3Config
+    torchrl_loss = TD3Loss
     update_draws_random = True  # the target policy's smoothing noise
+
+    @classmethod
+    def validate(cls, checks: StageChecks) -> None:
+        super().validate(checks)
+        checks.positive("policy_update_delay", 2)
+        checks.non_negative("policy_noise")
+        checks.non_negative("noise_clip")
+
+    @classmethod
+    def value_from_loss(cls, loss: TD3Loss, live: bool = False) -> TensorDictModuleBase:
+        """The minimum of a ``TD3Loss``'s twin target critics at ``mu_target(s)``."""
+        params = loss.target_qvalue_network_params
+        critics = [
+            with_params(loss.qvalue_network, params[i], live=live) for i in range(params.shape[0])
+        ]
+        actor = with_params(loss.actor_network, loss.target_actor_network_params, live=live)
+        return ActorCriticValue(actor, critics)
 
     def make_loss(self, cfg: TD3Config, spec: TensorSpec) -> TD3Loss:
         # separate_losses: a shared encoder's copies in the critics are views of the actor's,

@@ -1,0 +1,37 @@
+"""Hydra's ConfigStore: the root schema and the schema of every registered algorithm.
+
+``conf/algo/<name>.yaml`` extends ``<name>_schema`` (the algorithm's config dataclass, see
+:data:`torchrl_stages.learners.ALGORITHMS`), so ``algo@task.stages.<stage>=<name>`` composes a
+stage from its algorithm's keys and defaults. The ``stages_algorithms`` resolver lists the
+registered algorithms (for ``stages-train --help``).
+"""
+
+from __future__ import annotations
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
+
+from torchrl_stages.config import LoggerConfig, ScheduleConfig, TrainConfig
+from torchrl_stages.learners import ALGORITHMS
+
+
+def register_configs() -> None:
+    """Registers the schemas in Hydra's ConfigStore (YAML files extend them by name).
+
+    Examples:
+        >>> register_configs()
+        >>> from hydra.core.config_store import ConfigStore
+        >>> "dqn_schema.yaml" in ConfigStore.instance().repo["algo"]
+        True
+    """
+    cs = ConfigStore.instance()
+    cs.store(name="train_schema", node=TrainConfig)
+    cs.store(group="logger", name="logger_schema", node=LoggerConfig)
+    cs.store(group="schedule", name="schedule_schema", node=ScheduleConfig)
+    for name, learner in ALGORITHMS.items():
+        cs.store(group="algo", name=f"{name}_schema", node=learner.Config)
+    if not OmegaConf.has_resolver("stages_algorithms"):
+        OmegaConf.register_new_resolver("stages_algorithms", lambda: "|".join(ALGORITHMS))
+
+
+__all__ = ["register_configs"]
