@@ -19,7 +19,9 @@ from torchrl.data import Bounded, Categorical
 from torchrl_stages.experiment import compile_mode
 from torchrl_stages.learners import StageSpecs
 from torchrl_stages.learners.ddpg import DDPGConfig, DDPGLearner
+from torchrl_stages.learners.discrete_sac import DiscreteSACConfig, DiscreteSACLearner
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
+from torchrl_stages.learners.sac import SACConfig, SACLearner
 from torchrl_stages.learners.td3 import TD3Config, TD3Learner
 
 DISCRETE = StageSpecs(["observation"], 2, "action", Categorical(4))
@@ -151,6 +153,78 @@ def test_td3_losses_are_torchrls_td3_loss(penalty):
     assert_same_grads(grads(learner.loss.actor_network_params) + grads(critics), expected)
 
 
+def _compare_sac(learner, data) -> None:
+    """The learner's three losses and their gradients against the torchrl loss's forward,
+    both drawing from the same seed (the next actions first, then the actor's)."""
+    loss = learner.loss
+    params = [loss.actor_network_params, loss.qvalue_network_params]
+    perturb(loss.target_qvalue_network_params)
+    with torch.no_grad():
+        loss.log_alpha.fill_(-0.7)  # alpha away from 1
+    torch.manual_seed(5)
+    out = loss(data.clone())
+    (out["loss_actor"] + out["loss_qvalue"] + out["loss_alpha"]).backward()
+    expected = [g for p in params for g in grads(p)] + [loss.log_alpha.grad.clone()]
+    for optimizer in learner.optimizers.values():
+        optimizer.zero_grad()
+    torch.manual_seed(5)
+    loss_actor, loss_q, loss_alpha = learner._plain_losses(data.clone())
+    (loss_actor + loss_q + loss_alpha).backward()
+    torch.testing.assert_close(loss_actor, out["loss_actor"])
+    torch.testing.assert_close(loss_q, out["loss_qvalue"])
+    torch.testing.assert_close(loss_alpha, out["loss_alpha"])
+    assert_same_grads([g for p in params for g in grads(p)] + [loss.log_alpha.grad], expected)
+
+
+@pytest.mark.parametrize("loss_function", ["l2", "smooth_l1"])
+def test_sac_losses_are_torchrls_sac_loss(loss_function):
+    cfg = SACConfig(loss_function=loss_function)
+    learner = SACLearner(OmegaConf.structured(cfg), CONTINUOUS)
+    _compare_sac(learner, batch(3, torch.rand(64, 2) * 2 - 1))
+
+
+@pytest.mark.parametrize("loss_function", ["l2", "smooth_l1"])
+def test_discrete_sac_losses_are_torchrls_discrete_sac_loss(loss_function):
+    cfg = DiscreteSACConfig(loss_function=loss_function, fourier_features=2)
+    learner = DiscreteSACLearner(OmegaConf.structured(cfg), DISCRETE)
+    _compare_sac(learner, batch(2, torch.randint(4, (64,))))
+
+
+def test_discrete_sac_value_is_the_soft_value_of_its_critic_targets():
+    """``V(s')`` is what the torchrl loss bootstraps from: with reward 0 and no termination,
+    its target is ``gamma V(s')``."""
+    learner = DiscreteSACLearner(OmegaConf.structured(DiscreteSACConfig(gamma=0.9)), DISCRETE)
+    perturb(learner.loss.target_qvalue_network_params)
+    data = batch(2, torch.randint(4, (64,)))
+    data["next", "reward"].zero_()
+    data["next", "terminated"].zero_()
+    del data["steps_to_next_obs"]
+    target = learner.loss._compute_target(data.clone())
+    value = learner.value()(data["next"].select("observation").clone())["state_value"]
+    torch.testing.assert_close(0.9 * value.squeeze(-1), target)
+
+
+def test_sac_value_is_a_fixed_function_of_the_state_and_the_soft_value():
+    learner = SACLearner(OmegaConf.structured(SACConfig(value_samples=4096)), CONTINUOUS)
+    obs = TensorDict(observation=torch.rand(5, 3), batch_size=[5])
+    value = learner.value()
+    state = torch.get_rng_state()
+    first = value(obs.clone())["state_value"]
+    assert torch.equal(torch.get_rng_state(), state)  # the global generator is left alone
+    assert torch.equal(value(obs.clone())["state_value"], first)  # a function of s
+    # the expectation it estimates, from independent draws of the same policy
+    loss = learner.loss
+    with torch.no_grad():
+        dist = learner._dist(learner.actor_module(obs["observation"]))
+        action, log_prob = dist.rsample((4096,)), None
+        log_prob = dist.log_prob(action)
+        critics = loss.target_qvalue_network_params["module"]
+        obs_k = obs["observation"].expand(4096, 5, 3)
+        q = torch.stack(learner.critic_values(critics, obs_k, action)).amin(0)
+        expected = (q - loss.log_alpha.exp() * log_prob.unsqueeze(-1)).mean(0)
+    torch.testing.assert_close(first, expected, rtol=0.05, atol=0.05)
+
+
 def test_fused_soft_update_moves_targets_by_tau():
     learner = DQNLearner(OmegaConf.structured(DQNConfig(tau=0.3)), DISCRETE)
     perturb(learner.loss.value_network_params)
@@ -174,6 +248,14 @@ def compiled_learner(name: str, compile: str):
     if name == "ddpg":
         learner = DDPGLearner(OmegaConf.structured(DDPGConfig()), CONTINUOUS, compile=compile)
         return learner, lambda seed: batch(3, torch.rand(64, 2) * 2 - 1), 1
+    if name == "sac":  # with the shared CNN encoder
+        cfg = SACConfig(**SMALL, shared_encoder=True)
+        learner = SACLearner(OmegaConf.structured(cfg), IMAGE, compile=compile)
+        return learner, lambda seed: image_batch(seed=seed), 1
+    if name == "discrete_sac":
+        cfg = DiscreteSACConfig(fourier_features=2)
+        learner = DiscreteSACLearner(OmegaConf.structured(cfg), DISCRETE, compile=compile)
+        return learner, lambda seed: batch(2, torch.randint(4, (64,))), 1
     cfg = TD3Config(**SMALL, shared_encoder=True, policy_update_delay=1)
     learner = TD3Learner(OmegaConf.structured(cfg), IMAGE, compile=compile)
     return learner, lambda seed: image_batch(seed=seed), 2
@@ -206,7 +288,7 @@ def test_compiled_losses_are_one_graph_and_the_same_updates(name, monkeypatch):
         assert torch.equal(value, states["off"][key]), key
 
 
-@pytest.mark.parametrize("name", ["dqn", "ddpg", "td3"])
+@pytest.mark.parametrize("name", ["dqn", "ddpg", "td3", "sac", "discrete_sac"])
 def test_update_returns_losses_the_next_replay_cannot_overwrite(name):
     """Under ``compile=reduce-overhead`` each loss is a CUDA graph's static output,
     rewritten by the graph's next replay while the stage still holds the batch's losses for

@@ -1,4 +1,4 @@
-"""DDPG and TD3 with one input encoder for the actor and the critic(s) (``shared_encoder``).
+"""DDPG, TD3 and SAC with one input encoder for the actor and the critics (``shared_encoder``).
 
 The shared path must compute TD3's losses for critics that read the actor's encoder (the target
 critics the target actor's), train the encoder with the critic loss alone, hand on the value of
@@ -18,6 +18,7 @@ from torchrl.data import Bounded
 
 from torchrl_stages.learners import StageSpecs
 from torchrl_stages.learners.ddpg import DDPGConfig, DDPGLearner
+from torchrl_stages.learners.sac import SACConfig, SACLearner
 from torchrl_stages.learners.td3 import TD3Config, TD3Learner
 
 # a 1 x 6 x 6 image and a 2-vector, like the cargo stages' window and target
@@ -31,6 +32,9 @@ def make(shared: bool = True, specs: StageSpecs = IMAGE, algo: str = "td3", **kw
     if algo == "ddpg":
         cfg = DDPGConfig(**{**SMALL, "shared_encoder": shared, **kw})
         return DDPGLearner(OmegaConf.structured(cfg), specs)
+    if algo == "sac":
+        cfg = SACConfig(**{**SMALL, "shared_encoder": shared, **kw})
+        return SACLearner(OmegaConf.structured(cfg), specs)
     cfg = TD3Config(**{**SMALL, "shared_encoder": shared, "policy_update_delay": 1, **kw})
     return TD3Learner(OmegaConf.structured(cfg), specs)
 
@@ -74,12 +78,12 @@ def trained(**kw):
     return learner
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "td3"])
+@pytest.mark.parametrize("algo", ["ddpg", "td3", "sac"])
 def test_one_encoder_serves_the_actor_and_the_critics(algo):
     learner, separate = make(algo=algo), make(shared=False, algo=algo)
     assert learner.shared_encoder and not separate.shared_encoder
     assert learner.critic_module.encoder is learner.actor_module.encoder
-    critic = "qvalue_network" if algo == "td3" else "value_network"
+    critic = "value_network" if algo == "ddpg" else "qvalue_network"
     for name in (f"{critic}_params", f"target_{critic}_params"):
         assert list(getattr(learner.loss, name)["module"].keys()) == ["body"]  # no copies
     # the critic optimizer trains the encoder, the actor optimizer does not
@@ -172,7 +176,7 @@ def test_stage_value_reads_the_target_encoder(live):
     torch.testing.assert_close(value, q.amin(0))
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "td3"])
+@pytest.mark.parametrize("algo", ["ddpg", "td3", "sac"])
 def test_checkpoint_round_trip_continues_exactly(algo):
     trained = make(algo=algo)
     for seed in range(3):
@@ -228,3 +232,54 @@ def test_ddpg_losses_on_the_shared_encoder():
         action = learner.squash(learner._target_actor(*obs_td.values()))
         want = critic(learner, target_heads, 0, target, *obs_td.values(), action)
     torch.testing.assert_close(learner.value()(obs_td)["state_value"], want)
+
+
+def test_sac_losses_on_the_shared_encoder():
+    """SAC's losses through the whole critic modules (the trained encoder for s, the target
+    one for the target critics at s'), the actor on detached features: the same values and
+    gradients, the encoder's from the critics' loss alone."""
+    from torchrl.modules import TanhNormal
+    from torchrl.modules.distributions.utils import rsample_and_log_prob
+
+    learner, data = trained(algo="sac"), batch()
+    loss, gamma = learner.loss, learner.cfg.gamma
+    obs, next_obs = learner.inputs(data), learner.inputs(data, nxt=True)
+    online = dict(learner.actor_module.encoder.named_parameters())
+    target = loss.target_actor_network_params["module", "0", "module", "0", "encoder"]
+    target = dict(target.flatten_keys(".").items())
+    kwargs = learner.actor[1].distribution_kwargs
+    alpha = loss.log_alpha.detach().exp()
+
+    def policy(out):
+        loc, scale = learner.actor[0].module[1](out)
+        return rsample_and_log_prob(TanhNormal(loc, scale, **kwargs))
+
+    torch.manual_seed(5)
+    with torch.no_grad():
+        next_action, next_lp = policy(learner.actor_module(*next_obs))
+        heads = loss.target_qvalue_network_params["module", "body"]
+        q_next = [critic(learner, heads, i, target, *next_obs, next_action) for i in (0, 1)]
+        soft = (torch.stack(q_next) - alpha * next_lp.unsqueeze(-1)).min(0).values
+        y = data["next", "reward"] + gamma * (~data["next", "terminated"]) * soft
+    heads = loss.qvalue_network_params["module", "body"]
+    loss_q = sum(
+        (critic(learner, heads, i, online, *obs, data["action"]) - y).pow(2).mean() for i in (0, 1)
+    )
+    detached = {n: p.detach() for n, p in online.items()}
+    encoded = {f"encoder.{n}": p for n, p in detached.items()}
+    action, lp = policy(functional_call(learner.actor_module, encoded, tuple(obs)))
+    q = [critic(learner, heads.detach(), i, detached, *obs, action) for i in (0, 1)]
+    loss_actor = (alpha * lp - torch.stack(q).min(0).values.squeeze(-1)).mean()
+    loss_alpha = (-loss.log_alpha * (lp.detach() + loss.target_entropy)).mean()
+    (loss_actor + loss_q + loss_alpha).backward()
+    params = [*learner.actor_module.parameters(), *heads.values(True, True), loss.log_alpha]
+    expected = [p.grad.clone() for p in params]
+    learner.zero_grad(set_to_none=True)
+    loss.log_alpha.grad = None
+    torch.manual_seed(5)
+    got = learner._shared_losses(data.clone())
+    sum(got).backward()
+    for value, want in zip(got, (loss_actor, loss_q, loss_alpha), strict=True):
+        torch.testing.assert_close(value, want)
+    for p, grad in zip(params, expected, strict=True):  # the encoder's from the critics alone
+        torch.testing.assert_close(p.grad, grad, rtol=1e-4, atol=1e-6)

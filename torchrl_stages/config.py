@@ -102,6 +102,9 @@ class StageConfig:
     buffer_size: int = 100_000  # replay-buffer capacity (transitions)
     batch_size: int = 256  # replay samples per gradient step
     updates_per_batch: int = 4  # gradient steps per collected batch
+    # frames over which the exploration schedule anneals (epsilon-greedy, Gaussian noise;
+    # algorithms that learn their exploration, such as SAC's entropy, have none)
+    annealing_frames: int = 20_000
     tau: float = 0.005  # soft target-network update rate
     eval_every: int = 5_000  # frames between greedy evaluations of the stage (0: never)
     # greedy episodes per stage evaluation, from random starts in the stage; an env that can

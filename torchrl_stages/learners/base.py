@@ -12,6 +12,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
+from torch.func import functional_call
 from torch.optim.optimizer import (
     ParamsT,
     _global_optimizer_post_hooks,
@@ -226,6 +227,16 @@ def distance(pred: torch.Tensor, target: torch.Tensor, loss_function: str) -> to
     if loss_function == "l1":
         return (pred - target).abs()
     return F.smooth_l1_loss(pred, target, reduction="none")
+
+
+def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tensor) -> list:
+    """``module(*inputs)`` once per parameter set of the stacked ``params``
+    (``[num_nets, ...]``, e.g. twin critics), through ``torch.func.functional_call``."""
+    flat = dict(params.flatten_keys(".").items())
+    return [
+        functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
+        for i in range(params.batch_size[0])
+    ]
 
 
 def detached_copy(loss: torch.Tensor) -> torch.Tensor:

@@ -11,13 +11,16 @@ from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
 
-from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
+from torchrl_stages.learners.actor_critic import (
+    DeterministicActorCriticConfig,
+    DeterministicActorCriticLearner,
+)
 from torchrl_stages.learners.base import detached_copy, distance, register_algorithm, td0_target
 from torchrl_stages.values import ActorCriticValue, with_params
 
 
 @dataclass
-class DDPGConfig(ActorCriticConfig):
+class DDPGConfig(DeterministicActorCriticConfig):
     """DDPG stage (continuous, bounded actions): ``DDPGLoss``'s objective with Gaussian
     exploration."""
 
@@ -25,7 +28,7 @@ class DDPGConfig(ActorCriticConfig):
 
 
 @register_algorithm
-class DDPGLearner(ActorCriticLearner):
+class DDPGLearner(DeterministicActorCriticLearner):
     """DDPG for one stage: its parameters (and their targets) in torchrl's ``DDPGLoss``, its
     update on :meth:`_plain_losses`, what that module computes on plain tensors.
 
@@ -41,6 +44,7 @@ class DDPGLearner(ActorCriticLearner):
 
     algo = "ddpg"
     Config = DDPGConfig
+    CRITIC = "value_network"
     torchrl_loss = DDPGLoss
 
     @classmethod
@@ -60,9 +64,6 @@ class DDPGLearner(ActorCriticLearner):
         )
         self.drop_critic_encoder_copies(loss, "value_network")
         return loss
-
-    def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        return self.split_parameters(self.loss.actor_network_params, self.loss.value_network_params)
 
     def make_losses(self) -> None:
         target_critic = self.with_target_encoder(self.loss.target_value_network_params)

@@ -40,8 +40,7 @@ class DQNConfig(StageConfig):
     dueling: bool = True
     loss_function: str = "l2"  # l1 | l2 | smooth_l1
     eps_init: float = 1.0
-    eps_end: float = 0.05
-    annealing_frames: int = 20_000  # frames over which epsilon decays linearly
+    eps_end: float = 0.05  # epsilon decays linearly to it over `annealing_frames`
 
 
 @register_algorithm

@@ -120,6 +120,25 @@ class InputEncoder(nn.Module):
         return torch.cat(features, -1)
 
 
+class Chain(nn.Sequential):
+    """``nn.Sequential`` whose first module takes several inputs (e.g. an image and a vector).
+
+    Examples:
+        >>> from tensordict.nn import NormalParamExtractor
+        >>> loc, scale = Chain(InputEncoder([(2,), (2,)]), NormalParamExtractor())(
+        ...     torch.zeros(3, 2), torch.ones(3, 2))
+        >>> loc.shape, scale.shape
+        (torch.Size([3, 2]), torch.Size([3, 2]))
+    """
+
+    def forward(self, *inputs: torch.Tensor):
+        first, *rest = self
+        out = first(*inputs)
+        for module in rest:
+            out = module(out)
+        return out
+
+
 class _Encoded(nn.Module):
     def __init__(self, encoder: nn.Module, body: nn.Module) -> None:
         super().__init__()

@@ -7,18 +7,20 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import TD3Loss
 
 from torchrl_stages.config import StageChecks
-from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
+from torchrl_stages.learners.actor_critic import (
+    DeterministicActorCriticConfig,
+    DeterministicActorCriticLearner,
+)
 from torchrl_stages.learners.base import detached_copy, distance, register_algorithm, td0_target
 from torchrl_stages.values import ActorCriticValue, with_params
 
 
 @dataclass
-class TD3Config(ActorCriticConfig):
+class TD3Config(DeterministicActorCriticConfig):
     """TD3 stage: twin critics, target policy smoothing and delayed actor updates."""
 
     algo: str = "td3"
@@ -28,7 +30,7 @@ class TD3Config(ActorCriticConfig):
 
 
 @register_algorithm
-class TD3Learner(ActorCriticLearner):
+class TD3Learner(DeterministicActorCriticLearner):
     """TD3 for one stage (twin critics, delayed actor updates): its parameters (and their
     targets) in torchrl's ``TD3Loss``, its update on what that module computes, on plain tensors.
 
@@ -79,14 +81,7 @@ class TD3Learner(ActorCriticLearner):
             delay_qvalue=True,
             separate_losses=self.shared_encoder,
         )
-        loss.set_keys(action=self.specs.action_key)
-        self.drop_critic_encoder_copies(loss, "qvalue_network")
-        return loss
-
-    def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        return self.split_parameters(
-            self.loss.actor_network_params, self.loss.qvalue_network_params
-        )
+        return self.with_action_key(loss)
 
     def make_losses(self) -> None:
         if self.shared_encoder:
@@ -95,16 +90,6 @@ class TD3Learner(ActorCriticLearner):
         else:
             self._value_loss = self.compiled(self._plain_value_loss)
             self._actor_loss = self.compiled(self._plain_actor_loss)
-
-    def _critics(self, params, *inputs: torch.Tensor, module=None) -> list[torch.Tensor]:
-        """``Q_i(inputs)`` of every critic in the stacked ``params`` (``[num_critics, ...]``),
-        through ``module`` (default: the whole critic)."""
-        module = self.critic_module if module is None else module
-        flat = dict(params.flatten_keys(".").items())
-        return [
-            functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
-            for i in range(params.batch_size[0])
-        ]
 
     def _plain_value_loss(self, batch: TensorDictBase) -> torch.Tensor:
         """What ``TD3Loss.value_loss`` computes, on plain tensors: every critic against
@@ -117,7 +102,7 @@ class TD3Learner(ActorCriticLearner):
         with torch.no_grad():
             next_action = self.squash(self._target_actor(*next_obs)) + noise
             next_action = torch.maximum(torch.minimum(next_action, high), low)
-            targets = self._critics(
+            targets = self.critic_values(
                 self.loss.target_qvalue_network_params["module"], *next_obs, next_action
             )
             target = td0_target(
@@ -126,7 +111,7 @@ class TD3Learner(ActorCriticLearner):
                 float(cfg.gamma),
                 batch.get("steps_to_next_obs", None),
             )
-        preds = self._critics(self.loss.qvalue_network_params["module"], *obs, action)
+        preds = self.critic_values(self.loss.qvalue_network_params["module"], *obs, action)
         return sum(distance(p, target, cfg.loss_function).mean() for p in preds)
 
     def _plain_actor_loss(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
@@ -134,13 +119,8 @@ class TD3Learner(ActorCriticLearner):
         obs = self.inputs(batch)
         u = self.actor_module(*obs)
         first = self.loss.qvalue_network_params["module"].detach()[:1]
-        (q,) = self._critics(first, *obs, self.squash(u))
+        (q,) = self.critic_values(first, *obs, self.squash(u))
         return -q.mean(), self.penalty(u)
-
-    def _heads(self, params, features: torch.Tensor, action: torch.Tensor) -> list[torch.Tensor]:
-        """``Q_i`` of every critic head in the stacked ``params`` on shared-encoder features."""
-        x = torch.cat([features, action], -1)
-        return self._critics(params, x, module=self.critic_module.body)
 
     def _shared_value_loss(self, batch: TensorDictBase) -> torch.Tensor:
         """:meth:`_plain_value_loss` with one encoder: ``s'`` is encoded once, by the target
@@ -154,7 +134,7 @@ class TD3Learner(ActorCriticLearner):
             features = self._target_actor.encoder(*next_obs)
             next_action = self.squash(self._target_actor.body(features)) + noise
             next_action = torch.maximum(torch.minimum(next_action, high), low)
-            targets = self._heads(
+            targets = self.head_values(
                 self.loss.target_qvalue_network_params["module", "body"], features, next_action
             )
             target = td0_target(
@@ -164,7 +144,9 @@ class TD3Learner(ActorCriticLearner):
                 batch.get("steps_to_next_obs", None),
             )
         features = self.actor_module.encoder(*obs)
-        preds = self._heads(self.loss.qvalue_network_params["module", "body"], features, action)
+        preds = self.head_values(
+            self.loss.qvalue_network_params["module", "body"], features, action
+        )
         return sum(distance(p, target, cfg.loss_function).mean() for p in preds)
 
     def _shared_actor_loss(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
@@ -174,7 +156,7 @@ class TD3Learner(ActorCriticLearner):
             features = self.actor_module.encoder(*self.inputs(batch))
         u = self.actor_module.body(features)
         first = self.loss.qvalue_network_params["module", "body"].detach()[:1]
-        (q,) = self._heads(first, features, self.squash(u))
+        (q,) = self.head_values(first, features, self.squash(u))
         return -q.mean(), self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:

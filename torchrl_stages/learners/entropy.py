@@ -1,0 +1,43 @@
+"""What the maximum-entropy learners share: one step on their three losses and a learned
+entropy coefficient ``alpha`` instead of an exploration schedule."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from torchrl_stages.config import StageChecks
+from torchrl_stages.learners.base import detached_copy
+
+
+class EntropyRegularized:
+    """A mixin for :class:`~torchrl_stages.learners.Learner` subclasses whose ``loss`` module
+    has a ``log_alpha`` parameter and whose ``_losses(batch)`` returns the actor's, the
+    critics' and the entropy coefficient's losses, all stepped together (their gradients do
+    not overlap: the actor's loss reads the critics detached, the coefficient's the
+    log-probabilities)."""
+
+    lr_keys = ("lr", "actor_lr", "alpha_lr")
+
+    @staticmethod
+    def validate_entropy(checks: StageChecks) -> None:
+        checks.positive("alpha_init", 0.01)
+        checks.positive("alpha_lr", 3e-4)
+
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        loss_actor, loss_q, loss_alpha = self._losses(batch)
+        self._check_losses(loss_actor=loss_actor, loss_qvalue=loss_q, loss_alpha=loss_alpha)
+        self._step(loss_actor + loss_q + loss_alpha)
+        self.target_updater.step()
+        self.num_updates += 1
+        return {
+            "loss_actor": detached_copy(loss_actor),
+            "loss_qvalue": detached_copy(loss_q),
+            "loss_alpha": detached_copy(loss_alpha),
+            "alpha": self.loss.log_alpha.detach().exp().clone(),
+            "grad_norm_actor": self.grad_norms["actor"],
+            "grad_norm_critic": self.grad_norms["critic"],
+        }
+
+    def anneal_exploration(self, frames: int) -> None:
+        """Nothing to anneal: the entropy coefficient is learned."""
