@@ -380,13 +380,23 @@ def test_sigterm_during_the_joint_schedule_resumes_bitwise(joint):
 
 # ---------------------------------------------------------------------- one writer
 def test_a_second_process_in_the_same_directory_exits_2_naming_the_first(tmp_path):
-    first = spawn(tmp_path / "run")
-    lock = tmp_path / "run" / ".stages" / "lock"
-    _wait(lambda: lock.is_file() and lock.read_text().strip(), first)
-    second = run(tmp_path / "run", "seed=1")
-    assert second.returncode == 2
-    assert f"in use by another process (process {first.pid} on" in second.stderr
-    assert finish(first).returncode == 0
+    # the first run cannot end on its own while the second starts (a slow machine may take
+    # many seconds to import torch): a large budget with no early stop, stopped by SIGTERM
+    endless = ["task.stages.s1.frames=100000000", "task.stages.s1.success_threshold=null"]
+    first = spawn(tmp_path / "run", *endless)
+    try:
+        lock = tmp_path / "run" / ".stages" / "lock"
+        _wait(lambda: lock.is_file() and lock.read_text().strip(), first)
+        second = run(tmp_path / "run", "seed=1", *endless)
+        assert first.poll() is None, "the first run ended before the second was refused"
+        assert second.returncode == 2, second.stderr[-2000:]
+        assert f"in use by another process (process {first.pid} on" in second.stderr
+        first.send_signal(signal.SIGTERM)
+        assert finish(first).returncode == 128 + signal.SIGTERM
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.communicate()
     assert OmegaConf.load(tmp_path / "run" / "config.yaml").seed == 0
 
 
