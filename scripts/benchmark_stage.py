@@ -2,7 +2,7 @@
 
 The backward schedule trains stage K once the value of stage K+1 is fixed, so a stage's
 hyper-parameters can be compared on that stage alone, in seconds instead of whole runs. This
-trains stage K of a task for every (variant, seed): ``torchrl_stages.schedule.train_stage``
+trains stage K of a task for every (variant, seed): ``torchrl_stages.schedules.train_stage``
 with the run's config plus the variant's Hydra overrides, seeded as the backward schedule seeds
 the stage, so that a row is stage K of a whole run with that seed, given the same stage K+1.
 For K < N-1, ``--next-run`` names a finished run directory whose stage K+1 supplies the value
@@ -32,7 +32,7 @@ from _benchmark import command_line, compose_config, run_table
 
 from torchrl_stages.experiment import build_task, compile_mode
 from torchrl_stages.rundir import load_run
-from torchrl_stages.schedule import train_stage
+from torchrl_stages.schedules import train_stage
 from torchrl_stages.store import register_configs
 
 COLUMNS = [

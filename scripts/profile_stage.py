@@ -28,6 +28,7 @@ from _benchmark import command_line, compose_config, machine_speed, speed_note
 
 from torchrl_stages.experiment import Experiment
 from torchrl_stages.learners.base import FusedSoftUpdate
+from torchrl_stages.run_store import RunStore
 from torchrl_stages.store import register_configs
 
 PHASES = ("collect", "sample", "update", "target_update", "evaluate", "log", "checkpoint")
@@ -37,7 +38,7 @@ def profile(task: str, compile: str, threads: int | None, overrides: list[str], 
     """Trains one run; returns its per-stage breakdown."""
     per_stage: dict[int, float] = {}
     current = {"stage": None}
-    step = FusedSoftUpdate.step
+    step, begin = FusedSoftUpdate.step, RunStore.begin
 
     def timed_step(self) -> None:
         start = time.perf_counter()
@@ -51,18 +52,18 @@ def profile(task: str, compile: str, threads: int | None, overrides: list[str], 
         cfg = compose_config(task, f"compile={compile}", *pinned, "eval.plots=false", *overrides)
         threads = int(cfg.threads)
         experiment = Experiment(cfg, out / f"{task}_threads{threads}_{compile}")
-        begin = experiment.begin
 
-        def begin_hook(stage: int):  # the stage whose target updates are being timed
-            current["stage"] = stage
-            return begin(stage)
+        def begin_hook(store: RunStore, scope: int | str):  # whose target updates are timed
+            current["stage"] = scope
+            return begin(store, scope)
 
-        experiment.begin = begin_hook
+        RunStore.begin = begin_hook
         start = time.perf_counter()
         result = experiment.run()
         total = time.perf_counter() - start
     finally:
         FusedSoftUpdate.step = step
+        RunStore.begin = begin
     rows = []
     for stage in result["training"]["stages"]:
         k, timing = stage["stage"], dict(stage["timing"])

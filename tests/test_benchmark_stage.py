@@ -14,6 +14,7 @@ from torchrl_stages.store import register_configs
 SCRIPTS_ARGS = ["--task", "gridworld", *TINY_GRID]
 
 
+@pytest.mark.slow
 def test_a_stage_alone_is_the_stage_of_a_whole_run(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(SCRIPTS))
     from _benchmark import train

@@ -32,7 +32,9 @@ def act(td, slider=None, propelled=None):
 
 def parse_map_file():
     """The shipped map parsed independently: rows as listed in the file (top row first)."""
-    text = resources.files("torchrl_stages.envs").joinpath("data", "cargo_map.txt").read_text()
+    text = (
+        resources.files("torchrl_stages.envs.cargo").joinpath("data", "cargo_map.txt").read_text()
+    )
     rows = [line.strip() for line in text.splitlines()]
     rows = [row for row in rows if row and not row.startswith(";")]
     return np.array([[c == "#" for c in row] for row in rows], dtype=bool)

@@ -6,7 +6,7 @@ import json
 
 import pytest
 import torch
-from conftest import assert_figure, hydra_config
+from helpers import assert_figure, hydra_config
 from hydra.errors import ConfigCompositionException
 from tensordict.nn import TensorDictModule
 from torchrl.data import Bounded, Categorical
@@ -141,6 +141,8 @@ def test_stacked_policy_switches_from_continuous_to_discrete_mid_episode(task):
     assert base.num_stages == 2
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_tiny_cli_run(train_tiny):
     result, run_dir = train_tiny(
         "cargo", ["slider", "propelled"], "eval.episodes=8", "task.env.max_steps=30"

@@ -14,7 +14,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,11 +21,13 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import assert_figure
+from helpers import assert_figure, cli_env, console_script
 
 from torchrl_stages import StackedPolicy, StagedTask, load_policy, load_run
 from torchrl_stages.cli import evaluate as stages_eval_main
-from torchrl_stages.reports.gridworld import greedy_path
+from torchrl_stages.envs.gridworld.report import greedy_path
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 NUM_STAGES = 5
 FRAMES = 256
@@ -62,20 +63,6 @@ def tiny_overrides(
     return [*overrides, f"eval.episodes={episodes}", f"task.env.max_steps={MAX_STEPS}"]
 
 
-def script(name: str) -> str:
-    """The installed console script ``name`` (next to this interpreter if not on PATH)."""
-    found = shutil.which(name)
-    path = Path(found) if found else Path(sys.executable).parent / name
-    assert path.is_file(), f"console script {name} not found (is the package installed?)"
-    return str(path)
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    env.pop("HYDRA_FULL_ERROR", None)
-    return env
-
-
 @dataclass
 class Result:
     returncode: int
@@ -98,7 +85,7 @@ class Launched:
         self._out, self._err = log_stem.with_suffix(".out"), log_stem.with_suffix(".err")
         with self._out.open("w") as out, self._err.open("w") as err:
             self.proc = subprocess.Popen(
-                self.argv, cwd=cwd, env=_env(), stdout=out, stderr=err, stdin=subprocess.DEVNULL
+                self.argv, cwd=cwd, env=cli_env(), stdout=out, stderr=err, stdin=subprocess.DEVNULL
             )
         self._result: Result | None = None
 
@@ -129,7 +116,7 @@ class Commands:
         self.launched: dict[str, Launched] = {}
 
     def argv(self, name: str) -> list[str]:
-        train, root = script("stages-train"), self.root
+        train, root = console_script("stages-train"), self.root
         if name == "smoke":
             return [train, *tiny_overrides(), f"hydra.run.dir={root / 'run'}"]
         if name == "multirun":
@@ -147,7 +134,7 @@ class Commands:
             shutil.copytree(root / "run", directory)
             for png in directory.glob("*.png"):
                 png.unlink()
-            return [script("stages-eval"), directory, "--no-plots"]
+            return [console_script("stages-eval"), directory, "--no-plots"]
         if name.startswith("bad:"):
             override, _ = BAD_OVERRIDES[name.removeprefix("bad:")]
             run_dir = root / "bad" / name.removeprefix("bad:")
@@ -250,7 +237,7 @@ def _read_metrics(path: Path) -> list[list[str]]:
 # ------------------------------------------------------------------ stages-train: one tiny run
 def test_console_scripts_are_installed():
     for name in ("stages-train", "stages-eval"):
-        assert os.access(script(name), os.X_OK)
+        assert os.access(console_script(name), os.X_OK)
 
 
 def test_train_prints_the_run_directory(smoke):

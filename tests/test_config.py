@@ -14,18 +14,18 @@ import torch
 from hydra.errors import ConfigCompositionException
 from omegaconf import DictConfig, OmegaConf
 
-import torchrl_stages.experiment
 from torchrl_stages.config import LoggerConfig, as_dataclass
 from torchrl_stages.experiment import Experiment, build_task
 from torchrl_stages.learners import ALGORITHMS, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
 from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.learners.td3 import TD3Config
+from torchrl_stages.schedules import BackwardSchedule
 from torchrl_stages.validate import ConfigError, validate_config
 
 CONF = importlib.resources.files("torchrl_stages.conf")
 # the grid world's per-stage frame budget, as its YAML sets it (keys shared by every stage)
-GRID_FRAMES = OmegaConf.create(CONF.joinpath("task/stage/gridworld.yaml").read_text()).frames
+GRID_FRAMES = OmegaConf.create(CONF.joinpath("task/gridworld.yaml").read_text()).stages.s0.frames
 STAGES = [f"s{k}" for k in range(5)]
 
 
@@ -348,7 +348,7 @@ def no_training(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("training started: the config was not rejected")
 
-    monkeypatch.setattr(torchrl_stages.experiment, "train_backward", refuse)
+    monkeypatch.setattr(BackwardSchedule, "train", refuse)
     threads = torch.get_num_threads()
     yield
     torch.set_num_threads(threads)

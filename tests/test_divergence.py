@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import hydra_config
+from helpers import hydra_config
 from omegaconf import OmegaConf
 from tensordict.nn import TensorDictModule
 from torchrl.data import Categorical
@@ -108,6 +108,8 @@ def test_experiment_raises_divergence_error_and_saves_nothing(tmp_path):
     assert _all_finite(run_dir) == []
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_cli_exits_3_with_the_message(tmp_path):
     run_dir = tmp_path / "run"
     script = shutil.which("stages-train") or str(Path(sys.executable).parent / "stages-train")

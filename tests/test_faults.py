@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY_STAGE, hydra_config, tiny_grid
+from helpers import TINY_STAGE, hydra_config, tiny_grid
 from omegaconf import OmegaConf
 
 from torchrl_stages import threads
@@ -359,6 +359,7 @@ def _close_a_batched_env() -> None:
     env.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("schedule", ["backward", "joint"])
 def test_the_thread_count_is_held_in_every_update_and_evaluation(tmp_path, monkeypatch, schedule):
     from torchrl_stages import evaluate as evaluation
@@ -380,8 +381,7 @@ def test_the_thread_count_is_held_in_every_update_and_evaluation(tmp_path, monke
         return out
 
     monkeypatch.setattr(Learner, "update", spy_update)
-    for module in ("torchrl_stages.stage", "torchrl_stages.joint"):
-        monkeypatch.setattr(f"{module}.evaluate_policy", spy_rollout)
+    monkeypatch.setattr("torchrl_stages.evaluate.evaluate_policy", spy_rollout)
     _close_a_batched_env()
     assert torch.get_num_threads() == 2  # the effect held against
     Experiment(compose("threads=1", f"schedule={schedule}"), tmp_path / "run").run()

@@ -7,7 +7,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
-import torchrl_stages.envs.gridworld
+import torchrl_stages.envs.gridworld.env
 from torchrl_stages.envs import (
     GridWorldEnv,
     greedy_path_from_values,
@@ -296,7 +296,7 @@ def test_measure_throughput_is_frames_over_elapsed_time(monkeypatch):
         def perf_counter() -> float:
             return next(ticks)
 
-    monkeypatch.setattr(torchrl_stages.envs.gridworld, "time", FakeTime)
+    monkeypatch.setattr(torchrl_stages.envs.gridworld.env, "time", FakeTime)
     assert measure_throughput(64, steps=10) == pytest.approx(10 * 64 / 2.5)
     assert next(ticks, None) is None  # exactly two readings: before and after the timed steps
 

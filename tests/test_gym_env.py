@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import assert_figure, cli_env, console_script
+from helpers import assert_figure, cli_env, console_script
 from line_env import line_stage, unbatched_line
 from omegaconf import OmegaConf
 
@@ -73,6 +73,8 @@ def cli(tmp_path_factory):
             proc.wait()
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["joint", "backward"])
 def test_gymnasium_env_trains_from_the_cli(cli, name):
     code, out, err, run_dir = cli(name)

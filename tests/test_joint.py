@@ -8,10 +8,9 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from torchrl_stages.envs import GridWorldEnv
-from torchrl_stages.joint import JointTrainer
 from torchrl_stages.learners.dqn import DQNConfig
-from torchrl_stages.schedule import train_flat
-from torchrl_stages.stage import Stopwatch
+from torchrl_stages.loop import Stopwatch
+from torchrl_stages.schedules import JointTrainer, train_flat
 from torchrl_stages.task import StagedTask
 
 TINY = dict(
@@ -128,6 +127,7 @@ class StartlessGrid(GridWorldEnv):
         super().__init__(batch_size, **kwargs)
 
 
+@pytest.mark.slow
 def test_joint_schedule_trains_an_env_without_stage_starts():
     task = grid_task(stage_starts=False)
     for stage in task.cfg.stages.values():  # whole-task episodes must reach stage 1

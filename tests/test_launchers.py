@@ -19,7 +19,9 @@ import warnings
 from pathlib import Path
 
 import pytest
-from conftest import cli_env, console_script
+from helpers import cli_env, console_script
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 TIMEOUT_S = 400
 

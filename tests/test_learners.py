@@ -17,7 +17,7 @@ from torchrl_stages.learners.ddpg import DDPGConfig, DDPGLearner
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
 from torchrl_stages.learners.td3 import TD3Config, TD3Learner
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.schedule import train_backward
+from torchrl_stages.schedules import train_backward
 from torchrl_stages.task import StagedTask
 from torchrl_stages.values import with_params
 

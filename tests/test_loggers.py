@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import csv
 
-from conftest import assert_figure
+from helpers import assert_figure
 from torchrl.record.loggers import Logger
 
 from torchrl_stages import Experiment

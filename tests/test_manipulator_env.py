@@ -389,7 +389,7 @@ def test_stage_transform_reads_env_stage():
 
 
 def test_docstring_examples():
-    import torchrl_stages.envs.manipulator as module
+    import torchrl_stages.envs.manipulator.env as module
 
     finder = doctest.DocTestFinder()
     runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS)

@@ -7,7 +7,7 @@ import math
 
 import pytest
 import torch
-from conftest import assert_figure, hydra_config
+from helpers import assert_figure, hydra_config
 from tensordict.nn import TensorDictModule
 
 from torchrl_stages.envs.manipulator import inverse_kinematics
@@ -84,6 +84,8 @@ def test_transition_reward_uses_fine_value_of_post_switch_observation(compose_cf
     assert best["terminated"].item() and best["done"].item()
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_tiny_cli_run(train_tiny):
     result, run_dir = train_tiny("manipulator", ["coarse", "fine"], "eval.episodes=8")
     assert result.returncode == 0, result.stderr[-2000:]

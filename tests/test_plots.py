@@ -6,12 +6,9 @@ import sys
 import numpy as np
 import pytest
 
-from torchrl_stages.plots import (
-    plot_cargo_figure,
-    plot_grid_trajectories,
-    plot_learning_curves,
-    plot_value_map,
-)
+from torchrl_stages.envs.cargo.figures import plot_cargo_figure
+from torchrl_stages.envs.gridworld.figures import plot_grid_trajectories, plot_value_map
+from torchrl_stages.plots import plot_learning_curves
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SIZE, WIDTH, TARGET = 25, 5, (24, 24)
@@ -135,7 +132,7 @@ def test_learning_curves_show_every_loss_and_the_evaluations(tmp_path):
         assert not any("episode_success" in t or "updates" in t for t in panels)
     out = plot_learning_curves(csv_path, tmp_path / "curves.png")
     assert_png(out, tmp_path / "curves.png")
-    from conftest import assert_figure
+    from helpers import assert_figure
 
     assert_figure(out)
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY_STAGE, hydra_config, tiny_grid
+from helpers import TINY_STAGE, hydra_config, tiny_grid
 from my_learner import TinyQLearner
 from torchrl.objectives import DQNLoss, SoftUpdate
 
@@ -19,9 +19,9 @@ from torchrl_stages.config import ConfigError
 from torchrl_stages.experiment import Experiment, build_task
 from torchrl_stages.learners import ALGORITHMS, learner_class, make_learner, register_algorithm
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
+from torchrl_stages.loss_value import value_from_loss
 from torchrl_stages.rundir import RunDirError, load_run
 from torchrl_stages.stage import DivergenceError
-from torchrl_stages.targets import target_value
 
 PACKAGE = Path(torchrl_stages.__file__).parent
 TWO_STAGES = tiny_grid()
@@ -142,9 +142,9 @@ def test_target_value_dispatches_through_the_registry():
     qnet = QValueActor(MLP(in_features=2, out_features=3, num_cells=[8]), spec=Categorical(3))
     loss = DQNLoss(qnet, action_space="categorical", delay_value=True)
     SoftUpdate(loss, tau=0.1)  # a loss with targets has its updater
-    assert type(target_value(loss)).__name__ == "QMaxValue"
-    with pytest.raises(TypeError, match="target_value supports"):
-        target_value(torch.nn.Linear(1, 1))
+    assert type(value_from_loss(loss)).__name__ == "QMaxValue"
+    with pytest.raises(TypeError, match="value_from_loss supports"):
+        value_from_loss(torch.nn.Linear(1, 1))
 
 
 # ---------------------------------------------------------------------- your own learner
@@ -169,6 +169,7 @@ def test_a_learner_that_cannot_be_imported_names_the_cause():
 
 
 # ---------------------------------------------------------------------- the two SACs
+@pytest.mark.slow
 def test_sac_and_discrete_sac_train_cargos_stages_from_one_override_each(tmp_path):
     with hydra_config() as compose_fn:
         cfg = compose_fn(

@@ -1,5 +1,6 @@
-"""Presets and help: the ``experiment`` group, the per-task stage defaults, the ``objective``
-block, and ``stages-train --help``. Compositions run in-process; ``--help`` is a subprocess."""
+"""Presets and help: the ``experiment`` group and ``all_stages``, the per-task stage defaults,
+the ``objective`` block, and ``stages-train --help``. Compositions run in-process; ``--help`` and
+a smoke run with a stage added on the command line are subprocesses."""
 
 from __future__ import annotations
 
@@ -7,13 +8,14 @@ import importlib.resources
 import re
 
 import pytest
-from conftest import run_cli
+from helpers import run_cli
 from omegaconf import OmegaConf
 
+from torchrl_stages.config import apply_all_stages, stage_keys_set
 from torchrl_stages.validate import ConfigError, validate_config, validate_sweeper
 
 CONF = importlib.resources.files("torchrl_stages.conf")
-SMOKE = OmegaConf.create(CONF.joinpath("experiment/stage/smoke.yaml").read_text())
+SMOKE = OmegaConf.create(CONF.joinpath("experiment/smoke.yaml").read_text()).all_stages
 SHIPPED = {"gridworld": [f"s{k}" for k in range(5)], "manipulator": ["coarse", "fine"]}
 SHIPPED["cargo"] = ["slider", "propelled"]
 
@@ -26,10 +28,16 @@ def options(group: str) -> list[str]:
     )
 
 
+def compose_run(hydra_compose, *overrides: str):
+    """The config ``stages-train`` runs: composed, then ``all_stages`` applied."""
+    return apply_all_stages(hydra_compose(*overrides), keep=stage_keys_set(overrides))
+
+
 # ------------------------------------------------------------------ experiment=smoke
 @pytest.mark.parametrize("task", options("task"))
 def test_smoke_gives_every_stage_of_every_task_its_budget(hydra_compose, task):
-    full, smoke = hydra_compose(f"task={task}"), hydra_compose(f"task={task}", "experiment=smoke")
+    full = hydra_compose(f"task={task}")
+    smoke = compose_run(hydra_compose, f"task={task}", "experiment=smoke")
     assert list(smoke.task.stages) == list(full.task.stages)
     for name, stage in smoke.task.stages.items():
         for key, value in SMOKE.items():
@@ -42,12 +50,26 @@ def test_smoke_gives_every_stage_of_every_task_its_budget(hydra_compose, task):
         validate_config(smoke)
 
 
-def test_every_task_has_a_smoke_file():
-    assert options("experiment/task/smoke") == options("task")
+def test_smoke_reaches_a_stage_added_on_the_command_line(hydra_compose):
+    cfg = compose_run(
+        hydra_compose,
+        "task=gym",
+        "experiment=smoke",
+        "task.env.num_stages=3",
+        "+algo@task.stages.s2=dqn",
+    )
+    assert list(cfg.task.stages) == ["s0", "s1", "s2"]
+    assert all(cfg.task.stages[s].frames == SMOKE.frames for s in cfg.task.stages)
+
+
+def test_all_stages_names_a_key_a_stage_lacks(hydra_compose):
+    with pytest.raises(ConfigError, match=r"all_stages\.double_dqn=True: task\.stages\.coarse"):
+        compose_run(hydra_compose, "task=manipulator", "+all_stages.double_dqn=true")
 
 
 def test_smoke_composes_with_other_overrides(hydra_compose):
-    cfg = hydra_compose(
+    cfg = compose_run(
+        hydra_compose,
         "experiment=smoke",
         "algo@task.stages.s0=td3",
         "task.stages.s1.frames=512",
@@ -68,14 +90,16 @@ def test_without_an_experiment_no_preset_applies(hydra_compose):
 # ------------------------------------------------------------------ per-task stage defaults
 @pytest.mark.parametrize("task", sorted(SHIPPED))
 def test_shared_stage_keys_reach_every_stage(hydra_compose, task):
-    shared = OmegaConf.create(CONF.joinpath(f"task/stage/{task}.yaml").read_text())
+    # the task file's stages (its shared keys merged in by YAML anchors) are what composes
+    written = OmegaConf.create(CONF.joinpath(f"task/{task}.yaml").read_text()).stages
+    shared = written[SHIPPED[task][-1]]
     cfg = hydra_compose(f"task={task}")
     assert list(cfg.task.stages) == SHIPPED[task]
-    own = OmegaConf.create(CONF.joinpath(f"task/{task}.yaml").read_text()).get("stages", {})
     for name in SHIPPED[task]:
-        for key, value in shared.items():
-            if key in own.get(name, {}) or (task == "gridworld" and key == "gamma"):
-                continue  # the stage's own value (or the discount preset) follows
+        assert set(shared) <= set(written[name])  # every stage has the shared keys
+        for key, value in written[name].items():
+            if task == "gridworld" and key == "gamma":
+                continue  # the discount preset follows
             assert cfg.task.stages[name][key] == value, (name, key)
 
 
@@ -115,6 +139,7 @@ def test_sweeper_direction_must_match_the_objective(hydra_compose):
 
 
 # ------------------------------------------------------------------ --help
+@pytest.mark.e2e
 def test_help_describes_the_app(tmp_path):
     # the help shows the values of the composed config (task=cargo: 1000 evaluation episodes)
     result = run_cli(["stages-train", "task=cargo", "--help"], cwd=tmp_path, timeout=120)

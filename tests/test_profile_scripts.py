@@ -46,6 +46,7 @@ def run_script(name: str, *args: str, env: dict[str, str] | None = None):
     )
 
 
+@pytest.mark.e2e
 def test_profile_update_times_each_stage(tmp_path):
     done = run_script(
         "profile_update.py",
@@ -79,6 +80,7 @@ def test_profile_update_times_each_stage(tmp_path):
     assert table.count("| gridworld |") == 2
 
 
+@pytest.mark.e2e
 def test_profile_stage_breaks_a_run_into_phases(tmp_path):
     done = run_script("profile_stage.py", *TINY_GRID, "--task", "gridworld", "--out", str(tmp_path))
     assert done.returncode == 0, done.stderr[-3000:]

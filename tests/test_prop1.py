@@ -7,9 +7,9 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from torchrl_stages.envs import gridworld_optimal_values
+from torchrl_stages.envs.gridworld.report import merged_value_map
 from torchrl_stages.learners.dqn import DQNConfig
-from torchrl_stages.reports.gridworld import merged_value_map
-from torchrl_stages.schedule import train_backward
+from torchrl_stages.schedules import train_backward
 from torchrl_stages.task import StagedTask
 
 SIZE, GAMMAS = 6, (0.9, 0.99, 0.95)

@@ -13,13 +13,15 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import torch
+from helpers import cli_env, console_script
 from omegaconf import OmegaConf
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 TIMEOUT_S = 300
 TINY = {
@@ -46,24 +48,19 @@ OVERRIDES = [
 ]
 
 
-def stages_train() -> str:
-    found = shutil.which("stages-train")
-    return found or str(Path(sys.executable).parent / "stages-train")
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    env.pop("HYDRA_FULL_ERROR", None)
-    return env
-
-
 def spawn(run_dir: Path, *extra: str, multirun: bool = False) -> subprocess.Popen:
     target = f"hydra.sweep.dir={run_dir}" if multirun else f"hydra.run.dir={run_dir}"
-    argv = [stages_train(), *(["-m"] if multirun else []), *OVERRIDES, target, *extra]
+    argv = [
+        console_script("stages-train"),
+        *(["-m"] if multirun else []),
+        *OVERRIDES,
+        target,
+        *extra,
+    ]
     return subprocess.Popen(
         argv,
         cwd=run_dir.parent,
-        env=_env(),
+        env=cli_env(),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -466,11 +463,11 @@ def test_a_write_that_fails_names_the_file_leaves_no_temporary_and_resumes(
     _, reference, _ = runs
     run_dir = tmp_path / "run"
     extra = f"checkpoint_every={checkpoint_every}"
-    argv = [stages_train(), *OVERRIDES, f"hydra.run.dir={run_dir}", extra]
+    argv = [console_script("stages-train"), *OVERRIDES, f"hydra.run.dir={run_dir}", extra]
     result = subprocess.run(
         argv,
         cwd=tmp_path,
-        env=_env(),
+        env=cli_env(),
         capture_output=True,
         text=True,
         timeout=TIMEOUT_S,

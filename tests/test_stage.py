@@ -5,7 +5,7 @@ from omegaconf import OmegaConf
 from torch import nn
 
 from torchrl_stages.learners.dqn import DQNConfig
-from torchrl_stages.stage import _EvalMonitor
+from torchrl_stages.loop import EarlyStop
 
 
 def _cfg(**kw):
@@ -19,7 +19,7 @@ def _learner(value: float) -> nn.Module:
 
 
 def test_early_stop_needs_patience_tolerance_and_min_frames():
-    monitor = _EvalMonitor(
+    monitor = EarlyStop(
         _cfg(success_threshold=1.0, value_tolerance=0.05, patience=2, min_frames=300)
     )
     learner = _learner(0.0)
@@ -32,7 +32,7 @@ def test_early_stop_needs_patience_tolerance_and_min_frames():
 
 
 def test_without_value_tolerance_success_alone_stops_the_stage():
-    monitor = _EvalMonitor(_cfg(success_threshold=0.98, value_tolerance=None, patience=2))
+    monitor = EarlyStop(_cfg(success_threshold=0.98, value_tolerance=None, patience=2))
     learner = _learner(0.0)
     assert not monitor.record(learner, 0.97, 0.0, 100)
     assert not monitor.record(learner, 1.0, 0.9, 200)  # values far off: not checked
@@ -41,7 +41,7 @@ def test_without_value_tolerance_success_alone_stops_the_stage():
 
 
 def test_budget_exhausted_restores_best_evaluation():
-    monitor = _EvalMonitor(_cfg(success_threshold=1.0, patience=3))
+    monitor = EarlyStop(_cfg(success_threshold=1.0, patience=3))
     learner = _learner(0.0)
     for value, success, error in [(1.0, 0.5, 0.3), (2.0, 1.0, 0.02), (3.0, 0.8, 0.1)]:
         learner.weight.data.fill_(value)
@@ -52,7 +52,7 @@ def test_budget_exhausted_restores_best_evaluation():
 
 
 def test_ties_prefer_lower_value_error_and_last_best_is_kept():
-    monitor = _EvalMonitor(_cfg(success_threshold=None))
+    monitor = EarlyStop(_cfg(success_threshold=None))
     learner = _learner(0.0)
     for value, error in [(1.0, 0.1), (2.0, 0.05)]:
         learner.weight.data.fill_(value)
@@ -62,7 +62,7 @@ def test_ties_prefer_lower_value_error_and_last_best_is_kept():
 
 
 def test_keep_best_off_keeps_last_weights():
-    monitor = _EvalMonitor(_cfg(keep_best=False))
+    monitor = EarlyStop(_cfg(keep_best=False))
     learner = _learner(5.0)
     monitor.record(learner, 1.0, 0.0, 0)
     learner.weight.data.fill_(6.0)
@@ -73,7 +73,7 @@ def test_keep_best_off_keeps_last_weights():
 
 
 def test_keep_best_by_return_prefers_the_highest_discounted_return():
-    monitor = _EvalMonitor(_cfg(success_threshold=None, keep_best_by="return"))
+    monitor = EarlyStop(_cfg(success_threshold=None, keep_best_by="return"))
     learner = _learner(0.0)
     evals = [
         (1.0, 0.9, 0.01, 0.5),
@@ -90,15 +90,15 @@ def test_keep_best_by_return_prefers_the_highest_discounted_return():
 
 
 def test_final_return_is_that_of_the_evaluation_the_stage_ends_with():
-    stopping = _EvalMonitor(_cfg(success_threshold=1.0, value_tolerance=None, patience=1))
+    stopping = EarlyStop(_cfg(success_threshold=1.0, value_tolerance=None, patience=1))
     assert not stopping.record(_learner(0.0), 0.5, 0.1, 0, 0.7)
     assert stopping.record(_learner(0.0), 1.0, 0.1, 0, 0.3)
     assert stopping.final_return == 0.3  # its stop, not its best return
-    budget = _EvalMonitor(_cfg(success_threshold=1.0, patience=3))
+    budget = EarlyStop(_cfg(success_threshold=1.0, patience=3))
     budget.record(_learner(0.0), 1.0, 0.02, 0, 0.6)
     budget.record(_learner(0.0), 0.8, 0.01, 0, 0.9)
     assert budget.final == (1.0, 0.02) and budget.final_return == 0.6  # its best evaluation
-    restored = _EvalMonitor(_cfg(success_threshold=1.0, patience=3))
+    restored = EarlyStop(_cfg(success_threshold=1.0, patience=3))
     restored.load_state_dict(budget.state_dict())
     assert restored.final_return == 0.6
     old = {k: v for k, v in budget.state_dict().items() if not k.endswith("_return")}

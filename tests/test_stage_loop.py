@@ -16,7 +16,7 @@ from torchrl_stages.learners import Learner
 from torchrl_stages.learners.ddpg import DDPGLearner
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
 from torchrl_stages.learners.td3 import TD3Learner
-from torchrl_stages.schedule import train_backward, train_stage
+from torchrl_stages.schedules import train_backward, train_stage
 from torchrl_stages.stage import StageTrainer
 from torchrl_stages.task import StagedTask
 from torchrl_stages.transforms import StageTransform

@@ -14,16 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_figure, cli_env, console_script
+from helpers import assert_figure, cli_env, console_script
+from scipy.stats import trim_mean
 
 from torchrl_stages.cli import report
-from torchrl_stages.sweeps import (
-    bootstrap_ci,
-    find_jobs,
-    interquartile_mean,
-    read_job,
-    summarize_sweep,
-)
+from torchrl_stages.sweeps import aggregate_jobs, find_jobs, read_job, summarize_sweep
+from torchrl_stages.sweeps.stats import performance_profiles
 
 TIMEOUT_S = 300
 
@@ -48,8 +44,9 @@ def make_job(
             "mean_steps": 10.0 + success,
             "training": {"seconds": 1.5, "stages": [{"frames": 256, "updates": 4}] * 2},
         }
-        if value_error is not None:
-            result["task_metrics"] = {"value_map_max_abs_error": value_error}
+        if value_error is not None:  # a task's headline metric, and one it does not headline
+            result["task_metrics"] = {"value_map_max_abs_error": value_error, "other": 3.0}
+            result["headline_metrics"] = ["value_map_max_abs_error"]
         (job / "eval.json").write_text(json.dumps(result))
     if status is not None:
         (job / "status.json").write_text(json.dumps({"status": status[0], "reason": status[1]}))
@@ -83,17 +80,38 @@ def sweep(tmp_path) -> Path:
     return root
 
 
-def test_interquartile_mean_and_bootstrap_ci():
-    assert interquartile_mean([3.0]) == 3.0
-    # the lowest and highest quarter are dropped
-    assert interquartile_mean([-100.0, 1.0, 2.0, 100.0]) == 1.5
+def _jobs(values, config="lr=1"):
+    from torchrl_stages.sweeps import Job
+
+    return [
+        Job(Path(str(k)), str(k), [config, f"seed={k}"], k, "done", metrics={"success_rate": v})
+        for k, v in enumerate(values)
+    ]
+
+
+def test_mean_iqm_and_their_bootstrap_intervals():
     values = np.random.default_rng(0).normal(1.0, 0.1, size=50)
-    low, high = bootstrap_ci(values)
-    assert low < values.mean() < high and high - low < 0.1
-    assert bootstrap_ci(values, seed=3) == bootstrap_ci(values, seed=3)  # seeded
-    assert bootstrap_ci([2.0, 2.0]) == (2.0, 2.0)
-    with pytest.raises(ValueError):
-        interquartile_mean([])
+    (agg,) = aggregate_jobs(_jobs(values), ["success_rate"])
+    assert agg.mean == pytest.approx(values.mean()) and agg.n == 50
+    assert agg.iqm == pytest.approx(trim_mean(values, 0.25))  # the middle half
+    assert agg.ci_low < agg.mean < agg.ci_high and agg.ci_high - agg.ci_low < 0.1
+    assert agg.iqm_low < agg.iqm < agg.iqm_high
+    assert aggregate_jobs(_jobs(values), seed=3) == aggregate_jobs(_jobs(values), seed=3)
+    assert aggregate_jobs(_jobs(values), seed=3) != aggregate_jobs(_jobs(values), seed=4)
+    (outlier,) = aggregate_jobs(_jobs([-100.0, 1.0, 2.0, 100.0]), ["success_rate"])
+    assert outlier.iqm == 1.5 and outlier.mean == 0.75
+    (single,) = aggregate_jobs(_jobs([2.0]), ["success_rate"])
+    assert (single.mean, single.ci_low, single.ci_high) == (2.0, 2.0, 2.0)
+
+
+def test_performance_profile_is_the_fraction_of_runs_above_each_threshold():
+    jobs = _jobs([0.0, 0.5, 1.0, 1.0]) + _jobs([0.25], config="lr=2")
+    profiles = performance_profiles(jobs, np.array([-0.1, 0.0, 0.5, 0.99, 1.0]))
+    profile, interval = profiles["lr=1"]
+    assert profile.tolist() == [1.0, 0.75, 0.5, 0.5, 0.0]
+    assert interval.shape == (2, 5) and np.all(interval[0] <= profile + 1e-12)
+    assert np.all(profile <= interval[1] + 1e-12)
+    assert profiles["lr=2"][0].tolist() == [1.0, 1.0, 0.0, 0.0, 0.0]
 
 
 def test_find_jobs_any_depth_in_natural_order(sweep):
@@ -107,7 +125,8 @@ def test_read_job_status_and_numbers(sweep):
     done, failed, killed = (read_job(sweep / n, sweep) for n in ("0", "5", "10"))
     assert (done.status, done.seed, done.config) == ("done", 0, "task.stages.s0.lr=1e-3")
     assert done.metrics["success_rate"] == 1.0 and done.frames == 512 and done.updates == 8
-    assert done.train_seconds == 1.5 and done.metrics["value_error"] == 0.0
+    assert done.train_seconds == 1.5 and done.metrics["value_map_max_abs_error"] == 0.0
+    assert "other" not in done.metrics  # only the metrics the task names as its headline
     assert failed.status == "diverged" and failed.reason == "stage 0 diverged: nan"
     assert killed.status == "incomplete" and "still running" in killed.reason
 
@@ -120,6 +139,7 @@ def test_summary_files(sweep):
         "summary.md",
         "summary_curves.png",
         "summary_final.png",
+        "summary_profile.png",
     }
     with (sweep / "summary.csv").open(newline="") as handle:
         rows = list(csv.DictReader(handle))
@@ -128,20 +148,21 @@ def test_summary_files(sweep):
     assert rows[5]["reason"] == "stage 0 diverged: nan" and rows[5]["success_rate"] == ""
     assert rows[0]["overrides"] == "task.stages.s0.lr=1e-3 seed=0"
     assert rows[0]["config"] == "task.stages.s0.lr=1e-3" and rows[0]["seed"] == "0"
-    assert float(rows[1]["value_error"]) == pytest.approx(0.1)
+    assert float(rows[1]["value_map_max_abs_error"]) == pytest.approx(0.1)
+    assert "other" not in rows[0]
     assert rows[0]["frames"] == "512" and rows[0]["train_seconds"] == "1.5"
     # per configuration, across seeds: the finished ones
     good = summary.aggregate("task.stages.s0.lr=1e-3")
     assert (good.n, good.failed) == (4, 1)  # seeds 0, 1, 2, 3 finished; seed 9 did not
     assert good.mean == pytest.approx(np.mean([1.0, 0.5, 0.75, 1.0]))
-    assert good.iqm == pytest.approx(interquartile_mean([1.0, 0.5, 0.75, 1.0]))
+    assert good.iqm == pytest.approx(trim_mean([1.0, 0.5, 0.75, 1.0], 0.25))
     assert good.ci_low <= good.mean <= good.ci_high
     bad = summary.aggregate("task.stages.s0.lr=1e-2", "mean_steps")
     assert (bad.n, bad.failed, bad.mean) == (2, 1, pytest.approx(10.125))
     md = (sweep / "summary.md").read_text()
     assert "| task.stages.s0.lr=1e-2 | success_rate | 2 | 1 |" in md
     assert "stage 0 diverged: nan" in md and "![summary_curves.png]" in md
-    for png in ("summary_curves.png", "summary_final.png"):
+    for png in ("summary_curves.png", "summary_final.png", "summary_profile.png"):
         assert_figure(sweep / png)
 
 
@@ -156,7 +177,9 @@ def test_summary_without_finished_jobs(tmp_path):
     make_job(tmp_path, "0", ["seed=0"], status=("invalid", "invalid config: gamma"))
     summary = summarize_sweep(tmp_path)
     assert [j.status for j in summary.jobs] == ["invalid"]
-    assert "summary_final.png" not in summary.files and "summary_curves.png" not in summary.files
+    assert not {"summary_final.png", "summary_curves.png", "summary_profile.png"} & set(
+        summary.files
+    )
     assert summary.aggregate("(defaults)").mean is None
 
 
@@ -201,6 +224,8 @@ def sweeps(tmp_path_factory):
             proc.wait()
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_smoke_sweep_writes_its_summary(sweeps):
     code, output, sweep_dir = sweeps("smoke")
     assert code == 0, output[-4000:]
@@ -214,19 +239,23 @@ def test_smoke_sweep_writes_its_summary(sweeps):
     ]
     for row in rows:
         assert 0.0 <= float(row["success_rate"]) <= 1.0
-        assert float(row["value_error"]) >= 0.0  # the grid world reports its value-map error
+        # the grid world's headline metric: its value-map error
+        assert float(row["value_map_max_abs_error"]) >= 0.0
         assert int(row["frames"]) == 5 * 1024 and float(row["train_seconds"]) > 0
-    for png in ("summary_curves.png", "summary_final.png"):
+    for png in ("summary_curves.png", "summary_final.png", "summary_profile.png"):
         assert_figure(sweep_dir / png)
     assert "experiment=smoke" in (sweep_dir / "summary.md").read_text()
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_stages_report_reproduces_the_summary(sweeps, tmp_path, capsys):
     code, output, sweep_dir = sweeps("smoke")
     assert code == 0, output[-4000:]
     names = ("summary.csv", "summary_configs.csv", "summary.md")
     written = {n: (sweep_dir / n).read_bytes() for n in names}
-    figures = {n: (sweep_dir / n).read_bytes() for n in ("summary_curves.png", "summary_final.png")}
+    pngs = ("summary_curves.png", "summary_final.png", "summary_profile.png")
+    figures = {n: (sweep_dir / n).read_bytes() for n in pngs}
     for name in (*written, *figures):
         (sweep_dir / name).unlink()
     report([str(sweep_dir)])
@@ -235,6 +264,8 @@ def test_stages_report_reproduces_the_summary(sweeps, tmp_path, capsys):
     assert {n: (sweep_dir / n).read_bytes() for n in figures} == figures
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_failed_sweep_still_writes_its_summary(sweeps):
     code, output, sweep_dir = sweeps("invalid")
     assert code != 0  # the sweep says that its jobs failed

@@ -9,12 +9,12 @@ from torchrl_stages.learners import (
     make_learner,
     register_algorithm,
 )
+from torchrl_stages.loss_value import value_from_loss
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.rundir import load_policy, load_run
-from torchrl_stages.schedule import train_backward, train_stage
+from torchrl_stages.schedules import train_backward, train_stage
 from torchrl_stages.stage import StageTrainer
 from torchrl_stages.sweeps import summarize_sweep
-from torchrl_stages.targets import target_value
 from torchrl_stages.task import StagedTask
 from torchrl_stages.transforms import StageRewardTransform, StageTransform, freeze
 from torchrl_stages.values import ActorCriticValue, QMaxValue, with_params
@@ -38,7 +38,7 @@ __all__ = [
     "make_learner",
     "register_algorithm",
     "summarize_sweep",
-    "target_value",
+    "value_from_loss",
     "threshold_stage",
     "train_backward",
     "train_stage",

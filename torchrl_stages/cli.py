@@ -2,7 +2,7 @@
 ``stages-report SWEEP_DIR``, and the Hydra callback that summarizes a sweep.
 
 All are thin shells over the library: :class:`torchrl_stages.experiment.Experiment` trains,
-:func:`torchrl_stages.rundir.load_run` and :func:`torchrl_stages.reports.evaluate_run`
+:func:`torchrl_stages.rundir.load_run` and :func:`torchrl_stages.tasks.evaluate_run`
 re-evaluate, :func:`torchrl_stages.sweeps.summarize_sweep` summarizes. Exit codes: 0 done,
 1 failed (the env or other code raised, or returned NaN), 2 invalid config, refused or
 damaged directory, or a file that cannot be written, 3 training diverged, 128 + N stopped by
@@ -26,13 +26,14 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
+from torchrl_stages.config import apply_all_stages, stage_keys_set
 from torchrl_stages.experiment import Experiment, one_line
 from torchrl_stages.preemption import Interrupted
-from torchrl_stages.reports import evaluate_run, format_summary
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
 from torchrl_stages.stage import DivergenceError, EnvError
 from torchrl_stages.store import register_configs
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
+from torchrl_stages.tasks import evaluate_run, format_summary
 from torchrl_stages.validate import ConfigError, validate_sweeper
 
 EXIT_FAILED, EXIT_INVALID, EXIT_DIVERGED = 1, 2, 3
@@ -72,6 +73,8 @@ def _train_app(cfg: DictConfig) -> float:
     try:
         if multirun:  # a sweeper that optimizes must optimize the objective's direction
             validate_sweeper(HydraConfig.get().sweeper, cfg)
+        # all_stages (experiment=smoke) in every stage, but not over a stage's own override
+        cfg = apply_all_stages(cfg, keep=stage_keys_set(HydraConfig.get().overrides.task))
         experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
     except RunDirError as err:  # the directory holds another run (or process): touch nothing
         _fail(run_dir, "refused", str(err), EXIT_INVALID, write_status=False)
@@ -252,9 +255,9 @@ def report(argv: list[str] | None = None) -> None:
         prog="stages-report",
         description="Summarize a directory of stages-train runs (a multirun sweep directory, "
         "made by any launcher, or runs gathered by hand): writes summary.csv (one row per job), "
-        "summary_configs.csv and summary.md (mean, interquartile mean and bootstrap 95%% "
-        "confidence interval across seeds per configuration) and summary_curves.png / "
-        "summary_final.png into it.",
+        "summary_configs.csv and summary.md (mean and interquartile mean across seeds per "
+        "configuration, with rliable's stratified-bootstrap 95%% confidence intervals) and "
+        "summary_curves.png / summary_final.png / summary_profile.png into it.",
     )
     parser.add_argument("sweep_dir", type=Path, help="the sweep directory (hydra.sweep.dir)")
     parser.add_argument("--no-plots", action="store_true", help="skip the figures")

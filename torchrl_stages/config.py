@@ -10,6 +10,8 @@ typo fails at composition (``torchrl_stages.store.register_configs``).
 
 from __future__ import annotations
 
+import copy
+from collections.abc import Iterable
 from dataclasses import dataclass, field, is_dataclass
 from typing import Any
 
@@ -229,6 +231,11 @@ class TrainConfig:
     compile: str = "auto"
     resume: bool = False  # continue the run in hydra.run.dir (same overrides otherwise)
     overwrite: bool = False  # replace the run in hydra.run.dir
+    # keys set in every task.stages.<name>, whatever the task and its stages (those added on
+    # the command line too), over the task's own; a key set for one stage on the command line
+    # keeps its value. experiment=smoke puts its tiny budget here. Emptied once applied
+    # (apply_all_stages): a run's config.yaml holds each stage's values
+    all_stages: dict[str, Any] = field(default_factory=dict)
 
 
 def as_dataclass(cfg: Any) -> Any:
@@ -250,3 +257,57 @@ def as_dataclass(cfg: Any) -> Any:
         except OmegaConfBaseException:  # e.g. a missing value: keep the node (errors on read)
             return cfg
     return cfg
+
+
+def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> DictConfig:
+    """A copy of ``cfg`` with ``cfg.all_stages``'s keys set in every ``task.stages.<name>``,
+    except the ``(stage, key)`` pairs of ``keep`` (what the command line set for one stage),
+    and ``all_stages`` emptied (applying it again changes nothing). A key that a stage's
+    algorithm does not have is a :class:`ConfigError`.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"task": {"stages": {"a": {"frames": 9}, "b": {"frames": 9}}},
+        ...                         "all_stages": {"frames": 1024}})
+        >>> cfg = apply_all_stages(cfg, keep=[("b", "frames")])
+        >>> cfg.task.stages.a.frames, cfg.task.stages.b.frames, dict(cfg.all_stages)
+        (1024, 9, {})
+    """
+    if not cfg.get("all_stages"):
+        return cfg
+    cfg = copy.deepcopy(cfg)  # the caller's config is left as it was
+    every, kept = cfg.all_stages, set(keep)
+    for name, stage in cfg.task.stages.items():
+        for key, value in every.items():
+            if (name, key) in kept:
+                continue
+            try:
+                stage[key] = value
+            except OmegaConfBaseException as err:
+                schema = OmegaConf.get_type(stage)
+                raise ConfigError(
+                    f"all_stages.{key}={value!r}: task.stages.{name} "
+                    f"({getattr(schema, '__name__', schema)}) cannot take it "
+                    f"({type(err).__name__}). Fix: set it for the stages that have it "
+                    f"(task.stages.<stage>.{key}=...)"
+                ) from None
+    cfg.all_stages = {}
+    return cfg
+
+
+def stage_keys_set(overrides: Iterable[str]) -> set[tuple[str, str]]:
+    """The ``(stage, key)`` pairs that command-line ``overrides`` set directly
+    (``task.stages.<stage>.<key>=...``, with or without ``+``/``++``).
+
+    Examples:
+        >>> sorted(stage_keys_set(["task.stages.s0.frames=10", "+task.stages.s1.lr=1e-3",
+        ...                        "algo@task.stages.s2=sac", "seed=1"]))
+        [('s0', 'frames'), ('s1', 'lr')]
+    """
+    out = set()
+    for override in overrides:
+        key = override.split("=", 1)[0].lstrip("+~")
+        parts = key.split(".")
+        if len(parts) >= 4 and parts[:2] == ["task", "stages"] and "@" not in key:
+            out.add((parts[2], parts[3]))
+    return out

@@ -14,6 +14,7 @@ from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_stages.preemption import check
+from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import StageTransform
 
 if TYPE_CHECKING:
@@ -161,6 +162,31 @@ def evaluate_policy(
     return episode_stats(rollout), rollout
 
 
+@torch.no_grad()
+def evaluate_greedy(
+    env: EnvBase,
+    policy: TensorDictModuleBase,
+    value: TensorDictModuleBase,
+    max_steps: int,
+    gamma: float | Sequence[float],
+    reduce: str = "mean",
+) -> dict[str, float]:
+    """A loop's evaluation: greedy first episodes of ``policy`` on ``env`` (their
+    :meth:`EpisodeStats.summary`), ``discounted_return`` (the mean discounted return ``G``,
+    ``gamma`` per stage or one) and ``value_error``: ``|V(s_0) - G|`` between ``value``'s
+    estimate at the start and the return the policy got, reduced over the starts by
+    ``reduce`` (``mean`` or ``max``): whether the values a stage hands on have converged."""
+    keep_threads()
+    stats, rollout = evaluate_policy(env, policy, max_steps)
+    returns = discounted_return(rollout, stats.length, gamma)
+    v0 = value(rollout[:, 0].clone()).get("state_value").reshape(-1)
+    errors = (v0 - returns).abs()
+    summary = stats.summary()
+    summary["value_error"] = (errors.max() if reduce == "max" else errors.mean()).item()
+    summary["discounted_return"] = returns.mean().item()
+    return summary
+
+
 @dataclass
 class TaskEvaluation:
     """Greedy whole-task episodes of a stacked policy (the first episode of every batch row).
@@ -213,6 +239,7 @@ def evaluate_task(
     for i, size in enumerate(sizes):
         if interruptible:  # a resumed run evaluates again
             check("the whole-task evaluation")
+        keep_threads()  # a chunk's env closing may have changed it
         env = task.task_env(size)
         env.set_seed(seed + i)
         chunk, rollout = evaluate_policy(env, policy, int(getattr(env.base_env, "max_steps", 1000)))

@@ -17,23 +17,22 @@ import torch
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig
 
-from torchrl_stages.checkpoint import StageCheckpoints
-from torchrl_stages.joint import JointTrainer
+from torchrl_stages.config import apply_all_stages
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import make_logger
 from torchrl_stages.preemption import Interrupted, check, handle_signals
-from torchrl_stages.reports import EVAL_SEED_OFFSET, evaluate_run, probe_task
+from torchrl_stages.run_store import RunStore
 from torchrl_stages.rundir import (
     METRICS_FILE,
     STATUS_FILE,
     RunDir,
     RunDirError,
     config_differences,
-    load_stage,
 )
-from torchrl_stages.schedule import train_backward, train_flat
-from torchrl_stages.stage import DivergenceError, StageResult
+from torchrl_stages.schedules import get_schedule
+from torchrl_stages.stage import DivergenceError
 from torchrl_stages.task import StagedTask
+from torchrl_stages.tasks import EVAL_SEED_OFFSET, evaluate_run, probe_task
 from torchrl_stages.threads import hold_threads
 from torchrl_stages.validate import ConfigError, validate_config, validate_task
 
@@ -87,22 +86,6 @@ def build_task(cfg: DictConfig) -> StagedTask:
     return task
 
 
-def frozen_stages(schedule: str, finished: set[int], num_stages: int) -> set[int]:
-    """The stages whose config a resumed run may not change: those a finished stage depends
-    on. In the backward schedule stage k is trained from its own config and the values of the
-    stages after it; the joint and flat schedules train every stage at once.
-
-    Examples:
-        >>> sorted(frozen_stages("backward", {3, 4}, 5)), sorted(frozen_stages("joint", set(), 5))
-        ([3, 4], [])
-    """
-    if not finished:
-        return set()
-    if schedule == "backward":
-        return set(range(min(finished), num_stages))
-    return set(range(num_stages))
-
-
 class Experiment:
     """Trains and evaluates one run of ``cfg`` in ``run_dir``.
 
@@ -141,7 +124,7 @@ class Experiment:
         overwrite: bool | None = None,
         hydra_files: dict[str, Any] | None = None,
     ) -> None:
-        self.cfg = cfg
+        self.cfg = cfg = apply_all_stages(cfg)
         self.hydra_files = dict(hydra_files or {})
         self.run_dir = RunDir(run_dir)
         self.resume = bool(cfg.get("resume", False) if resume is None else resume)
@@ -185,7 +168,7 @@ class Experiment:
         if names != list(saved.task.stages):  # the same keys in another order
             changed = ["task.stages (their order)", *changed]
         finished = {k for k in range(len(names)) if run.stage_file(k).is_file()}
-        frozen = frozen_stages(self.cfg.schedule.name, finished, len(names))
+        frozen = get_schedule(str(self.cfg.schedule.name)).frozen_stages(finished, len(names))
         refused = []
         for key in changed:
             parts = key.split(".")
@@ -258,16 +241,14 @@ class Experiment:
             log.warning("%s was missing: restored from .hydra/config.yaml", run.config_file)
             run.write_config(cfg)
         if self.restarted:
-            schedule = cfg.schedule.name
+            schedule = get_schedule(str(cfg.schedule.name))
             for stage, keys in sorted(self.restarted.items()):
                 log.info(
                     "resume=true: %s changed; stage %d had not finished and restarts",
                     ", ".join(keys),
                     stage,
                 )
-                run.clear_checkpoints("joint" if schedule == "joint" else stage)
-            if schedule == "flat":
-                run.clear_checkpoints(0)
+                run.clear_checkpoints(schedule.checkpoint_scope(stage))
             run.write_config(cfg)
         run.begin_launch()
 
@@ -278,7 +259,7 @@ class Experiment:
         before = run.listing()
         self.logger = make_logger(cfg, run.path)
         run.claim_new(before)  # a backend's own files
-        start, schedule, phases = time.perf_counter(), cfg.schedule.name, None
+        start, schedule = time.perf_counter(), get_schedule(str(cfg.schedule.name))
         kwargs = {
             "seed": int(cfg.seed),
             "logger": self.logger,
@@ -300,18 +281,23 @@ class Experiment:
                         self.logger.log_scalar(f"eval/task/{key}", value, step=frames)
 
             kwargs["probe"] = probe
-        if schedule == "joint":
-            learners, results, phases = self._train_joint(**kwargs)
-        elif schedule == "flat":
-            learners, results = train_flat(self.task, store=self, **kwargs)
-        else:
-            learners, results = train_backward(self.task, store=self, **kwargs)
+        store = RunStore(
+            run,
+            self.task,
+            schedule,
+            logger=self.logger,
+            resuming=self.resuming,
+            device=str(cfg.device),
+            checkpoint_every=int(cfg.checkpoint_every),
+            checkpoint_keep=int(cfg.checkpoint_keep),
+        )
+        trained = schedule.train(self.task, store, **kwargs)
+        learners, results = trained.learners, trained.results
         check("the whole-task evaluation")  # a stop asked for during the last stage's save
         run.update_launch("done")
-        training = {"schedule": schedule, **run.training_time()}
+        training = {"schedule": schedule.name, **run.training_time()}
         training["stages"] = [asdict(r) for r in results]
-        if phases is not None:
-            training["phases"] = phases
+        training.update(trained.extra)
         before = run.listing()
         run.claim("eval.json")
         result = evaluate_run(cfg, self.task, learners, run.path, training=training)
@@ -325,112 +311,3 @@ class Experiment:
                 self.logger.log_scalar(f"eval/final/{key}", result[key], step=frames)
         (run.path / STATUS_FILE).unlink(missing_ok=True)  # an earlier launch's outcome
         return result
-
-    def _train_joint(self, **kwargs: Any) -> tuple[list[Learner], list[StageResult], list]:
-        """The joint schedule: resumable as a whole, its stages written once it ends."""
-        task, run = self.task, self.run_dir
-        if self.resuming and all(run.stage_file(k).is_file() for k in range(task.num_stages)):
-            stages = [self.finished(k) for k in range(task.num_stages)]
-            phases = list(run.record.get("phases", []))
-            return [s[0] for s in stages], [s[1] for s in stages], phases
-        checkpoints = run.checkpoints(
-            "joint", int(self.cfg.checkpoint_every), int(self.cfg.checkpoint_keep)
-        )
-        rewind = getattr(self.logger, "rewind", None)
-        if self.resuming and checkpoints.latest() is None and rewind is not None:
-            rewind({})
-        learners, results, phases = JointTrainer(task, checkpoints=checkpoints, **kwargs).train()
-        for phase in phases:
-            start = (
-                "the task's own starts"
-                if phase["start_stage"] is None
-                else (f"stage {phase['start_stage']} starts")
-            )
-            log.info(
-                "joint phase from %s: %d frames, whole-task success %.2f, value error %.3f%s",
-                start,
-                phase["frames"],
-                phase["success_rate"] if phase["success_rate"] is not None else float("nan"),
-                phase["value_error"] if phase["value_error"] is not None else float("nan"),
-                " (early stop)" if phase["early_stopped"] else " (budget used, best restored)",
-            )
-        run.record["phases"] = phases  # kept for a resumed launch's eval.json
-        for k in range(task.num_stages):
-            self.save(k, learners[k], results[k])
-        run.clear_checkpoints("joint")
-        return learners, results, phases
-
-    # ------------------------------------------------------------------ stage store
-    def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
-        """Stage ``stage`` as trained by an earlier launch of this run (resume only)."""
-        if not self.resuming:
-            return None
-        loaded = load_stage(self.run_dir, self.task, stage, self.cfg.device)
-        if loaded is None:
-            return None
-        learner, result = loaded
-        log.info("stage %d (%s): finished earlier, loaded", stage, self.task.stage_names[stage])
-        return learner, StageResult(**result)
-
-    def begin(self, stage: int) -> StageCheckpoints:
-        """Stage ``stage``'s checkpoints; without one to resume from, the logs are rewound to
-        where the stage started (rows of an interrupted attempt are dropped)."""
-        cfg = self.cfg
-        checkpoints = self.run_dir.checkpoints(
-            stage, int(cfg.checkpoint_every), int(cfg.checkpoint_keep)
-        )
-        if self.resuming and checkpoints.latest() is None:
-            later = self.run_dir.read_stage(stage + 1) if stage + 1 < self.task.num_stages else None
-            rewind = getattr(self.logger, "rewind", None)
-            if rewind is not None:
-                rewind({} if later is None else later.get("log", {}))
-        elif self.resuming:
-            log.info("stage %d: resuming from %s", stage, checkpoints.latest())
-        return checkpoints
-
-    def save(self, stage: int, learner: Learner, result: StageResult) -> None:
-        """Writes ``stage_<k>.pt`` (with the log position) and drops the stage's checkpoints."""
-        position = getattr(self.logger, "position", None)
-        name = "flat" if self.cfg.schedule.name == "flat" else self.task.stage_names[stage]
-        self.run_dir.save_stage(
-            stage,
-            name,
-            learner,
-            result,
-            log=position() if position is not None else {},
-        )
-        self.run_dir.clear_checkpoints(stage)
-        self.run_dir.update_launch()
-        quality = (
-            f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
-            if result.success_rate is not None
-            else "not evaluated"
-        )
-        note = " (early stop)" if result.early_stopped else ""
-        if result.restored_best:
-            note = " (best evaluation restored)"
-        log.info(
-            "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s",
-            stage,
-            name,
-            learner.algo,
-            result.frames,
-            result.updates,
-            result.seconds,
-            quality,
-            note,
-        )
-        threshold = self.task.stage_cfg(stage).success_threshold
-        if self.cfg.schedule.name != "joint" and threshold is not None and not result.early_stopped:
-            log.warning(
-                "stage %d (%s) did not meet its early-stop criterion within its budget of %d "
-                "frames; the run goes on with its best evaluation. Fix: raise "
-                "task.stages.%s.frames",
-                stage,
-                self.task.stage_names[stage],
-                result.frames,
-                self.task.stage_names[stage],
-            )
-
-
-__all__ = ["Experiment", "RunDirError", "build_task"]

@@ -118,12 +118,12 @@ class GymStageEnv(SerialEnv):
             raise ValueError(f"GymStageEnv needs batch_size=(n,), got {batch}")
         if start_stage is not _UNSET:
             kwargs["start_stage"] = start_stage
-        probe = gymnasium.make(env_id, **kwargs)
+        made = gymnasium.make(env_id, **kwargs)
         try:
-            found = getattr(probe.unwrapped, "num_stages", None)
-            max_steps = probe.spec.max_episode_steps if probe.spec is not None else None
+            found = getattr(made.unwrapped, "num_stages", None)
+            max_steps = made.spec.max_episode_steps if made.spec is not None else None
         finally:
-            probe.close()
+            made.close()
         if num_stages is None and found is None:
             raise ValueError(
                 f"the gymnasium env {env_id!r} has no num_stages attribute. Fix: set "

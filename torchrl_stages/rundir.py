@@ -38,6 +38,7 @@ from torchrl_stages.integrity import atomic_write, sha256_file
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.runlock import LOCK_DIR, RunLock, RunLockedError
+from torchrl_stages.schedules import get_schedule
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 from torchrl_stages.validate import ConfigError, missing_keys, validate_config
@@ -100,6 +101,10 @@ def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...]
         if flat_old.get(k, "<unset>") != flat_new.get(k, "<unset>")
         and not any(k == p or k.startswith(f"{p}.") for p in ignore)
     ]
+
+
+#: root keys a config written by an earlier version lacks, with the value they had then
+ADDED_KEYS: dict[str, Any] = {"all_stages": {}}
 
 
 # ---------------------------------------------------------------------- what a config may run
@@ -393,7 +398,7 @@ class RunDir:
             interpolation = next(_interpolations(container), None)
             if interpolation is not None:
                 raise ValueError(f"{interpolation[0]} holds an interpolation, {interpolation[1]!r}")
-            cfg = OmegaConf.create(container)
+            cfg = OmegaConf.create({**ADDED_KEYS, **container})
             missing = [f.name for f in fields(TrainConfig) if f.name not in cfg]
             if missing:
                 raise ValueError(f"it lacks {', '.join(missing)}")
@@ -576,16 +581,23 @@ class LoadedRun:
 
 
 def load_stage(
-    run: RunDir, task: StagedTask, stage: int, device: str | torch.device = "cpu"
+    run: RunDir,
+    task: StagedTask,
+    stage: int,
+    device: str | torch.device = "cpu",
+    *,
+    name: str | None = None,
 ) -> tuple[Learner, dict[str, Any]] | None:
-    """Stage ``stage``'s learner and result from ``stage_<k>.pt`` (``None``: not finished)."""
+    """Stage ``stage``'s learner and result from ``stage_<k>.pt`` (``None``: not finished),
+    which must hold the stage ``name`` (default: the task's name of stage ``stage``)."""
     state = run.read_stage(stage, map_location=device)
     if state is None:
         return None
-    if state.get("name") not in (task.stage_names[stage], "flat"):
+    name = task.stage_names[stage] if name is None else name
+    if state.get("name") != name:
         raise RunDirError(
             f"{run.stage_file(stage)} holds stage {state.get('name')!r}, but the run's stage "
-            f"{stage} is {task.stage_names[stage]!r}. Fix: restore the config it was trained "
+            f"{stage} is {name!r}. Fix: restore the config it was trained "
             "with, or delete the file and resume the run to retrain the stage."
         )
     learner = make_learner(task.stage_cfg(stage), task.specs(stage), device=device)
@@ -644,10 +656,14 @@ def load_run(
             f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}). Fix: "
             "install what the run's env needs (see its config.yaml task.env)"
         ) from err
-    if cfg.get("schedule", {}).get("name") == "flat":  # one learner acts in every stage
-        stages = [load_stage(run, task, 0, device)] * task.num_stages
-    else:
-        stages = [load_stage(run, task, k, device) for k in range(task.num_stages)]
+    schedule = get_schedule(str(cfg.schedule.name))  # which file holds each stage's learner
+    loaded: dict[int, tuple[Learner, dict[str, Any]] | None] = {}
+    for k in range(task.num_stages):
+        stored = schedule.stored_stage(k)
+        if stored not in loaded:
+            name = schedule.stage_name(task, stored)
+            loaded[stored] = load_stage(run, task, stored, device, name=name)
+    stages = [loaded[schedule.stored_stage(k)] for k in range(task.num_stages)]
     missing = [run.stage_file(k).name for k, s in enumerate(stages) if s is None]
     if missing:
         raise RunDirError(

@@ -3,12 +3,14 @@
 ``conf/algo/<name>.yaml`` extends ``<name>_schema`` (the algorithm's config dataclass, see
 :data:`torchrl_stages.learners.ALGORITHMS`), so ``algo@task.stages.<stage>=<name>`` composes a
 stage from its algorithm's keys and defaults. The ``stages_algorithms`` resolver lists the
-registered algorithms (for ``stages-train --help``).
+registered algorithms and ``stages_options`` the options of a config group (what ``conf/`` and
+any config directory of yours hold), so that ``stages-train --help`` lists what there is.
 """
 
 from __future__ import annotations
 
 from hydra.core.config_store import ConfigStore
+from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from torchrl_stages.config import LoggerConfig, ScheduleConfig, TrainConfig
@@ -32,6 +34,18 @@ def register_configs() -> None:
         cs.store(group="algo", name=f"{name}_schema", node=learner.Config)
     if not OmegaConf.has_resolver("stages_algorithms"):
         OmegaConf.register_new_resolver("stages_algorithms", lambda: "|".join(ALGORITHMS))
+    if not OmegaConf.has_resolver("stages_options"):
+        OmegaConf.register_new_resolver("stages_options", group_options)
+
+
+def group_options(group: str) -> str:
+    """``a|b|c``: the options of config group ``group`` in the running Hydra app (the schemas
+    this module stores are left out); ``?`` outside one."""
+    hydra = GlobalHydra.instance()
+    if not hydra.is_initialized():
+        return "?"
+    names = hydra.config_loader().get_group_options(group)
+    return "|".join(name for name in names if not name.endswith("_schema"))
 
 
 __all__ = ["register_configs"]

@@ -38,12 +38,12 @@ class StagedTask:
         self.cfg = cfg
         self.device = torch.device(device)
         self.stage_names: list[str] = list(cfg.stages.keys())
-        self._probe = self.base_env(batch_size=1)
+        self._spec_env = self.base_env(batch_size=1)
 
     @property
-    def probe(self) -> EnvBase:
+    def spec_env(self) -> EnvBase:
         """The env built with ``batch_size=1`` whose specs the learners are built from."""
-        return self._probe
+        return self._spec_env
 
     @property
     def name(self) -> str:
@@ -51,7 +51,7 @@ class StagedTask:
 
     @property
     def num_stages(self) -> int:
-        return int(self._probe.num_stages)
+        return int(self._spec_env.num_stages)
 
     def stage_cfg(self, stage: int) -> DictConfig:
         return self.cfg.stages[self.stage_names[stage]]
@@ -81,7 +81,7 @@ class StagedTask:
         """Constructor arguments that start every batch element at one of ``stage``'s start
         states, all of them covered (``None``: the whole-task starts), from the env's optional
         ``start_states(stage)`` hook; ``None`` when the env cannot enumerate them."""
-        hook = getattr(self._probe, "start_states", None)
+        hook = getattr(self._spec_env, "start_states", None)
         return None if hook is None else hook(stage)
 
     def stage_env(
@@ -151,7 +151,7 @@ class StagedTask:
 
     def specs(self, stage: int) -> StageSpecs:
         """Observation and action entries of ``stage``'s learner, read from the env's specs."""
-        env = self._probe
+        env = self._spec_env
         if hasattr(env, "stage_observation_keys"):
             obs_keys = list(env.stage_observation_keys(stage))
         else:

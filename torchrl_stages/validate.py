@@ -10,10 +10,10 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchrl_stages.config import ConfigError, StageChecks, check
 from torchrl_stages.learners import ALGORITHMS, learner_class
+from torchrl_stages.schedules import get_schedule
 
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
-SCHEDULES = ("backward", "joint", "flat")
 COMPILE_MODES = ("auto", "off", "default", "reduce-overhead", "max-autotune")
 OBJECTIVE_METRICS = ("success_rate", "mean_return", "mean_steps")
 DIRECTIONS = ("maximize", "minimize")
@@ -158,21 +158,7 @@ def validate_config(cfg: DictConfig) -> None:
             "must be maximize or minimize",
             f"set objective.direction=maximize (or minimize, e.g. for {OBJECTIVE_METRICS[2]})",
         )
-    check(
-        cfg.schedule.name in SCHEDULES,
-        "schedule.name",
-        cfg.schedule.name,
-        f"unknown schedule (known: {', '.join(SCHEDULES)})",
-        "select one with schedule=backward|joint|flat",
-    )
-    check(
-        cfg.schedule.name != "backward" or cfg.task.get("stage_starts", True),
-        "schedule",
-        cfg.schedule.name,
-        f"task '{cfg.task.name}' has stage_starts=false: its env cannot start inside a stage, "
-        "which the backward schedule needs",
-        "use schedule=joint (one phase from the task's own starts)",
-    )
+    get_schedule(str(cfg.schedule.name)).validate(cfg)
     check(
         cfg.checkpoint_every >= 0,
         "checkpoint_every",
@@ -296,7 +282,7 @@ def validate_env_protocol(cfg: DictConfig, env) -> None:
 def validate_task(cfg: DictConfig, task) -> None:
     """Checks the env against the task protocol, then the stage list and each stage's
     algorithm against the built env's specs."""
-    validate_env_protocol(cfg, task.probe)
+    validate_env_protocol(cfg, task.spec_env)
     names = list(cfg.task.stages)
     check(
         len(names) == task.num_stages,
@@ -306,21 +292,7 @@ def validate_task(cfg: DictConfig, task) -> None:
         f"configure exactly {task.num_stages} stages (add them with "
         f"+algo@task.stages.NAME=<algo> or remove extra ones with ~task.stages.NAME)",
     )
-    if cfg.schedule.name == "flat":
-        first = task.specs(0)
-        for k, name in enumerate(names):
-            specs = task.specs(k)
-            check(
-                specs.action_key == first.action_key
-                and list(specs.observation_keys) == list(first.observation_keys),
-                "schedule",
-                "flat",
-                f"one learner acts in every stage, but stage {k} ({name}) reads "
-                f"{list(specs.observation_keys)} and writes {specs.action_key!r} where stage 0 "
-                f"reads {list(first.observation_keys)} and writes {first.action_key!r}",
-                "give the stages one action entry (e.g. cargo's single-robot task: "
-                "task.env.robots=[propelled] ~task.stages.slider), or use schedule=backward",
-            )
+    get_schedule(str(cfg.schedule.name)).validate_task(cfg, task)
     for k, name in enumerate(names):
         stage = cfg.task.stages[name]
         problem = learner_class(stage).check_action_spec(task.specs(k).action_spec)

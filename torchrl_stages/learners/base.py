@@ -308,7 +308,8 @@ class Learner(nn.Module, ABC):
     :class:`~torchrl_stages.config.StageConfig` and :class:`StageSpecs`, implements
     :meth:`update`, :meth:`anneal_exploration` and :meth:`value` (the ``V(s)`` it hands to the
     stage before it), and is registered with :func:`register_algorithm`. The loops in
-    :mod:`torchrl_stages.stage` and :mod:`torchrl_stages.joint` only talk to this interface.
+    :mod:`torchrl_stages.stage` and :mod:`torchrl_stages.schedules.joint` only talk to this
+    interface.
 
     Attributes:
         policy: the greedy (deterministic) policy, used for evaluation and the stacked policy.

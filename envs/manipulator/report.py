@@ -10,10 +10,11 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_stages.envs.manipulator import inverse_kinematics
 from torchrl_stages.evaluate import TaskEvaluation
 from torchrl_stages.learners import Learner
 from torchrl_stages.task import StagedTask
+
+from .env import inverse_kinematics
 
 EXAMPLES = 8  # effector paths drawn in manipulator.png
 
@@ -57,7 +58,7 @@ def report(
     q = torch.tensor([0.5, 0.9, 0.99], device=dist.device)
     out: dict[str, Any] = {"final_distance_p50_p90_p99": torch.quantile(dist, q).tolist()}
     if plots and not env.random_target and len(learners) == 2:
-        from torchrl_stages.plots import plot_arm_figure
+        from .figures import plot_arm_figure
 
         rollout, length = evaluation.rollout, evaluation.stats.length
         count = min(EXAMPLES, rollout.shape[0])

@@ -40,7 +40,7 @@ def report(
     evaluation's ``mean_steps_per_stage``), and the Fig. 3 panel ``cargo.png`` when ``plots``."""
     env = task.base_env(1)
     if plots:
-        from torchrl_stages.plots import plot_cargo_figure
+        from .figures import plot_cargo_figure
 
         success = evaluation.stats.success.float().mean().item()
         plot_cargo_figure(

@@ -14,6 +14,7 @@ that cannot start inside a chosen stage runs one phase from the task's own start
 from __future__ import annotations
 
 import functools
+import logging
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -28,23 +29,26 @@ from torchrl.record.loggers import Logger
 
 from torchrl_stages.checkpoint import StageCheckpoints, StateOf
 from torchrl_stages.collector import StageCollector
-from torchrl_stages.evaluate import discounted_return, evaluate_policy
+from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
-from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.replay import stage_replay_buffer
-from torchrl_stages.stage import (
-    StageResult,
+from torchrl_stages.loop import (
+    EarlyStop,
+    MetricsLog,
     Stopwatch,
-    _EvalMonitor,
-    checkpoint_or_stop,
     first_evaluation,
     progress_bar,
-    stage_failure,
+    run_loop,
 )
+from torchrl_stages.policy import StackedPolicy
+from torchrl_stages.replay import stage_replay_buffer
+from torchrl_stages.schedules.base import Schedule, StageStore, Trained, register_schedule
+from torchrl_stages.stage import StageResult, stage_failure
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import NonFiniteValueError, StageRewardTransform, StageTransform
+
+log = logging.getLogger(__name__)
 
 TAGS: tuple[NestedKey, ...] = (
     "stage",
@@ -79,8 +83,8 @@ class JointTrainer:
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
         ...             "num_stages": 2},
         ... }))
-        >>> learners, results, phases = JointTrainer(task).train()
-        >>> [p["start_stage"] for p in phases], [r.updates > 0 for r in results]
+        >>> learners, results, phases = JointTrainer(task).train()  # doctest: +SKIP
+        >>> [p["start_stage"] for p in phases], [r.updates > 0 for r in results]  # doctest: +SKIP
         ([1, 0], [True, True])
     """
 
@@ -95,7 +99,8 @@ class JointTrainer:
         probe: Callable[[list[Learner], int], None] | None = None,
         compile: str = "off",
     ) -> None:
-        self.task, self.seed, self.logger, self.progress = task, seed, logger, progress
+        self.task, self.seed, self.progress = task, seed, progress
+        self.log = MetricsLog(logger)
         self.probe = probe
         self.checkpoints = checkpoints
         n = task.num_stages
@@ -171,7 +176,7 @@ class JointTrainer:
             counters.update(phase=index + 1, in_phase=False)
             if self.checkpoints is not None:  # a phase boundary: learners and buffers
                 counters["seconds"] = time.perf_counter() - start
-                counters["log"] = self._log_position()
+                counters["log"] = self.log.position()
                 self.checkpoints.save(counters["frames"], stateful)
         seconds = time.perf_counter() - start
         last = counters["phases"][-1] if counters["phases"] else {}
@@ -200,7 +205,7 @@ class JointTrainer:
         resume_in_phase = latest is not None and counters["in_phase"]
         if latest is not None and not resume_in_phase:  # resumed at a phase boundary
             self.checkpoints.load(latest, stateful)
-            self._rewind_log(counters["log"])
+            self.log.rewind(counters["log"])
         torch.manual_seed(self.seed + 1000 * (k + 1))
         env = self._env(start_stage, int(cfg.num_envs))
         env.set_seed(self.seed + k)
@@ -213,7 +218,7 @@ class JointTrainer:
             total_frames=int(cfg.frames),
             init_random_frames=int(cfg.init_random_frames) if counters["phase"] == 0 else 0,
         )
-        monitor = _EvalMonitor(cfg)
+        monitor = EarlyStop(cfg)
         phase = {"next_eval": first_evaluation(cfg)}
         state = {
             **stateful,
@@ -224,45 +229,46 @@ class JointTrainer:
         }
         if resume_in_phase:
             self.checkpoints.load(latest, state)
-            self._rewind_log(counters["log"])
+            self.log.rewind(counters["log"])
         counters["in_phase"] = True
         team = nn.ModuleList(self.learners)  # the best evaluation keeps every learner's weights
-        bar = progress_bar(
-            collector.frames, int(cfg.frames), f"joint phase from stage {k}", self.progress
+
+        def count(batch: TensorDictBase) -> int:
+            counters["frames"] += batch.numel()
+            return counters["frames"]
+
+        def learn(batch: TensorDictBase, frames: int) -> dict[int, list[dict]]:
+            with watch("collect"):
+                self._route(batch, counters["stored"])
+            return self._update(counters["stored"], watch)
+
+        def evaluate() -> tuple[float, float, float]:
+            result = self.evaluate(k, eval_env, counters["frames"])
+            if self.probe is not None and k == 0:
+                self.probe(self.learners, counters["frames"])
+            return result
+
+        run_loop(
+            collector,
+            learn=learn,
+            log_batch=lambda batch, losses: self._log_batch(k, batch, losses, counters["frames"]),
+            evaluate=evaluate,
+            early_stop=monitor,
+            model=team,
+            eval_every=int(cfg.eval_every),
+            counters=phase,
+            checkpoints=self.checkpoints,
+            state=state,
+            before_save=lambda: counters.update(
+                seconds=time.perf_counter() - t0, log=self.log.position()
+            ),
+            where=f"the joint phase from stage {k}",
+            watch=watch,
+            bar=progress_bar(
+                collector.frames, int(cfg.frames), f"joint phase from stage {k}", self.progress
+            ),
+            count=count,
         )
-        try:
-            for batch in watch.timed("collect", collector):
-                frames = collector.frames
-                counters["frames"] += batch.numel()
-                keep_threads()
-                with watch("collect"):
-                    self._route(batch, counters["stored"])
-                losses = self._update(counters["stored"], watch)
-                with watch("log"):
-                    self._log_batch(k, batch, losses, counters["frames"])
-                bar.update(batch.numel())
-                stop = False
-                if int(cfg.eval_every) > 0 and frames >= phase["next_eval"]:
-                    phase["next_eval"] += int(cfg.eval_every)
-                    with watch("evaluate"):
-                        success, value_error, ret = self.evaluate(k, eval_env, counters["frames"])
-                        if self.probe is not None and k == 0:
-                            self.probe(self.learners, counters["frames"])
-                    stop = monitor.record(team, success, value_error, frames, ret)
-                if stop:
-                    break
-                checkpoint_or_stop(
-                    self.checkpoints,
-                    counters["frames"],
-                    state,
-                    lambda: counters.update(
-                        seconds=time.perf_counter() - t0, log=self._log_position()
-                    ),
-                    f"the joint phase from stage {k}",
-                    watch,
-                )
-        finally:
-            bar.close()
         restored = monitor.restore_best(team)
         success, value_error = monitor.final
         counters["phases"].append(
@@ -321,21 +327,14 @@ class JointTrainer:
         """Greedy whole-task episodes from stage-k starts: success, merged value error and
         merged discounted return (logged under ``eval/joint_<k>/``)."""
         cfg = self.task.stage_cfg(k)
-        keep_threads()
         policy = StackedPolicy([learner.policy for learner in self.learners])
         max_steps = int(getattr(eval_env.base_env, "max_steps", 1000))
         if cfg.eval_max_steps:  # each stage an episode crosses may take eval_max_steps
             max_steps = min(max_steps, int(cfg.eval_max_steps) * (self.task.num_stages - k))
-        stats, rollout = evaluate_policy(eval_env, policy, max_steps)
-        returns = discounted_return(rollout, stats.length, self.gammas)
-        v0 = self._value(rollout[:, 0].clone()).get("state_value").reshape(-1)
-        errors = (v0 - returns).abs()
-        summary = stats.summary()
-        summary["value_error"] = (
-            errors.max() if cfg.value_error_reduce == "max" else errors.mean()
-        ).item()
-        summary["discounted_return"] = returns.mean().item()
-        self._log({f"eval/joint_{k}/{key}": v for key, v in summary.items()}, frames)
+        summary = evaluate_greedy(
+            eval_env, policy, self._value, max_steps, self.gammas, cfg.value_error_reduce
+        )
+        self.log({f"eval/joint_{k}/{key}": v for key, v in summary.items()}, frames)
         return summary["success_rate"], summary["value_error"], summary["discounted_return"]
 
     # ------------------------------------------------------------------ state and logs
@@ -347,35 +346,50 @@ class JointTrainer:
             learner.load_checkpoint(state)
 
     def _log_batch(self, k: int, batch, losses: dict[int, list[dict]], frames: int) -> None:
-        if self.logger is None:
+        if self.log.logger is None:
             return
-        done = batch["next", "done"].squeeze(-1)
-        metrics: dict[str, float] = {}
-        if done.any():
-            metrics[f"train/joint_{k}/episode_return"] = (
-                batch["next", "episode_reward"][done].mean().item()
-            )
-            metrics[f"train/joint_{k}/episode_success"] = (
-                batch["next", "terminated"][done].float().mean().item()
-            )
+        metrics = {f"train/joint_{k}/{key}": v for key, v in MetricsLog.episodes(batch).items()}
         for m, stage_losses in losses.items():
-            for key in dict.fromkeys(key for loss in stage_losses for key in loss):
-                values = [loss[key] for loss in stage_losses if key in loss]
-                metrics[f"train/stage_{m}/{key}"] = torch.stack(values).mean().item()
+            for key, value in MetricsLog.losses(stage_losses).items():
+                metrics[f"train/stage_{m}/{key}"] = value
             metrics[f"train/stage_{m}/updates"] = self.learners[m].num_updates
-        self._log(metrics, frames)
+        self.log(metrics, frames)
 
-    def _log(self, metrics: dict[str, float | None], step: int) -> None:
-        if self.logger is not None:
-            for key, value in metrics.items():
-                if value is not None:
-                    self.logger.log_scalar(key, value, step=step)
 
-    def _log_position(self) -> dict[str, int]:
-        position = getattr(self.logger, "position", None)
-        return position() if position is not None else {}
+@register_schedule
+class JointSchedule(Schedule):
+    """``schedule=joint`` (:class:`JointTrainer`): every stage trains at once, so the run
+    resumes as a whole (checkpoints ``"joint"``) and its stage files are written when it ends;
+    its phases, not its stages, stop early."""
 
-    def _rewind_log(self, position: dict[str, int]) -> None:
-        rewind = getattr(self.logger, "rewind", None)
-        if rewind is not None:
-            rewind(position)
+    name = "joint"
+    stage_early_stop = False
+
+    def checkpoint_scope(self, stage: int) -> str:
+        return "joint"
+
+    def train(self, task: StagedTask, store: StageStore | None = None, **kwargs) -> Trained:
+        n = task.num_stages
+        if store is not None:  # a finished run resumed: its stages and phases as they were
+            done = [store.finished(k) for k in range(n)]
+            if all(d is not None for d in done):
+                phases = list(store.kept("phases") or [])
+                return Trained([d[0] for d in done], [d[1] for d in done], {"phases": phases})
+        checkpoints = store.begin("joint") if store is not None else None
+        learners, results, phases = JointTrainer(task, checkpoints=checkpoints, **kwargs).train()
+        for phase in phases:
+            start = phase["start_stage"]
+            log.info(
+                "joint phase from %s: %d frames, whole-task success %.2f, value error %.3f%s",
+                "the task's own starts" if start is None else f"stage {start} starts",
+                phase["frames"],
+                phase["success_rate"] if phase["success_rate"] is not None else float("nan"),
+                phase["value_error"] if phase["value_error"] is not None else float("nan"),
+                " (early stop)" if phase["early_stopped"] else " (budget used, best restored)",
+            )
+        if store is not None:
+            store.keep("phases", phases)  # for a resumed launch's eval.json
+            for k in range(n):
+                store.save(k, learners[k], results[k])
+            store.clear("joint")
+        return Trained(learners, results, {"phases": phases})

@@ -10,7 +10,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ._common import StageStarts, sparse_reward_and_done_specs
+from .._common import StageStarts, sparse_reward_and_done_specs
 
 __all__ = [
     "ManipulatorEnv",

@@ -12,7 +12,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ._common import StageStarts, check_start_stage, sparse_reward_and_done_specs
+from .._common import StageStarts, check_start_stage, sparse_reward_and_done_specs
 
 __all__ = [
     "GridWorldEnv",

@@ -1,17 +1,27 @@
-"""Whole-task evaluation of a trained run (``eval.json``) and the per-task reports.
+"""Tasks: what a task adds to a run beyond its env and config, and the whole-task evaluation.
 
-Every run gets one whole-task evaluation (:func:`torchrl_stages.evaluate.evaluate_task`): its
-success rate, returns and steps are the run's numbers. A task may add a report, looked up by
-``task.name`` in :data:`REPORTS`: ``report(task, learners, evaluation, run_dir, plots) -> dict``
-reads that same evaluation (or runs task-specific deterministic checks), draws the task's
-figures, and its dict is stored under ``"task_metrics"`` in ``eval.json``.
+A task registers itself with :func:`register_task` (the package's own do so in
+``torchrl_stages.envs.<task>``; a task of your own in the module that defines its env, which
+Hydra imports when it builds the env). Its :class:`TaskReport` is looked up by ``task.name``:
+
+* ``report(task, learners, evaluation, run_dir, plots) -> dict`` reads the run's whole-task
+  evaluation (or runs task-specific deterministic checks), draws the task's figures, and its
+  dict is stored under ``"task_metrics"`` in ``eval.json``;
+* ``headline``: the names among those metrics that a sweep summary shows beside the success
+  rate (listed in ``eval.json`` as ``"headline_metrics"``);
+* ``probe(task, learners) -> dict``: numbers followed during training with ``eval.probe=true``.
+
+Every run gets one whole-task evaluation (:func:`evaluate_run`): its success rate, returns and
+steps are the run's numbers.
 """
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,21 +32,71 @@ from torchrl_stages.evaluate import evaluate_task
 from torchrl_stages.integrity import atomic_write
 from torchrl_stages.learners import Learner
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.reports import cargo, gridworld, manipulator
 from torchrl_stages.task import StagedTask
+
+__all__ = [
+    "EVAL_FILE",
+    "TASKS",
+    "TaskReport",
+    "evaluate_run",
+    "format_summary",
+    "probe_task",
+    "register_task",
+    "task_report",
+]
+
+
+@dataclass(frozen=True)
+class TaskReport:
+    """What a task adds to the whole-task evaluation: its report (metrics and figures), the
+    names of its headline metrics, and its probe (numbers followed during training).
+
+    Examples:
+        >>> info = TaskReport(report=lambda task, learners, evaluation, run_dir, plots: {})
+        >>> info.headline, info.probe
+        ((), None)
+    """
+
+    report: Callable[..., dict[str, Any]] | None = None
+    headline: tuple[str, ...] = ()
+    probe: Callable[..., dict[str, float]] | None = None
+
+
+#: registered tasks by ``task.name``
+TASKS: dict[str, TaskReport] = {}
+
+
+def register_task(
+    name: str,
+    *,
+    report: Callable[..., dict[str, Any]] | None = None,
+    headline: Sequence[str] = (),
+    probe: Callable[..., dict[str, float]] | None = None,
+) -> TaskReport:
+    """Registers what the task ``name`` (its ``task.name``) adds to a run; returns it.
+
+    Examples:
+        >>> def report(task, learners, evaluation, run_dir, plots):
+        ...     return {"distance": 0.5}
+        >>> info = register_task("my_task", report=report, headline=["distance"])
+        >>> task_report("my_task") is info
+        True
+        >>> _ = TASKS.pop("my_task")
+    """
+    TASKS[name] = TaskReport(report, tuple(headline), probe)
+    return TASKS[name]
+
+
+def task_report(name: str) -> TaskReport | None:
+    """The registered :class:`TaskReport` of ``name``, or ``None`` (a task without a report:
+    its run has the whole-task numbers only)."""
+    if name not in TASKS:
+        importlib.import_module("torchrl_stages.envs")  # the package's own tasks register there
+    return TASKS.get(name)
+
 
 EVAL_FILE = "eval.json"
 EVAL_SEED_OFFSET = 20_000  # whole-task evaluation seeds: run seed + this (+ chunk index)
-
-Report = Callable[..., dict[str, Any]]
-
-REPORTS: dict[str, Report] = {
-    "cargo": cargo.report,
-    "gridworld": gridworld.report,
-    "manipulator": manipulator.report,
-}
-#: task-specific numbers followed during training (``eval.probe=true``)
-PROBES: dict[str, Callable[..., dict[str, float]]] = {"gridworld": gridworld.probe}
 
 
 @torch.no_grad()
@@ -50,9 +110,9 @@ def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict
     out = {
         "success_rate": evaluate_task(task, policy, episodes, seed).stats.summary()["success_rate"]
     }
-    extra = PROBES.get(task.name)
-    if extra is not None:
-        out.update(extra(task, learners))
+    extra = task_report(task.name)
+    if extra is not None and extra.probe is not None:
+        out.update(extra.probe(task, learners))
     return out
 
 
@@ -90,9 +150,12 @@ def evaluate_run(
         **evaluation.summary(),
         "training": training or {},
     }
-    report = REPORTS.get(cfg.task.name)
-    if report is not None:
-        result["task_metrics"] = report(task, learners, evaluation, run_dir, plots=cfg.eval.plots)
+    report = task_report(str(cfg.task.name))
+    if report is not None and report.report is not None:
+        result["task_metrics"] = report.report(
+            task, learners, evaluation, run_dir, plots=cfg.eval.plots
+        )
+        result["headline_metrics"] = list(report.headline)
     if cfg.eval.plots and (run_dir / "metrics.csv").is_file():
         from torchrl_stages.plots import plot_learning_curves
 

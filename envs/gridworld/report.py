@@ -12,11 +12,12 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from torchrl_stages.envs import gridworld_optimal_values, gridworld_shortest_steps
 from torchrl_stages.evaluate import TaskEvaluation, evaluate_policy
 from torchrl_stages.learners import Learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.task import StagedTask
+
+from .env import gridworld_optimal_values, gridworld_shortest_steps
 
 
 def greedy_path(task: StagedTask, policy: StackedPolicy, start: Sequence[int]) -> list[list[int]]:
@@ -133,7 +134,7 @@ def report(
     values, errors = value_map_errors(task, learners)
     np.save(run_dir / "value_map.npy", values)
     if plots:
-        from torchrl_stages.plots import plot_grid_trajectories, plot_value_map
+        from .figures import plot_grid_trajectories, plot_value_map
 
         starts = [(size // 2, 0), (size - 1, 0)]
         paths = [metrics["path_from_origin"]] + [greedy_path(task, policy, s) for s in starts]

@@ -12,8 +12,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ._common import StageStarts, sparse_reward_and_done_specs
-from .manipulator import wrap_angle
+from .._common import StageStarts, sparse_reward_and_done_specs
+from ..manipulator.env import wrap_angle
 
 __all__ = ["CargoEnv", "ROBOTS", "load_obstacle_map"]
 
@@ -28,7 +28,7 @@ def load_obstacle_map(path: str | Path | None = None) -> torch.Tensor:
 
     The text format has one line per row, top row (largest ``y``) first: ``#`` for an obstacle
     cell, ``.`` for a free one; lines starting with ``;`` are comments. ``None`` loads the map
-    shipped with the package (``envs/data/cargo_map.txt``, 50 x 70).
+    shipped with the package (``envs/cargo/data/cargo_map.txt``, 50 x 70).
 
     Examples:
         >>> from torchrl_stages.envs import load_obstacle_map

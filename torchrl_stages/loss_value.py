@@ -1,6 +1,6 @@
 """The value a trained stage hands to the one before it, from a torchrl loss module.
 
-For a drop-in training loop built on torchrl's own losses: :func:`target_value` turns stage
+For a drop-in training loop built on torchrl's own losses: :func:`value_from_loss` turns stage
 k+1's loss into the frozen ``V_{k+1}(s)`` module that
 :class:`~torchrl_stages.transforms.StageTransform` (``next_value=``) or
 :class:`~torchrl_stages.transforms.StageRewardTransform` adds to stage k's transition rewards.
@@ -13,10 +13,10 @@ from torchrl.objectives import LossModule
 
 from torchrl_stages.learners import ALGORITHMS
 
-__all__ = ["target_value"]
+__all__ = ["value_from_loss"]
 
 
-def target_value(loss: LossModule, *, live: bool = False) -> TensorDictModuleBase:
+def value_from_loss(loss: LossModule, *, live: bool = False) -> TensorDictModuleBase:
     """``V(s)`` from the *target* networks of a torchrl loss, writing ``"state_value"``: what
     the algorithm whose :attr:`~torchrl_stages.learners.Learner.torchrl_loss` it is hands to the
     stage before it (:meth:`~torchrl_stages.learners.Learner.value_from_loss`; e.g.
@@ -37,7 +37,7 @@ def target_value(loss: LossModule, *, live: bool = False) -> TensorDictModuleBas
         ...                    in_keys=["observation"], spec=Categorical(3))
         >>> loss = DQNLoss(qnet, action_space="categorical", delay_value=True)
         >>> updater = SoftUpdate(loss, tau=0.05)
-        >>> value = target_value(loss)
+        >>> value = value_from_loss(loss)
         >>> td = TensorDict(observation=torch.zeros(5, 2), batch_size=[5])
         >>> value(td)["state_value"].shape
         torch.Size([5, 1])
@@ -48,6 +48,6 @@ def target_value(loss: LossModule, *, live: bool = False) -> TensorDictModuleBas
                 return learner.value_from_loss(loss, live=live)
     known = ", ".join(c.torchrl_loss.__name__ for c in ALGORITHMS.values() if c.torchrl_loss)
     raise TypeError(
-        f"target_value supports {known}, got {type(loss).__name__}; build the value module "
+        f"value_from_loss supports {known}, got {type(loss).__name__}; build the value module "
         "yourself with QMaxValue / ActorCriticValue and with_params"
     )

@@ -1,10 +1,10 @@
-"""Backward schedule: train the last stage first, freeze it, hand its value to the one before."""
+"""The backward schedule: train the last stage first, freeze it, hand its value to the one
+before."""
 
 from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import Protocol
 
 import torch
 from omegaconf import DictConfig
@@ -12,31 +12,11 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.record.loggers import Logger
 
 from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.config import check
 from torchrl_stages.learners import Learner, make_learner
+from torchrl_stages.schedules.base import Probe, Schedule, StageStore, Trained, register_schedule
 from torchrl_stages.stage import StageResult, StageTrainer
 from torchrl_stages.task import StagedTask
-from torchrl_stages.transforms import StageDiscount
-
-
-class StageStore(Protocol):
-    """Where a schedule keeps its stages (a run directory, see
-    :class:`~torchrl_stages.experiment.Experiment`): finished ones, checkpoints of the one in
-    progress."""
-
-    def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
-        """The stage if it was already trained (a resumed run), else ``None``."""
-
-    def begin(self, stage: int) -> StageCheckpoints | None:
-        """The checkpoints the stage's loop saves to and resumes from."""
-
-    def save(self, stage: int, learner: Learner, result: StageResult) -> None:
-        """Keeps a stage that just finished."""
-
-
-#: ``probe(learners, frames)``: follows the whole task during training (see ``eval.probe``);
-#: called at every evaluation of the stage that holds the whole-task starts, with the
-#: learners as they are and the frames collected so far over all stages
-Probe = Callable[[list[Learner], int], None]
 
 
 def train_backward(
@@ -69,8 +49,8 @@ def train_backward(
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
         ...             "num_stages": 2},
         ... }))
-        >>> learners, results = train_backward(task)
-        >>> [r.frames for r in results]
+        >>> learners, results = train_backward(task)  # doctest: +SKIP
+        >>> [r.frames for r in results]  # doctest: +SKIP
         [256, 256]
     """
     learners: list[Learner | None] = [None] * task.num_stages
@@ -133,8 +113,8 @@ def train_stage(
         >>> cfg = DQNConfig(frames=128, frames_per_batch=64, num_envs=8, batch_size=16)
         >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 5, "num_stages": 1}
         >>> task = StagedTask(OmegaConf.create({"name": "g", "stages": {"a": cfg}, "env": env}))
-        >>> learner, result = train_stage(task, 0, seed=3)  # the last (and only) stage
-        >>> result.frames, result.stage
+        >>> learner, result = train_stage(task, 0, seed=3)  # doctest: +SKIP
+        >>> result.frames, result.stage  # doctest: +SKIP
         (128, 0)
     """
     cfg = task.stage_cfg(stage)
@@ -159,73 +139,26 @@ def train_stage(
     return learner, trainer.train()
 
 
-def flat_config(task: StagedTask) -> DictConfig:
-    """The flat learner's config: stage 0's, with the stages' budgets summed."""
-    cfg = task.stage_cfg(0).copy()
-    cfg.frames = sum(int(task.stage_cfg(k).frames) for k in range(task.num_stages))
-    return cfg
+@register_schedule
+class BackwardSchedule(Schedule):
+    """``schedule=backward`` (:func:`train_backward`): stage k is trained from its own config
+    and the frozen values of the stages after it, so a finished stage freezes itself and the
+    stages after it; the env must start episodes inside a chosen stage."""
 
+    name = "backward"
 
-def train_flat(
-    task: StagedTask,
-    *,
-    seed: int = 0,
-    logger: Logger | None = None,
-    progress: bool = False,
-    store: StageStore | None = None,
-    probe: Probe | None = None,
-    compile: str = "off",
-) -> tuple[list[Learner], list[StageResult]]:
-    """One learner over the whole task, no stages (the paper's end-to-end baseline).
+    def train(self, task: StagedTask, store: StageStore | None = None, **kwargs) -> Trained:
+        return Trained(*train_backward(task, store=store, **kwargs))
 
-    It has stage 0's algorithm and hyper-parameters and the sum of the stages' budgets, starts
-    from the task's own starts, and discounts every transition with the gamma of its stage
-    (:class:`~torchrl_stages.transforms.StageDiscount`), so it optimizes the objective the
-    stacked learners do. Its evaluations are whole-task episodes. Returns the learner once per
-    stage (it acts everywhere) and its one result.
+    def frozen_stages(self, finished: set[int], num_stages: int) -> set[int]:
+        return set(range(min(finished), num_stages)) if finished else set()
 
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> from torchrl_stages.learners.dqn import DQNConfig
-        >>> from torchrl_stages.task import StagedTask
-        >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16, gamma=0.9,
-        ...                  init_random_frames=128, batch_size=32, eval_every=0)
-        >>> task = StagedTask(OmegaConf.create({
-        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},
-        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
-        ...             "num_stages": 2},
-        ... }))
-        >>> learners, results = train_flat(task)
-        >>> learners[0] is learners[1], results[0].frames
-        (True, 512)
-    """
-    done = store.finished(0) if store is not None else None
-    if done is not None:
-        return [done[0]] * task.num_stages, [done[1]]
-    cfg = flat_config(task)
-    gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
-    torch.manual_seed(seed)
-    env = task.task_env(int(cfg.num_envs), start_stage=None, train=True)
-    env.set_seed(seed)
-    eval_env = task.task_env(None if task.start_states(None) is not None else cfg.eval_episodes)
-    eval_env.set_seed(seed + 10_000)
-    learner = make_learner(cfg, task.specs(0), compile, task.device)
-    trainer = StageTrainer(
-        0,
-        learner,
-        env,
-        eval_env,
-        cfg,
-        logger=logger,
-        progress=progress,
-        name="flat",
-        checkpoints=store.begin(0) if store is not None else None,
-        gammas=gammas,
-        postproc=StageDiscount(gammas, float(cfg.gamma)),
-        extra_keys=["steps_to_next_obs"],
-        on_evaluate=None if probe is None else lambda f: probe([learner] * task.num_stages, f),
-    )
-    result = trainer.train()
-    if store is not None:
-        store.save(0, learner, result)
-    return [learner] * task.num_stages, [result]
+    def validate(self, cfg: DictConfig) -> None:
+        check(
+            bool(cfg.task.get("stage_starts", True)),
+            "schedule",
+            self.name,
+            f"task '{cfg.task.name}' has stage_starts=false: its env cannot start inside a "
+            "stage, which the backward schedule needs",
+            "use schedule=joint (one phase from the task's own starts)",
+        )

@@ -1,0 +1,127 @@
+"""The grid world's figures (the paper's Fig. 2): greedy trajectories and the value map."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+
+from torchrl_stages.plots import save_figure
+
+__all__ = ["plot_grid_trajectories", "plot_value_map"]
+
+
+def _stage_boundaries(ax: Axes, n_cols: int, stage_width: int, color: str = "k") -> None:
+    """Dashed vertical lines between stages (cell edges lie at half-integers)."""
+    for edge in range(stage_width, n_cols, stage_width):
+        ax.axvline(edge - 0.5, color=color, linestyle="--", linewidth=1.5)
+
+
+def _mark_target(ax: Axes, target: tuple[int, int], color: str = "gold") -> None:
+    """Star on the target cell, given as (row, col)."""
+    row, col = target
+    ax.plot(
+        col,
+        row,
+        marker="*",
+        markersize=18,
+        color=color,
+        markeredgecolor="k",
+        linestyle="none",
+        label="target",
+        zorder=5,
+    )
+
+
+def plot_grid_trajectories(
+    paths: Sequence[Sequence[tuple[int, int]]],
+    *,
+    size: int,
+    stage_width: int,
+    target: tuple[int, int],
+    out: str | Path,
+    title: str = "",
+    labels: Sequence[str] | None = None,
+) -> Path:
+    """Draw greedy trajectories, each a sequence of (row, col) cells, over the grid.
+
+    Row 0 is at the top and column 0 at the left. Each path starts with a ``^`` marker; the
+    target gets a star. With ``labels`` (one per path) a legend is added. Returns the PNG path.
+    """
+    if labels is not None and len(labels) != len(paths):
+        raise ValueError(f"got {len(labels)} labels for {len(paths)} paths")
+    fig = Figure(figsize=(6.5, 6.5))
+    ax = fig.add_subplot()
+    ticks = np.arange(-0.5, size, 1.0)
+    ax.set_xticks(ticks, minor=True)
+    ax.set_yticks(ticks, minor=True)
+    ax.grid(which="minor", color="0.85", linewidth=0.5)
+    ax.tick_params(which="minor", length=0)
+    ax.set_xlim(-0.5, size - 0.5)
+    ax.set_ylim(size - 0.5, -0.5)  # inverted: row 0 at the top
+    ax.set_aspect("equal")
+    _stage_boundaries(ax, size, stage_width)
+    for k, start in enumerate(range(0, size, stage_width)):
+        centre = start + (min(start + stage_width, size) - start - 1) / 2
+        ax.text(centre, -0.7, f"stage {k}", ha="center", va="bottom", fontsize=9)
+    colors = [f"C{i % 10}" for i in range(len(paths))]
+    for i, path in enumerate(paths):
+        cells = np.asarray(path, dtype=float).reshape(-1, 2)
+        if len(cells) == 0:
+            continue
+        label = labels[i] if labels is not None else None
+        ax.plot(cells[:, 1], cells[:, 0], color=colors[i], linewidth=2, alpha=0.85, label=label)
+        ax.plot(
+            cells[0, 1],
+            cells[0, 0],
+            marker="^",
+            markersize=10,
+            color=colors[i],
+            markeredgecolor="k",
+            linestyle="none",
+            zorder=4,
+        )
+    _mark_target(ax, target)
+    ax.set_xlabel("column")
+    ax.set_ylabel("row")
+    if title:
+        ax.set_title(title, pad=22)
+    if labels is not None and len(paths) > 0:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
+    fig.tight_layout()
+    return save_figure(fig, out)
+
+
+def plot_value_map(
+    values: np.ndarray,
+    *,
+    stage_width: int,
+    target: tuple[int, int] | None = None,
+    out: str | Path,
+    title: str = "",
+) -> Path:
+    """Heat map of a (size, size) state-value array, row 0 at the top; returns the PNG path.
+
+    Non-finite entries (e.g. unvisited cells) are left blank.
+    """
+    arr = np.asarray(values, dtype=float)
+    if arr.ndim != 2:
+        raise ValueError(f"values must be 2-D (rows, cols), got shape {arr.shape}")
+    fig = Figure(figsize=(7, 6))
+    ax = fig.add_subplot()
+    image = ax.imshow(
+        np.ma.masked_invalid(arr), origin="upper", cmap="viridis", interpolation="nearest"
+    )
+    fig.colorbar(image, ax=ax, label="V(s)")
+    _stage_boundaries(ax, arr.shape[1], stage_width, color="w")
+    if target is not None:
+        _mark_target(ax, target, color="red")
+    ax.set_xlabel("column")
+    ax.set_ylabel("row")
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return save_figure(fig, out)

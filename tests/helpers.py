@@ -1,0 +1,99 @@
+"""Helpers the tests share: configs composed in-process, tiny budgets, console scripts run as
+subprocesses, and figure checks. Fixtures are in ``conftest.py``."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import DictConfig
+
+from torchrl_stages.store import register_configs
+
+
+def assert_figure(path: Path, min_side: int = 200) -> None:
+    """Asserts that ``path`` is a PNG of at least ``min_side`` pixels a side that is not blank."""
+    from matplotlib import image
+
+    path = Path(path)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", f"{path} is not a PNG"
+    pixels = image.imread(path)
+    height, width = pixels.shape[:2]
+    assert min(height, width) >= min_side, f"{path} is {width} x {height} pixels"
+    assert float(pixels.std()) > 0.01, f"{path} is blank"
+
+
+@contextlib.contextmanager
+def hydra_config(*base: str) -> Iterator[Callable[..., DictConfig]]:
+    """Yields ``compose(*overrides)`` of the root config (``base`` overrides first), with
+    Hydra initialised from a cleared global state and cleared again on exit."""
+    GlobalHydra.instance().clear()
+    register_configs()
+    try:
+        with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
+            yield lambda *overrides: compose("config", overrides=[*base, *overrides])
+    finally:
+        GlobalHydra.instance().clear()
+
+
+TINY_STAGE = {  # per-stage budgets that train any stage in about a second
+    "frames": 256,
+    "frames_per_batch": 128,
+    "num_envs": 16,
+    "init_random_frames": 128,
+    "batch_size": 32,
+    "updates_per_batch": 1,
+    "eval_every": 128,
+    "eval_episodes": 4,
+    "min_frames": 0,
+}
+
+
+def tiny_grid(stage: dict | None = None) -> list[str]:
+    """Overrides of a two-stage 10 x 10 grid world whose two stages train on ``stage``'s keys
+    (default :data:`TINY_STAGE`), without figures or progress bars."""
+    keys = TINY_STAGE if stage is None else stage
+    return [
+        "task.env.size=10",
+        "task.env.num_stages=2",
+        *[f"~task.stages.s{k}" for k in (2, 3, 4)],
+        *[f"task.stages.s{k}.{key}={value}" for k in (0, 1) for key, value in keys.items()],
+        "eval.plots=false",
+        "progress=false",
+    ]
+
+
+def console_script(name: str) -> str:
+    """The installed console script ``name`` (next to this interpreter if not on PATH)."""
+    found = shutil.which(name)
+    path = Path(found) if found else Path(sys.executable).parent / name
+    assert path.is_file(), f"console script {name} not found (is the package installed?)"
+    return str(path)
+
+
+def cli_env(**extra: str) -> dict[str, str]:
+    """The environment of a CLI subprocess: one thread, Hydra's short error messages."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", **extra)
+    env.pop("HYDRA_FULL_ERROR", None)
+    return env
+
+
+def run_cli(argv: list, cwd: Path, timeout: float = 300, **env: str) -> subprocess.CompletedProcess:
+    """Runs a console script (``argv[0]``: its name) to completion; returns the process."""
+    argv = [console_script(argv[0]), *(str(a) for a in argv[1:])]
+    return subprocess.run(
+        argv,
+        cwd=cwd,
+        env=cli_env(**env),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        stdin=subprocess.DEVNULL,
+    )

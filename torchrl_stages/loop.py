@@ -1,0 +1,314 @@
+"""The parts every training loop is built from, and the loop itself (:func:`run_loop`): a
+collector feeding replay buffers, updates, evaluations with an early stop that keeps the best
+weights (:class:`EarlyStop`), metrics (:class:`MetricsLog`, with rewind), checkpoints and
+clean stops (:func:`checkpoint_or_stop`), and the time each phase takes (:class:`Stopwatch`).
+A stage of the backward or flat schedule (:class:`~torchrl_stages.stage.StageTrainer`) and a
+phase of the joint one (:class:`~torchrl_stages.schedules.joint.JointTrainer`) differ only in
+what they give :func:`run_loop`."""
+
+from __future__ import annotations
+
+import copy
+import sys
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.record.loggers import Logger
+from tqdm.auto import tqdm
+
+from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.collector import StageCollector
+from torchrl_stages.config import StageConfig
+from torchrl_stages.preemption import Interrupted, requested
+from torchrl_stages.threads import keep_threads
+
+__all__ = [
+    "EarlyStop",
+    "MetricsLog",
+    "Stopwatch",
+    "checkpoint_or_stop",
+    "first_evaluation",
+    "progress_bar",
+    "run_loop",
+]
+
+
+def progress_bar(initial: int, total: int, desc: str, enabled: bool) -> tqdm:
+    """A stage's (or joint phase's) frame bar, shown only on a terminal."""
+    return tqdm(
+        initial=initial,
+        total=total,
+        desc=desc,
+        unit="frame",
+        disable=not (enabled and sys.stderr.isatty()),
+        leave=False,
+    )
+
+
+def first_evaluation(cfg: StageConfig) -> int:
+    """Frames of a stage's first evaluation: ``eval_every``, or, with an early stop that the
+    budget allows, the first of the ``patience`` evaluations that can stop the stage at
+    ``min_frames`` (earlier ones could not stop it: evaluations only as often as the early stop
+    needs)."""
+    first = int(cfg.eval_every)
+    if cfg.success_threshold is not None and int(cfg.min_frames) <= int(cfg.frames):
+        first = max(first, int(cfg.min_frames) - (int(cfg.patience) - 1) * first)
+    return first
+
+
+class Stopwatch:
+    """Wall-clock seconds spent in named phases of a loop.
+
+    Examples:
+        >>> watch = Stopwatch()
+        >>> with watch("update"):
+        ...     pass
+        >>> list(watch.seconds)
+        ['update']
+    """
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def __call__(self, phase: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[phase] += time.perf_counter() - start
+
+    def timed(self, phase: str, iterable):
+        """Yields from ``iterable``, timing each ``next`` as ``phase``."""
+        iterator = iter(iterable)
+        while True:
+            with self(phase):
+                item = next(iterator, _END)
+            if item is _END:
+                return
+            yield item
+
+
+_END = object()
+
+
+def checkpoint_or_stop(
+    checkpoints: StageCheckpoints | None,
+    frames: int,
+    state: dict,
+    before_save: Callable[[], None],
+    where: str,
+    watch: Stopwatch,
+) -> None:
+    """The end of a loop's iteration: writes a checkpoint when one is due or a stop was asked
+    for (:mod:`torchrl_stages.preemption`), then raises :class:`Interrupted` in the latter case
+    (``before_save`` updates what the checkpoint records of the loop)."""
+    signum = requested()
+    if checkpoints is not None and (checkpoints.due(frames) or signum is not None):
+        with watch("checkpoint"):
+            before_save()
+            checkpoints.save(frames, state)
+    if signum is not None:
+        raise Interrupted(signum, f"{where} at {frames} frames")
+
+
+class EarlyStop:
+    """Early stop and best-weights bookkeeping over a stage's greedy evaluations.
+
+    The early-stop criterion must hold for ``patience`` consecutive evaluations after
+    ``min_frames``. When the budget runs out first, :meth:`restore_best` puts back the weights of
+    the best evaluation, if ``keep_best``: highest success, then lowest value error (``keep_best_by
+    = "value_error"``) or highest mean discounted return (``"return"``).
+    """
+
+    def __init__(self, cfg: StageConfig) -> None:
+        self.cfg = cfg
+        self.streak = 0
+        self.stopped = False
+        self.best: tuple[float, float] | None = None  # (success, value error) of the best
+        self.best_score: tuple[float, float] | None = None
+        self.best_is_last = False
+        self.best_state: dict | None = None
+        self.last: tuple[float, float] | None = None
+        self.best_return: float | None = None  # mean discounted return of those evaluations
+        self.last_return: float | None = None
+
+    def record(
+        self,
+        learner: nn.Module,
+        success: float,
+        value_error: float,
+        frames: int,
+        ret: float | None = None,
+    ) -> bool:
+        """Records one evaluation (``ret``: its mean discounted return); returns whether the
+        stage should stop now."""
+        cfg = self.cfg
+        self.last, self.last_return = (success, value_error), ret
+        by_return = 0.0 if ret is None else ret
+        score = (success, by_return if cfg.keep_best_by == "return" else -value_error)
+        self.best_is_last = cfg.keep_best and (self.best_score is None or score > self.best_score)
+        if self.best_is_last:
+            self.best_score, self.best = score, (success, value_error)
+            self.best_return = ret
+            self.best_state = copy.deepcopy(learner.state_dict())
+        met = (
+            cfg.success_threshold is not None
+            and success >= cfg.success_threshold
+            and (cfg.value_tolerance is None or value_error <= cfg.value_tolerance)
+        )
+        self.streak = self.streak + 1 if met else 0
+        self.stopped = self.streak >= cfg.patience and frames >= cfg.min_frames
+        return self.stopped
+
+    _FIELDS = (
+        "streak",
+        "stopped",
+        "best",
+        "best_score",
+        "best_is_last",
+        "last",
+        "best_return",
+        "last_return",
+    )
+
+    def state_dict(self) -> dict:
+        return {**{f: getattr(self, f) for f in self._FIELDS}, "best_state": self.best_state}
+
+    def load_state_dict(self, state: dict) -> None:
+        for f in self._FIELDS:
+            # checkpoints from before the returns were kept lack those two fields
+            value = state.get(f) if f.endswith("_return") else state[f]
+            setattr(self, f, tuple(value) if isinstance(value, list) else value)
+        self.best_state = state["best_state"]
+
+    def restore_best(self, learner: nn.Module) -> bool:
+        """Puts back the best evaluated weights (the budget ran out before the early stop);
+        returns whether they differ from the weights the loop ended with (updates may follow
+        the last evaluation)."""
+        if self.stopped or self.best_state is None:
+            return False
+        current = learner.state_dict()
+        changed = any(not torch.equal(current[k], v) for k, v in self.best_state.items())
+        if changed:
+            learner.load_state_dict(self.best_state)
+        return changed
+
+    @property
+    def final(self) -> tuple[float | None, float | None]:
+        """Evaluation of the weights the stage ends with."""
+        if self.last is None:
+            return None, None
+        if self.stopped or self.best is None:
+            return self.last
+        return self.best  # restore_best puts these weights back
+
+    @property
+    def final_return(self) -> float | None:
+        """Mean discounted return of the evaluation :attr:`final` reports."""
+        if self.stopped or self.best is None:
+            return self.last_return
+        return self.best_return
+
+
+class MetricsLog:
+    """A loop's metrics: scalars to a torchrl ``logger`` (none: dropped), and the logger's
+    position and rewind where it has them (:class:`~torchrl_stages.loggers.CSVMetricsLogger`),
+    so that a resumed loop drops the rows of an interrupted attempt.
+
+    Examples:
+        >>> log = MetricsLog(None)
+        >>> log({"train/stage_0/loss": 0.5}, step=128)
+        >>> log.position()
+        {}
+    """
+
+    def __init__(self, logger: Logger | None) -> None:
+        self.logger = logger
+
+    def __call__(self, metrics: dict[str, float | None], step: int) -> None:
+        if self.logger is not None:
+            for key, value in metrics.items():
+                if value is not None:
+                    self.logger.log_scalar(key, value, step=step)
+
+    def position(self) -> dict[str, int]:
+        position = getattr(self.logger, "position", None)
+        return position() if position is not None else {}
+
+    def rewind(self, position: dict[str, int]) -> None:
+        rewind = getattr(self.logger, "rewind", None)
+        if rewind is not None:
+            rewind(position)
+
+    @staticmethod
+    def episodes(batch: TensorDictBase) -> dict[str, float]:
+        """``episode_return`` and ``episode_success`` of the episodes a batch ended."""
+        done = batch["next", "done"].squeeze(-1)
+        if not done.any():
+            return {}
+        return {
+            "episode_return": batch["next", "episode_reward"][done].mean().item(),
+            "episode_success": batch["next", "terminated"][done].float().mean().item(),
+        }
+
+    @staticmethod
+    def losses(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, float]:
+        """Each loss entry's mean over a batch's updates."""
+        keys = dict.fromkeys(k for loss in losses for k in loss)
+        return {
+            k: torch.stack([loss[k] for loss in losses if k in loss]).mean().item() for k in keys
+        }
+
+
+def run_loop(
+    collector: StageCollector,
+    *,
+    learn: Callable[[TensorDictBase, int], Any],
+    log_batch: Callable[[TensorDictBase, Any], None],
+    evaluate: Callable[[], tuple[float, float, float | None]],
+    early_stop: EarlyStop,
+    model: nn.Module,
+    eval_every: int,
+    counters: dict[str, Any],
+    checkpoints: StageCheckpoints | None,
+    state: dict[str, Any],
+    before_save: Callable[[], None],
+    where: str,
+    watch: Stopwatch,
+    bar: tqdm,
+    count: Callable[[TensorDictBase], int] | None = None,
+) -> None:
+    """The loop: for every collected batch, ``learn(batch, frames)`` (store it, take the
+    gradient steps; returns the losses), ``log_batch(batch, losses)``, every ``eval_every``
+    frames from ``counters["next_eval"]`` on ``evaluate()`` -> ``(success, value_error,
+    return)`` recorded by ``early_stop`` (which keeps ``model``'s best weights) until it says
+    stop, then :func:`checkpoint_or_stop`. ``count(batch)`` gives the frames a checkpoint is
+    named by (default: the collector's)."""
+    try:
+        for batch in watch.timed("collect", collector):
+            frames = collector.frames
+            total = frames if count is None else count(batch)
+            keep_threads()
+            losses = learn(batch, frames)
+            with watch("log"):
+                log_batch(batch, losses)
+            bar.update(batch.numel())
+            stop = False
+            if eval_every > 0 and frames >= counters["next_eval"]:
+                counters["next_eval"] += eval_every
+                with watch("evaluate"):
+                    success, value_error, ret = evaluate()
+                bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
+                stop = early_stop.record(model, success, value_error, frames, ret)
+            if stop:
+                break
+            checkpoint_or_stop(checkpoints, total, state, before_save, where, watch)
+    finally:
+        bar.close()

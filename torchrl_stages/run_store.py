@@ -1,0 +1,145 @@
+"""A schedule's stages kept in a run directory: :class:`RunStore`, the
+:class:`~torchrl_stages.schedules.StageStore` that :class:`~torchrl_stages.experiment.Experiment`
+passes down to the schedule it runs."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from torchrl.record.loggers import Logger
+
+from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.learners import Learner
+from torchrl_stages.rundir import RunDir, load_stage
+from torchrl_stages.schedules import Schedule
+from torchrl_stages.stage import StageResult
+from torchrl_stages.task import StagedTask
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RunStore"]
+
+
+class RunStore:
+    """Finished stages (``stage_<k>.pt``), checkpoints of the loop in progress and the logger's
+    position, in the run directory ``run``.
+
+    With ``resuming`` the stages an earlier launch finished are loaded (:meth:`finished`) and a
+    loop goes on from its newest checkpoint (:meth:`begin`); without one to go on from, the
+    logger's files are rewound to where the loop started, so the rows of an interrupted
+    attempt are dropped.
+
+    Examples:
+        >>> import tempfile
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.rundir import RunDir
+        >>> from torchrl_stages.schedules import get_schedule
+        >>> from torchrl_stages.task import StagedTask
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {}, "b": {}},
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2}}))
+        >>> store = RunStore(RunDir(tempfile.mkdtemp()), task, get_schedule("flat"))
+        >>> store.finished(0) is None, store.schedule.stage_name(task, 0)
+        (True, 'flat')
+    """
+
+    def __init__(
+        self,
+        run: RunDir,
+        task: StagedTask,
+        schedule: Schedule,
+        *,
+        logger: Logger | None = None,
+        resuming: bool = False,
+        device: str = "cpu",
+        checkpoint_every: int = 50_000,
+        checkpoint_keep: int = 2,
+    ) -> None:
+        self.run, self.task, self.schedule = run, task, schedule
+        self.logger, self.resuming, self.device = logger, resuming, device
+        self.checkpoint_every, self.checkpoint_keep = checkpoint_every, checkpoint_keep
+
+    def _rewind(self, log_position: dict[str, int]) -> None:
+        rewind = getattr(self.logger, "rewind", None)
+        if rewind is not None:
+            rewind(log_position)
+
+    def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
+        """Stage ``stage`` as trained by an earlier launch of this run (resume only)."""
+        if not self.resuming:
+            return None
+        name = self.schedule.stage_name(self.task, stage)
+        loaded = load_stage(self.run, self.task, stage, self.device, name=name)
+        if loaded is None:
+            return None
+        learner, result = loaded
+        log.info("stage %d (%s): finished earlier, loaded", stage, name)
+        return learner, StageResult(**result)
+
+    def begin(self, scope: int | str) -> StageCheckpoints:
+        """The checkpoints of ``scope`` (a stage, or ``"joint"``). Without one to resume from,
+        the logs are rewound to where the loop started: the position stage ``scope + 1``'s
+        file recorded (a backward stage starts where the stage after it ended), else the
+        start."""
+        checkpoints = self.run.checkpoints(scope, self.checkpoint_every, self.checkpoint_keep)
+        if self.resuming and checkpoints.latest() is None:
+            later = None
+            if isinstance(scope, int) and scope + 1 < self.task.num_stages:
+                later = self.run.read_stage(scope + 1)
+            self._rewind({} if later is None else later.get("log", {}))
+        elif self.resuming:
+            where = f"stage {scope}" if isinstance(scope, int) else scope
+            log.info("%s: resuming from %s", where, checkpoints.latest())
+        return checkpoints
+
+    def save(self, stage: int, learner: Learner, result: StageResult) -> None:
+        """Writes ``stage_<k>.pt`` (with the log position) and drops the stage's checkpoints."""
+        position = getattr(self.logger, "position", None)
+        name = self.schedule.stage_name(self.task, stage)
+        self.run.save_stage(
+            stage, name, learner, result, log=position() if position is not None else {}
+        )
+        self.run.clear_checkpoints(stage)
+        self.run.update_launch()
+        quality = (
+            f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
+            if result.success_rate is not None
+            else "not evaluated"
+        )
+        note = " (early stop)" if result.early_stopped else ""
+        if result.restored_best:
+            note = " (best evaluation restored)"
+        log.info(
+            "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s",
+            stage,
+            name,
+            learner.algo,
+            result.frames,
+            result.updates,
+            result.seconds,
+            quality,
+            note,
+        )
+        threshold = self.task.stage_cfg(stage).success_threshold
+        if self.schedule.stage_early_stop and threshold is not None and not result.early_stopped:
+            stage_name = self.task.stage_names[stage]
+            log.warning(
+                "stage %d (%s) did not meet its early-stop criterion within its budget of %d "
+                "frames; the run goes on with its best evaluation. Fix: raise "
+                "task.stages.%s.frames",
+                stage,
+                stage_name,
+                result.frames,
+                stage_name,
+            )
+
+    def keep(self, key: str, value: Any) -> None:
+        """Keeps ``value`` in the run's record (written with the next stage or launch)."""
+        self.run.record[key] = value
+
+    def kept(self, key: str) -> Any:
+        return self.run.record.get(key)
+
+    def clear(self, scope: int | str) -> None:
+        self.run.clear_checkpoints(scope)

@@ -1,0 +1,36 @@
+"""Schedules: how a task's stages are trained, one module each, registered by name
+(``schedule=<name>``): :mod:`~torchrl_stages.schedules.backward` (stage by stage, the last one
+first), :mod:`~torchrl_stages.schedules.joint` (every stage at once, the paper's Algorithm 1)
+and :mod:`~torchrl_stages.schedules.flat` (one learner, no stages). A schedule of your own: a
+:class:`Schedule` subclass decorated with :func:`register_schedule`."""
+
+from torchrl_stages.schedules.backward import BackwardSchedule, train_backward, train_stage
+from torchrl_stages.schedules.base import (
+    SCHEDULES,
+    Probe,
+    Schedule,
+    StageStore,
+    Trained,
+    get_schedule,
+    register_schedule,
+)
+from torchrl_stages.schedules.flat import FlatSchedule, flat_config, train_flat
+from torchrl_stages.schedules.joint import JointSchedule, JointTrainer
+
+__all__ = [
+    "SCHEDULES",
+    "BackwardSchedule",
+    "FlatSchedule",
+    "JointSchedule",
+    "JointTrainer",
+    "Probe",
+    "Schedule",
+    "StageStore",
+    "Trained",
+    "flat_config",
+    "get_schedule",
+    "register_schedule",
+    "train_backward",
+    "train_flat",
+    "train_stage",
+]

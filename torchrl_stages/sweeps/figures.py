@@ -1,0 +1,250 @@
+"""A sweep's figures: learning curves and final metrics per configuration, and performance
+profiles. They read :class:`~torchrl_stages.sweeps.jobs.Job` and
+:class:`~torchrl_stages.sweeps.stats.Aggregate` and draw on a matplotlib ``Figure`` (no pyplot
+state: safe in a Hydra callback)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+import warnings
+from collections import defaultdict
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from torchrl_stages.sweeps.jobs import Job, metric_names
+from torchrl_stages.sweeps.jobs import configs as configs_of
+from torchrl_stages.sweeps.stats import Aggregate, performance_profiles
+
+__all__ = ["plot_performance_profile", "plot_sweep_curves", "plot_sweep_final", "short_labels"]
+
+#: learning curves of the summary: whole-task probe, stage and joint-phase evaluations
+_CURVE = re.compile(
+    r"^eval/(?P<scope>task|stage_(?P<stage>\d+)|joint_(?P<phase>\d+))/success_rate$"
+)
+
+
+def _float(value) -> float | None:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        return None
+    return out if math.isfinite(out) else None
+
+
+def short_labels(names: Sequence[str]) -> dict[str, str]:
+    """Each configuration without the overrides that every configuration shares.
+
+    Examples:
+        >>> short_labels(["a=1 seed=0", "a=2 seed=0"])
+        {'a=1 seed=0': 'a=1', 'a=2 seed=0': 'a=2'}
+    """
+    parts = {c: c.split(" ") if c != "(defaults)" else [] for c in names}
+    common = set.intersection(*(set(p) for p in parts.values())) if parts else set()
+    labels = {}
+    for config, items in parts.items():
+        rest = [p for p in items if p not in common]
+        labels[config] = " ".join(rest) if rest else config
+    return labels
+
+
+def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
+    curves: dict[str, list[tuple[float, float]]] = defaultdict(list)
+    try:
+        with metrics_csv.open(newline="") as handle:
+            for row in csv.DictReader(handle):
+                name = row.get("name") or ""
+                if _CURVE.match(name) is None:
+                    continue
+                step, value = _float(row.get("step")), _float(row.get("value"))
+                if step is not None and value is not None:
+                    curves[name].append((step, value))
+    except OSError:
+        return {}
+    return {name: sorted(points) for name, points in curves.items()}
+
+
+def _curve_order(name: str) -> tuple[int, int]:
+    match = _CURVE.match(name)
+    assert match is not None
+    if match["scope"] == "task":
+        return (0, 0)
+    if match["phase"] is not None:
+        return (2, int(match["phase"]))
+    return (1, int(match["stage"]))
+
+
+def _curve_title(name: str) -> str:
+    match = _CURVE.match(name)
+    assert match is not None
+    if match["scope"] == "task":
+        return "whole task (eval.probe), frames of all stages"
+    if match["phase"] is not None:
+        return f"joint phase {match['phase']}, frames of the phase"
+    return f"stage {match['stage']}, frames in the stage"
+
+
+def _forward_fill(points: list[tuple[float, float]], grid: np.ndarray) -> np.ndarray:
+    """The value of the last evaluation at or before each grid step (NaN before the first);
+    a stage that stopped early keeps its last evaluation."""
+    steps = np.array([p[0] for p in points])
+    values = np.array([p[1] for p in points])
+    idx = np.searchsorted(steps, grid, side="right") - 1
+    out = np.where(idx >= 0, values[np.clip(idx, 0, None)], np.nan)
+    return out
+
+
+def plot_sweep_curves(
+    jobs: Sequence[Job], out: str | Path, labels: dict[str, str] | None = None
+) -> Path | None:
+    """Evaluation success against frames, one panel per stage (and the whole-task probe), one
+    line per configuration: the mean over its seeds and a band from the lowest to the highest.
+    Returns ``None`` when no finished job has such curves."""
+    from matplotlib.figure import Figure
+
+    from torchrl_stages.plots import DPI
+
+    per_job = {j.name: _read_curves(j.path / "metrics.csv") for j in jobs if j.status == "done"}
+    names = sorted({n for curves in per_job.values() for n in curves}, key=_curve_order)
+    if not names:
+        return None
+    configs = configs_of(j for j in jobs if j.name in per_job)
+    labels = labels or short_labels(configs)
+    ncols = min(3, len(names))
+    nrows = math.ceil(len(names) / ncols)
+    fig = Figure(figsize=(5.2 * ncols, 3.6 * nrows + 0.6))
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    for ax, name in zip(axes, names, strict=False):
+        for c, config in enumerate(configs):
+            seeds = [
+                per_job[j.name][name]
+                for j in jobs
+                if j.config == config and j.name in per_job and name in per_job[j.name]
+            ]
+            if not seeds:
+                continue
+            grid = np.unique(np.concatenate([[p[0] for p in s] for s in seeds]))
+            values = np.stack([_forward_fill(s, grid) for s in seeds])
+            with warnings.catch_warnings():  # all-NaN columns: before a seed's first point
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean = np.nanmean(values, axis=0)
+                low, high = np.nanmin(values, axis=0), np.nanmax(values, axis=0)
+            color = f"C{c % 10}"
+            label = f"{labels.get(config, config)} ({len(seeds)} seed{'s' * (len(seeds) > 1)})"
+            ax.plot(grid, mean, color=color, label=label, marker="o" if grid.size == 1 else None)
+            if len(seeds) > 1:
+                ax.fill_between(grid, low, high, color=color, alpha=0.2, linewidth=0)
+        ax.set_title(_curve_title(name), fontsize=10)
+        ax.set_xlabel("frames")
+        ax.set_ylabel("success rate")
+        ax.set_ylim(-0.05, 1.05)
+        ax.grid(alpha=0.3)
+    for ax in axes[len(names) :]:
+        ax.set_visible(False)
+    handles, texts = axes[0].get_legend_handles_labels()
+    fig.legend(handles, texts, loc="lower center", ncol=min(3, max(1, len(texts))), fontsize=8)
+    fig.suptitle("greedy evaluation success per configuration (line: mean, band: min-max)")
+    fig.tight_layout(rect=(0, 0.06 + 0.02 * math.ceil(len(texts) / 3), 1, 0.97))
+    path = Path(out)
+    fig.savefig(path, dpi=DPI, format="png")
+    return path
+
+
+def plot_sweep_final(
+    jobs: Sequence[Job],
+    aggregates: Sequence[Aggregate],
+    out: str | Path,
+    labels: dict[str, str] | None = None,
+) -> Path | None:
+    """The final whole-task metrics per configuration (one row each): every seed (dots), the
+    mean (bar) and its bootstrap 95% CI, for the success rate, the steps and the task's
+    headline metrics. Returns ``None`` when no job finished."""
+    from matplotlib.figure import Figure
+
+    from torchrl_stages.plots import DPI
+
+    done = [j for j in jobs if j.status == "done"]
+    if not done:
+        return None
+    configs = configs_of(done)
+    labels = labels or short_labels(configs)
+    shown = [m for m in metric_names(done) if m != "mean_return"]  # and the task's headline
+    metrics = [m for m in shown if any(j.metrics.get(m) is not None for j in done)]
+    by_key = {(a.config, a.metric): a for a in aggregates}
+    height = max(2.6, 0.45 * len(configs) + 1.4)
+    fig = Figure(figsize=(4.2 * len(metrics) + 2.5, height))
+    axes = fig.subplots(1, len(metrics), squeeze=False).ravel()
+    ys = np.arange(len(configs))
+    for ax, metric in zip(axes, metrics, strict=True):
+        for y, config in zip(ys, configs, strict=True):
+            values = [
+                v for j in done if j.config == config and (v := j.metrics.get(metric)) is not None
+            ]
+            agg = by_key.get((config, metric))
+            color = f"C{y % 10}"
+            if agg is not None and agg.mean is not None:
+                ax.barh(y, agg.mean, color=color, alpha=0.35, height=0.6)
+                ax.errorbar(
+                    agg.mean,
+                    y,
+                    xerr=[[agg.mean - agg.ci_low], [agg.ci_high - agg.mean]],
+                    color="k",
+                    capsize=4,
+                    linewidth=1.2,
+                )
+            ax.plot(values, [y] * len(values), "o", color=color, markeredgecolor="k", zorder=3)
+        ax.set_yticks(ys, [labels.get(c, c) for c in configs] if ax is axes[0] else [""] * len(ys))
+        ax.invert_yaxis()
+        ax.set_title(metric)
+        ax.grid(axis="x", alpha=0.3)
+        if metric == "success_rate":
+            ax.set_xlim(0, 1.05)
+    fig.suptitle("final whole-task evaluation per configuration (dots: seeds, bar: mean, 95% CI)")
+    fig.tight_layout()
+    path = Path(out)
+    fig.savefig(path, dpi=DPI, format="png")
+    return path
+
+
+def plot_performance_profile(
+    jobs: Sequence[Job],
+    out: str | Path,
+    labels: dict[str, str] | None = None,
+    metric: str = "success_rate",
+    seed: int = 0,
+) -> Path | None:
+    """The performance profile of ``metric`` (rliable's score distribution): per
+    configuration, the fraction of its runs above each threshold in ``[0, 1]``, with its
+    stratified-bootstrap 95% band. Drawn here rather than with ``rliable.plot_utils``, which
+    imports pyplot. Returns ``None`` when no job finished."""
+    from matplotlib.figure import Figure
+
+    from torchrl_stages.plots import DPI
+
+    taus = np.linspace(0.0, 1.0, 101)
+    profiles = performance_profiles(jobs, taus, metric, seed)
+    if not profiles:
+        return None
+    labels = labels or short_labels(list(profiles))
+    fig = Figure(figsize=(7.0, 4.2))
+    ax = fig.subplots()
+    for c, (config, (profile, (low, high))) in enumerate(profiles.items()):
+        color = f"C{c % 10}"
+        ax.plot(taus, profile, color=color, linewidth=2, label=labels.get(config, config))
+        ax.fill_between(taus, low, high, color=color, alpha=0.15, linewidth=0)
+    ax.set(
+        xlabel=f"{metric} threshold tau",
+        ylabel=f"fraction of runs with {metric} > tau",
+        xlim=(0.0, 1.0),
+        ylim=(-0.02, 1.02),
+    )
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower left")
+    fig.suptitle("performance profile per configuration (band: 95% bootstrap CI)")
+    fig.tight_layout()
+    path = Path(out)
+    fig.savefig(path, dpi=DPI, format="png")
+    return path

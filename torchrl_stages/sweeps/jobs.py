@@ -1,0 +1,220 @@
+"""Reading a sweep's runs: the job directories under a sweep directory and what each one holds.
+
+A job directory has ``.hydra/overrides.yaml`` (the job's command-line overrides), ``eval.json``
+(a finished run) or ``status.json`` (a run that stopped) and ``metrics.csv``, whatever launched
+it. Only these files are read (as data: nothing in them is run).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+__all__ = ["METRICS", "Job", "configs", "find_jobs", "metric_names", "read_job"]
+
+#: the numbers every finished run has (``eval.json``); a task adds its headline metrics
+METRICS = ("success_rate", "mean_return", "mean_steps")
+#: files that make a directory a job directory
+JOB_MARKERS = (".hydra/overrides.yaml", "eval.json", "status.json", "config.yaml")
+SEED = re.compile(r"^\+{0,2}seed=(?P<seed>.*)$")
+
+
+@dataclass
+class Job:
+    """One job directory of a sweep, as read from its files (:func:`read_job`).
+
+    ``metrics`` holds :data:`METRICS` and the headline metrics of the run's task (the names
+    ``eval.json`` lists in ``headline_metrics``, e.g. the grid world's value error).
+
+    Examples:
+        >>> from pathlib import Path
+        >>> job = Job(Path("sweep/3"), "3", ["task.stages.s0.lr=1e-3", "seed=1"], 1, "done")
+        >>> job.config, job.row()["overrides"]
+        ('task.stages.s0.lr=1e-3', 'task.stages.s0.lr=1e-3 seed=1')
+    """
+
+    path: Path
+    name: str  # its path relative to the sweep directory
+    overrides: list[str]
+    seed: int | None
+    status: str  # done | incomplete | the status of status.json (invalid, diverged, failed)
+    reason: str | None = None
+    metrics: dict[str, float | None] = field(default_factory=dict)
+    train_seconds: float | None = None
+    frames: int | None = None
+    updates: int | None = None
+
+    @property
+    def config(self) -> str:
+        """The job's configuration: its overrides without ``seed`` (``(defaults)``: none)."""
+        rest = [o for o in self.overrides if SEED.match(o) is None]
+        return " ".join(rest) if rest else "(defaults)"
+
+    def row(self, metrics: Iterable[str] = METRICS) -> dict[str, Any]:
+        """The job's ``summary.csv`` row, with a column per name of ``metrics``."""
+        return {
+            "job": self.name,
+            "config": self.config,
+            "seed": self.seed,
+            "overrides": " ".join(self.overrides),
+            "status": self.status,
+            "reason": self.reason,
+            **{m: self.metrics.get(m) for m in metrics},
+            "train_seconds": self.train_seconds,
+            "frames": self.frames,
+            "updates": self.updates,
+        }
+
+
+def configs(jobs: Iterable[Job]) -> list[str]:
+    """The configurations of ``jobs``, in the order they first appear."""
+    return list(dict.fromkeys(job.config for job in jobs))
+
+
+def metric_names(jobs: Iterable[Job]) -> list[str]:
+    """:data:`METRICS`, then every headline metric some job reports, in the order seen."""
+    names = dict.fromkeys(METRICS)
+    for job in jobs:
+        names.update(dict.fromkeys(job.metrics))
+    return list(names)
+
+
+def _natural_key(name: str) -> list:
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+
+
+def _is_job(path: Path) -> bool:
+    return any((path / marker).is_file() for marker in JOB_MARKERS)
+
+
+def find_jobs(sweep_dir: str | Path) -> list[Path]:
+    """The job directories under ``sweep_dir`` (any depth, e.g. Hydra's ``hydra.sweep.subdir``
+    set to nested folders), in natural order (``2`` before ``10``). Hidden folders (``.hydra``,
+    ``.submitit``) and a job's own sub-folders are not searched; ``sweep_dir`` itself counts
+    only when it holds no job below it (a single run directory).
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> root = pathlib.Path(tempfile.mkdtemp())
+        >>> for job in ("0", "1", "10", "2"):
+        ...     (root / job).mkdir()
+        ...     _ = (root / job / "eval.json").write_text("{}")
+        >>> [p.name for p in find_jobs(root)]
+        ['0', '1', '2', '10']
+    """
+    root = Path(sweep_dir)
+    jobs: list[Path] = []
+    for current, dirs, _files in os.walk(root):
+        here = Path(current)
+        if here != root and _is_job(here):
+            jobs.append(here)
+            dirs[:] = []
+            continue
+        dirs[:] = [d for d in dirs if not d.startswith(".")]
+    if not jobs and _is_job(root):
+        jobs = [root]
+    return sorted(jobs, key=lambda p: _natural_key(p.relative_to(root).as_posix()))
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _float(value: Any) -> float | None:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        return None
+    return out if math.isfinite(out) else None
+
+
+def _read_overrides(path: Path) -> list[str]:
+    try:
+        overrides = yaml.safe_load((path / ".hydra" / "overrides.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return []
+    return [str(o) for o in overrides] if isinstance(overrides, list) else []
+
+
+def _read_seed(path: Path, overrides: list[str]) -> int | None:
+    for override in overrides:
+        match = SEED.match(override)
+        if match is not None:
+            try:
+                return int(match["seed"])
+            except ValueError:
+                return None
+    for name in ("config.yaml", ".hydra/config.yaml"):
+        try:
+            saved = yaml.safe_load((path / name).read_text())
+        except (OSError, yaml.YAMLError):
+            continue
+        if isinstance(saved, dict) and isinstance(saved.get("seed"), int):
+            return saved["seed"]
+    return None
+
+
+def _status(job: Job, eval_file: Path, status_file: Path) -> dict[str, Any] | None:
+    """Sets ``job.status`` and ``job.reason``; returns ``eval.json`` if the job finished."""
+    result = _read_json(eval_file) if eval_file.is_file() else None
+    status = _read_json(status_file) if status_file.is_file() else None
+    failed_later = (
+        status is not None
+        and result is not None
+        and status_file.stat().st_mtime > eval_file.stat().st_mtime
+    )
+    if status is not None and (result is None or failed_later):
+        job.status = str(status.get("status") or "failed")
+        job.reason = None if status.get("reason") is None else str(status["reason"])
+        return None
+    if result is not None:
+        job.status = "done"
+        return result
+    job.reason = (
+        "eval.json is damaged"
+        if eval_file.is_file()
+        else "no eval.json nor status.json (still running, or killed)"
+    )
+    return None
+
+
+def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
+    """One job directory: overrides, seed, status and the numbers of its ``eval.json``.
+
+    The status is ``done`` when ``eval.json`` exists (and no newer ``status.json``), the
+    ``status`` of ``status.json`` (``invalid``, ``interrupted``, ``diverged``, ``failed``) with
+    its reason, else ``incomplete`` (still running, or killed).
+    """
+    path = Path(path)
+    root = Path(sweep_dir) if sweep_dir is not None else path.parent
+    name = path.relative_to(root).as_posix() if path != root else "."
+    overrides = _read_overrides(path)
+    job = Job(path, name, overrides, _read_seed(path, overrides), "incomplete")
+    result = _status(job, path / "eval.json", path / "status.json")
+    if result is None:
+        return job
+    job.metrics = {m: _float(result.get(m)) for m in METRICS}
+    task_metrics = result.get("task_metrics")
+    headline = result.get("headline_metrics")
+    if isinstance(task_metrics, dict) and isinstance(headline, list):
+        job.metrics.update({str(m): _float(task_metrics.get(m)) for m in headline})
+    training = result.get("training") if isinstance(result.get("training"), dict) else {}
+    job.train_seconds = _float(training.get("seconds"))
+    stages = training.get("stages") if isinstance(training.get("stages"), list) else []
+    stages = [s for s in stages if isinstance(s, dict)]
+    if stages:
+        job.frames = int(sum(_float(s.get("frames")) or 0 for s in stages))
+        job.updates = int(sum(_float(s.get("updates")) or 0 for s in stages))
+    return job

@@ -1,0 +1,133 @@
+"""Statistics across seeds, on rliable (Agarwal et al., 2021, "Deep Reinforcement Learning at
+the Edge of the Statistical Precipice"): per configuration and metric the mean and the
+interquartile mean, each with a stratified-bootstrap confidence interval, and performance
+profiles. The bootstrap is seeded: the same runs give the same numbers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from torchrl_stages.sweeps.jobs import Job, configs, metric_names
+
+__all__ = ["Aggregate", "aggregate_jobs", "interval_estimates", "performance_profiles"]
+
+#: bootstrap resamples (rliable's default is 50 000: these intervals are for a summary)
+REPS = 2000
+CONFIDENCE = 0.95
+
+
+def _scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray:
+    """The finished runs' values of ``metric`` for ``config``: rliable's ``(runs, tasks)``
+    array, one task."""
+    values = [
+        v
+        for j in jobs
+        if j.config == config and j.status == "done" and (v := j.metrics.get(metric)) is not None
+    ]
+    return np.asarray(values, dtype=float).reshape(-1, 1)
+
+
+def interval_estimates(
+    scores: np.ndarray, func, seed: int = 0, reps: int = REPS
+) -> tuple[np.ndarray, np.ndarray]:
+    """``func(scores)`` (a 1-D array) and its stratified-bootstrap ``CONFIDENCE`` interval
+    (``(2, len)``: lower and upper bounds) from :func:`rliable.library.get_interval_estimates`.
+
+    rliable draws its resamples from numpy's global generator
+    (``StratifiedBootstrap.update_indices`` ignores ``random_state``): it is seeded with
+    ``seed`` for the call and restored after, so the same scores give the same interval and
+    the caller's draws are untouched.
+
+    Examples:
+        >>> import numpy as np
+        >>> mean = lambda s: np.array([s.mean()])
+        >>> point, interval = interval_estimates(np.array([[0.2], [0.4], [0.6]]), mean)
+        >>> point.round(3).tolist(), interval.shape, bool(interval[0, 0] < 0.4 < interval[1, 0])
+        ([0.4], (2, 1), True)
+    """
+    from rliable import library as rly  # here: ~1 s of imports that training never needs
+
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        points, intervals = rly.get_interval_estimates(
+            {"x": scores}, func, reps=reps, confidence_interval_size=CONFIDENCE
+        )
+    finally:
+        np.random.set_state(state)
+    return np.asarray(points["x"]), np.asarray(intervals["x"])
+
+
+@dataclass
+class Aggregate:
+    """One metric of one configuration, across the seeds that finished: the mean and the
+    interquartile mean (IQM), each with its bootstrap confidence interval.
+
+    Examples:
+        >>> agg = Aggregate("lr=1e-3", "success_rate", 3, 1, 0.5, 0.25, 0.75, 0.5, 0.0, 1.0)
+        >>> agg.n, agg.failed, (agg.ci_low, agg.ci_high)
+        (3, 1, (0.25, 0.75))
+    """
+
+    config: str
+    metric: str
+    n: int  # finished jobs with a value
+    failed: int  # jobs of the configuration that did not finish
+    mean: float | None
+    ci_low: float | None
+    ci_high: float | None
+    iqm: float | None
+    iqm_low: float | None
+    iqm_high: float | None
+
+
+def _mean_and_iqm(scores: np.ndarray) -> np.ndarray:
+    from rliable import metrics as rlm
+
+    return np.array([rlm.aggregate_mean(scores), rlm.aggregate_iqm(scores)])
+
+
+def aggregate_jobs(
+    jobs: Sequence[Job], metrics: Sequence[str] | None = None, seed: int = 0
+) -> list[Aggregate]:
+    """Mean and IQM of each metric (default: :func:`~torchrl_stages.sweeps.jobs.metric_names`)
+    per configuration over its finished jobs, with stratified-bootstrap 95% intervals."""
+    out = []
+    for config in configs(jobs):
+        failed = sum(j.status != "done" for j in jobs if j.config == config)
+        for metric in metric_names(jobs) if metrics is None else metrics:
+            scores = _scores(jobs, config, metric)
+            if scores.size == 0:
+                out.append(Aggregate(config, metric, 0, failed, *[None] * 6))
+                continue
+            point, interval = interval_estimates(scores, _mean_and_iqm, seed)
+            numbers = [point[0], *interval[:, 0], point[1], *interval[:, 1]]
+            out.append(Aggregate(config, metric, len(scores), failed, *map(float, numbers)))
+    return out
+
+
+def performance_profiles(
+    jobs: Sequence[Job],
+    taus: np.ndarray,
+    metric: str = "success_rate",
+    seed: int = 0,
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per configuration with a finished run: the fraction of its runs whose ``metric`` is
+    above each of ``taus`` (rliable's score distribution) and its bootstrap interval
+    (``(2, len(taus))``)."""
+
+    from rliable import library as rly
+
+    def profile(scores: np.ndarray) -> np.ndarray:
+        return rly.score_distributions(scores, taus)
+
+    out = {}
+    for config in configs(jobs):
+        scores = _scores(jobs, config, metric)
+        if scores.size:
+            out[config] = interval_estimates(scores, profile, seed)
+    return out
