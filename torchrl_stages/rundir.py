@@ -229,13 +229,21 @@ class RunDir:
 
     def lock(self) -> RunLock:
         """Takes this directory's lock (one process at a time); :class:`RunDirError` names the
-        process that holds it."""
-        self.check_no_links()
+        process that holds it. The directory's other entries are checked for links once the
+        lock is held: the process that holds it may be writing and deleting them meanwhile."""
+        lock_dir = self.path / LOCK_DIR
+        self._refuse_links([lock_dir, lock_dir / "lock"])
         try:
             self.path.mkdir(parents=True, exist_ok=True)
-            return RunLock(self.path).acquire()
+            held = RunLock(self.path).acquire()
         except RunLockedError as err:
             raise RunDirError(str(err)) from None
+        try:
+            self.check_no_links()
+        except BaseException:
+            held.release(remove=held.created_dir)
+            raise
+        return held
 
     # ------------------------------------------------------------------ the record
     def has_record(self) -> bool:
@@ -489,13 +497,17 @@ class RunDir:
         entries.append(self.path / "value_map.npy")
         for entry in entries:
             inner = entry.rglob("*") if entry.is_dir() and not entry.is_symlink() else []
-            for path in [entry, *inner]:
-                if path.is_symlink():
-                    raise RunDirError(
-                        f"{path} is a symbolic link: a run directory's own files are never "
-                        "links (writing or deleting through it would touch another place). "
-                        "Fix: replace it with the file itself, or pick another directory"
-                    )
+            self._refuse_links([entry, *inner])
+
+    @staticmethod
+    def _refuse_links(paths: list[Path]) -> None:
+        for path in paths:
+            if path.is_symlink():
+                raise RunDirError(
+                    f"{path} is a symbolic link: a run directory's own files are never "
+                    "links (writing or deleting through it would touch another place). "
+                    "Fix: replace it with the file itself, or pick another directory"
+                )
 
     def write_hydra_files(self, files: dict[str, Any]) -> None:
         """``.hydra/<name>`` for each ``{name: config}`` (what ``stages-train`` records of
