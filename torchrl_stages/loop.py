@@ -279,18 +279,26 @@ def run_loop(
     counters: dict[str, Any],
     checkpoints: StageCheckpoints | None,
     state: dict[str, Any],
-    before_save: Callable[[], None],
+    clock: tuple[dict[str, Any], float, MetricsLog],
     where: str,
     watch: Stopwatch,
-    bar: tqdm,
+    progress: bool = False,
     count: Callable[[TensorDictBase], int] | None = None,
 ) -> None:
     """The loop: for every collected batch, ``learn(batch, frames)`` (store it, take the
     gradient steps; returns the losses), ``log_batch(batch, losses)``, every ``eval_every``
     frames from ``counters["next_eval"]`` on ``evaluate()`` -> ``(success, value_error,
     return)`` recorded by ``early_stop`` (which keeps ``model``'s best weights) until it says
-    stop, then :func:`checkpoint_or_stop`. ``count(batch)`` gives the frames a checkpoint is
-    named by (default: the collector's)."""
+    stop, then :func:`checkpoint_or_stop`, which first writes the seconds since ``start`` and
+    the log's position into ``record`` (``clock = (record, start, log)``). ``count(batch)``
+    gives the frames a checkpoint is named by (default: the collector's); ``where`` names the
+    loop in messages and on its progress bar."""
+    record, start, log = clock
+
+    def before_save() -> None:
+        record.update(seconds=time.perf_counter() - start, log=log.position())
+
+    bar = progress_bar(collector.frames, int(collector.total_frames), where, progress)
     try:
         for batch in watch.timed("collect", collector):
             frames = collector.frames

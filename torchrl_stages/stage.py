@@ -27,7 +27,6 @@ from torchrl_stages.loop import (
     MetricsLog,
     Stopwatch,
     first_evaluation,
-    progress_bar,
     run_loop,
 )
 from torchrl_stages.replay import stage_replay_buffer
@@ -259,17 +258,10 @@ class StageTrainer:
                 counters=counters,
                 checkpoints=self.checkpoints,
                 state=state,
-                before_save=lambda: counters.update(
-                    seconds=time.perf_counter() - start, log=self.log.position()
-                ),
+                clock=(counters, start, self.log),
                 where=f"stage {self.stage} ({self.name})",
                 watch=watch,
-                bar=progress_bar(
-                    collector.frames,
-                    int(cfg.frames),
-                    f"stage {self.stage} ({self.name})",
-                    self.progress,
-                ),
+                progress=self.progress,
             )
         except (NonFiniteError, NonFiniteValueError) as err:
             raise stage_failure(err, self.stage, self.name, learner, buffer) from err

@@ -37,7 +37,6 @@ from torchrl_stages.loop import (
     MetricsLog,
     Stopwatch,
     first_evaluation,
-    progress_bar,
     run_loop,
 )
 from torchrl_stages.policy import StackedPolicy
@@ -259,14 +258,10 @@ class JointTrainer:
             counters=phase,
             checkpoints=self.checkpoints,
             state=state,
-            before_save=lambda: counters.update(
-                seconds=time.perf_counter() - t0, log=self.log.position()
-            ),
+            clock=(counters, t0, self.log),
             where=f"the joint phase from stage {k}",
             watch=watch,
-            bar=progress_bar(
-                collector.frames, int(cfg.frames), f"joint phase from stage {k}", self.progress
-            ),
+            progress=self.progress,
             count=count,
         )
         restored = monitor.restore_best(team)
