@@ -11,6 +11,7 @@ import importlib.util
 
 import pytest
 import torch
+from helpers import run_cli
 from hydra.errors import ConfigCompositionException
 from omegaconf import DictConfig, OmegaConf
 
@@ -412,3 +413,29 @@ def test_missing_gpu_index_is_reported_on_the_device_key(hydra_compose, monkeypa
     expected = r"^device='cuda:3': names a GPU this machine does not have \(it has 1\)\. Fix:"
     with pytest.raises(ConfigError, match=expected):
         build_task(hydra_compose("device=cuda:3"))
+
+
+# ------------------------------------------------------------------ code that is not found
+@pytest.mark.e2e
+def test_a_target_that_is_not_importable_names_the_module_and_the_fix(tmp_path):
+    broken = tmp_path / "courier_broken.py"
+    broken.write_text("import no_such_dependency\n")
+    (tmp_path / "courier.py").write_text("class LineEnv:\n    pass\n")
+    cases = {
+        "task.env._target_=courier_missing.LineEnv": (
+            "task.env._target_=courier_missing.LineEnv: module `courier_missing` is not "
+            "importable. Fix: add its directory to PYTHONPATH or pip install it"
+        ),
+        "task.env._target_=courier.LinEnv": "module `courier` has no `LinEnv`. Fix: check",
+        "task.env._target_=courier_broken.LineEnv": (
+            "module `courier_broken` failed to import (ModuleNotFoundError: No module named "
+            "'no_such_dependency')"
+        ),
+    }
+    for override, message in cases.items():
+        result = run_cli(
+            ["stages-train", "task=custom", override], tmp_path, PYTHONPATH=str(tmp_path)
+        )
+        assert result.returncode == 2, result.stderr[-2000:]
+        assert message in result.stderr, result.stderr[-2000:]
+        assert "Traceback" not in result.stderr and "Error locating target" not in result.stderr

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -148,7 +149,7 @@ def test_target_value_dispatches_through_the_registry():
 
 
 # ---------------------------------------------------------------------- your own learner
-def test_your_own_learner_trains_a_stage_and_loads_with_trust(tmp_path):
+def test_your_own_learner_trains_a_stage_and_loads_with_trust(tmp_path, monkeypatch):
     own = ["+task.stages.s0.learner._target_=my_learner.TinyQLearner"]
     cfg = compose(*own, "+task.stages.s0.learner.hidden=16", "task.stages.s0.frames=512")
     result = Experiment(cfg, tmp_path / "run").run()
@@ -159,11 +160,23 @@ def test_your_own_learner_trains_a_stage_and_loads_with_trust(tmp_path):
     run = load_run(tmp_path / "run", trust=True)
     assert type(run.learners[0]) is TinyQLearner and run.learners[0].q[0].out_features == 16
     assert type(run.learners[1]) is DQNLearner
+    # where the learner's module is not importable, loading names it and the fix
+    tests_dir = str(Path(__file__).parent)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p != tests_dir])
+    monkeypatch.delitem(sys.modules, "my_learner")
+    with pytest.raises(RunDirError, match=r"config\.yaml: .*module `my_learner` is not importable"):
+        load_run(tmp_path / "run", trust=True)
 
 
 def test_a_learner_that_cannot_be_imported_names_the_cause():
-    with pytest.raises(ConfigError, match=r"task\.stages\.s0\.learner\._target_='no_pkg.X'"):
+    with pytest.raises(
+        ConfigError,
+        match=r"task\.stages\.s0\.learner\._target_=no_pkg\.X: module `no_pkg` is not "
+        r"importable\. Fix: add its directory to PYTHONPATH or pip install it",
+    ):
         build_task(compose("+task.stages.s0.learner._target_=no_pkg.X"))
+    with pytest.raises(ConfigError, match=r"module `my_learner` has no `TinyQ`\. Fix: check"):
+        build_task(compose("+task.stages.s0.learner._target_=my_learner.TinyQ"))
     with pytest.raises(ConfigError, match="is not a subclass of torchrl_stages.learners.Learner"):
         build_task(compose("+task.stages.s0.learner._target_=torch.nn.Linear"))
 

@@ -11,7 +11,7 @@ typo fails at composition (``torchrl_stages.store.register_configs``).
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, is_dataclass
 from typing import Any
 
@@ -311,3 +311,22 @@ def stage_keys_set(overrides: Iterable[str]) -> set[tuple[str, str]]:
         if len(parts) >= 4 and parts[:2] == ["task", "stages"] and "@" not in key:
             out.add((parts[2], parts[3]))
     return out
+
+
+def targets(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """``(dotted key, value)`` of every ``_target_`` under ``node`` (plain mappings and lists).
+
+    Examples:
+        >>> list(targets({"task": {"env": {"_target_": "a.B", "fn": {"_target_": "a.f"}}}}))
+        [('task.env._target_', 'a.B'), ('task.env.fn._target_', 'a.f')]
+    """
+    if isinstance(node, dict):
+        for key, item in node.items():
+            path = f"{prefix}.{key}" if prefix else str(key)
+            if key == "_target_":
+                yield path, item
+            else:
+                yield from targets(item, path)
+    elif isinstance(node, list):
+        for index, item in enumerate(node):
+            yield from targets(item, f"{prefix}.{index}")

@@ -33,7 +33,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_stages.checkpoint import StageCheckpoints
-from torchrl_stages.config import TrainConfig
+from torchrl_stages.config import TrainConfig, targets
 from torchrl_stages.integrity import atomic_write, sha256_file
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.policy import StackedPolicy
@@ -41,7 +41,7 @@ from torchrl_stages.runlock import LOCK_DIR, RunLock, RunLockedError
 from torchrl_stages.schedules import get_schedule
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
-from torchrl_stages.validate import ConfigError, missing_keys, validate_config
+from torchrl_stages.validate import ConfigError, TargetError, missing_keys, validate_config
 
 CONFIG_FILE = "config.yaml"
 EVAL_FILE = "eval.json"
@@ -111,20 +111,6 @@ ADDED_KEYS: dict[str, Any] = {"all_stages": {}}
 _TASK_NAME = re.compile(r"^[A-Za-z0-9_]+$")
 
 
-def _targets(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
-    """``(dotted key, value)`` of every ``_target_`` under ``node`` (mappings and lists)."""
-    if isinstance(node, dict):
-        for key, item in node.items():
-            path = f"{prefix}.{key}" if prefix else str(key)
-            if key == "_target_":
-                yield path, item
-            else:
-                yield from _targets(item, path)
-    elif isinstance(node, list):
-        for index, item in enumerate(node):
-            yield from _targets(item, f"{prefix}.{index}")
-
-
 def _interpolations(node: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
     """``(dotted key, text)`` of every string under ``node`` that holds ``${``."""
     if isinstance(node, dict):
@@ -137,7 +123,7 @@ def _interpolations(node: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
         yield prefix, node
 
 
-def shipped_targets(task_name: str) -> dict[str, str] | None:
+def shippedtargets(task_name: str) -> dict[str, str] | None:
     """What the package's own ``conf/task/<task_name>.yaml`` instantiates (its env and
     whole-task eval env, ``{dotted key: _target_}``), or ``None`` when that is not fixed by
     the package: no such task, or a task that leaves its env to the user (``???``)."""
@@ -150,7 +136,7 @@ def shipped_targets(task_name: str) -> dict[str, str] | None:
     nodes = {key: shipped.get(key) or {} for key in ("env", "eval_env")}
     if missing_keys(OmegaConf.create(nodes), "task"):  # ??? : left to the user
         return None
-    return dict(_targets({"task": nodes}))
+    return dict(targets({"task": nodes}))
 
 
 def check_trusted(cfg: DictConfig, source: Path) -> None:
@@ -174,7 +160,7 @@ def check_trusted(cfg: DictConfig, source: Path) -> None:
     """
     container = OmegaConf.to_container(cfg, resolve=False)
     task_name = str((container.get("task") or {}).get("name", ""))
-    allowed = shipped_targets(task_name)
+    allowed = shippedtargets(task_name)
     fix = (
         "Fix: if you made this run (or checked what it imports), load it with trust=True "
         "(stages-eval --trust)"
@@ -185,7 +171,7 @@ def check_trusted(cfg: DictConfig, source: Path) -> None:
             "loading it would import and call code that the run directory names (a run "
             f"directory is untrusted data). {fix}"
         )
-    for key, target in _targets(container):
+    for key, target in targets(container):
         if allowed.get(key) != target:
             expected = f"'{allowed[key]}'" if key in allowed else "nothing there"
             raise RunDirError(
@@ -636,6 +622,8 @@ def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> Dic
         checked = cfg.copy()  # as it would run here: on this device, with no logger
         checked.device, checked.logger.backend = str(device), "none"
         validate_config(checked)
+    except TargetError as err:  # code of the run's own that is not importable here
+        raise RunDirError(f"{source}: {err}") from None
     except (ConfigError, OmegaConfBaseException, AttributeError, TypeError, ValueError) as err:
         raise RunDirError(
             f"{source} is not a valid config ({str(err).splitlines()[0]}). Fix: restore it "

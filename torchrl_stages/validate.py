@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import math
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_stages.config import ConfigError, StageChecks, check
+from torchrl_stages.config import ConfigError, StageChecks, check, targets
 from torchrl_stages.learners import ALGORITHMS, learner_class
 from torchrl_stages.schedules import get_schedule
 
@@ -113,8 +114,77 @@ def _check_finite(node: object, prefix: str) -> None:
         check(False, prefix, node, "must be a finite number", f"set {prefix} to a finite value")
 
 
+class TargetError(ConfigError):
+    """A ``_target_`` of the config names code that cannot be found: its module is not
+    importable, fails to import, or has no such name."""
+
+
+def _first_line(err: BaseException) -> str:
+    lines = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {lines[0] if lines else ''}"
+
+
+def target_problem(path: str) -> str | None:
+    """What is wrong with the dotted ``path`` a ``_target_`` names (``None``: it is found),
+    found as Hydra's locate does: the longest importable module, then its attributes.
+
+    Examples:
+        >>> target_problem("torchrl_stages.envs.GridWorldEnv") is None
+        True
+        >>> target_problem("no_such_module.Env").split(".")[0]
+        'module `no_such_module` is not importable'
+        >>> target_problem("torchrl_stages.envs.GridWorld").split(".")[0]
+        'module `torchrl_stages'
+        >>> "has no `GridWorld`" in target_problem("torchrl_stages.envs.GridWorld")
+        True
+    """
+    parts = path.split(".")
+    if not all(parts):
+        return f"`{path}` is not a dotted path. Fix: name it as my_module.MyClass"
+    found, where = None, ""
+    for index, part in enumerate(parts):
+        name = ".".join(parts[: index + 1])
+        if found is not None and hasattr(found, part):
+            found, where = getattr(found, part), name
+            continue
+        try:
+            found, where = importlib.import_module(name), name
+        except ModuleNotFoundError as err:
+            if err.name != name:  # a module it imports is missing
+                return f"module `{name}` failed to import ({_first_line(err)}). Fix: install it"
+            if index == 0:
+                return (
+                    f"module `{name}` is not importable. Fix: add its directory to PYTHONPATH "
+                    "or pip install it"
+                )
+            return (
+                f"module `{where}` has no `{part}`. Fix: check the name (it must be defined at "
+                "the top of the module)"
+            )
+        except Exception as err:  # noqa: BLE001 - the user's module fails on import
+            return (
+                f"module `{name}` failed to import ({_first_line(err)}). Fix: run "
+                f"`python -c 'import {name}'` to see why"
+            )
+    return None
+
+
+def check_targets(cfg: DictConfig) -> None:
+    """Raises :class:`TargetError` naming the key, the module and the fix for every
+    ``_target_`` of ``cfg.task`` (the env, its stage function, a stage's learner) that cannot
+    be found. It imports their modules: run it only on configs you trust."""
+    container = OmegaConf.to_container(cfg.task, resolve=False)
+    for key, target in targets(container, "task"):
+        if not isinstance(target, str) or target == "???" or "${" in target:
+            continue
+        problem = target_problem(target)
+        if problem is not None:
+            raise TargetError(f"{key}={target}: {problem}")
+
+
 def validate_config(cfg: DictConfig) -> None:
-    """Checks what can be checked without building the env."""
+    """Checks what can be checked without building the env (its code is imported: the
+    ``_target_`` s must be found)."""
     _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
     for name in ("eval", "objective"):
         _check_finite(cfg.get(name), name)
@@ -126,6 +196,7 @@ def validate_config(cfg: DictConfig) -> None:
             f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)",
             f"set it on the command line: {key}=...",
         )
+    check_targets(cfg)
     check(
         cfg.logger.backend in LOGGER_BACKENDS,
         "logger.backend",
