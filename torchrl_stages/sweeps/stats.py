@@ -6,6 +6,7 @@ profiles. The bootstrap is seeded: the same runs give the same numbers.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -51,7 +52,9 @@ def interval_estimates(
     """
     from rliable import library as rly  # here: ~1 s of imports that training never needs
 
-    state = np.random.get_state()
+    state, absl = np.random.get_state(), logging.getLogger("absl")
+    level = absl.level
+    absl.setLevel(logging.WARNING)  # rliable logs a line per estimate (through absl)
     np.random.seed(seed)
     try:
         points, intervals = rly.get_interval_estimates(
@@ -59,6 +62,7 @@ def interval_estimates(
         )
     finally:
         np.random.set_state(state)
+        absl.setLevel(level)
     return np.asarray(points["x"]), np.asarray(intervals["x"])
 
 
