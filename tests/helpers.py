@@ -3,6 +3,7 @@ subprocesses, and figure checks. Fixtures are in ``conftest.py``."""
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import os
 import shutil
@@ -97,3 +98,16 @@ def run_cli(argv: list, cwd: Path, timeout: float = 300, **env: str) -> subproce
         timeout=timeout,
         stdin=subprocess.DEVNULL,
     )
+
+
+def docstring_ids(tree: ast.AST) -> set[int]:
+    """The ``id`` of every docstring constant of a parsed module (module, classes, functions):
+    what checks of a module's code leave out."""
+    return {
+        id(node.body[0].value)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef)
+        and node.body
+        and isinstance(node.body[0], ast.Expr)
+        and isinstance(node.body[0].value, ast.Constant)
+    }

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers import TINY_STAGE, hydra_config, tiny_grid
+from helpers import TINY_STAGE, docstring_ids, hydra_config, tiny_grid
 from my_learner import TinyQLearner
 from torchrl.objectives import DQNLoss, SoftUpdate
 
@@ -37,14 +37,7 @@ def compose(*overrides: str):
 def _names(source: str) -> list[str]:
     """The identifiers and string constants of a module's code (docstrings left out)."""
     tree = ast.parse(source)
-    docstrings = {
-        id(node.body[0].value)
-        for node in ast.walk(tree)
-        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef)
-        and node.body
-        and isinstance(node.body[0], ast.Expr)
-        and isinstance(node.body[0].value, ast.Constant)
-    }
+    docstrings = docstring_ids(tree)
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Name):

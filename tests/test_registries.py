@@ -8,7 +8,7 @@ import ast
 from pathlib import Path
 
 import pytest
-from helpers import hydra_config, tiny_grid
+from helpers import docstring_ids, hydra_config, tiny_grid
 
 import torchrl_stages
 from torchrl_stages.config import ConfigError
@@ -22,14 +22,7 @@ PACKAGE = Path(torchrl_stages.__file__).parent
 def string_constants(path: Path) -> set[str]:
     """The string constants of a module's code, docstrings left out."""
     tree = ast.parse(path.read_text())
-    docstrings = {
-        id(node.body[0].value)
-        for node in ast.walk(tree)
-        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef)
-        and node.body
-        and isinstance(node.body[0], ast.Expr)
-        and isinstance(node.body[0].value, ast.Constant)
-    }
+    docstrings = docstring_ids(tree)
     return {
         node.value
         for node in ast.walk(tree)

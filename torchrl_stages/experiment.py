@@ -72,9 +72,11 @@ def compile_mode(cfg: DictConfig) -> str:
     return "reduce-overhead" if torch.device(cfg.device).type == "cuda" else "off"
 
 
-def build_task(cfg: DictConfig) -> StagedTask:
-    """Validates ``cfg`` and builds its task; raises :class:`ConfigError` before any training."""
-    validate_config(cfg)
+def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
+    """Validates ``cfg`` (unless already ``validated``) and builds its task; raises
+    :class:`ConfigError` before any training."""
+    if not validated:
+        validate_config(cfg)
     try:
         task = StagedTask(cfg.task, device=cfg.device)
     except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
@@ -139,7 +141,7 @@ class Experiment:
         self._lock = self.run_dir.lock()
         try:
             self.resuming = self._check_run_dir()
-            self.task = build_task(cfg)
+            self.task = build_task(cfg, validated=True)  # validated above
         except BaseException:
             self._lock.release(remove=self._lock.created_dir)
             raise
@@ -302,12 +304,10 @@ class Experiment:
         run.claim("eval.json")
         result = evaluate_run(cfg, self.task, learners, run.path, training=training)
         run.claim_new(before)  # the task's figures
-        if self.logger is not None:  # the run's whole-task evaluation, after all its frames
-            rewind = getattr(self.logger, "rewind", None)
-            if self.resuming and rewind is not None:  # rows of an earlier final evaluation
-                rewind(run.read_stage(0)["log"])
-            frames = sum(r.frames for r in results)
-            for key in ("success_rate", "mean_return", "mean_steps"):
-                self.logger.log_scalar(f"eval/final/{key}", result[key], step=frames)
+        if self.resuming and store.log.logger is not None:  # an earlier final evaluation's rows
+            store.log.rewind(run.read_stage(0)["log"])
+        frames = sum(r.frames for r in results)  # the whole-task evaluation, after all frames
+        keys = ("success_rate", "mean_return", "mean_steps")
+        store.log({f"eval/final/{key}": result[key] for key in keys}, frames)
         (run.path / STATUS_FILE).unlink(missing_ok=True)  # an earlier launch's outcome
         return result

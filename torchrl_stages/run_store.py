@@ -11,6 +11,7 @@ from torchrl.record.loggers import Logger
 
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.learners import Learner
+from torchrl_stages.loop import MetricsLog
 from torchrl_stages.rundir import RunDir, load_stage
 from torchrl_stages.schedules import Schedule
 from torchrl_stages.stage import StageResult
@@ -57,13 +58,8 @@ class RunStore:
         checkpoint_keep: int = 2,
     ) -> None:
         self.run, self.task, self.schedule = run, task, schedule
-        self.logger, self.resuming, self.device = logger, resuming, device
+        self.log, self.resuming, self.device = MetricsLog(logger), resuming, device
         self.checkpoint_every, self.checkpoint_keep = checkpoint_every, checkpoint_keep
-
-    def _rewind(self, log_position: dict[str, int]) -> None:
-        rewind = getattr(self.logger, "rewind", None)
-        if rewind is not None:
-            rewind(log_position)
 
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
         """Stage ``stage`` as trained by an earlier launch of this run (resume only)."""
@@ -87,7 +83,7 @@ class RunStore:
             later = None
             if isinstance(scope, int) and scope + 1 < self.task.num_stages:
                 later = self.run.read_stage(scope + 1)
-            self._rewind({} if later is None else later.get("log", {}))
+            self.log.rewind({} if later is None else later.get("log", {}))
         elif self.resuming:
             where = f"stage {scope}" if isinstance(scope, int) else scope
             log.info("%s: resuming from %s", where, checkpoints.latest())
@@ -95,11 +91,8 @@ class RunStore:
 
     def save(self, stage: int, learner: Learner, result: StageResult) -> None:
         """Writes ``stage_<k>.pt`` (with the log position) and drops the stage's checkpoints."""
-        position = getattr(self.logger, "position", None)
         name = self.schedule.stage_name(self.task, stage)
-        self.run.save_stage(
-            stage, name, learner, result, log=position() if position is not None else {}
-        )
+        self.run.save_stage(stage, name, learner, result, log=self.log.position())
         self.run.clear_checkpoints(stage)
         self.run.update_launch()
         quality = (

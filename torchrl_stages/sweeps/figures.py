@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_stages.sweeps.jobs import Job, metric_names
+from torchrl_stages.plots import save_figure
+from torchrl_stages.sweeps.jobs import Job, finite_float, metric_names
 from torchrl_stages.sweeps.jobs import configs as configs_of
 from torchrl_stages.sweeps.stats import Aggregate, performance_profiles
 
@@ -25,14 +26,6 @@ __all__ = ["plot_performance_profile", "plot_sweep_curves", "plot_sweep_final", 
 _CURVE = re.compile(
     r"^eval/(?P<scope>task|stage_(?P<stage>\d+)|joint_(?P<phase>\d+))/success_rate$"
 )
-
-
-def _float(value) -> float | None:
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        return None
-    return out if math.isfinite(out) else None
 
 
 def short_labels(names: Sequence[str]) -> dict[str, str]:
@@ -59,7 +52,7 @@ def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
                 name = row.get("name") or ""
                 if _CURVE.match(name) is None:
                     continue
-                step, value = _float(row.get("step")), _float(row.get("value"))
+                step, value = finite_float(row.get("step")), finite_float(row.get("value"))
                 if step is not None and value is not None:
                     curves[name].append((step, value))
     except OSError:
@@ -105,8 +98,6 @@ def plot_sweep_curves(
     Returns ``None`` when no finished job has such curves."""
     from matplotlib.figure import Figure
 
-    from torchrl_stages.plots import DPI
-
     per_job = {j.name: _read_curves(j.path / "metrics.csv") for j in jobs if j.status == "done"}
     names = sorted({n for curves in per_job.values() for n in curves}, key=_curve_order)
     if not names:
@@ -148,9 +139,7 @@ def plot_sweep_curves(
     fig.legend(handles, texts, loc="lower center", ncol=min(3, max(1, len(texts))), fontsize=8)
     fig.suptitle("greedy evaluation success per configuration (line: mean, band: min-max)")
     fig.tight_layout(rect=(0, 0.06 + 0.02 * math.ceil(len(texts) / 3), 1, 0.97))
-    path = Path(out)
-    fig.savefig(path, dpi=DPI, format="png")
-    return path
+    return save_figure(fig, out)
 
 
 def plot_sweep_final(
@@ -163,8 +152,6 @@ def plot_sweep_final(
     mean (bar) and its bootstrap 95% CI, for the success rate, the steps and the task's
     headline metrics. Returns ``None`` when no job finished."""
     from matplotlib.figure import Figure
-
-    from torchrl_stages.plots import DPI
 
     done = [j for j in jobs if j.status == "done"]
     if not done:
@@ -204,9 +191,7 @@ def plot_sweep_final(
             ax.set_xlim(0, 1.05)
     fig.suptitle("final whole-task evaluation per configuration (dots: seeds, bar: mean, 95% CI)")
     fig.tight_layout()
-    path = Path(out)
-    fig.savefig(path, dpi=DPI, format="png")
-    return path
+    return save_figure(fig, out)
 
 
 def plot_performance_profile(
@@ -221,8 +206,6 @@ def plot_performance_profile(
     stratified-bootstrap 95% band. Drawn here rather than with ``rliable.plot_utils``, which
     imports pyplot. Returns ``None`` when no job finished."""
     from matplotlib.figure import Figure
-
-    from torchrl_stages.plots import DPI
 
     taus = np.linspace(0.0, 1.0, 101)
     profiles = performance_profiles(jobs, taus, metric, seed)
@@ -245,6 +228,4 @@ def plot_performance_profile(
     ax.legend(fontsize=8, loc="lower left")
     fig.suptitle("performance profile per configuration (band: 95% bootstrap CI)")
     fig.tight_layout()
-    path = Path(out)
-    fig.savefig(path, dpi=DPI, format="png")
-    return path
+    return save_figure(fig, out)

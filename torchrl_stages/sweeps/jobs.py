@@ -18,7 +18,7 @@ from typing import Any
 
 import yaml
 
-__all__ = ["METRICS", "Job", "configs", "find_jobs", "metric_names", "read_job"]
+__all__ = ["METRICS", "Job", "configs", "find_jobs", "finite_float", "metric_names", "read_job"]
 
 #: the numbers every finished run has (``eval.json``); a task adds its headline metrics
 METRICS = ("success_rate", "mean_return", "mean_steps")
@@ -132,7 +132,8 @@ def _read_json(path: Path) -> dict[str, Any] | None:
     return data if isinstance(data, dict) else None
 
 
-def _float(value: Any) -> float | None:
+def finite_float(value: Any) -> float | None:
+    """``value`` as a finite float; ``None`` for anything else (a run's files are data)."""
     try:
         out = float(value)
     except (TypeError, ValueError):
@@ -205,16 +206,16 @@ def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
     result = _status(job, path / "eval.json", path / "status.json")
     if result is None:
         return job
-    job.metrics = {m: _float(result.get(m)) for m in METRICS}
+    job.metrics = {m: finite_float(result.get(m)) for m in METRICS}
     task_metrics = result.get("task_metrics")
     headline = result.get("headline_metrics")
     if isinstance(task_metrics, dict) and isinstance(headline, list):
-        job.metrics.update({str(m): _float(task_metrics.get(m)) for m in headline})
+        job.metrics.update({str(m): finite_float(task_metrics.get(m)) for m in headline})
     training = result.get("training") if isinstance(result.get("training"), dict) else {}
-    job.train_seconds = _float(training.get("seconds"))
+    job.train_seconds = finite_float(training.get("seconds"))
     stages = training.get("stages") if isinstance(training.get("stages"), list) else []
     stages = [s for s in stages if isinstance(s, dict)]
     if stages:
-        job.frames = int(sum(_float(s.get("frames")) or 0 for s in stages))
-        job.updates = int(sum(_float(s.get("updates")) or 0 for s in stages))
+        job.frames = int(sum(finite_float(s.get("frames")) or 0 for s in stages))
+        job.updates = int(sum(finite_float(s.get("updates")) or 0 for s in stages))
     return job
