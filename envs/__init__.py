@@ -15,6 +15,7 @@ from .gridworld import (
     measure_throughput,
 )
 from .manipulator import ManipulatorEnv, forward_kinematics, inverse_kinematics, wrap_angle
+from .minigrid import MiniGridEnv
 
 __all__ = [
     "CargoEnv",
@@ -26,6 +27,7 @@ __all__ = [
     "gridworld_shortest_steps",
     "measure_throughput",
     "ManipulatorEnv",
+    "MiniGridEnv",
     "forward_kinematics",
     "inverse_kinematics",
     "wrap_angle",

@@ -12,6 +12,7 @@ import os
 import subprocess
 from pathlib import Path
 
+import gymnasium
 import pytest
 import torch
 from helpers import assert_figure, cli_env, console_script
@@ -26,17 +27,32 @@ from torchrl_stages.validate import ConfigError
 TESTS = Path(__file__).resolve().parent
 TIMEOUT_S = 300
 LINE = ["task.env.env_id=line_env:LineWorld-v0", "task.env.stage_fn._target_=line_env.line_stage"]
+WAYPOINTS = [
+    "task.env.env_id=waypoints:Waypoints-v0",
+    "task.env.stage_fn._target_=waypoints.waypoint_stage",
+]
+SCRIPTS = TESTS.parent / "scripts"
 COMMANDS = {
     # no stage starts: the joint schedule from the task's own starts
-    "joint": ["task=gym", "schedule=joint", *LINE],
+    "joint": ["task=gym", "task.stage_starts=false", "schedule=joint", *LINE],
     # the env takes start_stage: stage-k starts, backward schedule
-    "backward": ["task=gym", "task.stage_starts=true", *LINE],
+    "backward": ["task=gym", *LINE],
     # a batched TorchRL env of one's own (the grid world stands in for it)
     "custom": [
         "task=custom",
         "task.env._target_=torchrl_stages.envs.GridWorldEnv",
         "+task.env.size=10",
         "+task.env.num_stages=2",
+    ],
+    # the README's 3-stage example (scripts/waypoints.py), the template's defaults: it learns
+    "waypoints": ["task=gym", *WAYPOINTS, "eval.episodes=32"],
+    # ... and with Box actions and SAC (a smoke budget: only that the path runs)
+    "waypoints_box": [
+        "task=gym",
+        *WAYPOINTS,
+        "+task.env.continuous=true",
+        "algo@task.stage_template=sac",
+        "experiment=smoke",
     ],
     # a factory that ignores batch_size: refused before training, with the fix
     "unbatched": [
@@ -51,10 +67,13 @@ COMMANDS = {
 @pytest.fixture(scope="module")
 def cli(tmp_path_factory):
     root = tmp_path_factory.mktemp("byoe")
-    env = cli_env(PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+    path = [str(TESTS), str(SCRIPTS), os.environ.get("PYTHONPATH", "")]
+    env = cli_env(PYTHONPATH=os.pathsep.join(path))
     procs = {}
     for name, args in COMMANDS.items():
-        argv = [console_script("stages-train"), *args, "experiment=smoke", "eval.episodes=8"]
+        argv = [console_script("stages-train"), *args]
+        if not name.startswith("waypoints"):
+            argv += ["experiment=smoke", "eval.episodes=8"]
         argv.append(f"hydra.run.dir={root / name}")
         with (root / f"{name}.out").open("w") as out, (root / f"{name}.err").open("w") as err:
             procs[name] = subprocess.Popen(
@@ -90,6 +109,32 @@ def test_gymnasium_env_trains_from_the_cli(cli, name):
     assert_figure(run_dir / "learning_curves.png")
 
 
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_a_three_stage_env_learns_with_the_templates_defaults(cli):
+    code, out, err, run_dir = cli("waypoints")
+    assert code == 0, (out + err)[-4000:]
+    result = json.loads((run_dir / "eval.json").read_text())
+    assert result["success_rate"] >= 0.9  # every stage stops early on its criterion
+    saved = OmegaConf.load(run_dir / "config.yaml")
+    assert list(saved.task.stages) == ["s0", "s1", "s2"]  # from the env's num_stages
+    assert [s["frames"] < 200_000 for s in result["training"]["stages"]] == [True] * 3
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_the_box_action_example_runs_with_sac(cli):
+    code, out, err, run_dir = cli("waypoints_box")
+    assert code == 0, (out + err)[-4000:]
+    saved = OmegaConf.load(run_dir / "config.yaml")
+    assert [saved.task.stages[s].algo for s in ("s0", "s1", "s2")] == ["sac"] * 3
+
+
+def test_the_readme_shows_the_example_env_as_it_is():
+    readme = (TESTS.parent / "README.md").read_text()
+    assert (SCRIPTS / "waypoints.py").read_text() in readme
+
+
 def test_torchrl_env_of_ones_own_trains_from_the_cli(cli):
     code, out, err, run_dir = cli("custom")
     assert code == 0, (out + err)[-4000:]
@@ -116,11 +161,35 @@ def test_gym_stage_env_follows_the_task_protocol():
     assert getattr(env, "start_states", None) is None  # optional hooks it does not offer
 
 
+@pytest.mark.parametrize("vectorize", ["sync", "async"])
+def test_the_copies_step_as_one_vector_env_and_restart_inside_their_stage(vectorize):
+    env = GymStageEnv(
+        "LineWorld-v0", line_stage, vectorize=vectorize, batch_size=(3,), start_stage=1
+    )
+    try:
+        assert isinstance(env._env, gymnasium.vector.VectorEnv)
+        td = env.reset()
+        done = 0
+        for _ in range(6):  # always right: every copy reaches x = 1 within 4 steps
+            td["action"] = torch.ones(3, dtype=torch.int64)
+            out, td = env.step_and_maybe_reset(td)
+            done += int(out["next", "done"].sum())
+            assert (env.stage_fn(td) == 1).all()  # the finished copies restarted in stage 1
+        assert done >= 3
+    finally:
+        env.close()
+
+
+def test_vectorize_takes_sync_or_async():
+    with pytest.raises(ValueError, match=r"vectorize='threads'.*Fix: task.env.vectorize=sync"):
+        GymStageEnv("LineWorld-v0", line_stage, vectorize="threads", batch_size=(2,))
+
+
 def test_task_template_names_what_is_missing(compose_cfg):
     with pytest.raises(ConfigError, match=r"task\.env\.env_id='\?\?\?'.*Fix: set it"):
         build_task(compose_cfg("task=gym", "schedule=joint"))
     with pytest.raises(ConfigError, match=r"stage_starts=false.*Fix: use schedule=joint"):
-        build_task(compose_cfg("task=gym", *LINE))
+        build_task(compose_cfg("task=gym", "task.stage_starts=false", *LINE))
     with pytest.raises(ConfigError, match=r"task\.env\._target_='\?\?\?'"):
         build_task(compose_cfg("task=custom"))
 

@@ -12,6 +12,7 @@ from helpers import run_cli
 from omegaconf import OmegaConf
 
 from torchrl_stages.config import apply_all_stages, stage_keys_set
+from torchrl_stages.experiment import with_env_stages
 from torchrl_stages.validate import ConfigError, validate_config, validate_sweeper
 
 CONF = importlib.resources.files("torchrl_stages.conf")
@@ -39,27 +40,42 @@ def test_smoke_gives_every_stage_of_every_task_its_budget(hydra_compose, task):
     full = hydra_compose(f"task={task}")
     smoke = compose_run(hydra_compose, f"task={task}", "experiment=smoke")
     assert list(smoke.task.stages) == list(full.task.stages)
-    for name, stage in smoke.task.stages.items():
+    stages, full_stages = dict(smoke.task.stages.items()), dict(full.task.stages.items())
+    if full.task.stage_template:  # the stages the env decides on are made from it
+        stages["stage_template"] = smoke.task.stage_template
+        full_stages["stage_template"] = full.task.stage_template
+    for name, stage in stages.items():
         for key, value in SMOKE.items():
             assert stage[key] == value, (name, key)
         # everything else is the task's own
         for key in ("gamma", "lr", "num_cells", "algo", "tau"):
-            assert stage[key] == full.task.stages[name][key], (name, key)
+            assert stage[key] == full_stages[name][key], (name, key)
     assert smoke.eval.episodes == 32
     if task in SHIPPED:  # the env templates leave their env keys to the user
         validate_config(smoke)
 
 
-def test_smoke_reaches_a_stage_added_on_the_command_line(hydra_compose):
-    cfg = compose_run(
-        hydra_compose,
-        "task=gym",
-        "experiment=smoke",
-        "task.env.num_stages=3",
-        "+algo@task.stages.s2=dqn",
-    )
-    assert list(cfg.task.stages) == ["s0", "s1", "s2"]
-    assert all(cfg.task.stages[s].frames == SMOKE.frames for s in cfg.task.stages)
+LINE = ("task.env.env_id=line_env:LineWorld-v0", "task.env.stage_fn._target_=line_env.line_stage")
+
+
+def test_stages_come_from_the_env_each_with_the_template_and_smoke(hydra_compose):
+    overrides = ("task=gym", "experiment=smoke", *LINE, "task.env.num_stages=3")
+    overrides += ("+task.stages.s2.frames=512", "+task.stages.s1.lr=1e-4")
+    cfg = with_env_stages(compose_run(hydra_compose, *overrides))
+    assert list(cfg.task.stages) == ["s0", "s1", "s2"]  # as many as the env has
+    template = hydra_compose("task=gym").task.stage_template
+    for name, stage in cfg.task.stages.items():
+        assert stage.updates_per_batch == SMOKE.updates_per_batch  # smoke reaches every stage
+        assert stage.success_threshold == template.success_threshold  # the template's keys
+        assert stage.frames == (512 if name == "s2" else SMOKE.frames)  # a stage's own wins
+        assert stage.lr == (1e-4 if name == "s1" else template.lr)
+    assert with_env_stages(cfg) == cfg  # expanding again changes nothing
+
+
+def test_a_stage_past_the_envs_last_is_named(hydra_compose):
+    cfg = hydra_compose("task=gym", *LINE, "+task.stages.s5.lr=1e-3")
+    with pytest.raises(ConfigError, match=r"task\.stages\.s5: the env has 2 stages, named s0, s1"):
+        with_env_stages(cfg)
 
 
 def test_all_stages_names_a_key_a_stage_lacks(hydra_compose):

@@ -15,7 +15,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, is_dataclass
 from typing import Any
 
-from omegaconf import II, MISSING, DictConfig, OmegaConf
+from omegaconf import II, MISSING, DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 
@@ -136,6 +136,10 @@ class TaskConfig:
     # Whole-task starts used for the final evaluation (passed to the env on top of `env`).
     eval_env: dict[str, Any] = field(default_factory=dict)
     stages: dict[str, Any] = field(default_factory=dict)
+    # every stage's keys when the env says how many stages there are (its num_stages): the task
+    # then has stages s0..s<N-1>, each this template with its own task.stages.s<k> keys over it
+    # (expand_stage_template). Empty: `stages` lists them all
+    stage_template: dict[str, Any] = field(default_factory=dict)
     eval_episodes: int = 100  # this task's default for eval.episodes
     # this task's default for `threads` (torch intra-op threads). 1 for every shipped task: two
     # threads train the manipulator 1.5x and cargo 1.2x faster on two free cores, but 3-4x slower
@@ -277,7 +281,11 @@ def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> D
         return cfg
     cfg = copy.deepcopy(cfg)  # the caller's config is left as it was
     every, kept = cfg.all_stages, set(keep)
-    for name, stage in cfg.task.stages.items():
+    stages = dict(cfg.task.stages.items())
+    if cfg.task.get("stage_template"):  # stages made from the template get them from there,
+        stages = {k: v for k, v in stages.items() if "algo" in v}  # not from their own keys
+        stages["stage_template"] = cfg.task.stage_template
+    for name, stage in stages.items():
         for key, value in every.items():
             if (name, key) in kept:
                 continue
@@ -285,14 +293,61 @@ def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> D
                 stage[key] = value
             except OmegaConfBaseException as err:
                 schema = OmegaConf.get_type(stage)
+                where = "task.stage_template" if name == "stage_template" else f"task.stages.{name}"
                 raise ConfigError(
-                    f"all_stages.{key}={value!r}: task.stages.{name} "
+                    f"all_stages.{key}={value!r}: {where} "
                     f"({getattr(schema, '__name__', schema)}) cannot take it "
                     f"({type(err).__name__}). Fix: set it for the stages that have it "
                     f"(task.stages.<stage>.{key}=...)"
                 ) from None
     cfg.all_stages = {}
     return cfg
+
+
+def stage_name(stage: int) -> str:
+    """The name of stage ``stage`` in a task whose stages come from its template: ``s<k>``."""
+    return f"s{stage}"
+
+
+def expand_stage_template(task: DictConfig, num_stages: int) -> DictConfig:
+    """A copy of the task config ``task`` with stages ``s0..s<num_stages-1>``, each
+    ``task.stage_template`` with the keys ``task.stages.s<k>`` already has over it (a stage's
+    own overrides); ``task`` itself when it has no template. Applying it again changes nothing.
+    A stage named otherwise, or past the env's last stage, is a :class:`ConfigError`.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> task = OmegaConf.create({"stage_template": {"algo": "dqn", "lr": 1e-3},
+        ...                          "stages": {"s2": {"lr": 5e-4}}})
+        >>> stages = expand_stage_template(task, 3).stages
+        >>> list(stages), stages.s0.lr, stages.s2.lr, stages.s2.algo
+        (['s0', 's1', 's2'], 0.001, 0.0005, 'dqn')
+    """
+    if not task.get("stage_template"):
+        return task
+    names = [stage_name(k) for k in range(num_stages)]
+    extra = [name for name in task.stages if name not in names]
+    if extra:
+        raise ConfigError(
+            f"task.stages.{extra[0]}: the env has {num_stages} stages, named "
+            f"{', '.join(names)} (each task.stage_template with its own keys over it). Fix: "
+            f"set that stage's keys as task.stages.<{names[0]}..{names[-1]}>.<key>=..."
+        )
+    task = copy.deepcopy(task)
+    stages = {}
+    for name in names:
+        own = task.stages.get(name) or {}
+        try:
+            stages[name] = OmegaConf.merge(task.stage_template, own)
+        except OmegaConfBaseException as err:
+            raise ConfigError(
+                f"task.stages.{name}: its keys do not fit task.stage_template "
+                f"({type(err).__name__}: {str(err).splitlines()[0]}). Fix: set only keys the "
+                "stage's algorithm has"
+            ) from None
+    with open_dict(task):
+        task.stages = stages
+    return task
 
 
 def stage_keys_set(overrides: Iterable[str]) -> set[tuple[str, str]]:

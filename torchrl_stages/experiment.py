@@ -7,6 +7,7 @@ CLI, ``stages-eval``, the benchmark scripts and Python users all go through it.
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import asdict
@@ -15,9 +16,9 @@ from typing import Any
 
 import torch
 from hydra.errors import InstantiationException
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 
-from torchrl_stages.config import apply_all_stages
+from torchrl_stages.config import apply_all_stages, expand_stage_template
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import make_logger
 from torchrl_stages.preemption import Interrupted, check, handle_signals
@@ -34,7 +35,7 @@ from torchrl_stages.stage import DivergenceError
 from torchrl_stages.task import StagedTask
 from torchrl_stages.tasks import EVAL_SEED_OFFSET, evaluate_run, probe_task
 from torchrl_stages.threads import hold_threads
-from torchrl_stages.validate import ConfigError, validate_config, validate_task
+from torchrl_stages.validate import ConfigError, check_env_keys, validate_config, validate_task
 
 log = logging.getLogger("torchrl_stages")
 
@@ -72,18 +73,42 @@ def compile_mode(cfg: DictConfig) -> str:
     return "reduce-overhead" if torch.device(cfg.device).type == "cuda" else "off"
 
 
+def with_env_stages(cfg: DictConfig) -> DictConfig:
+    """``cfg`` with its stages from ``task.stage_template`` when it has one: as many as the
+    env's ``num_stages`` (the env is built once to ask), each the template with the stage's
+    own keys over it (:func:`~torchrl_stages.config.expand_stage_template`); ``cfg`` itself
+    otherwise. Raises :class:`ConfigError` before any training."""
+    if not cfg.task.get("stage_template"):
+        return cfg
+    check_env_keys(cfg)
+    try:
+        num_stages = StagedTask.env_num_stages(cfg.task)
+    except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
+        raise _env_error(cfg, err) from err
+    cfg = copy.deepcopy(cfg)
+    with open_dict(cfg):
+        cfg.task = expand_stage_template(cfg.task, num_stages)
+    return cfg
+
+
+def _env_error(cfg: DictConfig, err: BaseException) -> ConfigError:
+    return ConfigError(
+        f"task.env: cannot build the env of task '{cfg.task.name}': {err}. "
+        "Fix: check the task.env.* values (or task.env._target_)."
+    )
+
+
 def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
     """Validates ``cfg`` (unless already ``validated``) and builds its task; raises
-    :class:`ConfigError` before any training."""
+    :class:`ConfigError` before any training. A task with a stage template gets its stages
+    from the env here (:func:`with_env_stages`; the task's ``cfg`` holds them)."""
     if not validated:
+        cfg = with_env_stages(cfg)
         validate_config(cfg)
     try:
         task = StagedTask(cfg.task, device=cfg.device)
     except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
-        raise ConfigError(
-            f"task.env: cannot build the env of task '{cfg.task.name}': {err}. "
-            "Fix: check the task.env.* values (or task.env._target_)."
-        ) from err
+        raise _env_error(cfg, err) from err
     validate_task(cfg, task)
     return task
 
@@ -126,7 +151,7 @@ class Experiment:
         overwrite: bool | None = None,
         hydra_files: dict[str, Any] | None = None,
     ) -> None:
-        self.cfg = cfg = apply_all_stages(cfg)
+        self.cfg = cfg = with_env_stages(apply_all_stages(cfg))
         self.hydra_files = dict(hydra_files or {})
         self.run_dir = RunDir(run_dir)
         self.resume = bool(cfg.get("resume", False) if resume is None else resume)

@@ -18,7 +18,7 @@ import torch
 from hydra.utils import get_method
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.envs import GymEnv, SerialEnv
+from torchrl.envs import GymWrapper
 
 __all__ = ["GymStageEnv", "threshold_stage"]
 
@@ -66,17 +66,29 @@ def _stage_function(stage_fn: StageFn | str) -> StageFn:
     return stage
 
 
-class GymStageEnv(SerialEnv):
-    """``batch_size[0]`` copies of a gymnasium env (torchrl ``GymEnv`` in a ``SerialEnv``)
-    with what a multi-stage task needs: ``num_stages`` and ``stage_fn``.
+VECTORIZE = ("sync", "async")
+
+
+class GymStageEnv(GymWrapper):
+    """A gymnasium env as a multi-stage task: ``batch_size[0]`` copies stepped as one gymnasium
+    vector env (``SyncVectorEnv``, or ``AsyncVectorEnv`` worker processes), wrapped by torchrl's
+    ``GymWrapper``, with what a multi-stage task needs: ``num_stages`` and ``stage_fn``.
+
+    The vector env runs with ``autoreset_mode=DISABLED``: a copy resets only when torchrl asks
+    (``"_reset"``), so a copy that ends its episode (or leaves a stage) restarts where the task
+    says, inside stage k for stage-k starts.
 
     Args:
         env_id: the gymnasium id; ``"my_module:MyEnv-v0"`` imports ``my_module`` first.
         stage_fn: ``stage_fn(td) -> int64 [*batch, 1]``, the stage of each state (a callable or
-            a dotted path).
+            a dotted path); ``None`` when the env writes a ``"stage"`` observation itself.
         num_stages: the number of stages (default: the gymnasium env's ``num_stages``).
 
     Keyword Args:
+        vectorize: ``"sync"`` (default: the copies step one after another in this process) or
+            ``"async"`` (one worker process per copy: for envs whose step costs more than the
+            inter-process round trip, about 0.1 ms).
+        wrappers: gymnasium wrapper factories applied to each copy, in order.
         batch_size: ``(n,)``: the number of env copies.
         device: where the TensorDicts live.
         start_stage: given (``None`` included) only for tasks with ``task.stage_starts=true``;
@@ -85,8 +97,8 @@ class GymStageEnv(SerialEnv):
         **kwargs: the gymnasium env's own constructor keys.
 
     Attributes:
-        max_steps: the env's ``max_episode_steps`` (the evaluations' episode cap), when it has
-            one.
+        max_steps: the env's ``max_episode_steps`` (else its ``max_steps`` attribute): the
+            evaluations' episode cap, when it has one.
 
     Examples:
         >>> env = GymStageEnv(
@@ -97,17 +109,17 @@ class GymStageEnv(SerialEnv):
         ... )
         >>> env.rollout(3)["observation"].shape, env.max_steps
         (torch.Size([4, 3, 4]), 500)
+        >>> env.close()
     """
-
-    #: optional hooks of the task protocol a gymnasium env does not offer
-    _NO_HOOKS = ("start_states", "stage_action_key", "stage_observation_keys")
 
     def __init__(
         self,
         env_id: str,
-        stage_fn: StageFn | str,
+        stage_fn: StageFn | str | None,
         num_stages: int | None = None,
         *,
+        vectorize: str = "sync",
+        wrappers: Sequence[Callable[[gymnasium.Env], gymnasium.Env]] = (),
         batch_size: Sequence[int],
         device: str | torch.device = "cpu",
         start_stage: Any = _UNSET,
@@ -116,12 +128,25 @@ class GymStageEnv(SerialEnv):
         batch = tuple(int(b) for b in batch_size)
         if len(batch) != 1:
             raise ValueError(f"GymStageEnv needs batch_size=(n,), got {batch}")
+        if vectorize not in VECTORIZE:
+            raise ValueError(
+                f"vectorize={vectorize!r}: Fix: task.env.vectorize=sync (copies stepped in "
+                "this process) or async (worker processes)"
+            )
+        # torchrl's GymWrapper metaclass adds this key to every constructor call
+        native = kwargs.pop("_torchrl_native_autoreset_requested", False)
         if start_stage is not _UNSET:
             kwargs["start_stage"] = start_stage
         made = gymnasium.make(env_id, **kwargs)
+        for wrap in wrappers:
+            made = wrap(made)
         try:
-            found = getattr(made.unwrapped, "num_stages", None)
+            found = getattr(made, "num_stages", None)
+            if found is None:
+                found = getattr(made.unwrapped, "num_stages", None)
             max_steps = made.spec.max_episode_steps if made.spec is not None else None
+            if max_steps is None:  # an env that truncates its episodes itself (MiniGrid)
+                max_steps = getattr(made.unwrapped, "max_steps", None)
         finally:
             made.close()
         if num_stages is None and found is None:
@@ -129,17 +154,22 @@ class GymStageEnv(SerialEnv):
                 f"the gymnasium env {env_id!r} has no num_stages attribute. Fix: set "
                 "task.env.num_stages"
             )
-        make = functools.partial(
-            GymEnv, env_id, categorical_action_encoding=True, device=device, **kwargs
+        vector = gymnasium.make_vec(
+            env_id,
+            num_envs=batch[0],
+            vectorization_mode=vectorize,
+            vector_kwargs={"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED},
+            wrappers=list(wrappers) or None,
+            **kwargs,
         )
-        super().__init__(batch[0], make, device=device)
+        super().__init__(
+            vector,
+            categorical_action_encoding=True,
+            device=device,
+            _torchrl_native_autoreset_requested=native,
+        )
         self.env_id = env_id
         self.num_stages = int(num_stages if num_stages is not None else found)
-        self.stage_fn = _stage_function(stage_fn)
+        self.stage_fn = None if stage_fn is None else _stage_function(stage_fn)
         if max_steps is not None:  # else evaluations cap episodes at 1000 steps
             self.max_steps = int(max_steps)
-
-    def __getattr__(self, attr: str) -> Any:
-        if attr in GymStageEnv._NO_HOOKS:  # not forwarded to the copies
-            raise AttributeError(attr)
-        return super().__getattr__(attr)

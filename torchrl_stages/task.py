@@ -40,6 +40,16 @@ class StagedTask:
         self.stage_names: list[str] = list(cfg.stages.keys())
         self._spec_env = self.base_env(batch_size=1)
 
+    @staticmethod
+    def env_num_stages(cfg: DictConfig) -> int:
+        """The ``num_stages`` of the env that the task config ``cfg`` builds (built once, on
+        the CPU, and closed)."""
+        env = StagedTask(cfg).spec_env
+        try:
+            return int(env.num_stages)
+        finally:
+            env.close()
+
     @property
     def spec_env(self) -> EnvBase:
         """The env built with ``batch_size=1`` whose specs the learners are built from."""
@@ -155,7 +165,8 @@ class StagedTask:
         if hasattr(env, "stage_observation_keys"):
             obs_keys = list(env.stage_observation_keys(stage))
         else:
-            obs_keys = list(env.observation_spec.keys(True, True))
+            # every observation but the stage tag (an env that writes "stage" itself)
+            obs_keys = [k for k in env.observation_spec.keys(True, True) if k != "stage"]
         action_key = (
             env.stage_action_key(stage) if hasattr(env, "stage_action_key") else (env.action_key)
         )

@@ -182,12 +182,8 @@ def check_targets(cfg: DictConfig) -> None:
             raise TargetError(f"{key}={target}: {problem}")
 
 
-def validate_config(cfg: DictConfig) -> None:
-    """Checks what can be checked without building the env (its code is imported: the
-    ``_target_`` s must be found)."""
-    _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
-    for name in ("eval", "objective"):
-        _check_finite(cfg.get(name), name)
+def check_env_keys(cfg: DictConfig) -> None:
+    """The env's keys can build it: none left ``???`` and every ``_target_`` found."""
     for key in missing_keys(cfg.task.get("env"), "task.env"):
         check(
             False,
@@ -197,6 +193,16 @@ def validate_config(cfg: DictConfig) -> None:
             f"set it on the command line: {key}=...",
         )
     check_targets(cfg)
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Checks what can be checked without building the env (its code is imported: the
+    ``_target_`` s must be found)."""
+    _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
+    _check_finite(cfg.task.get("stage_template"), "task.stage_template")
+    for name in ("eval", "objective"):
+        _check_finite(cfg.get(name), name)
+    check_env_keys(cfg)
     check(
         cfg.logger.backend in LOGGER_BACKENDS,
         "logger.backend",

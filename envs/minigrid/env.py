@@ -1,0 +1,301 @@
+"""MiniGrid's multi-stage levels as tasks: the key, the locked door, then the goal.
+
+`MiniGrid <https://minigrid.farama.org>`_ (Farama's package, the ``minigrid`` extra) has levels
+that run through the same three stages: pick up the key (stage 0), open the locked door with it
+(stage 1), then reach the goal or pick up the object behind the door (stage 2). Every level of
+the DoorKey (``MiniGrid-DoorKey-5x5-v0`` to ``-16x16``), KeyCorridor (``MiniGrid-KeyCorridorS3R1``
+to ``S6R3``) and UnlockPickup families is one, chosen by its gymnasium id.
+
+:class:`StagedMiniGrid` (a gymnasium wrapper) supplies what the task needs from the level's
+state: the stage (monotone: dropping the key does not undo stage 1), an observation suited to
+small networks (:data:`FEATURES`), and episodes that start inside stage k. :class:`MiniGridEnv`
+steps its copies as one gymnasium vector env (:class:`~torchrl_stages.GymStageEnv`).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections import deque
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+
+from torchrl_stages.gym_env import GymStageEnv
+
+__all__ = [
+    "FAMILIES",
+    "FEATURES",
+    "MiniGridEnv",
+    "StagedMiniGrid",
+    "import_minigrid",
+    "stage_names",
+]
+
+#: the level families with these three stages (the start of their gymnasium ids) and what
+#: their last stage heads for
+FAMILIES = {
+    "MiniGrid-DoorKey-": "goal",
+    "MiniGrid-KeyCorridor": "ball",
+    "MiniGrid-UnlockPickup-": "box",
+}
+VIEW = 2  # the local view: the (2 * VIEW + 1)^2 cells around the agent
+#: observation features, in order (``(dx, dy)``: offset from the agent, in grid widths)
+FEATURES = (
+    "x", "y",  # the agent's cell, in grid widths
+    "east", "south", "west", "north",  # the direction it faces (one-hot)
+    "carries_key", "carries_target",
+    "door_open", "door_locked",
+    "key_dx", "key_dy", "door_dx", "door_dy", "target_dx", "target_dy",
+    # the cell it faces (one-hot)
+    "front_free", "front_wall", "front_closed_door", "front_open_door", "front_key",
+    "front_target", "front_other",
+    *(f"blocked_{dx}_{dy}" for dy in range(-VIEW, VIEW + 1) for dx in range(-VIEW, VIEW + 1)),
+)  # fmt: skip
+
+
+def import_minigrid() -> Any:
+    """The ``minigrid`` package (importing it registers its levels), or an error with the fix."""
+    try:
+        import minigrid
+    except ImportError as err:
+        raise ImportError(
+            "task=minigrid needs Farama's MiniGrid. Fix: pip install 'torchrl-stages[minigrid]' "
+            f"(or pip install minigrid) ({err})"
+        ) from None
+    return minigrid
+
+
+def stage_names(env_id: str) -> list[str]:
+    """The stages of a level: ``["key", "door", <goal, ball or box>]``.
+
+    Examples:
+        >>> stage_names("MiniGrid-KeyCorridorS3R3-v0")
+        ['key', 'door', 'ball']
+    """
+    _check_id(env_id)
+    return ["key", "door", next(t for f, t in FAMILIES.items() if env_id.startswith(f))]
+
+
+def _check_id(env_id: str) -> None:
+    if ":" in env_id or not env_id.startswith(tuple(FAMILIES)):
+        raise ValueError(
+            f"env_id={env_id!r} is not a MiniGrid level with a key, a locked door and a goal. "
+            f"Fix: pick one of the {', '.join(f + '*' for f in FAMILIES)} ids (task=gym takes "
+            "any other gymnasium env with a stage function of yours)"
+        )
+
+
+class StagedMiniGrid(gymnasium.Wrapper):
+    """A MiniGrid level as a 3-stage task: its stage, features and stage-k starts.
+
+    * **Stages**: 0 until the agent first carries the key, 1 until the locked door is open,
+      then 2 (never lower: dropping the key or closing the door keeps the stage).
+    * **Observation**: ``{"observation": float32 [len(FEATURES)], "stage": int64 [1]}``: where
+      the agent is and faces, what it carries, the door's state, the offsets to the key, the
+      door and the target (goal, ball or box), the cell it faces and which of the cells around
+      it are blocked. The level's layout varies by seed; the offsets make a policy of them
+      carry over between layouts.
+    * **Reward**: 1 on success (the level's own, ``1 - 0.9 t / T``, depends on the step count,
+      which is not part of the state; each stage's discount makes the policy fast).
+    * **Starts**: ``start_stage=k`` starts inside stage k (the backward schedule's reverse
+      curriculum): the level as the seed lays it out, with the key carried (k >= 1) and the
+      door open (k = 2), the agent on a uniformly drawn free cell it can reach, facing a drawn
+      direction. ``None``: the level's own start.
+
+    Examples:
+        >>> env = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), start_stage=2)
+        >>> obs, _ = env.reset(seed=0)
+        >>> int(obs["stage"][0]), obs["observation"].shape == (len(FEATURES),)
+        (2, True)
+        >>> env.unwrapped.carrying.type, env.unwrapped.door.is_open
+        ('key', True)
+    """
+
+    num_stages = 3
+
+    def __init__(self, env: gymnasium.Env, start_stage: int | None = None) -> None:
+        super().__init__(env)
+        level = env.spec.id if env.spec is not None else type(env.unwrapped).__name__
+        _check_id(level)
+        if start_stage is not None and not 0 <= int(start_stage) < self.num_stages:
+            raise ValueError(f"start_stage={start_stage}: MiniGrid levels have stages 0, 1, 2")
+        self.start_stage = start_stage
+        self.observation_space = gymnasium.spaces.Dict(
+            observation=gymnasium.spaces.Box(-1.0, 1.0, (len(FEATURES),), np.float32),
+            stage=gymnasium.spaces.Box(0, self.num_stages - 1, (1,), np.int64),
+        )
+        self.stage = 0
+
+    # ------------------------------------------------------------------ the level's objects
+    def _objects(self) -> None:
+        """Finds the key, the locked door and the target of the level just generated."""
+        level = self.env.unwrapped
+        self.key = self.door = self.target = None
+        for obj in level.grid.grid:
+            if obj is None:
+                continue
+            if obj.type == "key":
+                self.key = obj
+            elif obj.type == "door" and obj.is_locked:
+                self.door = obj
+            elif obj.type == "goal":
+                self.target = obj
+        if getattr(level, "obj", None) is not None:  # KeyCorridor, UnlockPickup
+            self.target = level.obj
+        level.door = self.door
+
+    def _progress(self) -> int:
+        level = self.env.unwrapped
+        if self.door.is_open and not self.door.is_locked:
+            return 2
+        return 1 if level.carrying is self.key else 0
+
+    # ------------------------------------------------------------------ starts
+    def _reachable(self) -> list[tuple[int, int]]:
+        """Free cells the agent can walk to (through doors it can open)."""
+        level = self.env.unwrapped
+        start = tuple(int(v) for v in level.agent_pos)
+        seen, queue, free = {start}, deque([start]), []
+        while queue:
+            x, y = queue.popleft()
+            if level.grid.get(x, y) is None and (x, y) != start:
+                free.append((x, y))
+            for nx, ny in ((x + 1, y), (x - 1, y), (x, y + 1), (x, y - 1)):
+                if (nx, ny) in seen or not (0 <= nx < level.width and 0 <= ny < level.height):
+                    continue
+                cell = level.grid.get(nx, ny)
+                if cell is None or (cell.type == "door" and not cell.is_locked):
+                    seen.add((nx, ny))
+                    queue.append((nx, ny))
+        return free + [start]
+
+    def _start_inside(self, stage: int) -> None:
+        level = self.env.unwrapped
+        if stage >= 1:  # the key is carried
+            level.grid.set(*self.key.cur_pos, None)
+            self.key.cur_pos = np.array([-1, -1])
+            level.carrying = self.key
+        if stage >= 2:  # the door is open
+            self.door.is_locked, self.door.is_open = False, True
+        cells = self._reachable()
+        level.agent_pos = np.array(cells[int(self.np_random.integers(len(cells)))])
+        level.agent_dir = int(self.np_random.integers(4))
+
+    # ------------------------------------------------------------------ observation
+    def _features(self) -> np.ndarray:
+        level = self.env.unwrapped
+        size = float(max(level.width, level.height))
+        ax, ay = (int(v) for v in level.agent_pos)
+
+        def offset(obj) -> tuple[float, float]:
+            if obj is None or obj.cur_pos is None or obj.cur_pos[0] < 0:  # carried
+                return 0.0, 0.0
+            return (obj.cur_pos[0] - ax) / size, (obj.cur_pos[1] - ay) / size
+
+        front = level.grid.get(*level.front_pos)
+        kinds = np.zeros(7, np.float32)
+        if front is None:
+            kinds[0] = 1
+        elif front.type == "wall":
+            kinds[1] = 1
+        elif front.type == "door":
+            kinds[3 if front.is_open else 2] = 1
+        elif front is self.key:
+            kinds[4] = 1
+        elif front is self.target:
+            kinds[5] = 1
+        else:
+            kinds[6] = 1
+        blocked = []
+        for dy in range(-VIEW, VIEW + 1):
+            for dx in range(-VIEW, VIEW + 1):
+                x, y = ax + dx, ay + dy
+                inside = 0 <= x < level.width and 0 <= y < level.height
+                cell = level.grid.get(x, y) if inside else None
+                blocked.append(float(not inside or (cell is not None and not cell.can_overlap())))
+        direction = np.eye(4, dtype=np.float32)[level.agent_dir]
+        carrying = level.carrying
+        return np.array(
+            [
+                ax / size,
+                ay / size,
+                *direction,
+                float(carrying is self.key),
+                float(carrying is not None and carrying is self.target),
+                float(self.door.is_open),
+                float(self.door.is_locked),
+                *offset(self.key),
+                *offset(self.door),
+                *offset(self.target),
+                *kinds,
+                *blocked,
+            ],
+            np.float32,
+        )
+
+    def _obs(self) -> dict[str, np.ndarray]:
+        return {"observation": self._features(), "stage": np.array([self.stage], np.int64)}
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        _, info = self.env.reset(seed=seed, options=options)
+        self._objects()
+        if self.start_stage:
+            self._start_inside(int(self.start_stage))
+        self.stage = self._progress()
+        return self._obs(), info
+
+    def step(self, action):
+        _, reward, terminated, truncated, info = self.env.step(action)
+        self.stage = max(self.stage, self._progress())
+        success = bool(terminated and reward > 0)
+        return self._obs(), float(success), bool(terminated), bool(truncated), info
+
+
+class MiniGridEnv(GymStageEnv):
+    """A MiniGrid level (``env_id``) as a batched 3-stage TorchRL env: ``batch_size[0]`` copies
+    of :class:`StagedMiniGrid` in a gymnasium vector env.
+
+    Args:
+        env_id: a DoorKey, KeyCorridor or UnlockPickup id, e.g. ``"MiniGrid-DoorKey-8x8-v0"``.
+
+    Keyword Args:
+        vectorize: ``"sync"`` (default) or ``"async"`` (worker processes).
+        batch_size: ``(n,)``: the number of copies.
+        device: where the TensorDicts live.
+        start_stage: ``None`` (the level's own start) or k: start inside stage k.
+        **kwargs: the level's own constructor keys (e.g. ``max_steps``).
+
+    Examples:
+        >>> env = MiniGridEnv("MiniGrid-DoorKey-5x5-v0", batch_size=(4,), start_stage=1)
+        >>> td = env.reset()
+        >>> td["stage"].squeeze(-1).tolist(), td["observation"].shape
+        ([1, 1, 1, 1], torch.Size([4, 48]))
+        >>> env.close()
+    """
+
+    def __init__(
+        self,
+        env_id: str,
+        *,
+        vectorize: str = "sync",
+        batch_size: Sequence[int],
+        device: str | torch.device = "cpu",
+        start_stage: int | None = None,
+        **kwargs: Any,
+    ) -> None:
+        import_minigrid()
+        _check_id(env_id)
+        super().__init__(
+            env_id,
+            stage_fn=None,  # the wrapper writes "stage"
+            vectorize=vectorize,
+            wrappers=[functools.partial(StagedMiniGrid, start_stage=start_stage)],
+            batch_size=batch_size,
+            device=device,
+            **kwargs,
+        )
+        self.start_stage = start_stage

@@ -1,0 +1,49 @@
+"""The MiniGrid task's figure: a level with the greedy stacked policy's path, one color per
+stage."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from torchrl_stages.plots import save_figure
+
+__all__ = ["STAGE_COLORS", "plot_level"]
+
+STAGE_COLORS = ("tab:blue", "tab:orange", "tab:green")
+
+
+def plot_level(
+    frame: np.ndarray,
+    positions: Sequence[Sequence[int]],
+    stages: Sequence[int],
+    *,
+    stage_names: Sequence[str],
+    tile: int,
+    out: str | Path,
+    title: str = "",
+) -> Path:
+    """The level's picture ``frame`` (``[H, W, 3]``, ``tile`` pixels per cell) with the path
+    through ``positions`` (grid cells ``[T+1, 2]``), each step colored by the stage of the
+    state it starts from (``stages`` ``[T+1]``)."""
+    xy = (np.asarray(positions, dtype=float) + 0.5) * tile
+    stage = np.asarray(stages)
+    fig = Figure(figsize=(6, 6 * frame.shape[0] / frame.shape[1] + 0.4))
+    ax = fig.subplots()
+    ax.imshow(frame)
+    for k, name in enumerate(stage_names):
+        idx = np.flatnonzero(stage[:-1] == k)
+        for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+            if len(run):
+                seg = xy[run[0] : run[-1] + 2]
+                ax.plot(seg[:, 0], seg[:, 1], color=STAGE_COLORS[k % 3], linewidth=3, alpha=0.85)
+        ax.plot([], [], color=STAGE_COLORS[k % 3], linewidth=3, label=f"stage {k}: {name}")
+    ax.plot(*xy[0], marker="o", color="white", markeredgecolor="k", markersize=9)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.01), ncol=len(stage_names), fontsize=8)
+    ax.set_axis_off()
+    ax.set_title(title)
+    fig.tight_layout()
+    return save_figure(fig, out)

@@ -1,0 +1,152 @@
+"""The MiniGrid task family: its stage function, its stage-k starts, its vector env and a run
+from the command line. Skipped, with the reason, where the ``minigrid`` extra is missing."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from helpers import assert_figure, run_cli
+
+MISSING = "the minigrid extra is not installed: pip install '.[minigrid]'"
+pytest.importorskip("minigrid", reason=MISSING)
+
+import gymnasium  # noqa: E402
+from minigrid.core.actions import Actions  # noqa: E402
+
+from torchrl_stages.envs.minigrid import (  # noqa: E402
+    FEATURES,
+    MiniGridEnv,
+    StagedMiniGrid,
+    stage_names,
+)
+from torchrl_stages.experiment import build_task  # noqa: E402
+from torchrl_stages.validate import ConfigError  # noqa: E402
+
+LEVELS = ["MiniGrid-DoorKey-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0", "MiniGrid-UnlockPickup-v0"]
+DIRECTIONS = [(1, 0), (0, 1), (-1, 0), (0, -1)]  # MiniGrid's agent_dir 0..3
+
+
+def _face(env: StagedMiniGrid, cell) -> None:
+    """Puts the agent next to ``cell``, facing it: on a free cell, else in an unlocked door
+    (opened; KeyCorridorS3R1's rooms are one cell, reached from their door)."""
+    level = env.unwrapped
+    for doors in (False, True):
+        for d, (dx, dy) in enumerate(DIRECTIONS):
+            x, y = int(cell[0]) - dx, int(cell[1]) - dy
+            if not (0 < x < level.width and 0 < y < level.height):
+                continue
+            there = level.grid.get(x, y)
+            door = doors and there is not None and there.type == "door" and not there.is_locked
+            if there is None or door:
+                if door:
+                    there.is_open = True
+                level.agent_pos, level.agent_dir = np.array([x, y]), d
+                return
+    raise AssertionError(f"no free cell next to {cell}")
+
+
+@pytest.mark.parametrize("level", LEVELS)
+def test_the_stage_follows_the_level_and_never_goes_back(level):
+    env = StagedMiniGrid(gymnasium.make(level))
+    obs, _ = env.reset(seed=3)
+    assert obs["stage"].tolist() == [0] and obs["observation"].shape == (len(FEATURES),)
+    _face(env, env.key.cur_pos)
+    obs, reward, *_ = env.step(Actions.pickup)
+    assert obs["stage"].tolist() == [1] and reward == 0.0  # the key is carried
+    _face(env, env.door.cur_pos)
+    obs, *_ = env.step(Actions.toggle)
+    assert obs["stage"].tolist() == [2] and env.door.is_open  # the key opened the door
+    obs, *_ = env.step(Actions.toggle)  # closing the door again
+    assert obs["stage"].tolist() == [2] and not env.door.is_open
+    env.step(Actions.toggle)
+    level_env = env.unwrapped
+    level_env.carrying = None  # as if it had dropped the key
+    target = env.target
+    if target.type == "goal":
+        _face(env, target.cur_pos)
+        obs, reward, terminated, truncated, _ = env.step(Actions.forward)
+    else:
+        _face(env, target.cur_pos)
+        obs, reward, terminated, truncated, _ = env.step(Actions.pickup)
+    assert obs["stage"].tolist() == [2] and terminated and reward == 1.0 and not truncated
+
+
+@pytest.mark.parametrize("level", LEVELS)
+@pytest.mark.parametrize("stage", [0, 1, 2])
+def test_episodes_start_inside_the_stage_on_a_free_cell(level, stage):
+    env = StagedMiniGrid(gymnasium.make(level), start_stage=stage)
+    cells = set()
+    for seed in range(8):
+        obs, _ = env.reset(seed=seed)
+        level_env = env.unwrapped
+        assert obs["stage"].tolist() == [stage]
+        assert (level_env.carrying is env.key) == (stage >= 1)
+        assert env.door.is_open == (stage == 2) and env.door.is_locked == (stage < 2)
+        assert level_env.grid.get(*level_env.agent_pos) is None  # on a free cell
+        assert np.isfinite(obs["observation"]).all() and np.abs(obs["observation"]).max() <= 1
+        cells.add(tuple(level_env.agent_pos))
+    assert stage == 0 or len(cells) > 1  # drawn (stage 0: the level's own start)
+
+
+def test_stage_names_and_levels_without_the_stages_are_refused():
+    assert stage_names("MiniGrid-DoorKey-16x16-v0") == ["key", "door", "goal"]
+    assert stage_names("MiniGrid-UnlockPickup-v0")[-1] == "box"
+    with pytest.raises(ValueError, match=r"not a MiniGrid level with a key.*Fix: pick one"):
+        MiniGridEnv("MiniGrid-Empty-5x5-v0", batch_size=(1,))
+    with pytest.raises(ValueError, match=r"Fix: pick one"):  # never imports a module it names
+        MiniGridEnv("os:MiniGrid-DoorKey-5x5-v0", batch_size=(1,))
+
+
+@pytest.mark.parametrize("vectorize", ["sync", "async"])
+def test_the_vector_env_restarts_finished_copies_inside_their_stage(vectorize):
+    env = MiniGridEnv(
+        "MiniGrid-DoorKey-5x5-v0", vectorize=vectorize, batch_size=(4,), start_stage=2, max_steps=6
+    )
+    try:
+        env.set_seed(0)
+        td = env.reset()
+        assert td["stage"].squeeze(-1).tolist() == [2, 2, 2, 2] and env.max_steps == 6
+        ended = 0
+        for _ in range(14):
+            td["action"] = env.action_spec.rand()
+            out, td = env.step_and_maybe_reset(td)
+            ended += int(out["next", "done"].sum())
+            assert (td["stage"] == 2).all()  # finished copies restarted inside stage 2
+        assert ended >= 4  # every copy ended an episode (6-step limit) and went on
+    finally:
+        env.close()
+
+
+def test_an_env_id_of_another_family_is_refused_before_training(compose_cfg):
+    cfg = compose_cfg("task=minigrid", "task.env.env_id=CartPole-v1")
+    with pytest.raises(ConfigError, match=r"(?s)task\.env: cannot build.*Fix: pick one"):
+        build_task(cfg)
+
+
+def test_the_task_has_three_stages_from_its_template(compose_cfg):
+    task = build_task(compose_cfg("task=minigrid"))
+    assert list(task.cfg.stages) == ["s0", "s1", "s2"] and task.num_stages == 3
+    assert task.specs(0).observation_keys == ["observation"]  # the stage tag is not an input
+    rollout = task.stage_env(2, batch_size=2).rollout(3)
+    assert (rollout["stage"] == 2).all()
+    task.spec_env.close()
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_minigrid_trains_from_the_cli(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = run_cli(
+        ["stages-train", "task=minigrid", "experiment=smoke", f"hydra.run.dir={run_dir}"],
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    result = json.loads((run_dir / "eval.json").read_text())
+    assert result["task_metrics"]["stages"] == ["key", "door", "goal"]
+    assert result["episodes"] == 32 and 0.0 <= result["success_rate"] <= 1.0
+    assert all((run_dir / f"stage_{k}.pt").is_file() for k in range(3))
+    assert_figure(run_dir / "minigrid.png")
+    assert torch.isfinite(torch.tensor(result["mean_return"]))
