@@ -194,6 +194,20 @@ def test_task_template_names_what_is_missing(compose_cfg):
         build_task(compose_cfg("task=custom"))
 
 
+def test_box_actions_under_dqn_name_the_template_fix(compose_cfg):
+    cfg = compose_cfg(
+        "task=gym",
+        "task.stage_starts=false",
+        "schedule=joint",
+        "task.env.env_id=Pendulum-v1",
+        "task.env.stage_fn._target_=torchrl_stages.threshold_stage",
+        "+task.env.stage_fn.thresholds=[0.0]",
+        "task.env.num_stages=2",
+    )
+    with pytest.raises(ConfigError, match=r"dqn needs a discrete.*algo@task\.stage_template="):
+        build_task(cfg)
+
+
 def test_env_without_num_stages_is_refused(compose_cfg):
     cfg = compose_cfg(
         "task=custom",

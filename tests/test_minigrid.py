@@ -150,3 +150,7 @@ def test_minigrid_trains_from_the_cli(tmp_path):
     assert all((run_dir / f"stage_{k}.pt").is_file() for k in range(3))
     assert_figure(run_dir / "minigrid.png")
     assert torch.isfinite(torch.tensor(result["mean_return"]))
+    # a shipped task: its run loads without --trust (the level id is data, never a module)
+    again = run_cli(["stages-eval", run_dir], cwd=tmp_path)
+    assert again.returncode == 0, (again.stdout + again.stderr)[-3000:]
+    assert "task minigrid: success" in again.stdout

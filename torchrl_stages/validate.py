@@ -370,16 +370,16 @@ def validate_task(cfg: DictConfig, task) -> None:
         f"+algo@task.stages.NAME=<algo> or remove extra ones with ~task.stages.NAME)",
     )
     get_schedule(str(cfg.schedule.name)).validate_task(cfg, task)
+    template = bool(cfg.task.get("stage_template"))
     for k, name in enumerate(names):
         stage = cfg.task.stages[name]
         problem = learner_class(stage).check_action_spec(task.specs(k).action_spec)
-        check(
-            problem is None,
-            f"task.stages.{name}.algo",
-            stage.algo,
-            str(problem),
-            f"override it with algo@task.stages.{name}=<algo>",
+        fix = (
+            "pick every stage's with algo@task.stage_template=<algo>"
+            if template
+            else f"override it with algo@task.stages.{name}=<algo>"
         )
+        check(problem is None, f"task.stages.{name}.algo", stage.algo, str(problem), fix)
 
 
 def _direction_name(direction: object) -> str:

@@ -28,7 +28,7 @@ def plot_level(
 ) -> Path:
     """The level's picture ``frame`` (``[H, W, 3]``, ``tile`` pixels per cell) with the path
     through ``positions`` (grid cells ``[T+1, 2]``), each step colored by the stage of the
-    state it starts from (``stages`` ``[T+1]``)."""
+    state it starts from (``stages`` ``[T+1]``), and a star where each stage ends."""
     xy = (np.asarray(positions, dtype=float) + 0.5) * tile
     stage = np.asarray(stages)
     fig = Figure(figsize=(6, 6 * frame.shape[0] / frame.shape[1] + 0.4))
@@ -42,6 +42,9 @@ def plot_level(
                 ax.plot(seg[:, 0], seg[:, 1], color=STAGE_COLORS[k % 3], linewidth=3, alpha=0.85)
         ax.plot([], [], color=STAGE_COLORS[k % 3], linewidth=3, label=f"stage {k}: {name}")
     ax.plot(*xy[0], marker="o", color="white", markeredgecolor="k", markersize=9)
+    for t in np.flatnonzero(np.diff(stage)) + 1:  # where each stage ends (key, door)
+        color = STAGE_COLORS[int(stage[t - 1]) % 3]
+        ax.plot(*xy[t], marker="*", color=color, markeredgecolor="white", markersize=16)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.01), ncol=len(stage_names), fontsize=8)
     ax.set_axis_off()
     ax.set_title(title)

@@ -22,19 +22,21 @@ FIGURE_SEED = 0  # the layout drawn in minigrid.png
 @torch.no_grad()
 def greedy_episode(task: StagedTask, learners: Sequence[Learner], seed: int):
     """One greedy whole-task episode on the layout of ``seed``: the cells it visits, the stage
-    of each, whether it succeeded and the level's picture at its end."""
+    of each, whether it succeeded and the level's picture at its start."""
     env = task.task_env(1, vectorize="sync")
     try:
         env.set_seed(seed)
-        policy = StackedPolicy([learner.policy for learner in learners])
-        rollout = env.rollout(int(env.base_env.max_steps), policy).squeeze(0)
+        start = env.reset()
         level = env.base_env._env.envs[0].unwrapped
+        frame = level.get_frame(highlight=False, tile_size=TILE)
+        policy = StackedPolicy([learner.policy for learner in learners])
+        steps = int(env.base_env.max_steps)
+        rollout = env.rollout(steps, policy, auto_reset=False, tensordict=start).squeeze(0)
         size = max(level.width, level.height)
         features = torch.cat([rollout["observation"][:1], rollout["next", "observation"]])
         cells = (features[:, :2] * size).round().long().tolist()
         stages = torch.cat([rollout["stage"][:1], rollout["next", "stage"]]).squeeze(-1).tolist()
         success = bool(rollout["next", "terminated"][-1])
-        frame = level.get_frame(highlight=False, tile_size=TILE)
     finally:
         env.close()
     return cells, stages, success, frame

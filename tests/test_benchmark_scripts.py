@@ -1,0 +1,70 @@
+"""The bring-your-own-env and MiniGrid benchmark scripts on tiny budgets: each writes the rows
+and the table the README includes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+MISSING = "the minigrid extra is not installed: pip install '.[minigrid]'"
+try:
+    import minigrid  # noqa: F401
+except ImportError:
+    minigrid = None
+
+
+def run_script(name: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(SCRIPTS / name), *args],
+        cwd=SCRIPTS,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        stdin=subprocess.DEVNULL,
+    )
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_benchmark_gym_runs_the_readme_commands(tmp_path):
+    done = run_script(
+        "benchmark_gym.py", "--seeds", "0", "--out", str(tmp_path), "experiment=smoke"
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [r["variant"] for r in rows] == ["discrete/dqn", "box/sac"]
+    assert all(len(r["stage_frames"]) == 3 for r in rows)  # the env's three stages
+    table = (tmp_path / "table.md").read_text()
+    assert "benchmark_gym.py" in table and "machine speed" in table
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+@pytest.mark.skipif(minigrid is None, reason=MISSING)
+def test_benchmark_gym_vector_compares_the_three_ways(tmp_path):
+    args = ["--envs", "2", "--steps", "5", "--repeats", "1", "--out", str(tmp_path)]
+    done = run_script("benchmark_gym_vector.py", *args)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [r["env"] for r in rows] == ["CartPole-v1", "MiniGrid-DoorKey-8x8-v0"]
+    assert all(set(r["fps"]) == {"serial", "sync", "async"} for r in rows)
+    assert "sync / serial" in (tmp_path / "table.md").read_text()
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+@pytest.mark.skipif(minigrid is None, reason=MISSING)
+def test_benchmark_minigrid_runs_each_schedule(tmp_path):
+    level = "MiniGrid-DoorKey-5x5-v0"
+    args = ["--levels", level, "--seeds", "0", "--schedules", "backward", "flat"]
+    done = run_script("benchmark_minigrid.py", *args, "--out", str(tmp_path), "experiment=smoke")
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [(r["level"], r["schedule"]) for r in rows] == [(level, "backward"), (level, "flat")]
+    assert (tmp_path / f"minigrid_{level}_backward_seed0.png").is_file()
+    assert f"{level} flat: success mean" in (tmp_path / "table.md").read_text()
