@@ -59,12 +59,13 @@ def test_benchmark_gym_vector_compares_the_three_ways(tmp_path):
 @pytest.mark.e2e
 @pytest.mark.slow
 @pytest.mark.skipif(minigrid is None, reason=MISSING)
-def test_benchmark_minigrid_runs_each_schedule(tmp_path):
+def test_benchmark_minigrid_writes_its_table(tmp_path):
     level = "MiniGrid-DoorKey-5x5-v0"
-    args = ["--levels", level, "--seeds", "0", "--schedules", "backward", "flat"]
+    args = ["--levels", level, "--seeds", "0", "--schedules", "backward"]
     done = run_script("benchmark_minigrid.py", *args, "--out", str(tmp_path), "experiment=smoke")
     assert done.returncode == 0, done.stderr[-3000:]
     rows = json.loads((tmp_path / "rows.json").read_text())
-    assert [(r["level"], r["schedule"]) for r in rows] == [(level, "backward"), (level, "flat")]
+    assert [(r["level"], r["schedule"]) for r in rows] == [(level, "backward")]
+    assert len(rows[0]["stage_frames"]) == 3 and rows[0]["episodes"] == 32
     assert (tmp_path / f"minigrid_{level}_backward_seed0.png").is_file()
-    assert f"{level} flat: success mean" in (tmp_path / "table.md").read_text()
+    assert f"{level} backward: success mean" in (tmp_path / "table.md").read_text()

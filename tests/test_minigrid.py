@@ -100,11 +100,9 @@ def test_stage_names_and_levels_without_the_stages_are_refused():
         MiniGridEnv("os:MiniGrid-DoorKey-5x5-v0", batch_size=(1,))
 
 
-@pytest.mark.parametrize("vectorize", ["sync", "async"])
-def test_the_vector_env_restarts_finished_copies_inside_their_stage(vectorize):
-    env = MiniGridEnv(
-        "MiniGrid-DoorKey-5x5-v0", vectorize=vectorize, batch_size=(4,), start_stage=2, max_steps=6
-    )
+def test_the_vector_env_restarts_finished_copies_inside_their_stage():
+    # (worker processes: tests/test_gym_env.py)
+    env = MiniGridEnv("MiniGrid-DoorKey-5x5-v0", batch_size=(4,), start_stage=2, max_steps=6)
     try:
         env.set_seed(0)
         td = env.reset()
