@@ -110,7 +110,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
         >>> obs, _ = env.reset(seed=0)
         >>> int(obs["stage"][0]), obs["observation"].shape == (len(FEATURES),)
         (2, True)
-        >>> env.unwrapped.carrying.type, env.unwrapped.door.is_open
+        >>> env.unwrapped.carrying.type, env.door.is_open
         ('key', True)
     """
 
@@ -145,7 +145,6 @@ class StagedMiniGrid(gymnasium.Wrapper):
                 self.target = obj
         if getattr(level, "obj", None) is not None:  # KeyCorridor, UnlockPickup
             self.target = level.obj
-        level.door = self.door
 
     def _progress(self) -> int:
         level = self.env.unwrapped
