@@ -1,5 +1,5 @@
-"""The bring-your-own-env and MiniGrid benchmark scripts on tiny budgets: each writes the rows
-and the table the README includes."""
+"""The benchmark scripts (bring your own env, MiniGrid, stage store, handoff) on tiny budgets:
+each writes the rows and the table the README includes."""
 
 from __future__ import annotations
 
@@ -9,8 +9,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import TINY_STAGE
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+TINY = {**TINY_STAGE, "eval_every": 0}  # no stage evaluations: what is compared is reuse
 MISSING = "the minigrid extra is not installed: pip install '.[minigrid]'"
 try:
     import minigrid  # noqa: F401
@@ -69,3 +71,48 @@ def test_benchmark_minigrid_writes_its_table(tmp_path):
     assert len(rows[0]["stage_frames"]) == 3 and rows[0]["episodes"] == 32
     assert (tmp_path / f"minigrid_{level}_backward_seed0.png").is_file()
     assert f"{level} backward: success mean" in (tmp_path / "table.md").read_text()
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_benchmark_stage_store_compares_the_sweeps_job_by_job(tmp_path):
+    tiny = [f"task.stages.s{k}.{key}={v}" for k in range(5) for key, v in TINY.items()]
+    done = run_script(
+        "benchmark_stage_store.py",
+        "--presets",
+        "homo",
+        "--lrs",
+        "1e-3",
+        "2e-3",
+        "--out",
+        str(tmp_path),
+        *tiny,
+        "eval.plots=false",
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [r["lr"] for r in rows] == ["1e-3", "2e-3"]
+    assert all(r["bitwise"] for r in rows)
+    assert rows[0]["store"]["reused"] == []
+    assert all(r["store"]["reused"] == ["s1", "s2", "s3", "s4"] for r in rows[1:])
+    table = (tmp_path / "table.md").read_text()
+    assert "faster" in table and "machine speed" in table
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_benchmark_handoff_writes_the_table_and_figures(tmp_path):
+    done = run_script(
+        "benchmark_handoff.py",
+        "--variants",
+        "gridworld_missed",
+        "--out",
+        str(tmp_path),
+        "experiment=smoke",
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [r["variant"] for r in rows] == ["gridworld_missed"]
+    assert [h["boundary"] for h in rows[0]["handoff"]] == [f"s{k} -> s{k + 1}" for k in range(4)]
+    table = (tmp_path / "table.md").read_text()
+    assert "outside starts" in table and "machine speed" in table

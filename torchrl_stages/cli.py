@@ -1,5 +1,6 @@
-"""Console scripts: ``stages-train`` (Hydra app), ``stages-eval RUN_DIR`` and
-``stages-report SWEEP_DIR``, and the Hydra callback that summarizes a sweep.
+"""Console scripts: ``stages-train`` (Hydra app), ``stages-eval RUN_DIR``,
+``stages-report SWEEP_DIR`` and ``stages-store ls|rm|prune DIR``, and the Hydra callback that
+summarizes a sweep.
 
 All are thin shells over the library: :class:`torchrl_stages.experiment.Experiment` trains,
 :func:`torchrl_stages.rundir.load_run` and :func:`torchrl_stages.tasks.evaluate_run`
@@ -14,6 +15,7 @@ from __future__ import annotations
 import argparse
 import atexit
 import sys
+import time
 import traceback
 from pathlib import Path
 from typing import Any
@@ -31,6 +33,7 @@ from torchrl_stages.experiment import Experiment, one_line
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
 from torchrl_stages.stage import DivergenceError, EnvError
+from torchrl_stages.stage_store import SharedStageStore, StageEntry, StoreError
 from torchrl_stages.store import register_configs
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.tasks import evaluate_run, format_summary
@@ -283,3 +286,80 @@ def report(argv: list[str] | None = None) -> None:
             print(f"{agg.config}: success {mean}{ci} over {agg.n} seeds, {agg.failed} failed")
     for name, path in summary.files.items():
         print(f"{name}: {path}")
+
+
+def _age(text: str) -> float:
+    """``30d``, ``12h``, ``90m`` or seconds, as seconds."""
+    units = {"d": 86400.0, "h": 3600.0, "m": 60.0, "s": 1.0}
+    try:
+        if text and text[-1] in units:
+            return float(text[:-1]) * units[text[-1]]
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an age such as 30d, 12h or 90m: {text!r}") from None
+
+
+def stage_store(argv: list[str] | None = None) -> None:
+    """``stages-store ls|rm|prune DIR``: list, remove and prune the entries of a stage store."""
+    parser = argparse.ArgumentParser(
+        prog="stages-store",
+        description="Manage a stage store (stages-train stage_store=DIR): the finished stages "
+        "that runs share, one entry per stage identity.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+    ls = commands.add_parser("ls", help="list the entries, least recently used first")
+    ls.add_argument("store", type=Path)
+    rm = commands.add_parser("rm", help="remove entries by (a prefix of) their identity")
+    rm.add_argument("store", type=Path)
+    rm.add_argument("identity", nargs="+", help="identity or a unique prefix of it")
+    prune = commands.add_parser(
+        "prune",
+        help="remove damaged entries, what interrupted writes left, locks nobody holds and "
+        "(with --older-than) entries not used for that long",
+    )
+    prune.add_argument("store", type=Path)
+    prune.add_argument("--older-than", type=_age, default=None, help="e.g. 30d, 12h, 90m")
+    prune.add_argument("--dry-run", action="store_true", help="list what would be removed")
+    args = parser.parse_args(argv)
+    if not (args.store / "entries").is_dir():
+        print(
+            f"stages-store: {args.store} is not a stage store (no entries/ in it). Fix: pass the "
+            "directory given to stages-train as stage_store=DIR",
+            file=sys.stderr,
+        )
+        sys.exit(EXIT_INVALID)
+    store = SharedStageStore(args.store)
+    try:
+        if args.command == "ls":
+            print(format_entries(store.entries()))
+        elif args.command == "rm":
+            for prefix in args.identity:
+                print(f"removed {store.remove(prefix)}")
+        else:
+            removed = store.prune(args.older_than, dry_run=args.dry_run)
+            verb = "would remove" if args.dry_run else "removed"
+            for path in removed:
+                print(f"{verb} {path}")
+            print(f"{verb} {len(removed)} item(s)")
+    except StoreError as err:
+        print(f"stages-store: {err}", file=sys.stderr)
+        sys.exit(EXIT_INVALID)
+
+
+def format_entries(entries: list[StageEntry]) -> str:
+    """The table ``stages-store ls`` prints."""
+    header = (
+        "identity      task        stage  algo          seed    frames  success  size     last used"
+    )
+    rows = [header]
+    for e in entries:
+        used = time.strftime("%Y-%m-%d %H:%M", time.localtime(e.last_used))
+        success = "-" if e.success_rate is None else f"{e.success_rate:.2f}"
+        stage = f"{e.stage} {e.name}"
+        line = (
+            f"{e.identity[:12]:<13} {e.task[:11]:<11} {stage[:6]:<6} {e.algo[:13]:<13} "
+            f"{e.seed:<7} {e.frames:<7} {success:<8} {e.size / 2**20:5.1f}MiB  {used}"
+        )
+        rows.append(line + (f"  DAMAGED: {e.damaged}" if e.damaged else ""))
+    rows.append(f"{len(entries)} entries, {sum(e.size for e in entries) / 2**20:.1f} MiB")
+    return "\n".join(rows)

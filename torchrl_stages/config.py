@@ -234,6 +234,14 @@ class TrainConfig:
     # GPU) | off | default | reduce-overhead | max-autotune
     compile: str = "auto"
     resume: bool = False  # continue the run in hydra.run.dir (same overrides otherwise)
+    # a directory of finished stages shared by runs (a sweep's jobs; local or on a cluster file
+    # system): a stage whose identity (its config, the env, the seed, the stages after it) is
+    # there is loaded instead of trained, and every stage trained is added. schedule=backward
+    # only; `stages-store ls|rm|prune DIR` manages it (null: off)
+    stage_store: str | None = None
+    # a run directory whose finished stages are taken where their identity is unchanged: a
+    # changed key of stage k retrains stage k and the stages before it (schedule=backward)
+    init_from: str | None = None
     overwrite: bool = False  # replace the run in hydra.run.dir
     # keys set in every task.stages.<name>, whatever the task and its stages (those added on
     # the command line too), over the task's own; a key set for one stage on the command line

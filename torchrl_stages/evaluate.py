@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -13,6 +13,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_stages.handoff import Handoffs, collect_handoffs
 from torchrl_stages.preemption import check
 from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import StageTransform
@@ -197,6 +198,8 @@ class TaskEvaluation:
         final: the ``"next"`` TensorDict of every episode's last step ``[E]`` (where it ended).
         rollout: the first chunk's rollout ``[min(E, CHUNK), T]``, for figures.
         all_starts: every whole-task start state was evaluated once (else random starts).
+        handoffs: per boundary k -> k+1, the states where episodes entered stage k+1 and the
+            returns obtained after them (:mod:`torchrl_stages.handoff`).
     """
 
     stats: EpisodeStats
@@ -204,6 +207,7 @@ class TaskEvaluation:
     final: TensorDictBase
     rollout: TensorDictBase
     all_starts: bool
+    handoffs: list[Handoffs] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
         """The numbers ``eval.json`` reports for every task."""
@@ -236,6 +240,8 @@ def evaluate_task(
     all_starts = task.start_states(None) is not None
     sizes = [None] if all_starts else [min(CHUNK, episodes - i) for i in range(0, episodes, CHUNK)]
     stats, per_stage, final, first = [], [], [], None
+    gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
+    handoffs: list[list[Handoffs]] = []
     for i, size in enumerate(sizes):
         if interruptible:  # a resumed run evaluates again
             check("the whole-task evaluation")
@@ -251,7 +257,13 @@ def evaluate_task(
         )
         stats.append(chunk)
         final.append(_last_steps(rollout, chunk.length))
+        handoffs.append(collect_handoffs(rollout, chunk.length, gammas))
         first = rollout if first is None else first
     return TaskEvaluation(
-        EpisodeStats.cat(stats), torch.cat(per_stage), torch.cat(final), first, all_starts
+        EpisodeStats.cat(stats),
+        torch.cat(per_stage),
+        torch.cat(final),
+        first,
+        all_starts,
+        [Handoffs.cat(parts) for parts in zip(*handoffs, strict=True)],
     )

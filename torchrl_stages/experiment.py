@@ -32,6 +32,7 @@ from torchrl_stages.rundir import (
 )
 from torchrl_stages.schedules import get_schedule
 from torchrl_stages.stage import DivergenceError
+from torchrl_stages.stage_store import StageReuse
 from torchrl_stages.task import StagedTask
 from torchrl_stages.tasks import EVAL_SEED_OFFSET, evaluate_run, probe_task
 from torchrl_stages.threads import hold_threads
@@ -48,6 +49,8 @@ RESUMABLE_CHANGES = (
     "objective",
     "checkpoint_every",
     "checkpoint_keep",
+    "stage_store",  # a stage taken from there is the one training gives, bit for bit
+    "init_from",
 )
 
 
@@ -163,17 +166,23 @@ class Experiment:
                 "overwrite=true replaces it"
             )
         self.restarted: dict[int, list[str]] = {}  # resumed stages whose config changed
+        self.reuse: StageReuse | None = None
         self._lock = self.run_dir.lock()
         try:
             self.resuming = self._check_run_dir()
             self.task = build_task(cfg, validated=True)  # validated above
+            # stage_store / init_from: checked (and the store created) before any training
+            self.reuse = StageReuse.from_config(cfg, self.run_dir.path)
         except BaseException:
             self._lock.release(remove=self._lock.created_dir)
             raise
         self.logger = None
 
     def close(self) -> None:
-        """Releases the run directory (:meth:`run` does it when it ends)."""
+        """Releases the run directory, and the stage store's locks it holds (:meth:`run` does
+        it when it ends)."""
+        if self.reuse is not None:
+            self.reuse.close()
         self._lock.release()
 
     def _check_run_dir(self) -> bool:
@@ -317,6 +326,7 @@ class Experiment:
             device=str(cfg.device),
             checkpoint_every=int(cfg.checkpoint_every),
             checkpoint_keep=int(cfg.checkpoint_keep),
+            reuse=self.reuse,
         )
         trained = schedule.train(self.task, store, **kwargs)
         learners, results = trained.learners, trained.results
@@ -325,6 +335,14 @@ class Experiment:
         training = {"schedule": schedule.name, **run.training_time()}
         training["stages"] = [asdict(r) for r in results]
         training.update(trained.extra)
+        if self.reuse is not None:
+            training["reused"] = store.reused
+            names = self.task.stage_names
+            log.info(
+                "reused stages: %s; trained: %s",
+                ", ".join(n for n in names if n in store.reused) or "none",
+                ", ".join(n for n in names if n not in store.reused) or "none",
+            )
         before = run.listing()
         run.claim("eval.json")
         result = evaluate_run(cfg, self.task, learners, run.path, training=training)

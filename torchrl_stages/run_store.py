@@ -15,6 +15,7 @@ from torchrl_stages.loop import MetricsLog
 from torchrl_stages.rundir import RunDir, load_stage
 from torchrl_stages.schedules import Schedule
 from torchrl_stages.stage import StageResult
+from torchrl_stages.stage_store import StageReuse
 from torchrl_stages.task import StagedTask
 
 log = logging.getLogger(__name__)
@@ -29,7 +30,9 @@ class RunStore:
     With ``resuming`` the stages an earlier launch finished are loaded (:meth:`finished`) and a
     loop goes on from its newest checkpoint (:meth:`begin`); without one to go on from, the
     logger's files are rewound to where the loop started, so the rows of an interrupted
-    attempt are dropped.
+    attempt are dropped. With ``reuse`` (``stage_store`` / ``init_from``) a stage is taken from
+    there when it can be, and every stage trained is handed to it; :attr:`reused` says which
+    stages were taken and from where.
 
     Examples:
         >>> import tempfile
@@ -56,22 +59,39 @@ class RunStore:
         device: str = "cpu",
         checkpoint_every: int = 50_000,
         checkpoint_keep: int = 2,
+        reuse: StageReuse | None = None,
     ) -> None:
-        self.run, self.task, self.schedule = run, task, schedule
+        self.run, self.task, self.schedule, self.reuse = run, task, schedule, reuse
         self.log, self.resuming, self.device = MetricsLog(logger), resuming, device
         self.checkpoint_every, self.checkpoint_keep = checkpoint_every, checkpoint_keep
 
+    @property
+    def reused(self) -> dict[str, str]:
+        """``{stage name: where it was taken from}`` over every launch of the run."""
+        return dict(self.run.record.get("reused", {}))
+
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
-        """Stage ``stage`` as trained by an earlier launch of this run (resume only)."""
-        if not self.resuming:
-            return None
+        """Stage ``stage`` as trained by an earlier launch of this run (resume only), or taken
+        from ``reuse`` (its stage file is then written as if this run had trained it)."""
         name = self.schedule.stage_name(self.task, stage)
-        loaded = load_stage(self.run, self.task, stage, self.device, name=name)
-        if loaded is None:
+        if self.resuming:
+            loaded = load_stage(self.run, self.task, stage, self.device, name=name)
+            if loaded is not None:
+                learner, result = loaded
+                log.info("stage %d (%s): finished earlier, loaded", stage, name)
+                return learner, StageResult(**result)
+        if self.reuse is None:
             return None
-        learner, result = loaded
-        log.info("stage %d (%s): finished earlier, loaded", stage, name)
-        return learner, StageResult(**result)
+        taken = self.reuse.take(self.task, stage, self.device)
+        if taken is None:
+            return None
+        learner, result, where = taken
+        self.run.record.setdefault("reused", {})[name] = where
+        self.run.save_stage(stage, name, learner, result, log=self.log.position())
+        self.run.clear_checkpoints(stage)
+        self.run.update_launch()
+        log.info("stage %d (%s): reused from %s", stage, name, where)
+        return learner, result
 
     def begin(self, scope: int | str) -> StageCheckpoints:
         """The checkpoints of ``scope`` (a stage, or ``"joint"``). Without one to resume from,
@@ -95,6 +115,8 @@ class RunStore:
         self.run.save_stage(stage, name, learner, result, log=self.log.position())
         self.run.clear_checkpoints(stage)
         self.run.update_launch()
+        if self.reuse is not None:
+            self.reuse.trained(self.task, stage, learner, result)
         quality = (
             f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
             if result.success_rate is not None
@@ -136,3 +158,8 @@ class RunStore:
 
     def clear(self, scope: int | str) -> None:
         self.run.clear_checkpoints(scope)
+
+    def close(self) -> None:
+        """Releases what ``reuse`` still holds (the lock of a stage that did not finish)."""
+        if self.reuse is not None:
+            self.reuse.close()

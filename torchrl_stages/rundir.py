@@ -598,17 +598,35 @@ def load_stage(
             f"{stage} is {name!r}. Fix: restore the config it was trained "
             "with, or delete the file and resume the run to retrain the stage."
         )
+    fix = (
+        "restore the config it was trained with, or delete the file and resume the run to "
+        "retrain the stage."
+    )
+    learner = restore_learner(task, stage, state, device, run.stage_file(stage), fix)
+    return learner, state["result"]
+
+
+def restore_learner(
+    task: StagedTask,
+    stage: int,
+    state: dict[str, Any],
+    device: str | torch.device,
+    source: Path,
+    fix: str,
+) -> Learner:
+    """Stage ``stage``'s learner, built from the task's config and loaded from ``state`` (a
+    stage file's content, read from ``source``); :class:`RunDirError` naming ``source`` and
+    ``fix`` when they do not match."""
     learner = make_learner(task.stage_cfg(stage), task.specs(stage), device=device)
     try:
         learner.load_checkpoint(state)
         StageResult(**state["result"])
     except (KeyError, RuntimeError, ValueError, TypeError) as err:
         raise RunDirError(
-            f"{run.stage_file(stage)} does not match the run's config.yaml ({type(err).__name__}: "
-            f"{str(err).splitlines()[0][:200]}). Fix: restore the config it was trained with, or "
-            "delete the file and resume the run to retrain the stage."
+            f"{source} does not match the run's config ({type(err).__name__}: "
+            f"{str(err).splitlines()[0][:200]}). Fix: {fix}"
         ) from err
-    return learner, state["result"]
+    return learner
 
 
 def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> DictConfig:

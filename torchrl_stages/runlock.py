@@ -15,6 +15,7 @@ import os
 import socket
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 try:
@@ -27,7 +28,9 @@ LOCK_FILE = "lock"
 
 
 class RunLockedError(RuntimeError):
-    """Another process holds the run directory."""
+    """Another process holds the run directory (``holder``: who, in words)."""
+
+    holder: str = "holder unknown"
 
 
 class RunLock:
@@ -46,9 +49,10 @@ class RunLock:
         >>> RunLock(run).acquire().release()
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, file: str | Path | None = None) -> None:
         self.path = Path(path)
-        self.file = self.path / LOCK_DIR / LOCK_FILE
+        # another lock file than the run directory's (the stage store's, one per stage)
+        self.file = Path(file) if file is not None else self.path / LOCK_DIR / LOCK_FILE
         self._fd: int | None = None
         self.created_dir = False
 
@@ -60,6 +64,19 @@ class RunLock:
         """Takes the lock without waiting; raises :class:`RunLockedError` naming the holder."""
         if self._fd is not None:
             return self
+        return self._acquire()
+
+    def wait(self, poll: float, waiting: Callable[[str], None]) -> RunLock:
+        """Takes the lock, waiting for its holder: ``waiting(holder)`` runs before every
+        ``poll`` seconds of sleep (it may raise to stop waiting, e.g. on a stop request)."""
+        while True:
+            try:
+                return self.acquire()
+            except RunLockedError as err:
+                waiting(err.holder)
+                time.sleep(poll)
+
+    def _acquire(self) -> RunLock:
         directory = self.file.parent
         self.created_dir = not directory.exists()
         directory.mkdir(parents=True, exist_ok=True)
@@ -72,11 +89,13 @@ class RunLock:
             except BlockingIOError:
                 holder = os.read(fd, 4096).decode("utf-8", "replace").strip()
                 os.close(fd)
-                raise RunLockedError(
+                err = RunLockedError(
                     f"{self.path} is in use by another process ({_describe(holder)}): one "
                     "process at a time trains or evaluates a run directory. Fix: wait for it "
                     "to end (or stop it), or pick another hydra.run.dir"
-                ) from None
+                )
+                err.holder = _describe(holder)
+                raise err from None
             try:  # the file locked is still the lock file (a refused process may remove it)
                 if os.stat(self.file).st_ino == os.fstat(fd).st_ino:
                     break

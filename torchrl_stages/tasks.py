@@ -29,6 +29,7 @@ import torch
 from omegaconf import DictConfig
 
 from torchrl_stages.evaluate import evaluate_task
+from torchrl_stages.handoff import handoff_diagnostics, plot_handoffs, warn_extrapolated
 from torchrl_stages.integrity import atomic_write
 from torchrl_stages.learners import Learner
 from torchrl_stages.policy import StackedPolicy
@@ -156,6 +157,14 @@ def evaluate_run(
             task, learners, evaluation, run_dir, plots=cfg.eval.plots
         )
         result["headline_metrics"] = list(report.headline)
+    if evaluation.handoffs:  # how each stage's value holds where the stage before hands over
+        seed = int(cfg.seed) + EVAL_SEED_OFFSET
+        records = handoff_diagnostics(task, learners, evaluation.handoffs, seed)
+        warn_extrapolated(records)
+        if cfg.eval.plots:
+            plot_handoffs(records, run_dir / "handoff.png")
+        keep = ("values", "returns")
+        result["handoff"] = [{k: v for k, v in r.items() if k not in keep} for r in records]
     if cfg.eval.plots and (run_dir / "metrics.csv").is_file():
         from torchrl_stages.plots import plot_learning_curves
 

@@ -235,7 +235,17 @@ def validate_config(cfg: DictConfig) -> None:
             "must be maximize or minimize",
             f"set objective.direction=maximize (or minimize, e.g. for {OBJECTIVE_METRICS[2]})",
         )
-    get_schedule(str(cfg.schedule.name)).validate(cfg)
+    schedule = get_schedule(str(cfg.schedule.name))
+    schedule.validate(cfg)
+    for key in ("stage_store", "init_from"):
+        check(
+            not cfg.get(key) or schedule.reuses_stages,
+            key,
+            cfg.get(key),
+            f"schedule={schedule.name} trains its stages together, so a finished stage is not "
+            "reusable on its own",
+            f"use schedule=backward, or drop {key}",
+        )
     check(
         cfg.checkpoint_every >= 0,
         "checkpoint_every",

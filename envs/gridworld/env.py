@@ -39,6 +39,15 @@ def _check_grid(size: int, num_stages: int, target: Sequence[int] | None) -> tup
     return tr, tc
 
 
+def _check_rows(size: int, rows: Sequence[int] | None) -> tuple[int, int] | None:
+    if rows is None:
+        return None
+    first, end = (int(r) for r in rows)
+    if not 0 <= first < end <= size:
+        raise ValueError(f"stage_start_rows must be (first, end) with 0 <= first < end <= {size}.")
+    return first, end
+
+
 class GridWorldEnv(StageStarts, EnvBase):
     """A ``size x size`` grid split into ``num_stages`` vertical strips (stages).
 
@@ -58,6 +67,10 @@ class GridWorldEnv(StageStarts, EnvBase):
         start_cell: fixed start, a pair ``(r, c)`` or one cell per element (shape ``[*B, 2]``).
         start_stage: if set, starts are uniform over stage ``k``'s strip minus the target;
             takes precedence over ``start_cell``. Default starts: column 0, uniform row.
+        stage_start_rows: ``(first, end)``: stage starts (``start_stage``, and
+            :meth:`start_states` of a stage) only in rows ``first..end-1`` of the strip; a
+            start region that can miss where the previous stage arrives, which the handoff
+            diagnostic reports (default: every row).
         device: torch device.
 
     Examples:
@@ -85,10 +98,12 @@ class GridWorldEnv(StageStarts, EnvBase):
         max_steps: int = 200,
         start_cell: Sequence[int] | torch.Tensor | None = None,
         start_stage: int | None = None,
+        stage_start_rows: Sequence[int] | None = None,
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__(device=device, batch_size=torch.Size(batch_size))
         self.size, self.num_stages = int(size), int(num_stages)
+        self.stage_start_rows = _check_rows(self.size, stage_start_rows)
         self.target = _check_grid(self.size, self.num_stages, target)
         self.stage_width = self.size // self.num_stages
         if max_steps <= 0:
@@ -158,6 +173,10 @@ class GridWorldEnv(StageStarts, EnvBase):
     def _sample_starts(self) -> torch.Tensor:
         """Flat start cells (``row * size + col``), one per (flattened) batch element."""
         n, dev, w = self._n, self.device, self.stage_width
+        if self._start_stage is not None and self.stage_start_rows is not None:
+            cells = self._stage_cells(self._start_stage)
+            idx = torch.randint(len(cells), (n,), device=dev, generator=self.rng)
+            return cells.to(dev)[idx, 0] * self.size + cells.to(dev)[idx, 1]
         if self._start_stage is not None:
             c0 = self._start_stage * w
             tr, tc = self.target
@@ -187,17 +206,23 @@ class GridWorldEnv(StageStarts, EnvBase):
             ((49,), [[0, 0], [1, 0]])
         """
         if stage is None:
-            cols = torch.zeros(self.size, dtype=torch.int64)
             rows = torch.arange(self.size)
+            cells = torch.stack([rows, torch.zeros_like(rows)], -1)
+            cells = cells[(cells != torch.tensor(self.target)).any(-1)]
         else:
             check_start_stage(stage, self.num_stages)
-            w = self.stage_width
-            rows, cols = torch.meshgrid(
-                torch.arange(self.size), torch.arange(stage * w, (stage + 1) * w), indexing="ij"
-            )
-        cells = torch.stack([rows.reshape(-1), cols.reshape(-1)], -1)
-        cells = cells[(cells != torch.tensor(self.target)).any(-1)]
+            cells = self._stage_cells(stage)
         return {"batch_size": (len(cells),), "start_cell": cells, "start_stage": None}
+
+    def _stage_cells(self, stage: int) -> torch.Tensor:
+        """The ``(row, col)`` start cells of stage ``stage``, row-major, the target left out."""
+        w = self.stage_width
+        first, end = self.stage_start_rows or (0, self.size)
+        rows, cols = torch.meshgrid(
+            torch.arange(first, end), torch.arange(stage * w, (stage + 1) * w), indexing="ij"
+        )
+        cells = torch.stack([rows.reshape(-1), cols.reshape(-1)], -1)
+        return cells[(cells != torch.tensor(self.target)).any(-1)]
 
     def observation_of(self, cells: torch.Tensor) -> torch.Tensor:
         """The observation of integer cells ``[..., 2]`` (``(row, col)``), the inverse of

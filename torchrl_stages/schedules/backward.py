@@ -146,6 +146,7 @@ class BackwardSchedule(Schedule):
     stages after it; the env must start episodes inside a chosen stage."""
 
     name = "backward"
+    reuses_stages = True
 
     def train(self, task: StagedTask, store: StageStore | None = None, **kwargs) -> Trained:
         return Trained(*train_backward(task, store=store, **kwargs))

@@ -88,6 +88,9 @@ class Schedule:
     #: whether a stage is trained until its own early stop (a stage that did not meet it is
     #: warned about)
     stage_early_stop: ClassVar[bool] = True
+    #: whether a stage is determined by its own config and the stages after it alone, so that
+    #: a finished one can be reused by another run (``stage_store``, ``init_from``)
+    reuses_stages: ClassVar[bool] = False
 
     def train(self, task: StagedTask, store: StageStore | None = None, **kwargs: Any) -> Trained:
         """Trains (what is left of) ``task``'s stages. ``kwargs``: ``seed``, ``logger``,

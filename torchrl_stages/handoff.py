@@ -1,0 +1,232 @@
+"""Handoff diagnostics: how well stage k+1's value holds where stage k actually hands over.
+
+The backward schedule fails quietly when stage k arrives in stage k+1 at states that stage k+1
+never trained from: its transition reward then reads ``V_{k+1}`` where it was extrapolated.
+From the whole-task evaluation's greedy episodes, at each boundary k -> k+1:
+
+* **value error**: ``V_{k+1}(s')`` at the handoff state ``s'`` (the first state of stage k+1)
+  against the return the stacked policy obtained after it, each step discounted by the gamma
+  of its stage (the return ``V_{k+1}`` estimates).
+* **distance to the training starts**: a sample of stage k+1's training starts (its env reset
+  with ``start_stage=k+1``) is the reference; the distance of a state to it is the distance
+  to its nearest start, in the learner's observations standardized by the starts' spread. A
+  second, held-out sample of starts calibrates it: a state farther than 95% of held-out starts
+  is *outside* the starts' support. States drawn like the starts are outside 5% of the time
+  (0% where the starts are finitely many and all sampled); a boundary with more than
+  :data:`OUTSIDE_WARNING` outside is reported as extrapolated.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+from tensordict import TensorDictBase
+
+if TYPE_CHECKING:
+    from torchrl_stages.learners import Learner
+    from torchrl_stages.task import StagedTask
+
+log = logging.getLogger("torchrl_stages")
+
+__all__ = ["Handoffs", "OUTSIDE_WARNING", "collect_handoffs", "handoff_diagnostics"]
+
+#: a boundary whose handoff states lie outside stage k+1's training starts more often than
+#: this is warned about (states drawn like the starts: 5%)
+OUTSIDE_WARNING = 0.25
+REFERENCE_STARTS, HELD_OUT_STARTS = 1024, 256
+
+
+@dataclass
+class Handoffs:
+    """The handoff states of one boundary k -> k+1 over a set of episodes.
+
+    Attributes:
+        states: the first state of stage k+1 of every episode that reached it ``[M]``.
+        returns: the stage-discounted return each episode obtained from that state ``[M]``.
+    """
+
+    states: TensorDictBase | None
+    returns: torch.Tensor
+
+    @classmethod
+    def cat(cls, parts: Sequence[Handoffs]) -> Handoffs:
+        states = [p.states for p in parts if p.states is not None and p.states.numel()]
+        return cls(torch.cat(states) if states else None, torch.cat([p.returns for p in parts]))
+
+
+@torch.no_grad()
+def collect_handoffs(
+    rollout: TensorDictBase, length: torch.Tensor, gammas: Sequence[float]
+) -> list[Handoffs]:
+    """The handoffs at each boundary (``len(gammas) - 1`` of them) of the first episodes of a
+    ``[B, T]`` rollout (``length``: their lengths).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> stage = torch.tensor([[0, 0, 1, 1]]).unsqueeze(-1)  # enters stage 1 at step 2
+        >>> td = TensorDict({"stage": stage, "observation": torch.arange(4.0).view(1, 4, 1),
+        ...     "next": {"stage": torch.tensor([[0, 1, 1, 1]]).unsqueeze(-1),
+        ...              "observation": torch.arange(1.0, 5.0).view(1, 4, 1),
+        ...              "reward": torch.tensor([[0.0, 0.0, 0.0, 1.0]]).unsqueeze(-1)}},
+        ...     batch_size=[1, 4])
+        >>> (h,) = collect_handoffs(td, torch.tensor([4]), [0.9, 0.5])
+        >>> h.states["observation"].tolist(), h.returns.tolist()  # s' = s_2: r_3 * 0.5
+        ([[2.0]], [0.5])
+    """
+    stage = rollout.get("stage").squeeze(-1)  # [B, T]: stage of s_t
+    nxt = rollout.get(("next", "stage")).squeeze(-1)
+    reward = rollout.get(("next", "reward")).squeeze(-1).to(torch.float64)
+    steps = torch.arange(stage.shape[-1], device=stage.device)
+    in_episode = steps < length.unsqueeze(-1)
+    g = torch.as_tensor(list(gammas), dtype=torch.float64, device=stage.device)[stage]
+    cum = torch.cumprod(g, -1)  # prod_{i<=t} gamma(s_i)
+    out = []
+    for k in range(len(gammas) - 1):
+        crossing = (stage == k) & (nxt == k + 1) & in_episode
+        rows = crossing.any(-1).nonzero().squeeze(-1)
+        t = crossing.float().argmax(-1)[rows]  # the step that leaves stage k
+        # the return from s' = s_{t+1}: sum_{j>t} r_j prod_{t<i<j} gamma(s_i)
+        base = cum[rows, t]
+        weights = cum[rows] / g[rows] / base.unsqueeze(-1)  # prod_{i<j} / prod_{i<=t}
+        after = (steps.unsqueeze(0) > t.unsqueeze(-1)) & in_episode[rows]
+        returns = (reward[rows] * torch.where(after, weights, 0.0)).sum(-1)
+        states = None
+        if len(rows):  # s' is the "next" of the step that leaves stage k
+            nxt_td = rollout.get("next")[rows, t]
+            states = nxt_td.exclude("reward", "done", "terminated", "truncated")
+        out.append(Handoffs(states, returns))
+    return out
+
+
+def _features(td: TensorDictBase, keys: Sequence[Any]) -> torch.Tensor:
+    return torch.cat([td.get(key).reshape(td.shape[0], -1).to(torch.float64) for key in keys], -1)
+
+
+def _nearest(x: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    return torch.cdist(x, ref).min(-1).values
+
+
+@torch.no_grad()
+def handoff_diagnostics(
+    task: StagedTask,
+    learners: Sequence[Learner],
+    handoffs: Sequence[Handoffs],
+    seed: int,
+) -> list[dict[str, Any]]:
+    """One record per boundary k -> k+1 (what ``eval.json`` keeps under ``"handoff"``):
+    episodes that crossed it, the value error at the handoff states (mean and max
+    ``|V_{k+1}(s') - G|``, mean ``V - G``) and, when the env starts inside stages, the
+    median distance to stage k+1's training starts and the fraction outside their support;
+    ``extrapolated`` when that fraction exceeds :data:`OUTSIDE_WARNING`. Each record keeps
+    ``values`` and ``returns`` per episode for the figure."""
+    records = []
+    for k, handoff in enumerate(handoffs):
+        name = f"{task.stage_names[k]} -> {task.stage_names[k + 1]}"
+        record: dict[str, Any] = {"boundary": name, "stage": k, "episodes": 0}
+        records.append(record)
+        if handoff.states is None:
+            continue
+        value = learners[k + 1].value()
+        states = handoff.states.clone().to(task.device)
+        v = value(states).get("state_value").reshape(-1).to(torch.float64).cpu()
+        g = handoff.returns.cpu()
+        error = (v - g).abs()
+        record.update(
+            episodes=len(g),
+            value_error_mean=error.mean().item(),
+            value_error_max=error.max().item(),
+            value_bias=(v - g).mean().item(),
+            values=v.tolist(),
+            returns=g.tolist(),
+        )
+        if task.stage_starts:
+            record.update(_distance_to_starts(task, k + 1, handoff.states, seed))
+    return records
+
+
+def _distance_to_starts(
+    task: StagedTask, stage: int, states: TensorDictBase, seed: int
+) -> dict[str, Any]:
+    keys = task.specs(stage).observation_keys
+    wanted = REFERENCE_STARTS + HELD_OUT_STARTS
+    # the stage's own training batch, reset until enough starts are drawn (a vector env of
+    # worker processes is never built a thousand wide)
+    env = task.base_env(int(task.stage_cfg(stage).num_envs), start_stage=stage)
+    try:
+        env.set_seed(seed)
+        drawn, count = [], 0
+        while count < wanted:
+            starts = env.reset().reshape(-1)
+            drawn.append(_features(starts.cpu(), keys))
+            count += starts.shape[0]
+    finally:
+        env.close()
+    feats = torch.cat(drawn)[:wanted]
+    ref, held_out = feats[:REFERENCE_STARTS], feats[REFERENCE_STARTS:]
+    mean, std = ref.mean(0), ref.std(0).clamp_min(1e-6)
+    ref, held_out = (ref - mean) / std, (held_out - mean) / std
+    handed = (_features(states.cpu(), keys) - mean) / std
+    threshold = torch.quantile(_nearest(held_out, ref), 0.95)
+    distance = _nearest(handed, ref)
+    # distances that differ by float rounding only (discrete starts: 0 and ~1e-8) are equal
+    outside = (distance > threshold * (1 + 1e-6) + 1e-6).double().mean().item()
+    return {
+        "start_distance_median": distance.median().item(),
+        "start_distance_threshold": threshold.item(),
+        "outside_starts": outside,
+        "extrapolated": outside > OUTSIDE_WARNING,
+    }
+
+
+def warn_extrapolated(records: Sequence[dict[str, Any]]) -> None:
+    """Logs a warning for every boundary whose handoff states lie outside the starts."""
+    for r in records:
+        if r.get("extrapolated"):
+            log.warning(
+                "handoff %s: %.0f%% of the states stage %d hands over lie outside stage %d's "
+                "training starts, where its value is extrapolated (|V - G| %.3g on average). "
+                "Fix: make the env's start_stage=%d starts cover where stage %d arrives",
+                r["boundary"],
+                100 * r["outside_starts"],
+                r["stage"],
+                r["stage"] + 1,
+                r["value_error_mean"],
+                r["stage"] + 1,
+                r["stage"],
+            )
+
+
+def plot_handoffs(records: Sequence[dict[str, Any]], out: str | Path) -> Path | None:
+    """``handoff.png``: per boundary, ``V_{k+1}(s')`` against the return obtained after it
+    (on the diagonal where the value holds), titled with the value error and the share of
+    handoff states outside the training starts."""
+    shown = [r for r in records if r.get("episodes")]
+    if not shown:
+        return None
+    from matplotlib.figure import Figure
+
+    from torchrl_stages.plots import save_figure
+
+    fig = Figure(figsize=(3.2 * len(shown), 3.4))
+    for i, r in enumerate(shown):
+        ax = fig.add_subplot(1, len(shown), i + 1)
+        g, v = r["returns"], r["values"]
+        color = "tab:red" if r.get("extrapolated") else "tab:blue"
+        ax.scatter(g, v, s=10, alpha=0.5, color=color)
+        low, high = min(min(g), min(v)), max(max(g), max(v))
+        pad = 0.05 * (high - low or 1.0)
+        ax.plot([low - pad, high + pad], [low - pad, high + pad], color="gray", lw=0.8)
+        title = f"{r['boundary']}\n|V-G| {r['value_error_mean']:.3f}"
+        if "outside_starts" in r:
+            title += f", {r['outside_starts']:.0%} outside starts"
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("return after the handoff")
+        if i == 0:
+            ax.set_ylabel("V of the next stage")
+    fig.tight_layout()
+    return save_figure(fig, out)

@@ -1,0 +1,535 @@
+"""Finished stages as reusable artifacts: their identity, a store shared by runs, and the
+stages a backward run takes instead of training them.
+
+Under the backward schedule a stage is determined, bit for bit, by its own config, the task's
+env, the seed and the stages after it (whose frozen values its transition reward reads).
+:func:`stage_identities` hashes exactly that, recursively, so stage k's identity changes when a
+key of stage k or of a later stage changes, and never when an earlier stage's does.
+
+* :class:`SharedStageStore` (``stage_store=DIR``) keeps one entry per identity, shared by the
+  jobs of a sweep (a local directory, or one on a cluster file system): a job loads a stage that
+  another job trained, and jobs that need the same missing stage at once train it once (one
+  lock per identity; the others wait, then load it). Entries are checksummed; a damaged one is
+  never served (it is removed and the stage trained again).
+* ``init_from=RUN_DIR`` takes the stages of another run whose identity is unchanged.
+
+:class:`StageReuse` combines both for one run; :class:`~torchrl_stages.run_store.RunStore`
+asks it before training a stage and hands it every stage it trains.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import logging
+import os
+import shutil
+import time
+import uuid
+from dataclasses import asdict, dataclass
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_stages.config import ConfigError
+from torchrl_stages.integrity import DamagedFileError, verify_checksums, write_checksums
+from torchrl_stages.learners import Learner
+from torchrl_stages.preemption import check
+from torchrl_stages.rundir import RunDir, RunDirError, config_differences, restore_learner
+from torchrl_stages.runlock import RunLock
+from torchrl_stages.stage import StageResult
+from torchrl_stages.task import StagedTask
+
+log = logging.getLogger("torchrl_stages")
+
+__all__ = [
+    "STAGE_SEMANTICS",
+    "SharedStageStore",
+    "StageEntry",
+    "StageReuse",
+    "StoreError",
+    "stage_identities",
+    "stage_identity_inputs",
+]
+
+#: the version of what training a stage means: bumped by any change of the package that alters
+#: the weights a stage config trains to (networks, losses, RNG use, the loop), so that entries
+#: written before it are never served after it
+STAGE_SEMANTICS = 1
+ENTRIES, LOCKS, TMP = "entries", "locks", "tmp"
+STAGE_FILE, ENTRY_FILE = "stage.pt", "entry.json"
+ENTRY_FORMAT = "torchrl-stages stage"
+#: seconds between two looks at a stage another job is training
+POLL_S = 0.5
+
+
+#: a stage taken instead of trained: its learner, its result, and where it came from
+Reused = tuple[Learner, StageResult, str]
+
+
+class StoreError(ConfigError):
+    """A stage store or an ``init_from`` run that cannot be used as asked (found before any
+    training)."""
+
+
+def _versions() -> dict[str, str]:
+    out = {"torch": torch.__version__}
+    for package in ("torchrl", "tensordict"):
+        try:
+            out[package] = version(package)
+        except PackageNotFoundError:  # pragma: no cover - both are dependencies
+            out[package] = "unknown"
+    return out
+
+
+def stage_identity_inputs(cfg: DictConfig) -> list[dict[str, Any]]:
+    """What determines each stage of ``cfg`` (a resolved ``stages-train`` config, its stages
+    expanded) under the backward schedule, in stage order, with the identity of the stage after
+    it under ``"next"``: what :func:`stage_identities` hashes.
+
+    Keys that do not change what a stage trains to (the logger, progress bars, checkpoint
+    cadence, the whole-task evaluation) are left out; keys that might (threads, compile mode,
+    the device type, library versions) are in.
+    """
+    task = cfg.task
+    names = list(task.stages)
+    common = {
+        "semantics": STAGE_SEMANTICS,
+        # a stage the joint schedule trained is not the one the backward schedule trains
+        "schedule": OmegaConf.to_container(cfg.schedule, resolve=True),
+        "versions": _versions(),
+        "env": OmegaConf.to_container(task.env, resolve=True),
+        "stage_starts": bool(task.get("stage_starts", True)),
+        "num_stages": len(names),
+        "seed": int(cfg.seed),
+        "device": torch.device(str(cfg.device)).type,
+        "compile": str(cfg.get("compile", "auto")),
+        "threads": int(cfg.threads),
+    }
+    inputs: list[dict[str, Any]] = [{} for _ in names]
+    following = None
+    for k in reversed(range(len(names))):
+        stage = {
+            **common,
+            "stage": k,
+            "config": OmegaConf.to_container(task.stages[names[k]], resolve=True),
+        }
+        if k == 0 and cfg.eval.get("probe", False):  # its evaluations run the whole task too
+            stage["probe"] = True
+        stage["next"] = following
+        inputs[k] = stage
+        following = _digest(stage)
+    return inputs
+
+
+def stage_identities(cfg: DictConfig) -> list[str]:
+    """The identity of each stage of ``cfg`` (hex digests, stage order): equal identities train
+    to the same weights, bit for bit.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> def config(lr0):
+        ...     stages = {"s0": {"lr": lr0}, "s1": {"lr": 1e-3}}
+        ...     return OmegaConf.create({"task": {"env": {"size": 5}, "stages": stages},
+        ...                              "schedule": {"name": "backward"}, "seed": 0,
+        ...                              "device": "cpu", "threads": 1, "eval": {}})
+        >>> a, b = stage_identities(config(1e-3)), stage_identities(config(2e-3))
+        >>> a[0] == b[0], a[1] == b[1]  # stage 0 changed; stage 1 does not depend on it
+        (False, True)
+    """
+    return [_digest(stage) for stage in stage_identity_inputs(cfg)]
+
+
+def _digest(inputs: dict[str, Any]) -> str:
+    text = json.dumps(inputs, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+@dataclass
+class StageEntry:
+    """One stored stage, as ``stages-store ls`` lists it."""
+
+    identity: str
+    path: Path
+    task: str
+    stage: int
+    name: str
+    algo: str
+    seed: int
+    frames: int
+    success_rate: float | None
+    created: str
+    last_used: float
+    size: int
+    trained_in: str
+    damaged: str | None = None  # why it cannot be served (``None``: it can)
+
+
+class SharedStageStore:
+    """A directory of finished stages, one entry per identity (``stage_store=DIR``).
+
+    ``DIR/entries/<identity>/`` holds ``stage.pt`` (the learner's weights, optimizers and
+    exploration state, and the stage's result), ``entry.json`` (what it is, what determined it,
+    which run trained it) and ``sha256.json``. An entry is written whole in ``DIR/tmp/`` and
+    renamed into place, so a reader sees all of it or nothing. ``DIR/locks/<identity>`` is the
+    lock a job holds while it trains that stage.
+
+    Examples:
+        >>> import tempfile
+        >>> store = SharedStageStore(tempfile.mkdtemp())
+        >>> store.entries(), store.get("0" * 32) is None
+        ([], True)
+    """
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        try:
+            for sub in (ENTRIES, LOCKS, TMP):
+                (self.root / sub).mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise StoreError(
+                f"stage_store={self.root}: cannot create it ({err.strerror or err}). Fix: pick "
+                "a writable directory, or drop stage_store"
+            ) from err
+
+    def path(self, identity: str) -> Path:
+        return self.root / ENTRIES / identity
+
+    def get(self, identity: str, map_location: Any = "cpu") -> dict[str, Any] | None:
+        """The content of ``stage.pt`` of the entry ``identity`` (``None``: no entry). A
+        damaged entry is removed with a warning and ``None`` returned: it is never served."""
+        entry = self.path(identity)
+        if not entry.exists() and not entry.is_symlink():
+            return None
+        try:
+            state = self._read(entry, identity, map_location)
+        except DamagedFileError as err:
+            log.warning(
+                "stage store: entry %s is damaged (%s); removed, the stage is trained again",
+                entry,
+                err.reason,
+            )
+            self._discard(entry)
+            return None
+        try:
+            os.utime(entry / ENTRY_FILE)  # when it was last used, for `stages-store prune`
+        except OSError:  # a read-only store still serves
+            pass
+        return state
+
+    def _read(self, entry: Path, identity: str, map_location: Any = "cpu") -> dict[str, Any]:
+        if entry.is_symlink() or not entry.is_dir():
+            raise DamagedFileError(entry, "not a directory written by the store")
+        verify_checksums(entry, suffixes=(".pt", ".json"))
+        try:
+            meta = json.loads((entry / ENTRY_FILE).read_text())
+            if not isinstance(meta, dict) or meta.get("format") != ENTRY_FORMAT:
+                raise ValueError(f"not a {ENTRY_FORMAT} entry")
+            if meta.get("identity") != identity:
+                raise ValueError(f"it holds identity {meta.get('identity')!r}")
+            state = torch.load(entry / STAGE_FILE, map_location=map_location, weights_only=True)
+            if not isinstance(state, dict) or state.get("identity") != identity:
+                raise ValueError("its stage file holds another stage")
+            if not isinstance(state.get("result"), dict):
+                raise ValueError("its stage file holds no result")
+        except FileNotFoundError as err:
+            raise DamagedFileError(entry, f"{Path(str(err.filename)).name} is missing") from err
+        except Exception as err:  # noqa: BLE001 - unreadable in any way: damaged
+            raise DamagedFileError(entry, f"{type(err).__name__}: {err}") from err
+        return state
+
+    def put(self, identity: str, state: dict[str, Any], meta: dict[str, Any]) -> Path:
+        """Writes the entry ``identity`` (``state``: what ``stage.pt`` holds); an entry that
+        another job wrote first is kept."""
+        entry = self.path(identity)
+        tmp = self.root / TMP / f"{identity}.{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        try:
+            tmp.mkdir()
+            buffer = io.BytesIO()
+            torch.save({**state, "identity": identity}, buffer)
+            (tmp / STAGE_FILE).write_bytes(buffer.getbuffer())
+            meta = {"format": ENTRY_FORMAT, "identity": identity, **meta}
+            (tmp / ENTRY_FILE).write_text(json.dumps(meta, indent=1, default=str))
+            write_checksums(tmp)
+            try:
+                os.rename(tmp, entry)
+            except OSError:  # an entry is there: written by another job (or damaged)
+                if self.get(identity) is None:  # damaged: removed, take its place
+                    os.rename(tmp, entry)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        return entry
+
+    def lock(self, identity: str) -> RunLock:
+        """The lock a job holds while it trains stage ``identity`` (not taken yet)."""
+        return RunLock(self.root, file=self.root / LOCKS / identity)
+
+    def _discard(self, entry: Path) -> None:
+        """Removes an entry: renamed out of ``entries/`` first, so no reader finds half of it."""
+        gone = self.root / TMP / f"removed-{entry.name}-{uuid.uuid4().hex[:8]}"
+        try:
+            os.rename(entry, gone)
+        except FileNotFoundError:
+            return
+        if gone.is_symlink():
+            gone.unlink()
+        else:
+            shutil.rmtree(gone, ignore_errors=True)
+
+    # ------------------------------------------------------------------ stages-store
+    def entries(self) -> list[StageEntry]:
+        """Every entry, damaged ones included (with the reason), oldest use first."""
+        out = []
+        for entry in sorted((self.root / ENTRIES).iterdir()):
+            damaged, meta = None, {}
+            try:
+                self._read(entry, entry.name)
+                meta = json.loads((entry / ENTRY_FILE).read_text())
+            except DamagedFileError as err:
+                damaged = err.reason
+            size = sum(p.stat().st_size for p in entry.rglob("*") if p.is_file())
+            try:
+                used = (entry / ENTRY_FILE).stat().st_mtime
+            except OSError:
+                used = entry.lstat().st_mtime
+            out.append(
+                StageEntry(
+                    identity=entry.name,
+                    path=entry,
+                    task=str(meta.get("task", "?")),
+                    stage=int(meta.get("stage", -1)),
+                    name=str(meta.get("name", "?")),
+                    algo=str(meta.get("algo", "?")),
+                    seed=int(meta.get("seed", -1)),
+                    frames=int(meta.get("frames", 0)),
+                    success_rate=meta.get("success_rate"),
+                    created=str(meta.get("created", "?")),
+                    last_used=used,
+                    size=size,
+                    trained_in=str(meta.get("trained_in", "?")),
+                    damaged=damaged,
+                )
+            )
+        return sorted(out, key=lambda e: e.last_used)
+
+    def find(self, prefix: str) -> Path:
+        """The entry whose identity starts with ``prefix`` (:class:`StoreError` unless exactly
+        one does)."""
+        found = [p for p in (self.root / ENTRIES).iterdir() if p.name.startswith(prefix)]
+        if len(found) != 1:
+            what = "no entry" if not found else f"{len(found)} entries"
+            raise StoreError(
+                f"{self.root}: {what} with an identity starting {prefix!r}. Fix: give more of "
+                "the identity (stages-store ls lists them)"
+            )
+        return found[0]
+
+    def remove(self, prefix: str) -> Path:
+        """Removes the entry whose identity starts with ``prefix``."""
+        entry = self.find(prefix)
+        self._discard(entry)
+        return entry
+
+    def prune(self, older_than_s: float | None = None, dry_run: bool = False) -> list[Path]:
+        """Removes damaged entries, entries not used for ``older_than_s`` seconds (``None``:
+        none for that reason), what interrupted writes left in ``tmp/`` and locks nobody holds;
+        returns what it removed (``dry_run``: would remove)."""
+        now, removed = time.time(), []
+        for entry in self.entries():
+            stale = older_than_s is not None and now - entry.last_used > older_than_s
+            if entry.damaged is not None or stale:
+                removed.append(entry.path)
+                if not dry_run:
+                    self._discard(entry.path)
+        for leftover in (self.root / TMP).iterdir():
+            writer = leftover.name.split(".")[-1].split("-")[0]
+            if writer.isdigit() and _alive(int(writer)) and now - leftover.lstat().st_mtime < 86400:
+                continue  # a write in progress
+            removed.append(leftover)
+            if not dry_run:
+                shutil.rmtree(leftover, ignore_errors=True)
+        for lock_file in (self.root / LOCKS).iterdir():
+            lock = RunLock(self.root, file=lock_file)
+            try:
+                lock.acquire()
+            except RuntimeError:
+                continue  # a job trains that stage now
+            removed.append(lock_file)
+            if not dry_run:
+                lock_file.unlink(missing_ok=True)
+            lock.release()
+        return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+class StageReuse:
+    """The stages one backward run takes instead of training them: from ``init_from`` (another
+    run directory) where its stage has this run's identity, else from ``store``.
+
+    :meth:`take` returns a stage to reuse, or ``None`` with the stage's lock held when there is
+    a store (another job needing it waits); :meth:`trained` stores the stage and releases the
+    lock; :meth:`close` releases what is still held (a run that failed).
+    """
+
+    def __init__(
+        self,
+        cfg: DictConfig,
+        *,
+        store: SharedStageStore | None = None,
+        init_from: str | Path | None = None,
+        run_dir: str | Path | None = None,
+    ) -> None:
+        self.identities = stage_identities(cfg)
+        self.store, self.cfg = store, cfg
+        self.run_dir = None if run_dir is None else str(Path(run_dir).resolve())
+        self.init_run: RunDir | None = None
+        self.init_identities: list[str] = []
+        if init_from is not None:
+            self.init_run, self.init_identities = self._open_init(Path(init_from), cfg)
+        self._held: dict[int, RunLock] = {}
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig, run_dir: str | Path) -> StageReuse | None:
+        """The reuse ``cfg.stage_store`` and ``cfg.init_from`` ask for (``None``: neither);
+        :class:`StoreError` before any training when they cannot be used."""
+        store_dir, init_from = cfg.get("stage_store"), cfg.get("init_from")
+        if not store_dir and not init_from:
+            return None
+        store = SharedStageStore(store_dir) if store_dir else None
+        return cls(cfg, store=store, init_from=init_from or None, run_dir=run_dir)
+
+    def _open_init(self, path: Path, cfg: DictConfig) -> tuple[RunDir, list[str]]:
+        run = RunDir(path)
+        if self.run_dir is not None and path.resolve() == Path(self.run_dir):
+            raise StoreError(
+                f"init_from={path}: that is this run's own directory. Fix: resume=true "
+                "continues a run; init_from names another one"
+            )
+        if not run.config_file.is_file():
+            raise StoreError(
+                f"init_from={path}: no run there (no {run.config_file.name}). Fix: name a run "
+                "directory written by stages-train"
+            )
+        try:
+            saved = run.read_config()
+            identities = stage_identities(saved)
+        except (RunDirError, ValueError, TypeError, KeyError) as err:
+            raise StoreError(f"init_from={path}: {err}") from err
+        if identities and identities[-1] != self.identities[-1]:
+            ignore = (
+                "logger",
+                "progress",
+                "eval",
+                "objective",
+                "resume",
+                "overwrite",
+                "checkpoint_every",
+                "checkpoint_keep",
+                "stage_store",
+                "init_from",
+            )
+            differ = config_differences(saved, cfg, ignore=ignore)[:6]
+            log.warning(
+                "init_from=%s: not even its last stage has this run's identity (the configs "
+                "differ in %s): every stage is trained",
+                path,
+                ", ".join(differ) or "the library versions",
+            )
+        return run, identities
+
+    def take(
+        self, task: StagedTask, stage: int, device: str
+    ) -> tuple[Learner, StageResult, str] | None:
+        """Stage ``stage`` from ``init_from`` or the store: ``(learner, result, where)``, or
+        ``None`` (train it; with a store, its lock is then held until :meth:`trained`)."""
+        identity = self.identities[stage]
+        if self.init_run is not None and stage < len(self.init_identities):
+            if self.init_identities[stage] == identity:
+                state = self.init_run.read_stage(stage, map_location=device)
+                if state is not None:
+                    fix = f"retrain it: drop init_from, or delete {self.init_run.stage_file(stage)}"
+                    source = self.init_run.stage_file(stage)
+                    learner = restore_learner(task, stage, state, device, source, fix)
+                    return (
+                        learner,
+                        StageResult(**state["result"]),
+                        f"init_from {self.init_run.path}",
+                    )
+        if self.store is None:
+            return None
+        found = self._from_store(task, stage, device)
+        if found is not None:
+            return found
+        lock = self.store.lock(identity)
+        announced = []
+
+        def waiting(holder: str) -> None:
+            if not announced:
+                log.info(
+                    "stage %d (%s): waiting for %s, which trains it (stage store %s)",
+                    stage,
+                    task.stage_names[stage],
+                    holder,
+                    self.store.root,
+                )
+                announced.append(True)
+            check(f"waiting for stage {stage} in the stage store")
+
+        lock.wait(POLL_S, waiting)
+        found = self._from_store(task, stage, device)  # trained while this job waited
+        if found is not None:
+            lock.release()
+            return found
+        lock.announce()
+        self._held[stage] = lock
+        return None
+
+    def _from_store(self, task: StagedTask, stage: int, device: str) -> Reused | None:
+        identity = self.identities[stage]
+        state = self.store.get(identity, map_location=device)
+        if state is None:
+            return None
+        entry = self.store.path(identity)
+        fix = f"stages-store rm {self.store.root} {identity[:12]}, then rerun"
+        learner = restore_learner(task, stage, state, device, entry / STAGE_FILE, fix)
+        return learner, StageResult(**state["result"]), f"stage store {entry}"
+
+    def trained(self, task: StagedTask, stage: int, learner: Learner, result: StageResult) -> None:
+        """Adds the stage just trained to the store (if any) and releases its lock."""
+        if self.store is not None:
+            state = {"stage": stage, "algo": learner.algo, "result": asdict(result)}
+            meta = {
+                "task": task.name,
+                "stage": stage,
+                "name": task.stage_names[stage],
+                "algo": learner.algo,
+                "seed": int(self.cfg.seed),
+                "frames": result.frames,
+                "success_rate": result.success_rate,
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "trained_in": self.run_dir,
+                "inputs": stage_identity_inputs(self.cfg)[stage],
+            }
+            self.store.put(self.identities[stage], {**state, **learner.checkpoint()}, meta)
+        lock = self._held.pop(stage, None)
+        if lock is not None:  # a job waiting on the removed file takes a new one (RunLock)
+            lock.release(remove=True)
+
+    def close(self) -> None:
+        """Releases the locks of stages that were not trained to the end."""
+        for lock in self._held.values():
+            lock.release()
+        self._held.clear()
