@@ -116,3 +116,23 @@ def test_benchmark_handoff_writes_the_table_and_figures(tmp_path):
     assert [h["boundary"] for h in rows[0]["handoff"]] == [f"s{k} -> s{k + 1}" for k in range(4)]
     table = (tmp_path / "table.md").read_text()
     assert "outside starts" in table and "machine speed" in table
+
+
+@pytest.mark.skipif(minigrid is None, reason=MISSING)
+def test_minigrid_random_walks_writes_its_table(tmp_path):
+    done = run_script(
+        "minigrid_random_walks.py",
+        "--levels",
+        "MiniGrid-DoorKey-5x5-v0",
+        "--walks",
+        "20",
+        "--steps",
+        "64",
+        "--out",
+        str(tmp_path),
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [r["stage"] for r in rows] == [0, 1]
+    assert all(0 <= r["all"] <= 20 and 0 <= r["family"] <= 20 for r in rows)
+    assert "the family's actions" in (tmp_path / "table.md").read_text()

@@ -14,7 +14,6 @@ MISSING = "the minigrid extra is not installed: pip install '.[minigrid]'"
 pytest.importorskip("minigrid", reason=MISSING)
 
 import gymnasium  # noqa: E402
-from minigrid.core.actions import Actions  # noqa: E402
 
 from torchrl_stages.envs.minigrid import (  # noqa: E402
     FEATURES,
@@ -54,29 +53,29 @@ def test_the_stage_follows_the_level_and_never_goes_back(level):
     obs, _ = env.reset(seed=3)
     assert obs["stage"].tolist() == [0] and obs["observation"].shape == (len(FEATURES),)
     _face(env, env.key.cur_pos)
-    obs, reward, *_ = env.step(Actions.pickup)
+    obs, reward, *_ = env.step(env.action("pickup"))
     assert obs["stage"].tolist() == [1] and reward == 0.0  # the key is carried
     _face(env, env.door.cur_pos)
-    obs, *_ = env.step(Actions.toggle)
+    obs, *_ = env.step(env.action("toggle"))
     assert obs["stage"].tolist() == [2] and env.door.is_open  # the key opened the door
-    obs, *_ = env.step(Actions.toggle)  # closing the door again
+    obs, *_ = env.step(env.action("toggle"))  # closing the door again
     assert obs["stage"].tolist() == [2] and not env.door.is_open
-    env.step(Actions.toggle)
+    env.step(env.action("toggle"))
     level_env = env.unwrapped
     level_env.carrying = None  # as if it had dropped the key
     target = env.target
     if target.type == "goal":
         _face(env, target.cur_pos)
-        obs, reward, terminated, truncated, _ = env.step(Actions.forward)
+        obs, reward, terminated, truncated, _ = env.step(env.action("forward"))
     else:
         _face(env, target.cur_pos)
-        obs, reward, terminated, truncated, _ = env.step(Actions.pickup)
+        obs, reward, terminated, truncated, _ = env.step(env.action("pickup"))
     assert obs["stage"].tolist() == [2] and terminated and reward == 1.0 and not truncated
 
 
 @pytest.mark.parametrize("level", LEVELS)
 @pytest.mark.parametrize("stage", [0, 1, 2])
-def test_episodes_start_inside_the_stage_on_a_free_cell(level, stage):
+def test_episodes_start_inside_the_stage_where_the_agent_can_stand(level, stage):
     env = StagedMiniGrid(gymnasium.make(level), start_stage=stage)
     cells = set()
     for seed in range(8):
@@ -85,10 +84,50 @@ def test_episodes_start_inside_the_stage_on_a_free_cell(level, stage):
         assert obs["stage"].tolist() == [stage]
         assert (level_env.carrying is env.key) == (stage >= 1)
         assert env.door.is_open == (stage == 2) and env.door.is_locked == (stage < 2)
-        assert level_env.grid.get(*level_env.agent_pos) is None  # on a free cell
+        there = level_env.grid.get(*level_env.agent_pos)  # a free cell or an open doorway
+        assert there is None or (there.type == "door" and there.is_open)
         assert np.isfinite(obs["observation"]).all() and np.abs(obs["observation"]).max() <= 1
         cells.add(tuple(level_env.agent_pos))
     assert stage == 0 or len(cells) > 1  # drawn (stage 0: the level's own start)
+
+
+def test_stage_starts_cover_open_rooms_and_doorways():
+    # KeyCorridor hands over in a doorway, with the doors it went through open: the starts of
+    # the next stage must hold such states
+    env = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"), start_stage=1)
+    doorway, open_doors = 0, set()
+    for seed in range(200):
+        env.reset(seed=seed)
+        level = env.unwrapped
+        doors = [o for o in level.grid.grid if o is not None and o.type == "door"]
+        open_doors.add(sum(d.is_open for d in doors if d is not env.door))
+        there = level.grid.get(*level.agent_pos)
+        doorway += there is not None and there.type == "door"
+        assert env.door.is_locked and not env.door.is_open  # stage 1: still locked
+    assert doorway > 0 and len(open_doors) > 2
+
+
+def test_the_agent_uses_the_actions_its_family_needs():
+    doorkey = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"))
+    assert doorkey.actions == ("left", "right", "forward", "pickup", "toggle")
+    assert doorkey.action_space.n == 5
+    corridor = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R1-v0"))
+    assert "drop" in corridor.actions and "done" not in corridor.actions  # the ball needs it
+    every = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), actions="all")
+    assert every.action_space.n == 7 and every.action("done") == 6
+    # an action of the wrapper is the level's action of that name
+    env = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), actions=["right", "left"])
+    env.reset(seed=0)
+    before = env.unwrapped.agent_dir
+    env.step(0)
+    assert env.unwrapped.agent_dir == (before + 1) % 4
+    with pytest.raises(ValueError, match=r"actions=\['jump'\].*Fix: name some of left"):
+        StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), actions=["jump"])
+    vector = MiniGridEnv("MiniGrid-DoorKey-5x5-v0", batch_size=(2,), actions=["left", "toggle"])
+    try:
+        assert vector.action_spec.space.n == 2
+    finally:
+        vector.close()
 
 
 def test_stage_names_and_levels_without_the_stages_are_refused():

@@ -26,11 +26,13 @@ import torch
 from torchrl_stages.gym_env import GymStageEnv
 
 __all__ = [
+    "ACTIONS",
     "FAMILIES",
     "FEATURES",
     "MiniGridEnv",
     "StagedMiniGrid",
     "import_minigrid",
+    "level_actions",
     "stage_names",
 ]
 
@@ -40,6 +42,17 @@ FAMILIES = {
     "MiniGrid-DoorKey-": "goal",
     "MiniGrid-KeyCorridor": "ball",
     "MiniGrid-UnlockPickup-": "box",
+}
+#: the actions each family's levels can use (MiniGrid's names): ``done`` does nothing in any of
+#: them, and ``drop`` is needed only where the key must be put down to pick up the target.
+#: An action no level needs still costs exploration: a random walk that carries the key drops
+#: it every seventh step on average, and then has to find it again before the door opens
+#: (README "MiniGrid": on DoorKey-16x16, 1% of 256-step random walks that start with the key
+#: open the door with ``drop`` among the actions, 10% without it)
+ACTIONS = {
+    "MiniGrid-DoorKey-": ("left", "right", "forward", "pickup", "toggle"),
+    "MiniGrid-KeyCorridor": ("left", "right", "forward", "pickup", "drop", "toggle"),
+    "MiniGrid-UnlockPickup-": ("left", "right", "forward", "pickup", "drop", "toggle"),
 }
 VIEW = 2  # the local view: the (2 * VIEW + 1)^2 cells around the agent
 #: observation features, in order (``(dx, dy)``: offset from the agent, in grid widths)
@@ -79,6 +92,17 @@ def stage_names(env_id: str) -> list[str]:
     return ["key", "door", next(t for f, t in FAMILIES.items() if env_id.startswith(f))]
 
 
+def level_actions(env_id: str) -> tuple[str, ...]:
+    """The actions a level's tasks use by default (:data:`ACTIONS`).
+
+    Examples:
+        >>> level_actions("MiniGrid-DoorKey-16x16-v0")
+        ('left', 'right', 'forward', 'pickup', 'toggle')
+    """
+    _check_id(env_id)
+    return next(a for f, a in ACTIONS.items() if env_id.startswith(f))
+
+
 def _check_id(env_id: str) -> None:
     if ":" in env_id or not env_id.startswith(tuple(FAMILIES)):
         raise ValueError(
@@ -100,10 +124,14 @@ class StagedMiniGrid(gymnasium.Wrapper):
       carry over between layouts.
     * **Reward**: 1 on success (the level's own, ``1 - 0.9 t / T``, depends on the step count,
       which is not part of the state; each stage's discount makes the policy fast).
+    * **Actions**: ``actions`` (MiniGrid's names, e.g. ``("left", "right", "forward")``):
+      action ``i`` of the wrapper is ``actions[i]`` of the level; default: the family's
+      (:data:`ACTIONS`), every action its levels can need. ``"all"``: the level's seven.
     * **Starts**: ``start_stage=k`` starts inside stage k (the backward schedule's reverse
       curriculum): the level as the seed lays it out, with the key carried (k >= 1) and the
-      door open (k = 2), the agent on a uniformly drawn free cell it can reach, facing a drawn
-      direction. ``None``: the level's own start.
+      door open (k = 2), every other door open or closed at random, the agent on a uniformly
+      drawn free cell or open doorway it can reach, facing a drawn direction. ``None``: the
+      level's own start.
 
     Examples:
         >>> env = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), start_stage=2)
@@ -112,22 +140,36 @@ class StagedMiniGrid(gymnasium.Wrapper):
         (2, True)
         >>> env.unwrapped.carrying.type, env.door.is_open
         ('key', True)
+        >>> env.actions, int(env.action_space.n)
+        (('left', 'right', 'forward', 'pickup', 'toggle'), 5)
     """
 
     num_stages = 3
 
-    def __init__(self, env: gymnasium.Env, start_stage: int | None = None) -> None:
+    def __init__(
+        self,
+        env: gymnasium.Env,
+        start_stage: int | None = None,
+        actions: Sequence[str] | str | None = None,
+    ) -> None:
         super().__init__(env)
         level = env.spec.id if env.spec is not None else type(env.unwrapped).__name__
         _check_id(level)
         if start_stage is not None and not 0 <= int(start_stage) < self.num_stages:
             raise ValueError(f"start_stage={start_stage}: MiniGrid levels have stages 0, 1, 2")
         self.start_stage = start_stage
+        self.actions = _actions(level, actions, env.unwrapped.actions)
+        self._level_actions = [int(env.unwrapped.actions[name]) for name in self.actions]
+        self.action_space = gymnasium.spaces.Discrete(len(self.actions))
         self.observation_space = gymnasium.spaces.Dict(
             observation=gymnasium.spaces.Box(-1.0, 1.0, (len(FEATURES),), np.float32),
             stage=gymnasium.spaces.Box(0, self.num_stages - 1, (1,), np.int64),
         )
         self.stage = 0
+
+    def action(self, name: str) -> int:
+        """The wrapper's index of the level's action ``name``."""
+        return self.actions.index(name)
 
     # ------------------------------------------------------------------ the level's objects
     def _objects(self) -> None:
@@ -154,14 +196,16 @@ class StagedMiniGrid(gymnasium.Wrapper):
 
     # ------------------------------------------------------------------ starts
     def _reachable(self) -> list[tuple[int, int]]:
-        """Free cells the agent can walk to (through doors it can open)."""
+        """The cells the agent can stand on and walk to (through doors it can open): free
+        cells and open doorways."""
         level = self.env.unwrapped
         start = tuple(int(v) for v in level.agent_pos)
-        seen, queue, free = {start}, deque([start]), []
+        seen, queue, cells = {start}, deque([start]), []
         while queue:
             x, y = queue.popleft()
-            if level.grid.get(x, y) is None and (x, y) != start:
-                free.append((x, y))
+            cell = level.grid.get(x, y)
+            if (cell is None or (cell.type == "door" and cell.is_open)) and (x, y) != start:
+                cells.append((x, y))
             for nx, ny in ((x + 1, y), (x - 1, y), (x, y + 1), (x, y - 1)):
                 if (nx, ny) in seen or not (0 <= nx < level.width and 0 <= ny < level.height):
                     continue
@@ -169,7 +213,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
                 if cell is None or (cell.type == "door" and not cell.is_locked):
                     seen.add((nx, ny))
                     queue.append((nx, ny))
-        return free + [start]
+        return cells + [start]
 
     def _start_inside(self, stage: int) -> None:
         level = self.env.unwrapped
@@ -179,6 +223,17 @@ class StagedMiniGrid(gymnasium.Wrapper):
             level.carrying = self.key
         if stage >= 2:  # the door is open
             self.door.is_locked, self.door.is_open = False, True
+        # the other doors (KeyCorridor's rooms) as an earlier stage may have left them: each
+        # open or closed; the agent stands on a free cell or in an open doorway (where it is
+        # when it has just taken a key from a one-cell room)
+        for obj in level.grid.grid:
+            if (
+                obj is not None
+                and obj.type == "door"
+                and obj is not self.door
+                and not obj.is_locked
+            ):
+                obj.is_open = bool(self.np_random.integers(2))
         cells = self._reachable()
         level.agent_pos = np.array(cells[int(self.np_random.integers(len(cells)))])
         level.agent_dir = int(self.np_random.integers(4))
@@ -248,10 +303,24 @@ class StagedMiniGrid(gymnasium.Wrapper):
         return self._obs(), info
 
     def step(self, action):
-        _, reward, terminated, truncated, info = self.env.step(action)
+        _, reward, terminated, truncated, info = self.env.step(self._level_actions[int(action)])
         self.stage = max(self.stage, self._progress())
         success = bool(terminated and reward > 0)
         return self._obs(), float(success), bool(terminated), bool(truncated), info
+
+
+def _actions(level: str, actions: Sequence[str] | str | None, enum: Any) -> tuple[str, ...]:
+    if actions is None:
+        return level_actions(level)
+    names = [a.name for a in enum]
+    chosen = tuple(names) if actions == "all" else tuple(str(a) for a in actions)
+    unknown = [a for a in chosen if a not in names]
+    if unknown or not chosen or len(set(chosen)) != len(chosen):
+        raise ValueError(
+            f"actions={list(chosen)}: not a list of distinct MiniGrid actions. Fix: name some "
+            f"of {', '.join(names)} once each (or 'all'; null: {', '.join(level_actions(level))})"
+        )
+    return chosen
 
 
 class MiniGridEnv(GymStageEnv):
@@ -266,6 +335,8 @@ class MiniGridEnv(GymStageEnv):
         batch_size: ``(n,)``: the number of copies.
         device: where the TensorDicts live.
         start_stage: ``None`` (the level's own start) or k: start inside stage k.
+        actions: the level's actions the agent uses (:class:`StagedMiniGrid`; ``None``: the
+            family's default, :data:`ACTIONS`; ``"all"``: all seven).
         **kwargs: the level's own constructor keys (e.g. ``max_steps``).
 
     Examples:
@@ -284,15 +355,17 @@ class MiniGridEnv(GymStageEnv):
         batch_size: Sequence[int],
         device: str | torch.device = "cpu",
         start_stage: int | None = None,
+        actions: Sequence[str] | str | None = None,
         **kwargs: Any,
     ) -> None:
         import_minigrid()
         _check_id(env_id)
+        wrapper = functools.partial(StagedMiniGrid, start_stage=start_stage, actions=actions)
         super().__init__(
             env_id,
             stage_fn=None,  # the wrapper writes "stage"
             vectorize=vectorize,
-            wrappers=[functools.partial(StagedMiniGrid, start_stage=start_stage)],
+            wrappers=[wrapper],
             batch_size=batch_size,
             device=device,
             **kwargs,
