@@ -25,6 +25,7 @@ from torchrl_stages.preemption import Interrupted, check, handle_signals
 from torchrl_stages.run_store import RunStore
 from torchrl_stages.rundir import (
     METRICS_FILE,
+    RESUMABLE_CHANGES,
     STATUS_FILE,
     RunDir,
     RunDirError,
@@ -39,19 +40,6 @@ from torchrl_stages.threads import hold_threads
 from torchrl_stages.validate import ConfigError, check_env_keys, validate_config, validate_task
 
 log = logging.getLogger("torchrl_stages")
-
-#: keys a resumed run may change: they do not touch what was trained
-RESUMABLE_CHANGES = (
-    "resume",
-    "overwrite",
-    "progress",
-    "eval",
-    "objective",
-    "checkpoint_every",
-    "checkpoint_keep",
-    "stage_store",  # a stage taken from there is the one training gives, bit for bit
-    "init_from",
-)
 
 
 def one_line(err: BaseException) -> str:

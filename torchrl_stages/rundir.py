@@ -81,6 +81,20 @@ def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
         yield prefix.rstrip("."), value
 
 
+#: top-level keys a resumed run may change: they do not alter what the stages train to
+RESUMABLE_CHANGES = (
+    "resume",
+    "overwrite",
+    "progress",
+    "eval",
+    "objective",
+    "checkpoint_every",
+    "checkpoint_keep",
+    "stage_store",  # a stage taken from there is the one training gives, bit for bit
+    "init_from",
+)
+
+
 def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...] = ()) -> list[str]:
     """Dotted keys whose resolved values differ between two configs (``ignore``: key prefixes
     that may differ).

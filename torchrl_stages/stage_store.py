@@ -39,7 +39,13 @@ from torchrl_stages.config import ConfigError
 from torchrl_stages.integrity import DamagedFileError, verify_checksums, write_checksums
 from torchrl_stages.learners import Learner
 from torchrl_stages.preemption import check
-from torchrl_stages.rundir import RunDir, RunDirError, config_differences, restore_learner
+from torchrl_stages.rundir import (
+    RESUMABLE_CHANGES,
+    RunDir,
+    RunDirError,
+    config_differences,
+    restore_learner,
+)
 from torchrl_stages.runlock import RunLock
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
@@ -392,7 +398,8 @@ class StageReuse:
         init_from: str | Path | None = None,
         run_dir: str | Path | None = None,
     ) -> None:
-        self.identities = stage_identities(cfg)
+        self.inputs = stage_identity_inputs(cfg)
+        self.identities = [_digest(stage) for stage in self.inputs]
         self.store, self.cfg = store, cfg
         self.run_dir = None if run_dir is None else str(Path(run_dir).resolve())
         self.init_run: RunDir | None = None
@@ -429,19 +436,7 @@ class StageReuse:
         except (RunDirError, ValueError, TypeError, KeyError) as err:
             raise StoreError(f"init_from={path}: {err}") from err
         if identities and identities[-1] != self.identities[-1]:
-            ignore = (
-                "logger",
-                "progress",
-                "eval",
-                "objective",
-                "resume",
-                "overwrite",
-                "checkpoint_every",
-                "checkpoint_keep",
-                "stage_store",
-                "init_from",
-            )
-            differ = config_differences(saved, cfg, ignore=ignore)[:6]
+            differ = config_differences(saved, cfg, ignore=(*RESUMABLE_CHANGES, "logger"))[:6]
             log.warning(
                 "init_from=%s: not even its last stage has this run's identity (the configs "
                 "differ in %s): every stage is trained",
@@ -521,7 +516,7 @@ class StageReuse:
                 "success_rate": result.success_rate,
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                 "trained_in": self.run_dir,
-                "inputs": stage_identity_inputs(self.cfg)[stage],
+                "inputs": self.inputs[stage],
             }
             self.store.put(self.identities[stage], {**state, **learner.checkpoint()}, meta)
         lock = self._held.pop(stage, None)
