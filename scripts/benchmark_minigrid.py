@@ -6,7 +6,8 @@ and an early stop; the joint schedule's phases have the same budgets; the flat l
 their sum. The whole-task evaluation is 200 greedy episodes from the level's own starts (a new
 layout each). Table: success, frames and training wall-clock per run; ``--jobs 2`` runs two at a
 time, one thread each (the wall-clock is then measured beside another run, as under a sweep's
-joblib launcher).
+joblib launcher). Rows accumulate in ``OUT/rows.json`` (a re-run replaces its row), so runs
+launched apart, or side by side, make one table.
 
     python scripts/benchmark_minigrid.py --levels MiniGrid-DoorKey-8x8-v0 --seeds 0 1 2 3 4 \
         --jobs 2 --out results/minigrid [OVERRIDE ...]
@@ -15,6 +16,7 @@ joblib launcher).
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import multiprocessing
 import shutil
@@ -56,29 +58,29 @@ def run(level: str, schedule: str, seed: int, out: Path, overrides: list[str]) -
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--levels", nargs="+", default=["MiniGrid-DoorKey-8x8-v0"])
-    parser.add_argument("--schedules", nargs="+", default=list(SCHEDULES), choices=SCHEDULES)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--out", type=Path, default=Path("results/minigrid"))
-    parser.add_argument("overrides", nargs="*", help="Hydra overrides for every run")
-    args = parser.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
-    command = command_line()
-    print(command, flush=True)
-    speed = machine_speed()
-    jobs = [(lv, sc, sd) for lv in args.levels for sc in args.schedules for sd in args.seeds]
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
-        futures = [pool.submit(run, *job, args.out, args.overrides) for job in jobs]
-        rows = []
-        for future in futures:
-            rows.append(future.result())
-            row = rows[-1]
-            print(f"{row['level']} {row['schedule']} seed {row['seed']}: {row}", flush=True)
-            (args.out / "rows.json").write_text(json.dumps(rows, indent=2))
+def merge_rows(path: Path, new: list[dict]) -> list[dict]:
+    """``new`` merged into the rows already in ``path`` (one row per level, schedule and
+    seed; a re-run replaces its row), under a lock: runs launched apart share one table."""
+    path.touch()
+    with path.open("r+") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        text = handle.read()
+        rows = {_key(r): r for r in (json.loads(text) if text.strip() else [])}
+        rows.update({_key(r): r for r in new})
+        merged = sorted(rows.values(), key=_key)
+        handle.seek(0)
+        handle.truncate()
+        handle.write(json.dumps(merged, indent=2))
+    return merged
+
+
+def _key(row: dict) -> tuple:
+    return (row["level"], SCHEDULES.index(row["schedule"]), row["seed"])
+
+
+def write_table(rows: list[dict], path: Path) -> str:
+    """The results table (one line per run, a summary per level and schedule, the commands
+    and machine speeds the rows were measured with) as Markdown."""
     header = [
         "| level | schedule | seed | success | frames | train (s) |",
         "|---|---|---|---|---|---|",
@@ -89,9 +91,11 @@ def main() -> None:
         for r in rows
     ]
     notes = []
-    for level in args.levels:
-        for schedule in args.schedules:
+    for level in dict.fromkeys(r["level"] for r in rows):
+        for schedule in SCHEDULES:
             done = [r for r in rows if r["level"] == level and r["schedule"] == schedule]
+            if not done:
+                continue
             solved = sum(r["success"] >= 0.95 for r in done)
             mean = statistics.mean(r["success"] for r in done)
             notes.append(
@@ -100,11 +104,46 @@ def main() -> None:
                 f">= 95%; frames median {statistics.median(r['frames'] for r in done):.0f}; "
                 f"training median {statistics.median(r['seconds'] for r in done):.0f} s"
             )
-    notes.append(f"- {args.jobs} run(s) at a time, one torch thread each")
-    notes.append(speed_note(speed, machine_speed()))
-    table = ["```text", f"$ {command}", "```", "", *header, *lines, "", *notes]
-    (args.out / "table.md").write_text("\n".join(table) + "\n")
-    print("\n".join(table))
+    speeds = [r["machine_speed"] for r in rows if "machine_speed" in r]
+    if speeds:
+        notes.append(
+            f"- machine speed {min(speeds):.2g}-{max(speeds):.2g} frames/s when the runs began; "
+            f"up to {max(r.get('jobs', 1) for r in rows)} runs at a time, one torch thread each"
+        )
+    commands = sorted({r["command"] for r in rows if "command" in r})
+    table = ["```text", *(f"$ {c}" for c in commands), "```", "", *header, *lines, "", *notes]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(table) + "\n")
+    return "\n".join(table)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--levels", nargs="+", default=["MiniGrid-DoorKey-8x8-v0"])
+    parser.add_argument("--schedules", nargs="+", default=list(SCHEDULES), choices=SCHEDULES)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=Path("results/minigrid"))
+    parser.add_argument(
+        "--table", type=Path, default=None, help="where the table goes (default: OUT/table.md)"
+    )
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides for every run")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    command = command_line()
+    print(command, flush=True)
+    speed = machine_speed()
+    jobs = [(lv, sc, sd) for lv in args.levels for sc in args.schedules for sd in args.seeds]
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
+        futures = [pool.submit(run, *job, args.out, args.overrides) for job in jobs]
+        for future in futures:
+            row = {**future.result(), "machine_speed": speed, "command": command}
+            row["jobs"] = args.jobs
+            print(f"{row['level']} {row['schedule']} seed {row['seed']}: {row}", flush=True)
+            rows = merge_rows(args.out / "rows.json", [row])
+    print(speed_note(speed, machine_speed()))
+    print(write_table(rows, args.table or args.out / "table.md"))
 
 
 if __name__ == "__main__":

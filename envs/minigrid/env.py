@@ -130,8 +130,11 @@ class StagedMiniGrid(gymnasium.Wrapper):
     * **Starts**: ``start_stage=k`` starts inside stage k (the backward schedule's reverse
       curriculum): the level as the seed lays it out, with the key carried (k >= 1) and the
       door open (k = 2), every other door open or closed at random, the agent on a uniformly
-      drawn free cell or open doorway it can reach, facing a drawn direction. ``None``: the
-      level's own start.
+      drawn free cell or open doorway it can reach, facing a drawn direction. Stage 0 is drawn
+      the same way on levels with rooms behind unlocked doors (KeyCorridor: the level's own start
+      is the corridor, the key is in a side room); on DoorKey and UnlockPickup the level's own
+      start already is a uniform cell of the key's room, and is kept. ``None``: the level's
+      own start.
 
     Examples:
         >>> env = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), start_stage=2)
@@ -176,6 +179,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
         """Finds the key, the locked door and the target of the level just generated."""
         level = self.env.unwrapped
         self.key = self.door = self.target = None
+        self.rooms = False  # doors the agent can open without the key (KeyCorridor's rooms)
         for obj in level.grid.grid:
             if obj is None:
                 continue
@@ -183,6 +187,8 @@ class StagedMiniGrid(gymnasium.Wrapper):
                 self.key = obj
             elif obj.type == "door" and obj.is_locked:
                 self.door = obj
+            elif obj.type == "door":
+                self.rooms = True
             elif obj.type == "goal":
                 self.target = obj
         if getattr(level, "obj", None) is not None:  # KeyCorridor, UnlockPickup
@@ -297,7 +303,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         _, info = self.env.reset(seed=seed, options=options)
         self._objects()
-        if self.start_stage:
+        if self.start_stage is not None and (self.start_stage > 0 or self.rooms):
             self._start_inside(int(self.start_stage))
         self.stage = self._progress()
         return self._obs(), info
