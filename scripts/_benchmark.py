@@ -1,7 +1,8 @@
 """What the benchmark scripts share: arguments, configs, training one run, the results table.
 
 Every script writes its rows as ``rows.json`` and its table as ``table.md`` (the command that
-made it on top) into its output directory, so that a README table is pasted, never retyped.
+made it on top) into its output directory, and with ``--table docs/results/<name>.md`` to the
+file the docs include: a published table is written by the script, never typed.
 """
 
 from __future__ import annotations
@@ -45,6 +46,23 @@ def _launch_environ() -> dict[str, str]:
     return dict(item.split("=", 1) for item in raw.split("\0") if "=" in item)
 
 
+def add_table_argument(parser: argparse.ArgumentParser) -> None:
+    """``--table PATH``: a second copy of ``table.md`` (e.g. ``docs/results/<name>.md``)."""
+    parser.add_argument(
+        "--table", type=Path, default=None, help="also write the table here (docs/results/...)"
+    )
+
+
+def save_table(out: Path, table: list[str], also: Path | None = None) -> None:
+    """Writes ``table`` as ``out/table.md`` and, when given, to ``also`` (the docs' copy)."""
+    text = "\n".join(table) + "\n"
+    (out / "table.md").write_text(text)
+    if also is not None:
+        also.parent.mkdir(parents=True, exist_ok=True)
+        also.write_text(text)
+        print(f"wrote {also}")
+
+
 def command_line() -> str:
     """This script's command as typed, with the :data:`TIMING_ENV` variables it was launched
     with (an empty inductor cache makes a compiled run pay its compilation) in front."""
@@ -68,6 +86,7 @@ def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespac
         else:
             parser.add_argument(f"--{name}", type=type(default), default=default)
     parser.add_argument("--out", type=Path, default=None)
+    add_table_argument(parser)
     parser.add_argument(
         "overrides", nargs="*", help="extra Hydra overrides for every run, e.g. task.env.size=20"
     )
@@ -140,6 +159,6 @@ def run_table(
     for note in notes:
         print(note)
     table = ["```text", f"$ {args.command}", "```", "", *header, *lines, "", *notes]
-    (args.out / "table.md").write_text("\n".join(table) + "\n")
+    save_table(args.out, table, getattr(args, "table", None))
     print(f"wrote {args.out / 'rows.json'} and {args.out / 'table.md'}")
     return rows

@@ -1,11 +1,11 @@
 """Bring your own env: the 3-stage waypoints env (``scripts/waypoints.py``) with ``task=gym``'s
 defaults, discrete moves (DQN stages) and Box actions (SAC stages), seeds apart.
 
-Each run is the README's command, nothing else set: the stages come from the env and each is
-the template's ``stage_template`` (with ``algo@task.stage_template=sac`` for Box actions). The
-table gives the whole-task success over 100 episodes from the task's own start, the frames each
-stage took (every stage stops early on its criterion, or runs its 200 000-frame budget) and the
-training wall-clock.
+Each run is the bring-your-own-env guide's command, nothing else set: the stages come from the env
+and each is the template's ``stage_template`` (with ``algo@task.stage_template=sac`` for Box
+actions). The table gives the whole-task success over 100 episodes from the task's own start, the
+frames each stage took (every stage stops early on its criterion, or runs its 200 000-frame budget)
+and the training wall-clock.
 
     python scripts/benchmark_gym.py --seeds 0 1 2 3 4 --out results/gym
 """

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import gymnasium
 import torch
-from _benchmark import command_line, machine_speed, speed_note
+from _benchmark import add_table_argument, command_line, machine_speed, save_table, speed_note
 from torchrl.envs import GymEnv, GymWrapper, SerialEnv
 
 from torchrl_stages import GymStageEnv, threshold_stage
@@ -72,6 +72,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=Path("results/vector"))
+    add_table_argument(parser)
     args = parser.parse_args()
     import_minigrid()
     torch.set_num_threads(1)
@@ -105,7 +106,7 @@ def main() -> None:
     note = speed_note(speed, machine_speed())
     (args.out / "rows.json").write_text(json.dumps(rows, indent=2))
     table = ["```text", f"$ {command_line()}", "```", "", *header, *lines, "", note]
-    (args.out / "table.md").write_text("\n".join(table) + "\n")
+    save_table(args.out, table, args.table)
     print(note)
     print(f"wrote {args.out / 'table.md'}")
 

@@ -19,7 +19,14 @@ import json
 import shutil
 from pathlib import Path
 
-from _benchmark import command_line, machine_speed, speed_note, train
+from _benchmark import (
+    add_table_argument,
+    command_line,
+    machine_speed,
+    save_table,
+    speed_note,
+    train,
+)
 
 from torchrl_stages.store import register_configs
 
@@ -40,6 +47,7 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("results/handoff"))
+    add_table_argument(parser)
     parser.add_argument("--figures", type=Path, default=None, help="also copy the figures here")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every run")
     args = parser.parse_args()
@@ -88,7 +96,7 @@ def main() -> None:
         speed_note(speed, machine_speed()),
     ]
     table = ["```text", f"$ {command}", "```", "", *lines, "", *notes]
-    (args.out / "table.md").write_text("\n".join(table) + "\n")
+    save_table(args.out, table, args.table)
     print("\n".join(table))
 
 

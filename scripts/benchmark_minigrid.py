@@ -7,7 +7,7 @@ their sum. The whole-task evaluation is 200 greedy episodes from the level's own
 layout each). Table: success, frames and training wall-clock per run; ``--jobs 2`` runs two at a
 time, one thread each (the wall-clock is then measured beside another run, as under a sweep's
 joblib launcher). Rows accumulate in ``OUT/rows.json`` (a re-run replaces its row), so runs
-launched apart, or side by side, make one table.
+launched apart, or side by side, make one table (``--table-only`` rewrites it from the rows).
 
     python scripts/benchmark_minigrid.py --levels MiniGrid-DoorKey-8x8-v0 --seeds 0 1 2 3 4 \
         --jobs 2 --out results/minigrid [OVERRIDE ...]
@@ -24,7 +24,7 @@ import statistics
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from _benchmark import command_line, machine_speed, speed_note, train
+from _benchmark import add_table_argument, command_line, machine_speed, speed_note, train
 
 from torchrl_stages.store import register_configs
 
@@ -124,12 +124,17 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--out", type=Path, default=Path("results/minigrid"))
+    add_table_argument(parser)
     parser.add_argument(
-        "--table", type=Path, default=None, help="where the table goes (default: OUT/table.md)"
+        "--table-only", action="store_true", help="write the table of OUT/rows.json, run nothing"
     )
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every run")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.table_only:
+        rows = json.loads((args.out / "rows.json").read_text())
+        print(write_table(rows, args.table or args.out / "table.md"))
+        return
     command = command_line()
     print(command, flush=True)
     speed = machine_speed()
@@ -143,7 +148,10 @@ def main() -> None:
             print(f"{row['level']} {row['schedule']} seed {row['seed']}: {row}", flush=True)
             rows = merge_rows(args.out / "rows.json", [row])
     print(speed_note(speed, machine_speed()))
-    print(write_table(rows, args.table or args.out / "table.md"))
+    text = write_table(rows, args.out / "table.md")
+    if args.table is not None:
+        write_table(rows, args.table)
+    print(text)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import torch
-from _benchmark import command_line, machine_speed, speed_note
+from _benchmark import add_table_argument, command_line, machine_speed, save_table, speed_note
 
 LRS = ("1e-3", "2e-3", "3e-3", "5e-3")
 
@@ -81,6 +81,7 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=["homo", "hetero"])
     parser.add_argument("--lrs", nargs="+", default=list(LRS), help="stage 0's learning rates")
     parser.add_argument("--out", type=Path, default=Path("results/stage_store"))
+    add_table_argument(parser)
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every job")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -117,7 +118,7 @@ def main() -> None:
     notes.append("- Hydra's basic launcher: the jobs of a sweep run one after another")
     notes.append(speed_note(speed, machine_speed()))
     table = ["```text", f"$ {command}", "```", "", *lines, "", *notes]
-    (args.out / "table.md").write_text("\n".join(table) + "\n")
+    save_table(args.out, table, args.table)
     print("\n".join(table))
     if not all(r["bitwise"] for r in rows):
         raise SystemExit("a job with the stage store differs from the same job without it")

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import gymnasium
 import numpy as np
-from _benchmark import command_line
+from _benchmark import add_table_argument, command_line, save_table
 
 from torchrl_stages.envs.minigrid import StagedMiniGrid, import_minigrid, level_actions
 
@@ -49,6 +49,7 @@ def main() -> None:
     parser.add_argument("--walks", type=int, default=200)
     parser.add_argument("--steps", type=int, default=256)
     parser.add_argument("--out", type=Path, default=Path("results/random_walks"))
+    add_table_argument(parser)
     args = parser.parse_args()
     import_minigrid()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -68,7 +69,7 @@ def main() -> None:
     (args.out / "rows.json").write_text(json.dumps(rows, indent=2))
     note = f"- walks that leave the stage, of {args.walks} walks of {args.steps} random steps"
     table = ["```text", f"$ {command_line()}", "```", "", *lines, "", note]
-    (args.out / "table.md").write_text("\n".join(table) + "\n")
+    save_table(args.out, table, args.table)
     print("\n".join(table))
 
 

@@ -24,7 +24,14 @@ import time
 from pathlib import Path
 
 import torch
-from _benchmark import command_line, compose_config, machine_speed, speed_note
+from _benchmark import (
+    add_table_argument,
+    command_line,
+    compose_config,
+    machine_speed,
+    save_table,
+    speed_note,
+)
 
 from torchrl_stages.experiment import Experiment
 from torchrl_stages.learners.base import FusedSoftUpdate
@@ -121,6 +128,7 @@ def main() -> None:
         help="torch thread counts to compare (default: the config's, i.e. the task's)",
     )
     parser.add_argument("--out", type=Path, default=None)
+    add_table_argument(parser)
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
     misplaced = [mode for mode in args.compile if "=" in mode]
@@ -178,7 +186,7 @@ def main() -> None:
     note = speed_note(speed, machine_speed())
     print(note)
     table = ["```text", f"$ {command}", "```", "", *lines, "", *summaries, note]
-    (out / "table.md").write_text("\n".join(table) + "\n")
+    save_table(out, table, args.table)
     print(f"wrote {out / 'rows.json'} and {out / 'table.md'}")
 
 

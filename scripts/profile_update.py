@@ -31,7 +31,14 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from _benchmark import command_line, compose_config, machine_speed, speed_note
+from _benchmark import (
+    add_table_argument,
+    command_line,
+    compose_config,
+    machine_speed,
+    save_table,
+    speed_note,
+)
 from tensordict import TensorDictBase
 
 from torchrl_stages.collector import StageCollector
@@ -123,6 +130,7 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=200)
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--out", type=Path, default=None)
+    add_table_argument(parser)
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
     misplaced = [word for word in (*args.stages, *args.compile) if "=" in word]
@@ -160,7 +168,7 @@ def main() -> None:
     note = speed_note(speed, machine_speed())
     print(note)
     table = ["```text", f"$ {command}", "```", "", *lines, "", f"- {machine}", note]
-    (out / "table.md").write_text("\n".join(table) + "\n")
+    save_table(out, table, args.table)
     print(f"wrote {out / 'rows.json'} and {out / 'table.md'}")
 
 

@@ -1,5 +1,5 @@
 """The benchmark scripts (bring your own env, MiniGrid, stage store, handoff) on tiny budgets:
-each writes the rows and the table the README includes."""
+each writes the rows and the table the docs include."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def run_script(name: str, *args: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.e2e
 @pytest.mark.slow
-def test_benchmark_gym_runs_the_readme_commands(tmp_path):
+def test_benchmark_gym_runs_the_guide_s_commands(tmp_path):
     done = run_script(
         "benchmark_gym.py", "--seeds", "0", "--out", str(tmp_path), "experiment=smoke"
     )
@@ -71,6 +71,35 @@ def test_benchmark_minigrid_writes_its_table(tmp_path):
     assert len(rows[0]["stage_frames"]) == 3 and rows[0]["episodes"] == 32
     assert (tmp_path / f"minigrid_{level}_backward_seed0.png").is_file()
     assert f"{level} backward: success mean" in (tmp_path / "table.md").read_text()
+
+
+def test_minigrid_rows_from_launches_apart_make_one_table(tmp_path, monkeypatch):
+    """Rows accumulate in rows.json (a re-run replaces its row) and the table lists them all."""
+    monkeypatch.syspath_prepend(str(SCRIPTS))
+    import benchmark_minigrid as bench
+
+    def row(seed, success, command):
+        return {
+            "level": "L",
+            "schedule": "backward",
+            "seed": seed,
+            "success": success,
+            "frames": 10,
+            "seconds": 1.0,
+            "machine_speed": 5e5,
+            "command": command,
+            "jobs": 2,
+        }
+
+    rows_file = tmp_path / "rows.json"
+    bench.merge_rows(rows_file, [row(1, 0.5, "first")])
+    bench.merge_rows(rows_file, [row(0, 0.9, "second")])
+    rows = bench.merge_rows(rows_file, [row(1, 1.0, "third")])  # seed 1 again: replaced
+    assert [(r["seed"], r["success"]) for r in rows] == [(0, 0.9), (1, 1.0)]
+    text = bench.write_table(rows, tmp_path / "docs" / "minigrid.md")
+    assert "$ second" in text and "$ third" in text and "$ first" not in text
+    assert "L backward: success mean 95.0% (lowest 90.0%), 1/2 seeds at >= 95%" in text
+    assert (tmp_path / "docs" / "minigrid.md").read_text() == text + "\n"
 
 
 @pytest.mark.e2e

@@ -130,11 +130,6 @@ def test_the_box_action_example_runs_with_sac(cli):
     assert [saved.task.stages[s].algo for s in ("s0", "s1", "s2")] == ["sac"] * 3
 
 
-def test_the_readme_shows_the_example_env_as_it_is():
-    readme = (TESTS.parent / "README.md").read_text()
-    assert (SCRIPTS / "waypoints.py").read_text() in readme
-
-
 def test_torchrl_env_of_ones_own_trains_from_the_cli(cli):
     code, out, err, run_dir = cli("custom")
     assert code == 0, (out + err)[-4000:]

@@ -1,9 +1,9 @@
-"""Sweeps beyond the basic launcher, through the optional extras: Optuna with persistent SQLite
-storage (``[optuna]``), submitit's local launcher (``[submit]``, the SLURM launcher's local
-twin) and Ray (``[ray]``, a local Ray instance that the launcher's ``ray.init`` starts inside
-``stages-train`` and that stops when it exits). Each test is skipped, with the reason, only when
-its extra is not installed (``pip install -e ".[optuna,submit,ray]"``); CI installs ``[test]``
-only.
+"""Sweeps beyond the basic launcher, through the optional extras: submitit's local launcher
+(``[submit]``, the SLURM launcher's local twin) and Ray (``[ray]``, a local Ray instance that
+the launcher's ``ray.init`` starts inside ``stages-train`` and that stops when it exits). Each
+test is skipped, with the reason, only when its extra is not installed
+(``pip install -e ".[submit,ray]"``); CI installs ``[test]`` only. Optuna studies are
+``stages-tune``'s (``tests/test_tune.py``).
 
 Every sweep is ``experiment=smoke``; the commands start together when the module's first test
 runs and each test waits for its own.
@@ -15,7 +15,6 @@ import csv
 import importlib.util
 import json
 import subprocess
-import warnings
 from pathlib import Path
 
 import pytest
@@ -33,45 +32,13 @@ def _installed(*modules: str) -> bool:
         return False
 
 
-def _sqlalchemy_below_2() -> bool:
-    if not _installed("sqlalchemy"):
-        return False
-    from importlib.metadata import version
-
-    return int(version("sqlalchemy").split(".")[0]) < 2
-
-
-HAS_OPTUNA = _installed("optuna", "hydra_plugins.hydra_optuna_sweeper") and _sqlalchemy_below_2()
 HAS_SUBMITIT = _installed("submitit", "hydra_plugins.hydra_submitit_launcher")
 HAS_RAY = _installed("ray", "hydra_plugins.hydra_ray_launcher")
 NEEDS = {
-    "optuna": (HAS_OPTUNA, 'the [optuna] extra is not installed (pip install -e ".[optuna]")'),
-    "optuna_direction": (HAS_OPTUNA, "the [optuna] extra is not installed"),
     "submitit": (HAS_SUBMITIT, 'the [submit] extra is not installed (pip install -e ".[submit]")'),
     "ray": (HAS_RAY, 'the [ray] extra is not installed (pip install -e ".[ray]")'),
 }
-OPTUNA = [
-    "-m",
-    "hydra/sweeper=optuna",
-    "hydra.sweeper.storage=sqlite:///study.db",
-    "hydra.sweeper.study_name=smoke_steps",
-    "hydra.sweeper.n_trials=2",
-    "hydra.sweeper.n_jobs=1",
-    "hydra.sweeper.sampler.seed=0",
-    "task.stages.s3.lr=tag(log,interval(1e-4,1e-2))",
-    "experiment=smoke",
-    "eval.plots=false",
-]
 COMMANDS = {
-    # the objective: fewest whole-task steps, minimized by the sweeper too
-    "optuna": [
-        *OPTUNA,
-        "objective.metric=mean_steps",
-        "objective.direction=minimize",
-        "hydra.sweeper.direction=minimize",
-    ],
-    # Optuna's own default direction (minimize) against the default objective (maximize)
-    "optuna_direction": OPTUNA,
     "submitit": ["-m", "hydra/launcher=submitit_local", "experiment=smoke", "seed=0"],
     "ray": [
         "-m",
@@ -83,8 +50,6 @@ COMMANDS = {
     ],
 }
 TEST_OF = {
-    "optuna": "test_optuna_sqlite_study_completes_and_reloads",
-    "optuna_direction": "test_optuna_direction_must_match_the_objective",
     "submitit": "test_submitit_local_launcher_writes_the_run_directory",
     "ray": "test_ray_launcher_on_a_local_instance",
 }
@@ -132,40 +97,6 @@ def _need(name: str) -> None:
 def _summary_rows(sweep: Path) -> list[dict[str, str]]:
     with (sweep / "summary.csv").open(newline="") as handle:
         return list(csv.DictReader(handle))
-
-
-def test_optuna_sqlite_study_completes_and_reloads(sweeps):
-    _need("optuna")
-    code, output, cwd = sweeps("optuna")
-    assert code == 0, output[-4000:]
-    assert (cwd / "study.db").is_file()
-    with warnings.catch_warnings():  # optuna 2.x and SQLAlchemy 1.4 deprecation notices
-        warnings.simplefilter("ignore")
-        import optuna
-
-        study = optuna.load_study(study_name="smoke_steps", storage=f"sqlite:///{cwd / 'study.db'}")
-        trials = study.get_trials(deepcopy=False)
-        direction = study.direction
-    assert direction == optuna.study.StudyDirection.MINIMIZE
-    assert len(trials) == 2 and all(t.state.name == "COMPLETE" for t in trials)
-    # each trial's value is its run's objective: eval.json's mean_steps
-    steps = {
-        json.loads((cwd / "sweep" / str(k) / "eval.json").read_text())["mean_steps"]
-        for k in range(2)
-    }
-    assert {t.value for t in trials} == steps
-    assert all(1e-4 <= t.params["task.stages.s3.lr"] <= 1e-2 for t in trials)
-    rows = _summary_rows(cwd / "sweep")  # the sweep summary works with any sweeper
-    assert [r["status"] for r in rows] == ["done", "done"]
-
-
-def test_optuna_direction_must_match_the_objective(sweeps):
-    _need("optuna_direction")
-    code, output, cwd = sweeps("optuna_direction")
-    assert code == 2, output[-4000:]
-    assert "hydra.sweeper.direction='minimize'" in output
-    assert "Fix: add hydra.sweeper.direction=maximize" in output
-    assert not (cwd / "sweep" / "0").exists()  # refused before any job ran
 
 
 def test_submitit_local_launcher_writes_the_run_directory(sweeps):

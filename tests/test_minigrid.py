@@ -88,7 +88,7 @@ def test_episodes_start_inside_the_stage_where_the_agent_can_stand(level, stage)
         assert there is None or (there.type == "door" and there.is_open)
         assert np.isfinite(obs["observation"]).all() and np.abs(obs["observation"]).max() <= 1
         cells.add(tuple(level_env.agent_pos))
-    assert stage == 0 or len(cells) > 1  # drawn (stage 0: the level's own start)
+    assert stage == 0 or len(cells) > 1  # drawn (stage 0 of DoorKey: the level's own start)
 
 
 def test_stage_starts_cover_open_rooms_and_doorways():
@@ -105,6 +105,29 @@ def test_stage_starts_cover_open_rooms_and_doorways():
         doorway += there is not None and there.type == "door"
         assert env.door.is_locked and not env.door.is_open  # stage 1: still locked
     assert doorway > 0 and len(open_doors) > 2
+
+
+def test_stage_0_starts_spread_over_the_rooms_only_where_the_level_has_rooms():
+    # KeyCorridor's own start is the corridor: stage 0 draws its starts over every room it can
+    # reach; DoorKey's own start already is a uniform cell of the key's room, and is kept
+    corridor = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"), start_stage=0)
+    own = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"))
+    columns, own_columns = set(), set()
+    for seed in range(40):
+        corridor.reset(seed=seed)
+        own.reset(seed=seed)
+        room = corridor.unwrapped.room_size - 1
+        columns.add(int(corridor.unwrapped.agent_pos[0]) // room)
+        own_columns.add(int(own.unwrapped.agent_pos[0]) // room)
+        assert corridor.unwrapped.carrying is None and corridor.stage == 0
+    assert own_columns == {1} and columns == {0, 1, 2}  # the side rooms too
+    doorkey = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-8x8-v0"), start_stage=0)
+    level = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-8x8-v0"))
+    for seed in range(5):
+        doorkey.reset(seed=seed)
+        level.reset(seed=seed)
+        assert tuple(doorkey.unwrapped.agent_pos) == tuple(level.unwrapped.agent_pos)
+        assert doorkey.unwrapped.agent_dir == level.unwrapped.agent_dir
 
 
 def test_the_agent_uses_the_actions_its_family_needs():

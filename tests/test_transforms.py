@@ -1,4 +1,4 @@
-"""StageTransform: stage tags, transition flags and stage k's view of a step (DESIGN.md §1.1-1.6).
+"""StageTransform: stage tags, transition flags and stage k's view of a step.
 
 Geometry used throughout: ``GridWorldEnv(size=10, num_stages=2)`` has two strips of width 5
 (columns 0-4 are stage 0, 5-9 stage 1), target (9, 9), and observation ``[row, col] / 5``. The

@@ -1,4 +1,4 @@
-"""State-value adapters (DESIGN.md §1.3): V = max_a Q, Q(s, mu(s)), min of twin critics, and the
+"""State-value adapters: V = max_a Q, Q(s, mu(s)), min of twin critics, and the
 learners' ``value()`` built from their TARGET networks."""
 
 import pytest

@@ -1,8 +1,9 @@
-"""Console scripts: ``stages-train`` (Hydra app), ``stages-eval RUN_DIR``,
-``stages-report SWEEP_DIR`` and ``stages-store ls|rm|prune DIR``, and the Hydra callback that
-summarizes a sweep.
+"""Console scripts: ``stages-train`` (Hydra app), ``stages-tune`` (Hydra app),
+``stages-eval RUN_DIR``, ``stages-report SWEEP_DIR`` and ``stages-store ls|rm|prune DIR``, and
+the Hydra callback that summarizes a sweep.
 
 All are thin shells over the library: :class:`torchrl_stages.experiment.Experiment` trains,
+:mod:`torchrl_stages.sweeps.tune` runs an Optuna study of such runs,
 :func:`torchrl_stages.rundir.load_run` and :func:`torchrl_stages.tasks.evaluate_run`
 re-evaluate, :func:`torchrl_stages.sweeps.summarize_sweep` summarizes. Exit codes: 0 done,
 1 failed (the env or other code raised, or returned NaN), 2 invalid config, refused or
@@ -28,7 +29,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
-from torchrl_stages.config import apply_all_stages, stage_keys_set
+from torchrl_stages.config import apply_all_stages, objective_value, stage_keys_set
 from torchrl_stages.experiment import Experiment, one_line
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
@@ -36,6 +37,7 @@ from torchrl_stages.stage import DivergenceError, EnvError
 from torchrl_stages.stage_store import SharedStageStore, StageEntry, StoreError
 from torchrl_stages.store import register_configs
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
+from torchrl_stages.sweeps.tune import tune_app
 from torchrl_stages.tasks import evaluate_run, format_summary
 from torchrl_stages.validate import ConfigError, validate_sweeper
 
@@ -120,25 +122,17 @@ def _cannot_write(err: OSError, run_dir: Path) -> str:
     )
 
 
-def objective_value(result: dict[str, Any], cfg: DictConfig) -> float:
-    """The number a run returns to a sweeper (e.g. Optuna): ``eval.json``'s entry named by
-    ``objective.metric`` (NaN when undefined, which Optuna records as a failed trial).
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"objective": {"metric": "mean_steps"}})
-        >>> objective_value({"success_rate": 1.0, "mean_steps": 12.5}, cfg)
-        12.5
-    """
-    objective = cfg.get("objective")
-    value = result.get("success_rate" if objective is None else objective.metric)
-    return float("nan") if value is None else float(value)
-
-
 def train() -> None:
     """``stages-train [OVERRIDES...]``: train a task with the backward schedule (Hydra CLI)."""
     register_configs()
     _train_app()
+
+
+def tune() -> None:
+    """``stages-tune [OVERRIDES...]``: tune hyper-parameters with Optuna, each trial a
+    ``stages-train`` run (Hydra CLI; :mod:`torchrl_stages.sweeps.tune`)."""
+    register_configs()
+    tune_app()
 
 
 def _positive_int(text: str) -> int:
@@ -202,9 +196,9 @@ class SweepSummaryCallback(Callback):
     """Hydra callback (``hydra.callbacks.sweep_summary`` in ``conf/config.yaml``): when a
     multirun ends, writes the sweep's summary (:func:`torchrl_stages.sweeps.summarize_sweep`)
     into ``hydra.sweep.dir``, also when a job failed (the sweep then exits non-zero, after the
-    summary). Before any job runs, it checks that a sweeper optimizing a direction (Optuna)
-    optimizes ``objective.direction``. Jobs may run anywhere (submitit, Ray): the summary only
-    reads the job directories in the sweep directory.
+    summary). Before any job runs, it checks that a sweeper optimizing a direction of its own
+    (``hydra.sweeper.direction``) optimizes ``objective.direction``. Jobs may run anywhere
+    (submitit, Ray): the summary only reads the job directories in the sweep directory.
 
     Examples:
         >>> import tempfile

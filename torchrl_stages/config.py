@@ -143,7 +143,7 @@ class TaskConfig:
     eval_episodes: int = 100  # this task's default for eval.episodes
     # this task's default for `threads` (torch intra-op threads). 1 for every shipped task: two
     # threads train the manipulator 1.5x and cargo 1.2x faster on two free cores, but 3-4x slower
-    # than one beside a busy process (scripts/benchmark_threads.py, README "Speed")
+    # than one beside a busy process (scripts/benchmark_threads.py, docs/speed.md)
     threads: int = 1
     # whether the env can start an episode inside a chosen stage (`start_stage=k`); without
     # stage starts only schedule=joint applies, as one phase from the task's own starts
@@ -198,16 +198,50 @@ class EvalConfig:
 
 @dataclass
 class ObjectiveConfig:
-    """The number a run returns to a sweeper (``hydra/sweeper=optuna``): one entry of its
-    ``eval.json``, from the whole-task evaluation after training.
+    """The number a run is judged by: one entry of its ``eval.json``, from the whole-task
+    evaluation after training (:func:`objective_value`). ``stages-tune`` optimizes it in
+    ``direction`` (:class:`TuneConfig`), and ``stages-train`` returns it to a Hydra sweeper.
 
-    ``direction`` says whether higher is better; a sweeper that optimizes a direction of its own
-    (Optuna's ``hydra.sweeper.direction``) must agree with it, which is checked before any job
+    ``direction`` says whether higher is better; a Hydra sweeper that optimizes a direction of
+    its own (``hydra.sweeper.direction``) must agree with it, which is checked before any job
     runs.
     """
 
     metric: str = "success_rate"  # success_rate | mean_return | mean_steps
     direction: str = "maximize"  # maximize | minimize
+
+
+@dataclass
+class TuneConfig:
+    """The ``tune`` block of ``stages-tune`` (:mod:`torchrl_stages.sweeps.tune`): an Optuna
+    study that optimizes ``objective`` over ``params``, each trial a ``stages-train`` run.
+
+    ``params`` maps a config key (``task.stages.s3.lr``; ``++all_stages.lr`` adds a key, here
+    one value for every stage) or a config group (``algo@task.stages.s0``, ``schedule``) to its
+    range: ``{low: 1e-4, high: 1e-2, log: true}`` (floats; ints when ``low`` and ``high`` are
+    ints; optional ``step``) or ``{choices: [dqn, sac]}``. Trials report each stage
+    evaluation's success rate, and the pruner stops the hopeless ones.
+    """
+
+    study_name: str = "${task.name}"
+    # Optuna storage: an RDB URL (sqlite:///study.db, postgresql://...) or a journal file
+    # (study.log: several processes, NFS); relative paths from where the command is launched
+    storage: str = "sqlite:///study.db"
+    n_trials: int = 20  # trials this command runs (a rerun adds as many to the study)
+    sampler: str = "tpe"  # tpe | random
+    # the sampler's seed (plus the number of trials already in the study, so that a rerun
+    # does not draw the same values again)
+    seed: int = II("seed")
+    pruner: str = "median"  # median | threshold | none
+    # median: trials that must finish before any is pruned
+    startup_trials: int = 5
+    warmup_steps: int = 0  # stage evaluations of a trial before it may be pruned
+    # threshold: prune a trial at a stage evaluation whose success rate is below this
+    prune_below: float | None = None
+    # the search space: {key: range} ('tune.params={task.stages.s3.lr: {low: 1e-4, high: 1e-2,
+    # log: true}}'; +tune.params.<key>={...} adds one key); presets: tune=<name> (conf/tune/)
+    params: Any = None
+    plots: bool = True  # the study summary's figures (summary_*.png)
 
 
 @dataclass
@@ -248,6 +282,28 @@ class TrainConfig:
     # keeps its value. experiment=smoke puts its tiny budget here. Emptied once applied
     # (apply_all_stages): a run's config.yaml holds each stage's values
     all_stages: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class TuneAppConfig(TrainConfig):
+    """Root config of ``stages-tune``: that of ``stages-train`` and the ``tune`` block."""
+
+    tune: TuneConfig = field(default_factory=TuneConfig)
+
+
+def objective_value(result: dict[str, Any], cfg: Any) -> float:
+    """The number a run is judged by: ``eval.json``'s entry named by ``objective.metric`` (NaN
+    when undefined, which Optuna records as a failed trial).
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"objective": {"metric": "mean_steps"}})
+        >>> objective_value({"success_rate": 1.0, "mean_steps": 12.5}, cfg)
+        12.5
+    """
+    objective = cfg.get("objective")
+    value = result.get("success_rate" if objective is None else objective.metric)
+    return float("nan") if value is None else float(value)
 
 
 def as_dataclass(cfg: Any) -> Any:

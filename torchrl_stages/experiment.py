@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,7 @@ from omegaconf import DictConfig, open_dict
 
 from torchrl_stages.config import apply_all_stages, expand_stage_template
 from torchrl_stages.learners import Learner
-from torchrl_stages.loggers import make_logger
+from torchrl_stages.loggers import Observer, StopRun, make_logger
 from torchrl_stages.preemption import Interrupted, check, handle_signals
 from torchrl_stages.run_store import RunStore
 from torchrl_stages.rundir import (
@@ -56,7 +57,7 @@ def one_line(err: BaseException) -> str:
 
 def compile_mode(cfg: DictConfig) -> str:
     """``cfg.compile`` with ``auto`` resolved for the run's device: ``off`` on CPU (compiling
-    the small update costs more than it saves, see the README's speed table),
+    the small update costs more than it saves, see docs/speed.md),
     ``reduce-overhead`` (CUDA graphs) on a GPU."""
     mode = str(cfg.get("compile", "auto"))
     if mode != "auto":
@@ -117,7 +118,10 @@ class Experiment:
     Both default to ``cfg.resume`` / ``cfg.overwrite``. With ``resume`` and no run in the
     directory, a new run starts (the same command can be relaunched after any interruption).
     ``hydra_files`` (``{name: config}``) are written to ``.hydra/`` when the run starts or its
-    config changes (what ``stages-train`` records of Hydra).
+    config changes (what ``stages-train`` records of Hydra). ``observers``
+    (:data:`~torchrl_stages.loggers.Observer`) see the metrics as the run logs them; one may
+    end the run early by raising :class:`~torchrl_stages.loggers.StopRun` (``stages-tune``
+    prunes a trial so).
 
     While it runs, SIGTERM, SIGINT and SIGUSR1 stop it at the next batch with a checkpoint
     (:mod:`torchrl_stages.preemption`), and the torch thread count is held at ``cfg.threads``.
@@ -141,9 +145,11 @@ class Experiment:
         resume: bool | None = None,
         overwrite: bool | None = None,
         hydra_files: dict[str, Any] | None = None,
+        observers: Sequence[Observer] = (),
     ) -> None:
         self.cfg = cfg = with_env_stages(apply_all_stages(cfg))
         self.hydra_files = dict(hydra_files or {})
+        self.observers = tuple(observers)
         self.run_dir = RunDir(run_dir)
         self.resume = bool(cfg.get("resume", False) if resume is None else resume)
         self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
@@ -218,7 +224,8 @@ class Experiment:
 
         How it ended is in the run's record (its launches) and, when it did not finish, in
         ``status.json``: ``interrupted`` (:class:`~torchrl_stages.preemption.Interrupted`),
-        ``diverged`` (:class:`~torchrl_stages.stage.DivergenceError`) or ``failed``."""
+        ``diverged`` (:class:`~torchrl_stages.stage.DivergenceError`), ``failed``, or the
+        status of an observer's :class:`~torchrl_stages.loggers.StopRun` (e.g. ``pruned``)."""
         try:
             with handle_signals(), hold_threads(int(self.cfg.threads)):
                 try:
@@ -228,6 +235,9 @@ class Experiment:
                     self._ended("interrupted", str(err), signal=err.signal_name)
                     raise
         except Interrupted:
+            raise
+        except StopRun as err:  # an observer ended it (stages-tune: a pruned trial)
+            self._ended(err.status, str(err))
             raise
         except DivergenceError as err:
             self._ended("diverged", str(err))
@@ -281,7 +291,7 @@ class Experiment:
         logging.getLogger("torchrl").setLevel(logging.WARNING)
         run.claim(METRICS_FILE, *(["csv"] if cfg.logger.backend == "csv" else []))
         before = run.listing()
-        self.logger = make_logger(cfg, run.path)
+        self.logger = make_logger(cfg, run.path, observers=self.observers)
         run.claim_new(before)  # a backend's own files
         start, schedule = time.perf_counter(), get_schedule(str(cfg.schedule.name))
         kwargs = {

@@ -4,12 +4,16 @@
 learning curves (``learning_curves.png``) and sweep summaries read it. The ``csv`` backend writes
 it next to torchrl's per-tag files; every other backend (``tensorboard``, ``wandb``, ``mlflow``)
 and ``none`` get it through :class:`RunLogger`.
+
+Both loggers take ``observers`` (:data:`Observer`): code that watches a run's metrics as they
+are written (``stages-tune`` reports each stage evaluation to its Optuna trial) and may end the
+run by raising :class:`StopRun`. The training loops only log; they never know who watches.
 """
 
 from __future__ import annotations
 
 import csv
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +23,40 @@ from torchrl.record.loggers import CSVLogger, Logger, get_logger
 
 METRICS_HEADER = ["name", "step", "value"]
 
+#: ``observer(metrics, step)``: sees each group of scalars logged together (one stage
+#: evaluation's numbers, one batch's losses; :class:`~torchrl_stages.loop.MetricsLog`), once
+#: they are written to ``metrics.csv``; it may end the run by raising :class:`StopRun`
+Observer = Callable[[dict[str, float], int], None]
 
-class MetricsCSVLogger(CSVLogger):
+
+class StopRun(Exception):  # noqa: N818 - an outcome, not an error
+    """Raised by an :data:`Observer` to end a run early, as ``status`` (e.g. ``pruned``): the
+    run's ``status.json`` records the status and the reason
+    (:meth:`torchrl_stages.experiment.Experiment.run`).
+
+    Examples:
+        >>> err = StopRun("pruned", "stage 4's success rate 0.1 is below the median")
+        >>> err.status, str(err)
+        ('pruned', "stage 4's success rate 0.1 is below the median")
+    """
+
+    def __init__(self, status: str, reason: str) -> None:
+        super().__init__(reason)
+        self.status = status
+
+
+class _Observed:
+    """What both loggers share: the observers and :meth:`notify`."""
+
+    observers: tuple[Observer, ...] = ()
+
+    def notify(self, metrics: dict[str, float], step: int) -> None:
+        """Shows a group of scalars just logged (at ``step``) to every observer."""
+        for observer in self.observers:
+            observer(metrics, step)
+
+
+class MetricsCSVLogger(_Observed, CSVLogger):
     """torchrl's ``CSVLogger`` that also appends every scalar to one ``name,step,value`` file.
 
     Names carry the namespace (``train/stage_3/loss``, ``eval/stage_3/success_rate``,
@@ -35,9 +71,16 @@ class MetricsCSVLogger(CSVLogger):
         ['name,step,value', 'train/stage_0/loss,10,0.5']
     """
 
-    def __init__(self, exp_name: str, log_dir: str, metrics_file: str | Path) -> None:
+    def __init__(
+        self,
+        exp_name: str,
+        log_dir: str,
+        metrics_file: str | Path,
+        observers: Sequence[Observer] = (),
+    ) -> None:
         super().__init__(exp_name=exp_name, log_dir=log_dir)
         self.metrics_file = Path(metrics_file)
+        self.observers = tuple(observers)
         if not self.metrics_file.exists():
             self._append(["name", "step", "value"])
 
@@ -72,7 +115,7 @@ class MetricsCSVLogger(CSVLogger):
             self._append(["name", "step", "value"])
 
 
-class RunLogger(Logger):
+class RunLogger(_Observed, Logger):
     """Appends every scalar to the run's ``metrics.csv`` and forwards every call to a torchrl
     ``backend`` logger (``None``: no backend, ``logger=none``).
 
@@ -88,8 +131,14 @@ class RunLogger(Logger):
         ['name,step,value', 'eval/stage_1/success_rate,512,1.0']
     """
 
-    def __init__(self, metrics_file: str | Path, backend: Logger | None = None) -> None:
+    def __init__(
+        self,
+        metrics_file: str | Path,
+        backend: Logger | None = None,
+        observers: Sequence[Observer] = (),
+    ) -> None:
         self.backend = backend
+        self.observers = tuple(observers)
         self.metrics_file = Path(metrics_file)
         self.metrics_file.parent.mkdir(parents=True, exist_ok=True)
         if not self.metrics_file.exists() or self.metrics_file.stat().st_size == 0:
@@ -136,19 +185,21 @@ class RunLogger(Logger):
             self._append(METRICS_HEADER)
 
 
-def make_logger(cfg: DictConfig, run_dir: Path) -> Logger:
+def make_logger(cfg: DictConfig, run_dir: Path, observers: Sequence[Observer] = ()) -> Logger:
     """The logger of ``cfg.logger`` writing inside ``run_dir``; every backend (``none``
-    included) also writes the run's ``metrics.csv``."""
+    included) also writes the run's ``metrics.csv``, and shows what it logs to ``observers``."""
     backend = cfg.logger.backend
     metrics_file = run_dir / "metrics.csv"
     if backend == "none":
-        return RunLogger(metrics_file)
+        return RunLogger(metrics_file, observers=observers)
     if backend == "csv":
-        return MetricsCSVLogger("csv", log_dir=str(run_dir), metrics_file=metrics_file)
+        return MetricsCSVLogger(
+            "csv", log_dir=str(run_dir), metrics_file=metrics_file, observers=observers
+        )
     kwargs = {}
     if backend == "wandb":
         kwargs = {"project": cfg.logger.project}
     external = get_logger(
         backend, logger_name=str(run_dir), experiment_name=cfg.logger.exp_name, wandb_kwargs=kwargs
     )
-    return RunLogger(metrics_file, external)
+    return RunLogger(metrics_file, external, observers=observers)

@@ -220,7 +220,9 @@ class EarlyStop:
 class MetricsLog:
     """A loop's metrics: scalars to a torchrl ``logger`` (none: dropped), and the logger's
     position and rewind where it has them (:class:`~torchrl_stages.loggers.CSVMetricsLogger`),
-    so that a resumed loop drops the rows of an interrupted attempt.
+    so that a resumed loop drops the rows of an interrupted attempt. Each call's scalars are
+    then shown together to the logger's observers, where it has them
+    (:data:`~torchrl_stages.loggers.Observer`: an observer may end the run).
 
     Examples:
         >>> log = MetricsLog(None)
@@ -233,10 +235,14 @@ class MetricsLog:
         self.logger = logger
 
     def __call__(self, metrics: dict[str, float | None], step: int) -> None:
-        if self.logger is not None:
-            for key, value in metrics.items():
-                if value is not None:
-                    self.logger.log_scalar(key, value, step=step)
+        if self.logger is None:
+            return
+        logged = {key: value for key, value in metrics.items() if value is not None}
+        for key, value in logged.items():
+            self.logger.log_scalar(key, value, step=step)
+        notify = getattr(self.logger, "notify", None)
+        if notify is not None:
+            notify(logged, step)
 
     def position(self) -> dict[str, int]:
         position = getattr(self.logger, "position", None)

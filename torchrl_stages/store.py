@@ -1,5 +1,7 @@
-"""Hydra's ConfigStore: the root schema and the schema of every registered algorithm.
+"""Hydra's ConfigStore: the root schemas and the schema of every registered algorithm.
 
+``conf/config.yaml`` (``stages-train``) extends ``train_schema``, ``conf/tune.yaml``
+(``stages-tune``) ``tune_schema`` (the same keys and the ``tune`` block).
 ``conf/algo/<name>.yaml`` extends ``<name>_schema`` (the algorithm's config dataclass, see
 :data:`torchrl_stages.learners.ALGORITHMS`), so ``algo@task.stages.<stage>=<name>`` composes a
 stage from its algorithm's keys and defaults. The ``stages_algorithms`` resolver lists the
@@ -13,7 +15,7 @@ from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from torchrl_stages.config import LoggerConfig, ScheduleConfig, TrainConfig
+from torchrl_stages.config import LoggerConfig, ScheduleConfig, TrainConfig, TuneAppConfig
 from torchrl_stages.learners import ALGORITHMS
 
 
@@ -28,6 +30,7 @@ def register_configs() -> None:
     """
     cs = ConfigStore.instance()
     cs.store(name="train_schema", node=TrainConfig)
+    cs.store(name="tune_schema", node=TuneAppConfig)  # stages-tune's root (conf/tune.yaml)
     cs.store(group="logger", name="logger_schema", node=LoggerConfig)
     cs.store(group="schedule", name="schedule_schema", node=ScheduleConfig)
     for name, learner in ALGORITHMS.items():

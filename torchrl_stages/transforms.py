@@ -146,7 +146,12 @@ class StageTransform(Transform):
             cuts the episode at the transition (``truncated`` and ``done``) and keeps the raw
             reward and ``terminated``; a :class:`StageRewardTransform` on the replay buffer
             finishes them at sampling time with the then-current next-stage value.
-        stage_key, transition_key, reward_key, terminated_key, done_key, value_key: keys.
+        stage_key: the stage tag's key.
+        transition_key: the transition flag's key (under ``"next"``).
+        reward_key: the reward's key.
+        terminated_key: the termination flag's key.
+        done_key: the done flag's key.
+        value_key: the key the next stage's value module writes.
 
     Examples:
         >>> import torch
@@ -318,8 +323,13 @@ class StageRewardTransform(Transform):
             networks as they move. Required when ``k < N - 1`` unless ``standalone``.
         standalone: stage ``k < N - 1`` learns from its own rewards only.
         gamma: stage k's discount.
-        stage_key, transition_key, reward_key, terminated_key, truncated_key, done_key,
-        value_key: keys.
+        stage_key: the stage tag's key.
+        transition_key: the transition flag's key (under ``"next"``).
+        reward_key: the reward's key.
+        terminated_key: the termination flag's key.
+        truncated_key: the truncation flag's key.
+        done_key: the done flag's key.
+        value_key: the key the next stage's value module writes.
 
     Examples:
         >>> import torch

@@ -47,7 +47,7 @@ FAMILIES = {
 #: them, and ``drop`` is needed only where the key must be put down to pick up the target.
 #: An action no level needs still costs exploration: a random walk that carries the key drops
 #: it every seventh step on average, and then has to find it again before the door opens
-#: (README "MiniGrid": on DoorKey-16x16, 1% of 256-step random walks that start with the key
+#: (docs/tasks/minigrid.md: on DoorKey-16x16, 1% of 256-step random walks that start with the key
 #: open the door with ``drop`` among the actions, 10% without it)
 ACTIONS = {
     "MiniGrid-DoorKey-": ("left", "right", "forward", "pickup", "toggle"),

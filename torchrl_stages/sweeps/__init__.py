@@ -1,7 +1,8 @@
 """Sweep summaries: one table, statistics across seeds and figures for a directory of runs.
 
 A sweep directory holds one directory per job, whatever made it (Hydra's basic, joblib,
-submitit or Ray launcher, the Optuna sweeper, or runs copied together by hand).
+submitit or Ray launcher, the trials of a ``stages-tune`` study, or runs copied together by
+hand).
 :func:`summarize_sweep` reads them (:mod:`~torchrl_stages.sweeps.jobs`), computes statistics
 across seeds on rliable (:mod:`~torchrl_stages.sweeps.stats`), and writes into the sweep
 directory the tables (:mod:`~torchrl_stages.sweeps.tables`) and figures
@@ -18,7 +19,8 @@ directory the tables (:mod:`~torchrl_stages.sweeps.tables`) and figures
   profile of the success rate).
 
 ``stages-train -m`` writes them when a sweep ends (:class:`torchrl_stages.cli.SweepSummaryCallback`,
-configured in ``hydra.callbacks``), ``stages-report DIR`` on demand.
+configured in ``hydra.callbacks``), ``stages-tune`` when a study's trials end
+(:mod:`torchrl_stages.sweeps.tune`), ``stages-report DIR`` on demand.
 """
 
 from __future__ import annotations

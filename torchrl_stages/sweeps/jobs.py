@@ -2,7 +2,8 @@
 
 A job directory has ``.hydra/overrides.yaml`` (the job's command-line overrides), ``eval.json``
 (a finished run) or ``status.json`` (a run that stopped) and ``metrics.csv``, whatever launched
-it. Only these files are read (as data: nothing in them is run).
+it (a trial of ``stages-tune`` is one too). Only these files are read (as data: nothing in them
+is run).
 """
 
 from __future__ import annotations
@@ -18,10 +19,22 @@ from typing import Any
 
 import yaml
 
-__all__ = ["METRICS", "Job", "configs", "find_jobs", "finite_float", "metric_names", "read_job"]
+__all__ = [
+    "METRICS",
+    "STATUSES",
+    "Job",
+    "configs",
+    "find_jobs",
+    "finite_float",
+    "metric_names",
+    "read_job",
+]
 
 #: the numbers every finished run has (``eval.json``); a task adds its headline metrics
 METRICS = ("success_rate", "mean_return", "mean_steps")
+#: the statuses of ``status.json``: how a run that did not finish ended (``pruned``: a
+#: ``stages-tune`` trial its pruner stopped at a stage evaluation)
+STATUSES = ("invalid", "interrupted", "diverged", "failed", "pruned")
 #: files that make a directory a job directory
 JOB_MARKERS = (".hydra/overrides.yaml", "eval.json", "status.json", "config.yaml")
 SEED = re.compile(r"^\+{0,2}seed=(?P<seed>.*)$")
@@ -45,7 +58,7 @@ class Job:
     name: str  # its path relative to the sweep directory
     overrides: list[str]
     seed: int | None
-    status: str  # done | incomplete | the status of status.json (invalid, diverged, failed)
+    status: str  # done | incomplete | the status of status.json (STATUSES: failed, pruned, ...)
     reason: str | None = None
     metrics: dict[str, float | None] = field(default_factory=dict)
     train_seconds: float | None = None
@@ -195,8 +208,19 @@ def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
     """One job directory: overrides, seed, status and the numbers of its ``eval.json``.
 
     The status is ``done`` when ``eval.json`` exists (and no newer ``status.json``), the
-    ``status`` of ``status.json`` (``invalid``, ``interrupted``, ``diverged``, ``failed``) with
-    its reason, else ``incomplete`` (still running, or killed).
+    ``status`` of ``status.json`` (:data:`STATUSES`: ``invalid``, ``interrupted``,
+    ``diverged``, ``failed``, ``pruned``) with its reason, else ``incomplete`` (still running,
+    or killed).
+
+    Examples:
+        >>> import json, tempfile, pathlib
+        >>> trial = pathlib.Path(tempfile.mkdtemp()) / "3"
+        >>> trial.mkdir()
+        >>> _ = (trial / "status.json").write_text(json.dumps(
+        ...     {"status": "pruned", "reason": "pruned at stage evaluation 2"}))
+        >>> job = read_job(trial)
+        >>> job.name, job.status, job.reason
+        ('3', 'pruned', 'pruned at stage evaluation 2')
     """
     path = Path(path)
     root = Path(sweep_dir) if sweep_dir is not None else path.parent

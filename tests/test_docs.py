@@ -1,0 +1,279 @@
+"""The documentation runs: ``mkdocs build --strict``, and every code block of the README and of
+``docs/`` executed as ``docs/reference/docs-tests.md`` describes (commands with
+``experiment=smoke`` appended, Python files written where a block names one, outputs compared).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+PAGES = [ROOT / "README.md"] + sorted(
+    p for p in DOCS.rglob("*.md") if p.relative_to(DOCS).parts[0] not in ("results", "hooks")
+)
+FENCE = re.compile(
+    r"^(?P<indent> *)```(?P<lang>[\w-]*)(?P<info>[^\n]*)\n(?P<body>.*?)^(?P=indent)```[ \t]*$",
+    re.M | re.S,
+)
+SKIP = re.compile(r"<!-- docs-test: skip (?P<reason>.+?) -->\s*$")
+INSTALL = re.compile(r"^(python3? -m venv |\. \.venv/bin/activate|pip install )")
+TRAINS = ("stages-train", "stages-tune")
+TIMEOUT = 900
+HAS_MKDOCS = shutil.which("mkdocs") is not None or (Path(sys.executable).parent / "mkdocs").exists()
+
+
+@dataclass
+class Block:
+    page: Path
+    line: int
+    lang: str
+    title: str | None
+    body: str
+    skip: str | None  # the reason, for a block marked not to run
+
+
+def blocks(page: Path) -> list[Block]:
+    """The fenced blocks of ``page``, in order."""
+    text = page.read_text()
+    found = []
+    for match in FENCE.finditer(text):
+        indent = len(match["indent"])
+        body = "\n".join(line[indent:] for line in match["body"].splitlines())
+        title = re.search(r'title="([^"]+)"', match["info"])
+        before = text[: match.start()].rstrip("\n").splitlines()
+        skip = SKIP.search(before[-1]) if before else None
+        found.append(
+            Block(
+                page,
+                text.count("\n", 0, match.start()) + 1,
+                match["lang"],
+                title[1] if title else None,
+                body + "\n",
+                skip["reason"] if skip else None,
+            )
+        )
+    return found
+
+
+def commands(body: str) -> list[str]:
+    """The commands of a bash block: continued lines joined, comments dropped."""
+    joined = re.sub(r"\s*\\\n\s*", " ", body)
+    found = []
+    for line in joined.splitlines():
+        line = _strip_comment(line).strip()
+        if line:
+            found.append(line)
+    return found
+
+
+def _strip_comment(line: str) -> str:
+    quote = None
+    for i, char in enumerate(line):
+        if char in "'\"" and quote in (None, char):
+            quote = None if quote else char
+        elif char == "#" and quote is None and (i == 0 or line[i - 1].isspace()):
+            return line[:i]
+    return line
+
+
+def runnable(command: str, number: int) -> str | None:
+    """``command`` as the test runs it: install steps dropped, training shortened to
+    ``experiment=smoke`` in a run directory of its own; ``None`` when nothing is left."""
+    parts = [p for p in command.split(" && ") if not INSTALL.match(p.strip())]
+    out = []
+    for part in parts:
+        words = part.split()
+        program = next((w for w in words if "=" not in w), "")
+        if program in TRAINS and "--help" not in words and "--cfg" not in words:
+            if not any(w.startswith("experiment=") for w in words):
+                part += " experiment=smoke"
+            if program == "stages-train" and not any(w.startswith("eval.plots=") for w in words):
+                part += " eval.plots=false"  # the figures are tested apart; here they cost time
+            if program == "stages-train":
+                key = "hydra.sweep.dir" if "-m" in words else "hydra.run.dir"
+                if not any(w.startswith(key + "=") for w in words):
+                    part += f" {key}={'multirun' if '-m' in words else 'outputs'}/cmd{number}"
+        out.append(part)
+    return " && ".join(out) or None
+
+
+def matches(expected: str, actual: str) -> bool:
+    """The expected lines appear in order among the actual ones; ``...`` matches any text."""
+    lines = actual.splitlines()
+    position = 0
+    for want in expected.strip("\n").splitlines():
+        pattern = re.compile(".*".join(re.escape(p) for p in want.strip().split("...")))
+        while position < len(lines) and not pattern.fullmatch(lines[position].strip()):
+            position += 1
+        if position == len(lines):
+            return False
+        position += 1
+    return True
+
+
+def _env(scratch: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env["HOME"] = str(scratch)  # ~/stages and the like stay in the scratch directory
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(scratch), env.get("PYTHONPATH")]))
+    env.pop("PYTEST_CURRENT_TEST", None)
+    return env
+
+
+def _run(args: list[str], scratch: Path, where: str) -> subprocess.CompletedProcess:
+    try:
+        return subprocess.run(
+            args, cwd=scratch, env=_env(scratch), capture_output=True, text=True, timeout=TIMEOUT
+        )
+    except subprocess.TimeoutExpired as error:
+        pytest.fail(f"{where}: did not finish in {TIMEOUT} s: {error}")
+
+
+def run_page(page: Path, scratch: Path) -> list[str]:
+    """Runs every block of ``page`` in ``scratch``; returns the reasons of skipped blocks."""
+    skipped = []
+    found = blocks(page)
+    readme_test_command = _readme_commands()[1] if page.name == "README.md" else None
+    for index, block in enumerate(found):
+        where = f"{page.relative_to(ROOT)}:{block.line}"
+        following = found[index + 1] if index + 1 < len(found) else None
+        output = following if following and following.title == "output" else None
+        if block.skip:
+            skipped.append(f"{where}: {block.skip}")
+            continue
+        if block.lang in ("python", "yaml", "toml") and block.title:
+            target = scratch / block.title
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_text(block.body)
+            continue
+        if block.lang == "python":
+            script = scratch / f"_block_{block.line}.py"
+            script.write_text(block.body)
+            done = _run([sys.executable, script.name], scratch, where)
+            _check(done, output, where)
+        elif block.lang == "pycon":
+            script = scratch / f"_block_{block.line}.txt"
+            script.write_text(block.body)
+            code = (
+                "import doctest, sys; flags = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE; "
+                f"r = doctest.testfile({script.name!r}, module_relative=False, "
+                "optionflags=flags); sys.exit(1 if r.failed else 0)"
+            )
+            _check(_run([sys.executable, "-c", code], scratch, where), None, where)
+        elif block.lang == "bash":
+            cmds = commands(block.body)
+            for number, command in enumerate(cmds):
+                if command == readme_test_command:
+                    continue  # the suite itself: .ci/run runs it (test_readme_commands)
+                shell = runnable(command, block.line * 100 + number)
+                if shell is None:
+                    continue
+                done = _run(["bash", "-c", shell], scratch, f"{where}: {command}")
+                last = number == len(cmds) - 1
+                _check(done, output if last else None, f"{where}: {command}")
+    return skipped
+
+
+def _check(done: subprocess.CompletedProcess, output: Block | None, where: str) -> None:
+    printed = done.stdout + done.stderr
+    if output is None:
+        assert done.returncode == 0, f"{where}: exit {done.returncode}\n{printed[-4000:]}"
+    else:
+        assert matches(output.body, printed), (
+            f"{where}: the output does not match the block below it\n--- expected\n"
+            f"{output.body}\n--- printed (exit {done.returncode})\n{printed[-4000:]}"
+        )
+
+
+def _readme_commands() -> list[str]:
+    bash = [b for b in blocks(ROOT / "README.md") if b.lang == "bash"]
+    return [commands(b.body)[0] for b in bash[:2]]
+
+
+# ---------------------------------------------------------------------------------- the tests
+def test_every_block_has_a_known_kind():
+    """A block the runner does not know would silently not run."""
+    known = {"bash", "python", "pycon", "yaml", "toml", "text", ""}
+    for page in PAGES:
+        for block in blocks(page):
+            where = f"{page.relative_to(ROOT)}:{block.line}"
+            assert block.lang in known, f"{where}: ```{block.lang} blocks are not run"
+            if block.lang in ("yaml", "toml"):
+                assert block.title, f'{where}: a {block.lang} block needs title="<path>"'
+            if block.title == "output":
+                assert block.lang == "text", f"{where}: an output block is ```text"
+
+
+def test_files_shown_are_the_repository_s():
+    """A file a page shows (``title="name.py"``) that the repository keeps too, under
+    ``scripts/`` or ``tests/``, is that file: the docs cannot drift from the tested copy."""
+    for page in PAGES:
+        for block in blocks(page):
+            if block.lang != "python" or not block.title:
+                continue
+            for kept in (ROOT / "scripts" / block.title, ROOT / "tests" / block.title):
+                if kept.is_file():
+                    where = f"{page.relative_to(ROOT)}:{block.line}"
+                    assert block.body == kept.read_text(), f"{where} differs from {kept}"
+
+
+def test_readme_commands():
+    """The README's first command installs and trains; its second is exactly ``.ci/run``'s."""
+    first, second = _readme_commands()
+    assert first.endswith("pip install . && stages-train"), first
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert second in ci.splitlines(), f".ci/run does not run the README's test command {second}"
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 300
+
+
+def test_output_matching():
+    assert matches("a ... c\nd", "x\na b c\ny\nd\n")
+    assert not matches("d\na ... c", "a b c\nd\n")
+
+
+def test_runnable_commands():
+    assert runnable("pip install . && stages-train", 1) == (
+        "stages-train experiment=smoke eval.plots=false hydra.run.dir=outputs/cmd1"
+    )
+    assert runnable("stages-train -m seed=0,1 hydra.sweep.dir=s eval.plots=true", 2) == (
+        "stages-train -m seed=0,1 hydra.sweep.dir=s eval.plots=true experiment=smoke"
+    )
+    assert runnable("python3 -m venv .venv && . .venv/bin/activate", 3) is None
+    assert commands("a \\\n  b  # note\n'#' c\n") == ["a b", "'#' c"]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_MKDOCS, reason='mkdocs is not installed (pip install -e ".[docs]")')
+def test_mkdocs_build_strict(tmp_path):
+    mkdocs = Path(sys.executable).parent / "mkdocs"
+    done = subprocess.run(
+        [str(mkdocs) if mkdocs.exists() else "mkdocs", "build", "--strict", "-d", str(tmp_path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "NO_MKDOCS_2_WARNING": "1"},
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-6000:]
+    assert (tmp_path / "reference" / "config" / "index.html").is_file()
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+@pytest.mark.parametrize("page", PAGES, ids=[str(p.relative_to(ROOT)) for p in PAGES])
+def test_page_blocks_run(page, tmp_path, capsys):
+    if not any(b.lang in ("bash", "python", "pycon") for b in blocks(page)):
+        pytest.skip("no code to run")
+    skipped = run_page(page, tmp_path)
+    with capsys.disabled():
+        for reason in skipped:
+            print(f"\n  not run: {reason}")
