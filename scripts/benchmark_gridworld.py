@@ -39,6 +39,11 @@ MAX_VALUE_ERROR = 0.05
 def run(variant: str, seed: int, out: Path, extra: list[str]) -> dict:
     run_dir = out / f"{variant}_seed{seed}"
     result = train("gridworld", run_dir, f"seed={seed}", *VARIANTS[variant], *extra)
+    return grid_row(variant, seed, result)
+
+
+def grid_row(variant: str, seed: int, result: dict) -> dict:
+    """A run's row (its ``eval.json``: ``result``) with the quality bars and ``pass``."""
     stages = result["training"]["stages"]
     m = result["task_metrics"]
     row = {

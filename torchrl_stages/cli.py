@@ -33,6 +33,7 @@ from torchrl_stages.config import apply_all_stages, objective_value, stage_keys_
 from torchrl_stages.experiment import Experiment, one_line
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
+from torchrl_stages.seed_runs import SeedRuns, seed_dir
 from torchrl_stages.stage import DivergenceError, EnvError
 from torchrl_stages.stage_store import SharedStageStore, StageEntry, StoreError
 from torchrl_stages.store import register_configs
@@ -80,7 +81,10 @@ def _train_app(cfg: DictConfig) -> float:
             validate_sweeper(HydraConfig.get().sweeper, cfg)
         # all_stages (experiment=smoke) in every stage, but not over a stage's own override
         cfg = apply_all_stages(cfg, keep=stage_keys_set(HydraConfig.get().overrides.task))
-        experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
+        if cfg.get("seeds") is not None:  # several seeds in one process, one directory each
+            experiment = SeedRuns(cfg, run_dir, hydra_files=_hydra_files(cfg))
+        else:
+            experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
     except RunDirError as err:  # the directory holds another run (or process): touch nothing
         _fail(run_dir, "refused", str(err), EXIT_INVALID, write_status=False)
     except ConfigError as err:
@@ -109,6 +113,11 @@ def _train_app(cfg: DictConfig) -> float:
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
         _fail(run_dir, "failed", one_line(err), EXIT_FAILED, write_status=False)
+    if isinstance(experiment, SeedRuns):
+        for seed, seed_result in zip(experiment.seeds, result, strict=True):
+            print(format_summary(seed_result, seed_dir(run_dir, seed)))
+        values = [objective_value(r, cfg) for r in result]
+        return sum(values) / len(values)  # what a sweep over many-seed runs optimizes
     print(format_summary(result, run_dir))
     return objective_value(result, cfg)
 

@@ -163,7 +163,6 @@ def evaluate_policy(
     return episode_stats(rollout), rollout
 
 
-@torch.no_grad()
 def evaluate_greedy(
     env: EnvBase,
     policy: TensorDictModuleBase,
@@ -177,15 +176,39 @@ def evaluate_greedy(
     ``gamma`` per stage or one) and ``value_error``: ``|V(s_0) - G|`` between ``value``'s
     estimate at the start and the return the policy got, reduced over the starts by
     ``reduce`` (``mean`` or ``max``): whether the values a stage hands on have converged."""
+    return evaluate_greedy_groups(env, policy, value, max_steps, gamma, reduce, groups=1)[0]
+
+
+@torch.no_grad()
+def evaluate_greedy_groups(
+    env: EnvBase,
+    policy: TensorDictModuleBase,
+    value: TensorDictModuleBase,
+    max_steps: int,
+    gamma: float | Sequence[float],
+    reduce: str = "mean",
+    *,
+    groups: int,
+) -> list[dict[str, float]]:
+    """:func:`evaluate_greedy` of each of ``groups`` equal, consecutive parts of ``env``'s batch
+    (the seeds of a seed-stacked policy, whose env holds one copy of the starts per seed): one
+    summary per group, in order."""
     keep_threads()
     stats, rollout = evaluate_policy(env, policy, max_steps)
     returns = discounted_return(rollout, stats.length, gamma)
     v0 = value(rollout[:, 0].clone()).get("state_value").reshape(-1)
     errors = (v0 - returns).abs()
-    summary = stats.summary()
-    summary["value_error"] = (errors.max() if reduce == "max" else errors.mean()).item()
-    summary["discounted_return"] = returns.mean().item()
-    return summary
+    size = errors.numel() // groups
+    summaries = []
+    for i in range(groups):
+        part = slice(i * size, (i + 1) * size)
+        group = EpisodeStats(stats.success[part], stats.length[part], stats.ret[part])
+        summary = group.summary()
+        err = errors[part]
+        summary["value_error"] = (err.max() if reduce == "max" else err.mean()).item()
+        summary["discounted_return"] = returns[part].mean().item()
+        summaries.append(summary)
+    return summaries
 
 
 @dataclass

@@ -32,7 +32,7 @@ from torchrl_stages.rundir import (
     RunDirError,
     config_differences,
 )
-from torchrl_stages.schedules import get_schedule
+from torchrl_stages.schedules import Trained, get_schedule
 from torchrl_stages.stage import DivergenceError
 from torchrl_stages.stage_store import StageReuse
 from torchrl_stages.task import StagedTask
@@ -147,6 +147,12 @@ class Experiment:
         hydra_files: dict[str, Any] | None = None,
         observers: Sequence[Observer] = (),
     ) -> None:
+        if cfg.get("seeds") is not None:
+            raise ConfigError(
+                f"seeds={list(cfg.seeds)}: an Experiment trains one seed. Fix: train several "
+                "with torchrl_stages.seed_runs.SeedRuns (what stages-train seeds=[...] runs), "
+                "or set seed=<s>"
+            )
         self.cfg = cfg = with_env_stages(apply_all_stages(cfg))
         self.hydra_files = dict(hydra_files or {})
         self.observers = tuple(observers)
@@ -229,26 +235,25 @@ class Experiment:
         try:
             with handle_signals(), hold_threads(int(self.cfg.threads)):
                 try:
-                    self._prepare()
                     return self._run()
                 except Interrupted as err:  # recorded before a launcher's handler runs
-                    self._ended("interrupted", str(err), signal=err.signal_name)
+                    self.ended("interrupted", str(err), signal=err.signal_name)
                     raise
         except Interrupted:
             raise
         except StopRun as err:  # an observer ended it (stages-tune: a pruned trial)
-            self._ended(err.status, str(err))
+            self.ended(err.status, str(err))
             raise
         except DivergenceError as err:
-            self._ended("diverged", str(err))
+            self.ended("diverged", str(err))
             raise
         except Exception as err:
-            self._ended("failed", one_line(err))
+            self.ended("failed", one_line(err))
             raise
         finally:
             self.close()
 
-    def _ended(self, outcome: str, reason: str, **extra: Any) -> None:
+    def ended(self, outcome: str, reason: str, **extra: Any) -> None:
         """Records how a launch that did not finish ended (best effort: the disk may be the
         cause)."""
         try:
@@ -287,13 +292,38 @@ class Experiment:
         run.begin_launch()
 
     def _run(self) -> dict[str, Any]:
+        store = self.start()
+        schedule = store.schedule
+        trained = schedule.train(self.task, store, **self._train_kwargs())
+        return self.finish(trained, store)
+
+    def start(self) -> RunStore:
+        """The start of a launch (:meth:`run` runs it, a many-seed run runs it for each seed,
+        see :mod:`torchrl_stages.seed_runs`): what the run starts with is written
+        (:meth:`_prepare`), then the logger and the store of the run's stages that the schedule
+        trains into are made."""
+        self._prepare()
         cfg, run = self.cfg, self.run_dir
         logging.getLogger("torchrl").setLevel(logging.WARNING)
         run.claim(METRICS_FILE, *(["csv"] if cfg.logger.backend == "csv" else []))
         before = run.listing()
         self.logger = make_logger(cfg, run.path, observers=self.observers)
         run.claim_new(before)  # a backend's own files
-        start, schedule = time.perf_counter(), get_schedule(str(cfg.schedule.name))
+        self._start = time.perf_counter()
+        return RunStore(
+            run,
+            self.task,
+            get_schedule(str(cfg.schedule.name)),
+            logger=self.logger,
+            resuming=self.resuming,
+            device=str(cfg.device),
+            checkpoint_every=int(cfg.checkpoint_every),
+            checkpoint_keep=int(cfg.checkpoint_keep),
+            reuse=self.reuse,
+        )
+
+    def _train_kwargs(self) -> dict[str, Any]:
+        cfg, start = self.cfg, self._start
         kwargs = {
             "seed": int(cfg.seed),
             "logger": self.logger,
@@ -315,18 +345,12 @@ class Experiment:
                         self.logger.log_scalar(f"eval/task/{key}", value, step=frames)
 
             kwargs["probe"] = probe
-        store = RunStore(
-            run,
-            self.task,
-            schedule,
-            logger=self.logger,
-            resuming=self.resuming,
-            device=str(cfg.device),
-            checkpoint_every=int(cfg.checkpoint_every),
-            checkpoint_keep=int(cfg.checkpoint_keep),
-            reuse=self.reuse,
-        )
-        trained = schedule.train(self.task, store, **kwargs)
+        return kwargs
+
+    def finish(self, trained: Trained, store: RunStore) -> dict[str, Any]:
+        """The end of a launch: records it done, evaluates the trained stages and writes
+        ``eval.json``; returns it."""
+        cfg, run, schedule = self.cfg, self.run_dir, store.schedule
         learners, results = trained.learners, trained.results
         check("the whole-task evaluation")  # a stop asked for during the last stage's save
         run.update_launch("done")

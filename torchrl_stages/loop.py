@@ -273,6 +273,13 @@ class MetricsLog:
         }
 
 
+def _shown(value: float | Sequence[float], digits: int) -> str:
+    """A progress bar's number: one value, or the mean of one per seed."""
+    if isinstance(value, Sequence):
+        value = sum(value) / len(value)
+    return f"{value:.{digits}f}"
+
+
 def run_loop(
     collector: StageCollector,
     *,
@@ -319,7 +326,7 @@ def run_loop(
                 counters["next_eval"] += eval_every
                 with watch("evaluate"):
                     success, value_error, ret = evaluate()
-                bar.set_postfix(success=f"{success:.2f}", value_error=f"{value_error:.3f}")
+                bar.set_postfix(success=_shown(success, 2), value_error=_shown(value_error, 3))
                 stop = early_stop.record(model, success, value_error, frames, ret)
             if stop:
                 break

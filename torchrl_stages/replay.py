@@ -58,3 +58,56 @@ def stage_replay_buffer(
         ('GatherStorage', 100)
     """
     return TensorDictReplayBuffer(storage=GatherStorage(int(size), device=device), **kwargs)
+
+
+class SeedReplayBuffer:
+    """One uniform replay buffer per seed, in one storage ``[num_seeds, size]``.
+
+    :meth:`extend` takes a seed-major batch (its first dimension grouped by seed, as a
+    seed-stacked learner's envs collect it) and appends each seed's part to its own ring;
+    :meth:`sample` returns ``[num_seeds, batch_size]`` transitions, each seed's drawn uniformly
+    from its own part with its own indices, in one gather. (torchrl's buffers keep one ring and
+    one sampler; N of them would cost N samples and a stack per update.)
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> rb = SeedReplayBuffer(4, num_seeds=2)
+        >>> rb.extend(TensorDict(x=torch.tensor([0, 1, 10, 11]), batch_size=[4]))
+        >>> len(rb), rb.sample(3)["x"].shape
+        (2, torch.Size([2, 3]))
+        >>> bool((rb.sample(5)["x"][1] >= 10).all())  # seed 1 only ever sees its own
+        True
+    """
+
+    def __init__(self, size: int, *, num_seeds: int, device: torch.device | str = "cpu") -> None:
+        self.size, self.num_seeds, self.device = int(size), int(num_seeds), torch.device(device)
+        self.storage = None
+        self.cursor = 0
+        self.count = 0
+
+    def __len__(self) -> int:
+        """Transitions held per seed."""
+        return self.count
+
+    def extend(self, batch) -> None:
+        n = self.num_seeds
+        batch = batch.reshape(n, -1).to(self.device)
+        m = batch.shape[1]
+        if self.storage is None:
+            self.storage = batch.apply(
+                lambda x: torch.empty((n, self.size, *x.shape[2:]), dtype=x.dtype, device=x.device),
+                batch_size=[n, self.size],
+            )
+        if m > self.size:  # only the newest fit
+            batch, m = batch[:, m - self.size :], self.size
+        index = (self.cursor + torch.arange(m, device=self.device)) % self.size
+        for key, value in batch.items(True, True):
+            self.storage.get(key)[:, index] = value
+        self.cursor = (self.cursor + m) % self.size
+        self.count = min(self.count + m, self.size)
+
+    def sample(self, batch_size: int):
+        n = self.num_seeds
+        index = torch.randint(self.count, (n, batch_size), device=self.device)
+        rows = torch.arange(n, device=self.device).unsqueeze(1)
+        return self.storage.apply(lambda x: x[rows, index], batch_size=[n, batch_size])

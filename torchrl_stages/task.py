@@ -15,6 +15,27 @@ from torchrl_stages.learners import StageSpecs
 from torchrl_stages.transforms import StageTransform
 
 
+def tile_starts(starts: dict[str, Any], copies: int) -> dict[str, Any]:
+    """The constructor arguments of :meth:`StagedTask.start_states` for ``copies`` consecutive
+    copies of its batch: ``batch_size`` times ``copies``, and every tensor whose first
+    dimension is the batch repeated along it (the per-element starts); the rest unchanged.
+
+    Examples:
+        >>> starts = {"batch_size": (2,), "start_cell": torch.tensor([[0, 0], [1, 0]]), "x": 3}
+        >>> tiled = tile_starts(starts, 2)
+        >>> tiled["batch_size"], tiled["start_cell"][:, 0].tolist(), tiled["x"]
+        ((4,), [0, 1, 0, 1], 3)
+    """
+    if copies == 1:
+        return starts
+    (size,) = tuple(starts["batch_size"])
+    out = dict(starts, batch_size=(size * copies,))
+    for key, value in starts.items():
+        if isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == size:
+            out[key] = value.repeat(copies, *[1] * (value.ndim - 1))
+    return out
+
+
 class StagedTask:
     """Makes the envs of a task config (``cfg.task``) for training and evaluation.
 
@@ -102,6 +123,7 @@ class StagedTask:
         *,
         all_starts: bool = False,
         episode_returns: bool = True,
+        copies: int = 1,
     ) -> TransformedEnv:
         """Stage ``stage``'s training env: starts inside the stage, its learner's view of rewards.
 
@@ -110,12 +132,14 @@ class StagedTask:
         episode returns (``("next", "episode_reward")``, what the training logs read). With
         ``all_starts`` (and an env that enumerates its starts, see :meth:`start_states`) the
         batch holds one element per start state of the stage and ``batch_size`` is ignored.
+        ``copies``: the batch holds that many consecutive copies of it (one per seed of a
+        seed-stacked learner, :func:`tile_starts`).
         """
         starts = self.start_states(stage) if all_starts else None
         if starts is not None:
-            base = self.base_env(**starts)
+            base = self.base_env(**tile_starts(starts, copies))
         else:
-            base = self.base_env(batch_size, start_stage=stage)
+            base = self.base_env(batch_size * copies, start_stage=stage)
         transform = StageTransform(
             base.stage_fn,
             base.num_stages,
@@ -127,14 +151,19 @@ class StagedTask:
         return TransformedEnv(base, Compose(*transforms))
 
     def stage_eval_env(
-        self, stage: int, next_value: TensorDictModuleBase | None = None
+        self, stage: int, next_value: TensorDictModuleBase | None = None, *, copies: int = 1
     ) -> TransformedEnv:
         """The env of stage ``stage``'s greedy evaluations: one episode from every start state
         when the env enumerates them, else ``eval_episodes`` random starts in the stage (no
         ``RewardSum``: evaluations compute their returns from the rollout)."""
         cfg = self.stage_cfg(stage)
         return self.stage_env(
-            stage, int(cfg.eval_episodes), next_value, all_starts=True, episode_returns=False
+            stage,
+            int(cfg.eval_episodes),
+            next_value,
+            all_starts=True,
+            episode_returns=False,
+            copies=copies,
         )
 
     def task_env(

@@ -26,6 +26,7 @@ from torchrl_stages.learners.base import (
     StageSpecs,
     register_algorithm,
 )
+from torchrl_stages.learners.stacking import stacked_networks
 
 for _module in pkgutil.iter_modules(__path__):  # each algorithm module registers itself
     importlib.import_module(f"{__name__}.{_module.name}")
@@ -76,20 +77,35 @@ def learner_class(cfg: Any) -> type[Learner]:
 
 
 def make_learner(
-    cfg, specs: StageSpecs, compile: str = "off", device: str | torch.device | None = None
+    cfg,
+    specs: StageSpecs,
+    compile: str = "off",
+    device: str | torch.device | None = None,
+    *,
+    seeds: int | None = None,
 ) -> Learner:
     """Builds the learner of stage config ``cfg`` (:func:`learner_class`; a ``learner`` node's
     other keys are its keyword arguments); ``compile``: ``torch.compile`` mode of its update's
     loss (``off``, ``default``, ``reduce-overhead``...); ``device``: where every tensor it
     builds lives (networks, targets, bounds; default: torch's default device), the device of
-    the envs it acts in."""
+    the envs it acts in. ``seeds``: a learner of ``seeds`` seeds stacked in one
+    (:mod:`~torchrl_stages.learners.stacking`), for algorithms that declare
+    :attr:`~Learner.stacks_seeds`."""
     cls = learner_class(cfg)
+    if seeds is not None and not cls.stacks_seeds:
+        stacked = ", ".join(n for n, c in ALGORITHMS.items() if c.stacks_seeds)
+        raise ConfigError(
+            f"algo={cls.algo}: cannot train several seeds in one process (it does not stack "
+            f"its networks for seeds; those that do: {stacked}). Fix: train its seeds apart "
+            "(stages-train -m seed=0,1,2) or pick one of those algorithms"
+        )
     node = _field(cfg, "learner") or {}
     if isinstance(node, DictConfig):
         node = OmegaConf.to_container(node, resolve=True)
     kwargs = {k: v for k, v in node.items() if k != "_target_"}
     with torch.device(device) if device is not None else contextlib.nullcontext():
-        return cls(cfg, specs, compile=compile, **kwargs)
+        with stacked_networks(seeds):
+            return cls(cfg, specs, compile=compile, **kwargs)
 
 
 __all__ = [

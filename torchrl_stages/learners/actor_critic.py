@@ -244,7 +244,7 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
         if self.cfg.saturation_penalty <= 0:
             return 0.0
         excess = (u.abs() - SATURATION).clamp_min(0.0)
-        return self.cfg.saturation_penalty * excess.pow(2).mean()
+        return self.cfg.saturation_penalty * self.batch_mean(excess.pow(2))
 
     def anneal_exploration(self, frames: int) -> None:
         cfg = self.cfg

@@ -23,6 +23,7 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_stages.config import StageChecks, StageConfig, as_dataclass
 from torchrl_stages.learners.networks import ConvSpec
+from torchrl_stages.learners.stacking import current_seeds
 
 
 @dataclass
@@ -197,6 +198,21 @@ def total_grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
     return torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
 
 
+def seed_grad_norms(grads: list[torch.Tensor], num_seeds: int) -> torch.Tensor:
+    """The 2-norm of each seed's gradients (``[num_seeds]``) over seed-stacked gradients
+    (``[num_seeds, ...]`` each)."""
+    per_tensor = torch.stack([g.reshape(num_seeds, -1).norm(dim=1) for g in grads])
+    return torch.linalg.vector_norm(per_tensor, 2.0, dim=0)
+
+
+def clip_seed_grads(grads: list[torch.Tensor], max_norm: float, norms: torch.Tensor) -> None:
+    """Scales each seed's gradients to at most ``max_norm`` (``norms``: their norms), as
+    ``torch.nn.utils.clip_grads_with_norm_`` does for one set of parameters."""
+    coef = (max_norm / (norms + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(coef.view(-1, *[1] * (g.ndim - 1)))
+
+
 def td0_target(
     next_td: TensorDictBase, next_value: torch.Tensor, gamma: float, steps: torch.Tensor | None
 ) -> torch.Tensor:
@@ -330,6 +346,10 @@ class Learner(nn.Module, ABC):
     #: whether :meth:`update` draws from torch's global generator (a target policy's smoothing
     #: noise); if not, the stage loop samples all of a batch's minibatches in one draw
     update_draws_random: bool = False
+    #: whether it trains seed-stacked (:mod:`~torchrl_stages.learners.stacking`): every
+    #: network from :mod:`~torchrl_stages.learners.networks` and every loss reduced with
+    #: :meth:`batch_mean`
+    stacks_seeds: bool = False
 
     def __init__(self, cfg: StageConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__()
@@ -341,6 +361,15 @@ class Learner(nn.Module, ABC):
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.grad_norms: dict[str, torch.Tensor] = {}  # of the last update, per optimizer
         self.num_updates = 0
+        #: seeds its networks are stacked for (``make_learner(..., seeds=N)``); ``None``: one
+        self.seeds: int | None = current_seeds()
+
+    def batch_mean(self, x: torch.Tensor) -> torch.Tensor:
+        """The mean of a loss term over its batch: a scalar, or one per seed (``[N]``) for a
+        seed-stacked learner, whose batches are ``[N, B, ...]``."""
+        if self.seeds is None:
+            return x.mean()
+        return x.reshape(self.seeds, -1).mean(-1)
 
     @property
     def replay_keys(self) -> list[NestedKey]:
@@ -443,18 +472,24 @@ class Learner(nn.Module, ABC):
 
         Each optimizer's gradient is clipped to ``cfg.max_grad_norm`` when set; its norm before
         clipping is kept in :attr:`grad_norms`, and a non-finite one raises
-        :class:`NonFiniteError` before any parameter changes.
+        :class:`NonFiniteError` before any parameter changes. A seed-stacked learner's ``loss``
+        holds one loss per seed; each seed's gradient has its own norm and clipping.
         """
         names = names or tuple(self.optimizers)
         max_norm = self.cfg.max_grad_norm
-        loss.backward()
+        (loss.sum() if self.seeds is not None else loss).backward()
         for name in names:
             params = [p for group in self.optimizers[name].param_groups for p in group["params"]]
             grads = [p.grad for p in params if p.grad is not None]
-            norm = total_grad_norm(grads)
-            if max_norm is not None:
-                torch.nn.utils.clip_grads_with_norm_(params, float(max_norm), norm)
-            if not bool(torch.isfinite(norm)):
+            if self.seeds is None:
+                norm = total_grad_norm(grads)
+                if max_norm is not None:
+                    torch.nn.utils.clip_grads_with_norm_(params, float(max_norm), norm)
+            else:
+                norm = seed_grad_norms(grads, self.seeds)
+                if max_norm is not None:
+                    clip_seed_grads(grads, float(max_norm), norm)
+            if not bool(torch.isfinite(norm).all()):
                 raise NonFiniteError(f"the gradient of the {name} parameters", self.num_updates + 1)
             self.grad_norms[name] = norm.detach()
         for name in names:

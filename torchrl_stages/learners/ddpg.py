@@ -46,6 +46,7 @@ class DDPGLearner(DeterministicActorCriticLearner):
     Config = DDPGConfig
     CRITIC = "value_network"
     torchrl_loss = DDPGLoss
+    stacks_seeds = True
 
     @classmethod
     def value_from_loss(cls, loss: DDPGLoss, live: bool = False) -> TensorDictModuleBase:
@@ -89,11 +90,11 @@ class DDPGLearner(DeterministicActorCriticLearner):
                 float(self.cfg.gamma),
                 batch.get("steps_to_next_obs", None),
             )
-        loss_value = distance(pred, target, self.cfg.loss_function).mean()
+        loss_value = self.batch_mean(distance(pred, target, self.cfg.loss_function))
         u = self.actor_module(*obs)
         detached = {n: p.detach() for n, p in self.critic_module.named_parameters()}
         q = functional_call(self.critic_module, detached, (*obs, self.squash(u)))
-        return -q.mean(), loss_value, self.penalty(u)
+        return -self.batch_mean(q), loss_value, self.penalty(u)
 
     def _shared_losses(
         self, batch: TensorDictBase
@@ -112,13 +113,13 @@ class DDPGLearner(DeterministicActorCriticLearner):
                 float(self.cfg.gamma),
                 batch.get("steps_to_next_obs", None),
             )
-        loss_value = distance(pred, target, self.cfg.loss_function).mean()
+        loss_value = self.batch_mean(distance(pred, target, self.cfg.loss_function))
         features = features.detach()
         u = self.actor_module.body(features)
         body = self.critic_module.body
         detached = {n: p.detach() for n, p in body.named_parameters()}
         q = functional_call(body, detached, (torch.cat([features, self.squash(u)], -1),))
-        return -q.mean(), loss_value, self.penalty(u)
+        return -self.batch_mean(q), loss_value, self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_actor, loss_value, penalty = self._losses(batch)

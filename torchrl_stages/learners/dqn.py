@@ -66,6 +66,7 @@ class DQNLearner(Learner):
     Config = DQNConfig
     action_spaces = ("discrete",)
     torchrl_loss = DQNLoss
+    stacks_seeds = True
 
     def __init__(self, cfg: DQNConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
@@ -151,7 +152,7 @@ class DQNLearner(Learner):
                 float(self.cfg.gamma),
                 batch.get("steps_to_next_obs", None),
             )
-        return distance(pred, target, self.cfg.loss_function).mean()
+        return self.batch_mean(distance(pred, target, self.cfg.loss_function))
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss = self._loss_fn(batch)

@@ -1,4 +1,5 @@
-"""Network builders shared by the learners."""
+"""Network builders shared by the learners (stacked for seeds inside
+:func:`~torchrl_stages.learners.stacking.stacked_networks`)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ import torch
 from torch import nn
 from torchrl.modules import MLP
 from torchrl.modules.models.models import DuelingMlpDQNet
+
+from torchrl_stages.learners.stacking import stack_for_seeds
 
 
 class FourierFeatures(nn.Module):
@@ -168,8 +171,8 @@ class SharedEncoderCritic(nn.Module):
     def __init__(self, encoder: nn.Module, action_dim: int, num_cells: list[int]) -> None:
         super().__init__()
         self.encoder = encoder
-        self.body = MLP(
-            in_features=encoder.out_features + action_dim, out_features=1, num_cells=num_cells
+        self.body = stack_for_seeds(
+            MLP(in_features=encoder.out_features + action_dim, out_features=1, num_cells=num_cells)
         )
 
     def head(self, features: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -204,7 +207,7 @@ def mlp(
     """
     encoder, width = _encoder(inputs, fourier, cnn)
     body = MLP(in_features=width, out_features=out_features, num_cells=num_cells)
-    return body if encoder is None else _Encoded(encoder, body)
+    return stack_for_seeds(body if encoder is None else _Encoded(encoder, body))
 
 
 def qvalue_net(
@@ -237,4 +240,4 @@ def qvalue_net(
             "activation_class": nn.ReLU,
         },
     )
-    return net if encoder is None else _Encoded(encoder, net)
+    return stack_for_seeds(net if encoder is None else _Encoded(encoder, net))

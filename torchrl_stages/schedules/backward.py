@@ -4,7 +4,7 @@ before."""
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from omegaconf import DictConfig
@@ -14,7 +14,10 @@ from torchrl.record.loggers import Logger
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import check
 from torchrl_stages.learners import Learner, make_learner
+from torchrl_stages.learners.stacking import stack_learners
+from torchrl_stages.loop import MetricsLog
 from torchrl_stages.schedules.base import Probe, Schedule, StageStore, Trained, register_schedule
+from torchrl_stages.seed_stage import SeedsStageTrainer
 from torchrl_stages.stage import StageResult, StageTrainer
 from torchrl_stages.task import StagedTask
 
@@ -139,6 +142,93 @@ def train_stage(
     return learner, trainer.train()
 
 
+def train_backward_seeds(
+    task: StagedTask,
+    seeds: Sequence[int],
+    *,
+    stores: Sequence[StageStore | None] | None = None,
+    logs: Sequence[MetricsLog] | None = None,
+    progress: bool = False,
+) -> list[Trained]:
+    """Trains stages N-1, ..., 0 of ``task`` for every seed of ``seeds`` at once (the backward
+    schedule, :class:`SeedsStageTrainer` per stage); returns each seed's learners and results
+    in stage order (:class:`~torchrl_stages.seed_stage.SeedsStageTrainer` trains each stage).
+
+    Seed ``s``'s stage ``k`` starts from the weights a single run with seed ``s`` starts it
+    from (``torch.manual_seed(s + k)`` before its learner is built). ``stores`` (one per seed)
+    skip the stages every seed has finished and keep each finished stage; ``logs`` (one per
+    seed) receive each seed's metrics.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.learners.dqn import DQNConfig
+        >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16,
+        ...                  init_random_frames=128, batch_size=32, eval_every=0)
+        >>> task = StagedTask(OmegaConf.create({
+        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2},
+        ... }))
+        >>> runs = train_backward_seeds(task, [0, 1])  # doctest: +SKIP
+        >>> [[r.frames for r in run.results] for run in runs]  # doctest: +SKIP
+        [[256, 256], [256, 256]]
+    """
+    n, num_stages = len(seeds), task.num_stages
+    stores = list(stores) if stores is not None else [None] * n
+    logs = list(logs) if logs is not None else [MetricsLog(None) for _ in range(n)]
+    learners: list[list[Learner | None]] = [[None] * num_stages for _ in range(n)]
+    results: list[list[StageResult | None]] = [[None] * num_stages for _ in range(n)]
+    next_value = None
+    for k in reversed(range(num_stages)):
+        cfg, specs = task.stage_cfg(k), task.specs(k)
+
+        def plain(cfg=cfg, specs=specs) -> Learner:
+            return make_learner(cfg, specs, device=task.device)
+
+        done = [store.finished(k) if store is not None else None for store in stores]
+        if any(d is not None for d in done):
+            missing = [s for s, d in zip(seeds, done, strict=True) if d is None]
+            if missing:
+                raise RuntimeError(
+                    f"stage {k}: finished for some seeds but not for seeds {missing}; "
+                    "Fix: resume those seeds' run directories one by one (stages-train "
+                    "seed=<s> resume=true hydra.run.dir=<its directory>)"
+                )
+            for i, (learner, result) in enumerate(done):
+                learners[i][k], results[i][k] = learner, result
+            stacked = make_learner(cfg, specs, device=task.device, seeds=n)
+            next_value = stack_learners(stacked, [d[0] for d in done]).value()
+            continue
+        singles = []
+        for s in seeds:
+            torch.manual_seed(s + k)
+            singles.append(plain())
+        stacked = stack_learners(make_learner(cfg, specs, device=task.device, seeds=n), singles)
+        torch.manual_seed(seeds[0] + k)
+        env = task.stage_env(k, int(cfg.num_envs), next_value, copies=n)
+        env.set_seed(seeds[0] + k)
+        eval_env = task.stage_eval_env(k, next_value, copies=n)
+        eval_env.set_seed(seeds[0] + 10_000 + k)
+        trainer = SeedsStageTrainer(
+            k,
+            stacked,
+            env,
+            eval_env,
+            cfg,
+            logs=logs,
+            make_learner=plain,
+            name=task.stage_names[k],
+            progress=progress,
+            seeds=seeds,
+        )
+        for i, (learner, result) in enumerate(trainer.train()):
+            learners[i][k], results[i][k] = learner, result
+            if stores[i] is not None:
+                stores[i].save(k, learner, result)
+        next_value = stacked.value()
+    return [Trained(learners[i], results[i]) for i in range(n)]
+
+
 @register_schedule
 class BackwardSchedule(Schedule):
     """``schedule=backward`` (:func:`train_backward`): stage k is trained from its own config
@@ -147,9 +237,13 @@ class BackwardSchedule(Schedule):
 
     name = "backward"
     reuses_stages = True
+    stacks_seeds = True
 
     def train(self, task: StagedTask, store: StageStore | None = None, **kwargs) -> Trained:
         return Trained(*train_backward(task, store=store, **kwargs))
+
+    def train_seeds(self, task: StagedTask, seeds: Sequence[int], **kwargs) -> list[Trained]:
+        return train_backward_seeds(task, seeds, **kwargs)
 
     def frozen_stages(self, finished: set[int], num_stages: int) -> set[int]:
         return set(range(min(finished), num_stages)) if finished else set()

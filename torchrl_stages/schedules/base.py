@@ -10,7 +10,7 @@ the code that runs it.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol
 
@@ -91,11 +91,19 @@ class Schedule:
     #: whether a stage is determined by its own config and the stages after it alone, so that
     #: a finished one can be reused by another run (``stage_store``, ``init_from``)
     reuses_stages: ClassVar[bool] = False
+    #: whether :meth:`train_seeds` trains several seeds in one process (``seeds=[...]``)
+    stacks_seeds: ClassVar[bool] = False
 
     def train(self, task: StagedTask, store: StageStore | None = None, **kwargs: Any) -> Trained:
         """Trains (what is left of) ``task``'s stages. ``kwargs``: ``seed``, ``logger``,
         ``progress``, ``probe``, ``compile``."""
         raise NotImplementedError
+
+    def train_seeds(self, task: StagedTask, seeds: Sequence[int], **kwargs: Any) -> list[Trained]:
+        """Trains ``task`` for every seed of ``seeds`` at once, their networks stacked (see
+        :mod:`torchrl_stages.seed_stage`); one :class:`Trained` per seed. ``kwargs``:
+        ``stores`` and ``logs`` (one per seed), ``progress``."""
+        raise NotImplementedError(f"schedule {self.name} does not train seeds in one process")
 
     def frozen_stages(self, finished: set[int], num_stages: int) -> set[int]:
         """The stages whose config a resumed run may not change, given the ``finished`` ones:

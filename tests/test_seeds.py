@@ -1,0 +1,215 @@
+"""Several seeds in one process: seed-stacked learners, their replay storage, the envs with one
+copy of the starts per seed, and ``stages-train seeds=[...]`` writing one run directory per
+seed."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from helpers import run_cli, tiny_grid
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torchrl.data import Bounded, Categorical
+
+from torchrl_stages.config import ConfigError
+from torchrl_stages.learners import StageSpecs, make_learner
+from torchrl_stages.learners.ddpg import DDPGConfig
+from torchrl_stages.learners.dqn import DQNConfig
+from torchrl_stages.learners.networks import mlp
+from torchrl_stages.learners.sac import SACConfig
+from torchrl_stages.learners.stacking import (
+    StackedLinear,
+    stack_learners,
+    stacked_networks,
+    unstack_learner,
+)
+from torchrl_stages.replay import SeedReplayBuffer
+from torchrl_stages.rundir import load_run
+from torchrl_stages.seed_runs import validate_seeds
+from torchrl_stages.seed_stage import SeedRow
+from torchrl_stages.task import StagedTask, tile_starts
+
+
+def _batch(lead: tuple[int, ...], action: torch.Tensor) -> TensorDict:
+    def obs() -> torch.Tensor:
+        return torch.randn(*lead, 3)
+
+    done = torch.zeros(*lead, 1, dtype=torch.bool)
+    nxt = TensorDict(
+        observation=obs(),
+        reward=torch.randn(*lead, 1),
+        done=done,
+        terminated=torch.rand(*lead, 1) < 0.2,
+        batch_size=lead,
+    )
+    return TensorDict(observation=obs(), action=action, next=nxt, batch_size=lead)
+
+
+CASES = {
+    # gradient clipping on: each seed is clipped by its own norm
+    "dqn": (
+        DQNConfig(gamma=0.9, max_grad_norm=0.5, fourier_features=2),
+        Categorical(4),
+        lambda lead: torch.randint(0, 4, lead),
+    ),
+    "ddpg": (
+        DDPGConfig(gamma=0.9, max_grad_norm=1.0),
+        Bounded(-1, 1, (2,)),
+        lambda lead: torch.rand(*lead, 2) * 2 - 1,
+    ),
+}
+
+
+@pytest.mark.parametrize("algo", list(CASES))
+def test_a_stacked_learner_updates_each_seed_as_its_own_learner_would(algo):
+    cfg, spec, action = CASES[algo]
+    specs = StageSpecs(["observation"], 3, "action", spec)
+    n, size = 3, 16
+    singles = [make_learner(cfg, specs) for _ in range(n)]
+    stacked = stack_learners(make_learner(cfg, specs, seeds=n), singles)
+    for _ in range(4):
+        batch = _batch((n, size), action((n, size)))
+        expected = [learner.update(batch[i]) for i, learner in enumerate(singles)]
+        losses = stacked.update(batch)
+        for key, value in losses.items():
+            assert value.shape == (n,), key
+            for i in range(n):
+                torch.testing.assert_close(value[i], expected[i][key], rtol=1e-4, atol=1e-6)
+    for i, single in enumerate(singles):
+        out = unstack_learner(stacked, i, make_learner(cfg, specs)).state_dict()
+        for key, value in single.state_dict().items():
+            torch.testing.assert_close(out[key], value, rtol=1e-4, atol=1e-6, msg=key)
+    # the stage value of every seed, on a seed-major batch
+    obs = torch.randn(n * 5, 3)
+    stacked_v = stacked.value()(TensorDict(observation=obs, batch_size=[n * 5]))["state_value"]
+    for i, single in enumerate(singles):
+        part = TensorDict(observation=obs[i * 5 : (i + 1) * 5], batch_size=[5])
+        torch.testing.assert_close(
+            stacked_v[i * 5 : (i + 1) * 5], single.value()(part)["state_value"], atol=1e-5, rtol=0
+        )
+
+
+def test_stacked_networks_refuse_what_cannot_be_stacked():
+    specs = StageSpecs(["observation"], 3, "action", Bounded(-1, 1, (2,)))
+    with pytest.raises(ConfigError, match="cannot train several seeds in one process"):
+        make_learner(SACConfig(), specs, seeds=2)
+    with stacked_networks(2), pytest.raises(TypeError, match="Conv2d"):
+        mlp([(1, 6, 6)], 2, [8])
+    with stacked_networks(2):
+        net = mlp(4, 2, [8])
+    assert all(type(m) is not torch.nn.Linear for m in net.modules())
+    assert isinstance(net[0], StackedLinear) and net[0].weight.shape == (2, 8, 4)
+
+
+def test_a_seed_row_reads_and_restores_one_seed():
+    specs = StageSpecs(["observation"], 3, "action", Categorical(4))
+    stacked = make_learner(DQNConfig(), specs, seeds=3)
+    row = SeedRow(stacked, 1)
+    saved = row.state_dict()
+    assert all(v.shape == stacked.state_dict()[k].shape[1:] for k, v in saved.items())
+    before = {k: v.clone() for k, v in stacked.state_dict().items()}
+    moved = {}  # every seed's weights move, targets included (entries alias: once each)
+    for key, value in stacked.state_dict(keep_vars=True).items():
+        if key in saved:
+            moved.setdefault(value.data_ptr(), value)
+    with torch.no_grad():
+        for value in moved.values():
+            value.data.add_(1.0)
+    row.load_state_dict(saved)
+    after = stacked.state_dict()
+    for key, value in saved.items():
+        torch.testing.assert_close(after[key][1], value)
+        torch.testing.assert_close(after[key][0], before[key][0] + 1.0)
+
+
+def test_seed_replay_keeps_each_seeds_transitions_apart():
+    rb = SeedReplayBuffer(5, num_seeds=2)
+    for step in range(4):  # 3 per seed per extend: the ring wraps
+        x = torch.tensor([0, 0, 0, 1, 1, 1]) * 1000 + step
+        rb.extend(TensorDict(x=x, batch_size=[6]))
+    assert len(rb) == 5
+    sample = rb.sample(64)["x"]
+    assert sample.shape == (2, 64)
+    assert bool((sample[0] < 1000).all()) and bool((sample[1] >= 1000).all())
+    assert set((sample[0] % 1000).tolist()) <= {1, 2, 3}  # the 5 newest: steps 2, 3 (and 1)
+
+
+def test_stage_envs_hold_one_copy_of_the_starts_per_seed():
+    task = StagedTask(
+        OmegaConf.create(
+            {
+                "name": "grid",
+                "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9, "eval_episodes": 4}},
+                "env": {
+                    "_target_": "torchrl_stages.envs.GridWorldEnv",
+                    "size": 10,
+                    "num_stages": 2,
+                },
+            }
+        )
+    )
+    one = task.stage_eval_env(1).base_env.start_cell
+    three = task.stage_eval_env(1, copies=3).base_env.start_cell
+    assert three.shape[0] == 3 * one.shape[0]
+    assert torch.equal(three, one.repeat(3, 1))
+    assert task.stage_env(1, 8, copies=3).batch_size == (24,)
+    tiled = tile_starts({"batch_size": (2,), "start_cell": torch.zeros(2, 2)}, 1)
+    assert tiled["batch_size"] == (2,)
+
+
+def test_validate_seeds_names_each_fix():
+    def cfg(seeds, schedule="backward", probe=False):
+        return OmegaConf.create(
+            {"seeds": seeds, "schedule": {"name": schedule}, "eval": {"probe": probe}}
+        )
+
+    assert validate_seeds(cfg([3, 1])) == [3, 1]
+    for bad, match in [
+        ([], "non-empty list"),
+        ([0, -1], "int >= 0"),
+        ([0, 0], r"listed twice. Fix: seeds=\[0\]"),
+    ]:
+        with pytest.raises(ConfigError, match=match):
+            validate_seeds(cfg(bad))
+    with pytest.raises(ConfigError, match="schedule=joint seed=0,1"):
+        validate_seeds(cfg([0, 1], schedule="joint"))
+    with pytest.raises(ConfigError, match="eval.probe=false"):
+        validate_seeds(cfg([0, 1], probe=True))
+
+
+@pytest.mark.e2e
+def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
+    """The grid world learns on every seed, each seed's directory loads like a single run's,
+    the same command with resume=true loads the finished stages, and the sweep summary covers
+    the seeds."""
+    run_dir = tmp_path / "run"
+    two_stages = [o for o in tiny_grid() if not o.startswith("task.stages.")]  # their defaults
+    argv = ["stages-train", "seeds=[0,3]", f"hydra.run.dir={run_dir}", *two_stages]
+    done = run_cli(argv, tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    for seed in (0, 3):
+        seed_dir = run_dir / f"seed_{seed}"
+        run = load_run(seed_dir)
+        assert run.cfg.seed == seed and run.cfg.seeds is None
+        assert len(run.learners) == 2
+        result = json.loads((seed_dir / "eval.json").read_text())
+        assert result["success_rate"] == 1.0, (seed, result)
+        assert (seed_dir / "metrics.csv").read_text().count("eval/stage_0/success_rate") >= 1
+        overrides = OmegaConf.load(seed_dir / ".hydra" / "overrides.yaml")
+        assert f"seed={seed}" in overrides and not any("seeds" in o for o in overrides)
+    summary = (run_dir / "summary.md").read_text()
+    assert "2 jobs (2 done)" in summary
+    again = run_cli([*argv, "resume=true"], tmp_path)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert (again.stdout + again.stderr).count("finished earlier, loaded") == 4
+    refused = run_cli([*argv[:-1], "schedule=joint"], tmp_path)
+    assert refused.returncode == 2 and "seeds=[0, 3]" in refused.stderr
+    # an algorithm that does not stack: refused before anything is trained or written
+    other = tmp_path / "other"
+    sac = ["stages-train", "seeds=[0,1]", f"hydra.run.dir={other}", *two_stages]
+    refused = run_cli([*sac, "algo@task.stages.s0=discrete_sac"], tmp_path)
+    assert refused.returncode == 2, refused.stderr[-2000:]
+    assert "task.stages.s0: algo=discrete_sac: cannot train several seeds" in refused.stderr
+    assert not list(other.glob("seed_*/stage_*.pt"))

@@ -1,0 +1,227 @@
+"""Several seeds of one config trained in one process: ``stages-train seeds=[0,1,2]``.
+
+:class:`SeedRuns` makes one ordinary :class:`~torchrl_stages.experiment.Experiment` per seed,
+in ``<run_dir>/seed_<s>/`` (config, checks, lock, logs, stage files, evaluation and figures
+exactly as ``stages-train seed=<s>`` writes them), trains their stages together with
+:meth:`~torchrl_stages.schedules.Schedule.train_seeds`, evaluates each, and writes the sweep
+summary over them in ``run_dir`` (:func:`~torchrl_stages.sweeps.summarize_sweep`).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
+
+from torchrl_stages.config import ConfigError, apply_all_stages, check
+from torchrl_stages.experiment import Experiment, build_task, one_line, with_env_stages
+from torchrl_stages.learners import make_learner
+from torchrl_stages.loggers import StopRun
+from torchrl_stages.preemption import Interrupted, handle_signals
+from torchrl_stages.schedules import SCHEDULES, get_schedule
+from torchrl_stages.stage import DivergenceError
+from torchrl_stages.task import StagedTask
+from torchrl_stages.threads import hold_threads
+
+log = logging.getLogger("torchrl_stages")
+
+__all__ = ["SeedRuns", "seed_dir", "validate_seeds"]
+
+
+def seed_dir(run_dir: str | Path, seed: int) -> Path:
+    """Where seed ``seed`` of a many-seed run in ``run_dir`` lives."""
+    return Path(run_dir) / f"seed_{seed}"
+
+
+def validate_seeds(cfg: DictConfig) -> list[int]:
+    """``cfg.seeds`` as a list of ints; :class:`ConfigError` naming the fix when it cannot be
+    trained in one process.
+
+    Examples:
+        >>> validate_seeds(OmegaConf.create({"seeds": [0, 2], "schedule": {"name": "backward"},
+        ...                                  "eval": {}}))
+        [0, 2]
+        >>> validate_seeds(OmegaConf.create({"seeds": [1, 1], "schedule": {"name": "backward"},
+        ...                                  "eval": {}}))
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.config.ConfigError: seeds=[1, 1]: ...
+    """
+    raw = cfg.get("seeds")
+    shown = OmegaConf.to_container(raw) if isinstance(raw, ListConfig) else raw
+    check(
+        isinstance(raw, ListConfig | list) and len(raw) > 0,
+        "seeds",
+        shown,
+        "must be a non-empty list of seeds",
+        "seeds=[0,1,2]",
+    )
+    ok = all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in raw)
+    check(ok, "seeds", shown, "every seed must be an int >= 0", "seeds=[0,1,2]")
+    seeds = [int(s) for s in raw]
+    check(
+        len(set(seeds)) == len(seeds),
+        "seeds",
+        shown,
+        "a seed is listed twice",
+        f"seeds=[{','.join(str(s) for s in dict.fromkeys(seeds))}]",
+    )
+    name = str(cfg.schedule.name)
+    able = [n for n, schedule in SCHEDULES.items() if schedule.stacks_seeds]
+    check(
+        get_schedule(name).stacks_seeds,
+        "seeds",
+        shown,
+        f"schedule={name} cannot train several seeds in one process yet ({', '.join(able)} can)",
+        f"schedule={'|'.join(able)}, or train the seeds apart: stages-train -m "
+        f"schedule={name} seed={','.join(str(s) for s in seeds)}",
+    )
+    check(
+        not cfg.eval.get("probe", False),
+        "eval.probe",
+        True,
+        "the whole-task probe is not run for several seeds in one process",
+        "eval.probe=false",
+    )
+    return seeds
+
+
+def check_stackable(task: StagedTask, num_seeds: int) -> None:
+    """Builds each stage's learner stacked for ``num_seeds`` seeds (small, on the CPU, thrown
+    away): :class:`ConfigError` naming the stage and the fix when one cannot be, before any
+    training."""
+    for k, name in enumerate(task.stage_names):
+        try:
+            make_learner(task.stage_cfg(k), task.specs(k), seeds=num_seeds)
+        except ConfigError as err:
+            raise ConfigError(f"task.stages.{name}: {err}") from None
+        except TypeError as err:
+            raise ConfigError(
+                f"task.stages.{name}: its networks cannot be stacked for seeds: {err}. Fix: "
+                "train its seeds apart (stages-train -m seed=0,1,2)"
+            ) from None
+
+
+def _for_seed(cfg: DictConfig, seed: int) -> DictConfig:
+    out = copy.deepcopy(cfg)
+    with open_dict(out):
+        out.seed, out.seeds = seed, None
+    return out
+
+
+def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[str, Any]:
+    """``.hydra/`` of seed ``seed``'s directory: its config, and the command's overrides with
+    ``seed=<seed>`` for ``seeds=...`` (how the sweep summary groups the seeds)."""
+    out = dict(files)
+    out["config.yaml"] = cfg
+    overrides = [str(o) for o in files.get("overrides.yaml", [])]
+    kept = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in ("seeds", "seed")]
+    out["overrides.yaml"] = [*kept, f"seed={seed}"]
+    return out
+
+
+class SeedRuns:
+    """Trains ``cfg.seeds`` in one process, seed ``s`` into the run directory
+    ``<run_dir>/seed_<s>/``; :meth:`run` returns each seed's ``eval.json``.
+
+    Each seed's directory is an ordinary run of ``cfg`` with ``seed=<s>`` (checked, locked and
+    written by :class:`~torchrl_stages.experiment.Experiment`; ``resume`` and ``overwrite``
+    act on each), so ``load_run``, ``stages-eval`` and ``stages-report`` read it as any other.
+    The seeds' networks are stacked and trained at once (schedules and algorithms that
+    declare ``stacks_seeds``).
+
+    Examples:
+        >>> from hydra import compose, initialize_config_module
+        >>> from torchrl_stages.store import register_configs
+        >>> register_configs()
+        >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
+        ...     cfg = compose("config", overrides=["experiment=smoke", "seeds=[0,1]"])
+        >>> results = SeedRuns(cfg, "runs/grid_seeds").run()  # doctest: +SKIP
+        >>> [r["success_rate"] for r in results]  # doctest: +SKIP
+        [1.0, 1.0]
+    """
+
+    def __init__(
+        self,
+        cfg: DictConfig,
+        run_dir: str | Path,
+        *,
+        hydra_files: dict[str, Any] | None = None,
+    ) -> None:
+        self.seeds = validate_seeds(cfg)
+        self.cfg, self.run_dir = cfg, Path(run_dir)
+        self.experiments: list[Experiment] = []
+        # before any directory is made: the config, and whether every stage stacks
+        first = with_env_stages(apply_all_stages(_for_seed(cfg, self.seeds[0])))
+        check_stackable(build_task(first), len(self.seeds))
+        try:
+            for seed in self.seeds:
+                seed_cfg = _for_seed(cfg, seed)
+                files = _hydra_files_for(hydra_files, seed_cfg, seed) if hydra_files else None
+                self.experiments.append(
+                    Experiment(seed_cfg, seed_dir(self.run_dir, seed), hydra_files=files)
+                )
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        for experiment in self.experiments:
+            experiment.close()
+
+    def run(self) -> list[dict[str, Any]]:
+        """Trains and evaluates every seed; how a launch that did not finish ended is in each
+        seed's ``status.json``, as for a single run."""
+        experiments, cfg = self.experiments, self.experiments[0].cfg
+        try:
+            with handle_signals(), hold_threads(int(cfg.threads)):
+                try:
+                    stores = []
+                    for experiment in experiments:
+                        stores.append(experiment.start())
+                    trained = stores[0].schedule.train_seeds(
+                        experiments[0].task,
+                        self.seeds,
+                        stores=stores,
+                        logs=[store.log for store in stores],
+                        progress=bool(cfg.progress),
+                    )
+                    results = [
+                        experiment.finish(run, store)
+                        for experiment, store, run in zip(experiments, stores, trained, strict=True)
+                    ]
+                except Interrupted as err:
+                    self._ended("interrupted", str(err), signal=err.signal_name)
+                    raise
+        except Interrupted:
+            raise
+        except StopRun as err:
+            self._ended(err.status, str(err))
+            raise
+        except DivergenceError as err:
+            self._ended("diverged", str(err))
+            raise
+        except Exception as err:
+            self._ended("failed", one_line(err))
+            raise
+        finally:
+            self.close()
+        self.summarize(plots=bool(cfg.eval.get("plots", True)))
+        return results
+
+    def summarize(self, plots: bool = True) -> None:
+        """The sweep summary over the seeds' directories, in the run directory (best effort:
+        the runs themselves are written)."""
+        from torchrl_stages.sweeps import summarize_sweep
+
+        try:
+            summarize_sweep(self.run_dir, plots=plots)
+        except Exception as err:  # noqa: BLE001 - the runs are written; say why, go on
+            log.warning("the summary of %s was not written: %s", self.run_dir, one_line(err))
+
+    def _ended(self, outcome: str, reason: str, **extra: Any) -> None:
+        for experiment in self.experiments:
+            experiment.ended(outcome, reason, **extra)

@@ -1,0 +1,271 @@
+"""One stage of many seeds in one process: :class:`SeedsStageTrainer`.
+
+It trains every seed of a stage at once: one seed-stacked learner
+(:mod:`~torchrl_stages.learners.stacking`), one env holding ``num_envs`` copies per seed, one
+replay storage with a part per seed (:class:`~torchrl_stages.replay.SeedReplayBuffer`), and the
+loop of :func:`~torchrl_stages.loop.run_loop`. Every seed keeps what a run of its own keeps:
+its initial weights (those of a single run with that seed), its replay contents, its
+evaluations, its early stop (a seed that stops keeps the weights it stopped with while the
+others train on), its best weights and its metrics. The env's random streams are shared by the
+seeds, so a seed's run is a draw from the same distribution as a single run's, not the same
+bits.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Callable, Sequence
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+
+from torchrl_stages.collector import StageCollector
+from torchrl_stages.config import StageConfig
+from torchrl_stages.evaluate import evaluate_greedy_groups
+from torchrl_stages.learners import Learner
+from torchrl_stages.learners.base import NonFiniteError
+from torchrl_stages.learners.stacking import unstack_learner
+from torchrl_stages.loop import EarlyStop, MetricsLog, Stopwatch, first_evaluation, run_loop
+from torchrl_stages.replay import SeedReplayBuffer
+from torchrl_stages.stage import DivergenceError, StageResult
+from torchrl_stages.threads import keep_threads
+from torchrl_stages.transforms import NonFiniteValueError
+
+__all__ = ["SeedRow", "SeedsEarlyStop", "SeedsStageTrainer"]
+
+
+def _finite(state: dict[str, torch.Tensor]) -> bool:
+    return all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point())
+
+
+class SeedRow:
+    """Seed ``seed``'s row of a seed-stacked learner, as :class:`~torchrl_stages.loop.EarlyStop`
+    reads and restores a learner: ``state_dict`` copies the row out, ``load_state_dict`` writes
+    it back (entries shared by the seeds, such as the exploration schedule, are left alone)."""
+
+    def __init__(self, learner: Learner, seed: int) -> None:
+        self.learner, self.seed = learner, seed
+        n = int(learner.seeds or 0)
+        self.rows = {k: v.ndim >= 2 and v.shape[0] == n for k, v in learner.state_dict().items()}
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        state = self.learner.state_dict()
+        return {k: state[k][self.seed].clone() for k, row in self.rows.items() if row}
+
+    @torch.no_grad()
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        own = self.learner.state_dict(keep_vars=True)
+        for key, value in state.items():
+            own[key].data[self.seed].copy_(value)
+
+
+class SeedsEarlyStop:
+    """One :class:`~torchrl_stages.loop.EarlyStop` per seed: :meth:`record` takes one
+    evaluation per seed and says whether every seed has stopped; a seed that stops has its
+    weights, frames, updates and seconds kept (:attr:`stopped_at`)."""
+
+    def __init__(self, cfg: StageConfig, learner: Learner, start: float) -> None:
+        n = int(learner.seeds or 0)
+        self.learner, self.start = learner, start
+        self.monitors = [EarlyStop(cfg) for _ in range(n)]
+        self.rows = [SeedRow(learner, i) for i in range(n)]
+        self.stopped_at: list[dict | None] = [None] * n
+
+    def record(
+        self,
+        learner: Learner,
+        success: Sequence[float],
+        value_error: Sequence[float],
+        frames: int,
+        ret: Sequence[float | None],
+    ) -> bool:
+        """``frames``: per seed."""
+        for i, monitor in enumerate(self.monitors):
+            if self.stopped_at[i] is not None:
+                continue
+            if monitor.record(self.rows[i], success[i], value_error[i], frames, ret[i]):
+                self.stopped_at[i] = {
+                    "state": copy.deepcopy(self.rows[i].state_dict()),
+                    "frames": frames,
+                    "updates": learner.num_updates,
+                    "seconds": time.perf_counter() - self.start,
+                }
+        return all(at is not None for at in self.stopped_at)
+
+    def active(self) -> list[int]:
+        return [i for i, at in enumerate(self.stopped_at) if at is None]
+
+
+class SeedsStageTrainer:
+    """Trains stage ``stage`` for every seed of the seed-stacked ``learner`` at once.
+
+    ``env`` and ``eval_env`` hold one copy of the stage's training and evaluation batches per
+    seed, seed-major (:meth:`~torchrl_stages.task.StagedTask.stage_env` with ``copies``);
+    ``cfg``'s frames, batches and evaluation periods are per seed. ``logs`` (one per seed)
+    receive each seed's metrics under the keys a single run logs; ``seeds`` name the rows in
+    messages (default: 0, 1, ...). :meth:`train` returns each
+    seed's ordinary learner (``make_learner()`` builds an empty one) and result.
+    """
+
+    def __init__(
+        self,
+        stage: int,
+        learner: Learner,
+        env: EnvBase,
+        eval_env: EnvBase,
+        cfg: StageConfig,
+        *,
+        logs: Sequence[MetricsLog],
+        make_learner: Callable[[], Learner],
+        name: str | None = None,
+        progress: bool = False,
+        seeds: Sequence[int] | None = None,
+    ) -> None:
+        self.stage, self.learner, self.env, self.eval_env, self.cfg = (
+            stage,
+            learner,
+            env,
+            eval_env,
+            cfg,
+        )
+        self.n = int(learner.seeds or 0)
+        if len(logs) != self.n:
+            raise ValueError(f"{len(logs)} logs for {self.n} seeds")
+        self.logs, self.make_learner = list(logs), make_learner
+        self.name = name or str(stage)
+        self.progress = progress
+        self.seeds = list(seeds) if seeds is not None else list(range(self.n))
+        self.prefix = f"train/stage_{stage}"
+
+    def train(self) -> list[tuple[Learner, StageResult]]:
+        cfg, learner, n = self.cfg, self.learner, self.n
+        collector = StageCollector(
+            self.env,
+            learner.exploration_policy,
+            frames_per_batch=int(cfg.frames_per_batch) * n,
+            total_frames=int(cfg.frames) * n,
+            init_random_frames=int(cfg.init_random_frames) * n,
+        )
+        steps = int(cfg.updates_per_batch)
+        draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
+        buffer = SeedReplayBuffer(int(cfg.buffer_size), num_seeds=n, device=learner.device)
+        keys = learner.replay_keys
+        start = time.perf_counter()
+        monitor = SeedsEarlyStop(cfg, learner, start)
+        counters = {"next_eval": first_evaluation(cfg) * n}
+        watch = Stopwatch()
+        value = learner.value(live=True)
+
+        def learn(batch: TensorDictBase, frames: int) -> list[dict[str, torch.Tensor]]:
+            with watch("collect"):
+                buffer.extend(batch.select(*keys, strict=False))
+            per_seed = frames // n
+            learner.anneal(per_seed)
+            losses = []
+            if per_seed >= cfg.init_random_frames:
+                for _ in range(draws):
+                    with watch("sample"):
+                        samples = buffer.sample(cfg.batch_size * per_draw).split(
+                            cfg.batch_size, dim=1
+                        )
+                    for sample in samples:
+                        with watch("update"):
+                            keep_threads()
+                            losses.append(learner.update(sample))
+                learner.check_finite()
+            return losses
+
+        def evaluate() -> tuple[list[float], list[float], list[float]]:
+            frames = collector.frames // n
+            max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
+            summaries = evaluate_greedy_groups(
+                self.eval_env,
+                learner.policy,
+                value,
+                max_steps,
+                float(cfg.gamma),
+                cfg.value_error_reduce,
+                groups=n,
+            )
+            for i in monitor.active():
+                self.logs[i](
+                    {f"eval/stage_{self.stage}/{k}": v for k, v in summaries[i].items()}, frames
+                )
+            return tuple(
+                [s[k] for s in summaries]
+                for k in ("success_rate", "value_error", "discounted_return")
+            )
+
+        class PerSeedFrames:  # run_loop's early stop gets the frames of each seed
+            def record(self, model, success, value_error, frames, ret) -> bool:
+                return monitor.record(model, success, value_error, frames // n, ret)
+
+        try:
+            run_loop(
+                collector,
+                learn=learn,
+                log_batch=lambda batch, losses: self._log_batch(
+                    batch, losses, collector.frames // n, monitor.active()
+                ),
+                evaluate=evaluate,
+                early_stop=PerSeedFrames(),
+                model=learner,
+                eval_every=int(cfg.eval_every) * n,
+                counters=counters,
+                checkpoints=None,
+                state={},
+                clock=({}, start, MetricsLog(None)),
+                where=f"stage {self.stage} ({self.name}), {n} seeds",
+                watch=watch,
+                progress=self.progress,
+            )
+        except (NonFiniteError, NonFiniteValueError) as err:
+            bad = [
+                s
+                for s, row in zip(self.seeds, monitor.rows, strict=True)
+                if not _finite(row.state_dict())
+            ]
+            where = f" (seeds {bad}: their weights are not finite)" if bad else ""
+            cause = FloatingPointError(f"{err}{where}")
+            raise DivergenceError(self.stage, self.name, learner, cause) from err
+        seconds = time.perf_counter() - start
+        out = []
+        for i in range(n):
+            at, early = monitor.stopped_at[i], monitor.monitors[i]
+            restored = False
+            if at is not None:
+                monitor.rows[i].load_state_dict(at["state"])
+            else:
+                restored = early.restore_best(monitor.rows[i])
+            success, value_error = early.final
+            result = StageResult(
+                self.stage,
+                collector.frames // n if at is None else at["frames"],
+                learner.num_updates if at is None else at["updates"],
+                seconds if at is None else at["seconds"],
+                success,
+                value_error,
+                early.stopped,
+                restored,
+                dict(watch.seconds),
+                early.final_return,
+            )
+            plain = unstack_learner(learner, i, self.make_learner())
+            plain.num_updates = result.updates
+            out.append((plain, result))
+        return out
+
+    def _log_batch(
+        self, batch: TensorDictBase, losses: list[dict], frames: int, active: list[int]
+    ) -> None:
+        if all(log.logger is None for log in self.logs):
+            return
+        parts = batch.reshape(self.n, -1)
+        keys = dict.fromkeys(k for loss in losses for k in loss)
+        means = {k: torch.stack([loss[k] for loss in losses]).mean(0).tolist() for k in keys}
+        for i in active:
+            metrics = {**MetricsLog.episodes(parts[i]), **{k: v[i] for k, v in means.items()}}
+            metrics["updates"] = self.learner.num_updates
+            self.logs[i]({f"{self.prefix}/{k}": v for k, v in metrics.items()}, frames)
