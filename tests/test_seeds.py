@@ -196,6 +196,7 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
         assert len(run.learners) == 2
         result = json.loads((seed_dir / "eval.json").read_text())
         assert result["success_rate"] == 1.0, (seed, result)
+        assert result["training"]["trained_with_seeds"] == [0, 3]
         assert (seed_dir / "metrics.csv").read_text().count("eval/stage_0/success_rate") >= 1
         overrides = OmegaConf.load(seed_dir / ".hydra" / "overrides.yaml")
         assert f"seed={seed}" in overrides and not any("seeds" in o for o in overrides)

@@ -189,6 +189,8 @@ class SeedRuns:
                         logs=[store.log for store in stores],
                         progress=bool(cfg.progress),
                     )
+                    for run in trained:  # eval.json: its wall-clock is that of all of them
+                        run.extra["trained_with_seeds"] = list(self.seeds)
                     results = [
                         experiment.finish(run, store)
                         for experiment, store, run in zip(experiments, stores, trained, strict=True)
