@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 import torch
 from omegaconf import DictConfig
 from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
 from torchrl_stages.checkpoint import StageCheckpoints
@@ -88,6 +89,24 @@ def train_backward(
     return learners, results
 
 
+def seeded_stage_envs(
+    task: StagedTask,
+    stage: int,
+    next_value: TensorDictModuleBase | None,
+    seed: int,
+    copies: int = 1,
+) -> tuple[EnvBase, EnvBase]:
+    """Stage ``stage``'s training and evaluation envs (``copies`` of each, one per seed of a
+    stacked learner), seeded as a backward stage is: the global generator and the training
+    env with ``seed + stage``, the evaluation env with ``seed + 10_000 + stage``."""
+    torch.manual_seed(seed + stage)
+    env = task.stage_env(stage, int(task.stage_cfg(stage).num_envs), next_value, copies=copies)
+    env.set_seed(seed + stage)
+    eval_env = task.stage_eval_env(stage, next_value, copies=copies)
+    eval_env.set_seed(seed + 10_000 + stage)
+    return env, eval_env
+
+
 def train_stage(
     task: StagedTask,
     stage: int,
@@ -121,11 +140,7 @@ def train_stage(
         (128, 0)
     """
     cfg = task.stage_cfg(stage)
-    torch.manual_seed(seed + stage)
-    env = task.stage_env(stage, cfg.num_envs, next_value)
-    env.set_seed(seed + stage)
-    eval_env = task.stage_eval_env(stage, next_value)
-    eval_env.set_seed(seed + 10_000 + stage)
+    env, eval_env = seeded_stage_envs(task, stage, next_value, seed)
     learner = make_learner(cfg, task.specs(stage), compile, task.device)
     trainer = StageTrainer(
         stage,
@@ -204,11 +219,7 @@ def train_backward_seeds(
             torch.manual_seed(s + k)
             singles.append(plain())
         stacked = stack_learners(make_learner(cfg, specs, device=task.device, seeds=n), singles)
-        torch.manual_seed(seeds[0] + k)
-        env = task.stage_env(k, int(cfg.num_envs), next_value, copies=n)
-        env.set_seed(seeds[0] + k)
-        eval_env = task.stage_eval_env(k, next_value, copies=n)
-        eval_env.set_seed(seeds[0] + 10_000 + k)
+        env, eval_env = seeded_stage_envs(task, k, next_value, seeds[0], copies=n)
         trainer = SeedsStageTrainer(
             k,
             stacked,
