@@ -349,8 +349,8 @@ def test_train_backward_hands_a_frozen_target_value_to_the_previous_stage(monkey
         calls.append(("train" if not kw.get("all_starts") else "inner", stage, next_value, env))
         return env
 
-    def spy_eval_env(self, stage, next_value=None):
-        env = stage_eval_env(self, stage, next_value)
+    def spy_eval_env(self, stage, next_value=None, **kw):
+        env = stage_eval_env(self, stage, next_value, **kw)
         calls.append(("eval", stage, next_value, env))
         return env
 
