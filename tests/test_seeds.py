@@ -24,6 +24,7 @@ from torchrl_stages.learners.stacking import (
     stack_learners,
     stacked_networks,
     unstack_learner,
+    update_rows,
 )
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.rundir import load_run
@@ -91,6 +92,32 @@ def test_a_stacked_learner_updates_each_seed_as_its_own_learner_would(algo):
         )
 
 
+@pytest.mark.parametrize("algo", list(CASES))
+def test_updating_some_rows_updates_those_seeds_alone(algo):
+    # what a stage of many seeds does once some have stopped: the others update as they would
+    # on their own, and a stopped seed's parameters get no gradient
+    cfg, spec, action = CASES[algo]
+    specs = StageSpecs(["observation"], 3, "action", spec)
+    n, size, rows = 3, 16, torch.tensor([0, 2])
+    singles = [make_learner(cfg, specs) for _ in range(n)]
+    stacked = stack_learners(make_learner(cfg, specs, seeds=n), singles)
+    batch = _batch((2, size), action((2, size)))
+    expected = [singles[int(r)].update(batch[i]) for i, r in enumerate(rows)]
+    with update_rows(rows):
+        losses = stacked.update(batch)
+    for key, value in losses.items():
+        if not key.startswith("grad_norm"):
+            assert value.shape == (2,), key
+            for i in range(2):
+                torch.testing.assert_close(value[i], expected[i][key], rtol=1e-4, atol=1e-6)
+        else:  # every seed's norm: the stopped one's is zero
+            assert value.shape == (n,) and value[1] == 0, key
+    for r in rows.tolist():
+        out = unstack_learner(stacked, r, make_learner(cfg, specs)).state_dict()
+        for key, value in singles[r].state_dict().items():
+            torch.testing.assert_close(out[key], value, rtol=1e-4, atol=1e-6, msg=key)
+
+
 def test_stacked_networks_refuse_what_cannot_be_stacked():
     specs = StageSpecs(["observation"], 3, "action", Bounded(-1, 1, (2,)))
     with pytest.raises(ConfigError, match="cannot train several seeds in one process"):
@@ -134,6 +161,8 @@ def test_seed_replay_keeps_each_seeds_transitions_apart():
     assert sample.shape == (2, 64)
     assert bool((sample[0] < 1000).all()) and bool((sample[1] >= 1000).all())
     assert set((sample[0] % 1000).tolist()) <= {1, 2, 3}  # the 5 newest: steps 2, 3 (and 1)
+    only = rb.sample(64, torch.tensor([1]))["x"]
+    assert only.shape == (1, 64) and bool((only >= 1000).all())
 
 
 def test_stage_envs_hold_one_copy_of_the_starts_per_seed():

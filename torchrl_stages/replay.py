@@ -77,6 +77,8 @@ class SeedReplayBuffer:
         (2, torch.Size([2, 3]))
         >>> bool((rb.sample(5)["x"][1] >= 10).all())  # seed 1 only ever sees its own
         True
+        >>> rb.sample(5, rows=torch.tensor([1]))["x"].shape  # seed 1's alone
+        torch.Size([1, 5])
     """
 
     def __init__(self, size: int, *, num_seeds: int, device: torch.device | str = "cpu") -> None:
@@ -106,8 +108,12 @@ class SeedReplayBuffer:
         self.cursor = (self.cursor + m) % self.size
         self.count = min(self.count + m, self.size)
 
-    def sample(self, batch_size: int):
-        n = self.num_seeds
+    def sample(self, batch_size: int, rows: torch.Tensor | None = None):
+        """``[num_seeds, batch_size]`` transitions; with ``rows`` (seed indices),
+        ``[len(rows), batch_size]`` of those seeds only."""
+        if rows is None:
+            rows = torch.arange(self.num_seeds, device=self.device)
+        n = rows.numel()
         index = torch.randint(self.count, (n, batch_size), device=self.device)
-        rows = torch.arange(n, device=self.device).unsqueeze(1)
+        rows = rows.to(self.device).unsqueeze(1)
         return self.storage.apply(lambda x: x[rows, index], batch_size=[n, batch_size])

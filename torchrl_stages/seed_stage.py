@@ -6,9 +6,10 @@ replay storage with a part per seed (:class:`~torchrl_stages.replay.SeedReplayBu
 loop of :func:`~torchrl_stages.loop.run_loop`. Every seed keeps what a run of its own keeps:
 its initial weights (those of a single run with that seed), its replay contents, its
 evaluations, its early stop (a seed that stops keeps the weights it stopped with while the
-others train on), its best weights and its metrics. The env's random streams are shared by the
-seeds, so a seed's run is a draw from the same distribution as a single run's, not the same
-bits.
+others train on, and is left out of their updates:
+:func:`~torchrl_stages.learners.stacking.update_rows`), its best weights and its metrics.
+The env's random streams are shared by the seeds, so a seed's run is a draw from the same
+distribution as a single run's, not the same bits.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import evaluate_greedy_groups
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
-from torchrl_stages.learners.stacking import unstack_learner
+from torchrl_stages.learners.stacking import unstack_learner, update_rows
 from torchrl_stages.loop import EarlyStop, MetricsLog, Stopwatch, first_evaluation, run_loop
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.stage import DivergenceError, StageResult
@@ -38,6 +39,21 @@ __all__ = ["SeedRow", "SeedsEarlyStop", "SeedsStageTrainer"]
 
 def _finite(state: dict[str, torch.Tensor]) -> bool:
     return all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point())
+
+
+def _per_seed(
+    metrics: dict[str, torch.Tensor], rows: torch.Tensor | None, n: int
+) -> dict[str, torch.Tensor]:
+    """An update's metrics with one entry per seed (``[n]``): those computed for ``rows`` alone
+    are placed in their rows (NaN in the others)."""
+    if rows is None:
+        return metrics
+    out = {}
+    for key, value in metrics.items():
+        if value.ndim == 1 and value.shape[0] == rows.numel() != n:
+            value = value.new_full((n,), float("nan")).index_copy_(0, rows, value)
+        out[key] = value
+    return out
 
 
 class SeedRow:
@@ -165,15 +181,19 @@ class SeedsStageTrainer:
             learner.anneal(per_seed)
             losses = []
             if per_seed >= cfg.init_random_frames:
+                # only the seeds that have not stopped are sampled and updated: a stopped
+                # seed's row gets no gradient (its stopped weights are restored at the end)
+                active = monitor.active()
+                rows = None if len(active) == n else torch.tensor(active, device=learner.device)
                 for _ in range(draws):
                     with watch("sample"):
-                        samples = buffer.sample(cfg.batch_size * per_draw).split(
+                        samples = buffer.sample(cfg.batch_size * per_draw, rows).split(
                             cfg.batch_size, dim=1
                         )
                     for sample in samples:
-                        with watch("update"):
+                        with watch("update"), update_rows(rows):
                             keep_threads()
-                            losses.append(learner.update(sample))
+                            losses.append(_per_seed(learner.update(sample), rows, n))
                 learner.check_finite()
             return losses
 

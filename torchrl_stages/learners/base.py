@@ -23,7 +23,7 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_stages.config import StageChecks, StageConfig, as_dataclass
 from torchrl_stages.learners.networks import ConvSpec
-from torchrl_stages.learners.stacking import current_seeds
+from torchrl_stages.learners.stacking import current_rows, current_seeds
 
 
 @dataclass
@@ -366,10 +366,12 @@ class Learner(nn.Module, ABC):
 
     def batch_mean(self, x: torch.Tensor) -> torch.Tensor:
         """The mean of a loss term over its batch: a scalar, or one per seed (``[N]``) for a
-        seed-stacked learner, whose batches are ``[N, B, ...]``."""
+        seed-stacked learner, whose batches are ``[N, B, ...]`` (``[len(rows), B, ...]`` for
+        the seeds of :func:`~torchrl_stages.learners.stacking.update_rows`)."""
         if self.seeds is None:
             return x.mean()
-        return x.reshape(self.seeds, -1).mean(-1)
+        rows = current_rows()
+        return x.reshape(self.seeds if rows is None else rows.numel(), -1).mean(-1)
 
     @property
     def replay_keys(self) -> list[NestedKey]:

@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from torchrl_stages.learners.base import Learner
 
 _SEEDS: ContextVar[int | None] = ContextVar("torchrl_stages_seeds", default=None)
+_ROWS: ContextVar[torch.Tensor | None] = ContextVar("torchrl_stages_seed_rows", default=None)
 
 
 class StackedLinear(nn.Module):
@@ -58,9 +59,12 @@ class StackedLinear(nn.Module):
         return self.weight.shape[0]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        n = self.weight.shape[0]
+        weight, bias, rows = self.weight, self.bias, _ROWS.get()
+        if rows is not None:  # only these seeds' layers (update_rows)
+            weight, bias = weight[rows], bias[rows]
+        n = weight.shape[0]
         out = torch.baddbmm(
-            self.bias.unsqueeze(1), x.reshape(n, -1, x.shape[-1]), self.weight.transpose(1, 2)
+            bias.unsqueeze(1), x.reshape(n, -1, x.shape[-1]), weight.transpose(1, 2)
         )
         return out.reshape(*x.shape[:-1], out.shape[-1])
 
@@ -90,6 +94,36 @@ def stacked_networks(num_seeds: int | None) -> Iterator[None]:
         yield
     finally:
         _SEEDS.reset(token)
+
+
+def current_rows() -> torch.Tensor | None:
+    """The seeds (row indices) stacked layers compute now (:func:`update_rows`); ``None``: all."""
+    return _ROWS.get()
+
+
+@contextmanager
+def update_rows(rows: torch.Tensor | None) -> Iterator[None]:
+    """Inside, every :class:`StackedLinear` computes only the seeds ``rows`` (a 1-D index
+    tensor; ``None``: all of them): inputs hold ``len(rows)`` seeds' elements, and the
+    gradients of the other seeds' rows are zero. A stage of many seeds updates only the seeds
+    that have not stopped this way, at the cost of those alone.
+
+    Examples:
+        >>> layer = StackedLinear(3, 2, num_seeds=4)
+        >>> x = torch.randn(2, 5, 3)
+        >>> with update_rows(torch.tensor([1, 3])):
+        ...     y = layer(x)
+        >>> torch.allclose(y[1], x[1] @ layer.weight[3].T + layer.bias[3], atol=1e-6)
+        True
+        >>> y.sum().backward()
+        >>> layer.weight.grad[[0, 2]].abs().sum().item()
+        0.0
+    """
+    token = _ROWS.set(rows)
+    try:
+        yield
+    finally:
+        _ROWS.reset(token)
 
 
 def stack_for_seeds(module: nn.Module) -> nn.Module:
