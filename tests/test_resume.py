@@ -482,3 +482,23 @@ def test_a_write_that_fails_names_the_file_leaves_no_temporary_and_resumes(
     resumed = run(run_dir, extra, "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert_same_run(reference, run_dir)
+
+
+def test_many_seeds_killed_mid_stage_then_resumed_are_bitwise_equal(tmp_path):
+    """``seeds=[...]``: one checkpoint holds every seed's state, beside their directories; a
+    SIGKILL mid-stage and ``resume=true`` give each seed the run it gets uninterrupted."""
+    seeds = ["seeds=[0,3]"]
+    reference, killed = tmp_path / "reference", tmp_path / "killed"
+    ref = spawn(reference, *seeds)
+    proc = spawn(killed, *seeds)
+    checkpoints = killed / "seed_checkpoints" / "stage_1"
+    kill_when(proc, lambda: any(checkpoints.glob("frames-*")), delay=0.05)
+    result = finish(ref)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert not (killed / "seed_0" / "stage_1.pt").exists()  # killed mid-stage
+    resumed = run(killed, *seeds, "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "2 seeds: resuming from" in resumed.stdout + resumed.stderr
+    for seed in (0, 3):
+        assert_same_run(reference / f"seed_{seed}", killed / f"seed_{seed}")
+    assert not (killed / "seed_checkpoints").exists()  # dropped once every stage is kept

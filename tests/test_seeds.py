@@ -5,6 +5,7 @@ seed."""
 from __future__ import annotations
 
 import json
+import signal
 
 import pytest
 import torch
@@ -13,6 +14,8 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.data import Bounded, Categorical
 
+from torchrl_stages import loop as loop_module
+from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError
 from torchrl_stages.learners import StageSpecs, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
@@ -26,8 +29,12 @@ from torchrl_stages.learners.stacking import (
     unstack_learner,
     update_rows,
 )
+from torchrl_stages.loggers import RunLogger
+from torchrl_stages.loop import MetricsLog
+from torchrl_stages.preemption import Interrupted
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.rundir import load_run
+from torchrl_stages.schedules.backward import train_backward_seeds
 from torchrl_stages.seed_runs import validate_seeds
 from torchrl_stages.seed_stage import SeedRow
 from torchrl_stages.task import StagedTask, tile_starts
@@ -216,8 +223,11 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
     run_dir = tmp_path / "run"
     two_stages = [o for o in tiny_grid() if not o.startswith("task.stages.")]  # their defaults
     argv = ["stages-train", "seeds=[0,3]", f"hydra.run.dir={run_dir}", *two_stages]
+    stale = run_dir / "seed_checkpoints" / "stage_1" / "frames-000000000128"
+    stale.mkdir(parents=True)  # a checkpoint no seed's run knows of: a new run drops it
     done = run_cli(argv, tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
+    assert not (run_dir / "seed_checkpoints").exists()
     for seed in (0, 3):
         seed_dir = run_dir / f"seed_{seed}"
         run = load_run(seed_dir)
@@ -243,3 +253,78 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
     assert refused.returncode == 2, refused.stderr[-2000:]
     assert "task.stages.s0: algo=discrete_sac: cannot train several seeds" in refused.stderr
     assert not list(other.glob("seed_*/stage_*.pt"))
+
+
+def _tiny_task() -> StagedTask:
+    # a low bar: seeds 3 and 5 meet it at different times (stage 0: 384 and 1536 frames)
+    stage = DQNConfig(
+        frames=2048,
+        frames_per_batch=128,
+        num_envs=16,
+        init_random_frames=128,
+        batch_size=32,
+        updates_per_batch=2,
+        eval_every=128,
+        eval_episodes=8,
+        success_threshold=0.5,
+        min_frames=0,
+    )
+    return StagedTask(
+        OmegaConf.create(
+            {
+                "name": "grid",
+                "stages": {"a": stage, "b": stage},
+                "env": {
+                    "_target_": "torchrl_stages.envs.GridWorldEnv",
+                    "size": 10,
+                    "num_stages": 2,
+                },
+            }
+        )
+    )
+
+
+def test_an_interrupted_stage_of_many_seeds_resumes_bitwise_from_its_checkpoint(
+    tmp_path, monkeypatch
+):
+    # the stop a signal asks for (SIGTERM) writes a checkpoint of every seed at once; the
+    # next launch goes on from it (a seed that had stopped stays stopped), each seed's log
+    # rewound to it, and ends where an uninterrupted launch ends, bit for bit
+    seeds = [0, 3, 5]
+
+    def launch(root):
+        logs = [MetricsLog(RunLogger(root / f"seed_{s}.csv")) for s in seeds]
+
+        def checkpoints(scope):
+            return StageCheckpoints(root / f"stage_{scope}", every=256, keep=2)
+
+        return train_backward_seeds(_tiny_task(), seeds, logs=logs, checkpoints=checkpoints)
+
+    reference = launch(tmp_path / "reference")
+    stages = [[(r.frames, r.early_stopped) for r in run.results] for run in reference]
+    assert stages[1][0] == (384, True) and stages[0][0] == (2048, False)  # what it covers
+    interrupted = tmp_path / "interrupted"
+    periodic = interrupted / "stage_0" / "frames-000000000512"
+
+    def stop_after_the_checkpoint_at_512():  # stage 0, seed 3 stopped (at 384)
+        return signal.SIGTERM if periodic.exists() else None
+
+    monkeypatch.setattr(loop_module, "requested", stop_after_the_checkpoint_at_512)
+    with pytest.raises(Interrupted, match="stage 0"):
+        launch(interrupted)
+    monkeypatch.undo()
+    # named by each seed's frames: periodic at 512, the signal's at 640 (one batch later)
+    names = sorted(p.name for p in (interrupted / "stage_0").iterdir())
+    assert names == ["frames-000000000512", "frames-000000000640"]
+    resumed = launch(interrupted)
+    for ref, res in zip(reference, resumed, strict=True):
+        for k in (0, 1):
+            assert ref.results[k].frames == res.results[k].frames
+            assert ref.results[k].updates == res.results[k].updates
+            assert ref.results[k].early_stopped == res.results[k].early_stopped
+            a, b = ref.learners[k].state_dict(), res.learners[k].state_dict()
+            assert all(torch.equal(a[key], b[key]) for key in a), k
+    for s in seeds:
+        logged = (interrupted / f"seed_{s}.csv").read_bytes()
+        assert logged == (tmp_path / "reference" / f"seed_{s}.csv").read_bytes()
+    assert not (interrupted / "stage_0").exists()  # dropped once the stage is kept

@@ -14,6 +14,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -22,7 +23,7 @@ from torch import nn
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
-from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.checkpoint import StageCheckpoints, StateOf
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.preemption import Interrupted, requested
@@ -34,7 +35,9 @@ __all__ = [
     "Stopwatch",
     "checkpoint_or_stop",
     "first_evaluation",
+    "loop_state",
     "progress_bar",
+    "resume_latest",
     "run_loop",
 ]
 
@@ -96,6 +99,35 @@ class Stopwatch:
 
 
 _END = object()
+
+
+def loop_state(
+    learner: Any, buffer: Any, collector: Any, eval_env: Any, monitor: Any, counters: dict
+) -> dict[str, Any]:
+    """What a stage loop's checkpoint holds (besides the process-global generators): the
+    learner (weights, optimizers, update count), the replay buffer, the collector, the
+    evaluation env's state, the early stop's bookkeeping and the loop's counters."""
+    return {
+        "learner": StateOf(learner.checkpoint, learner.load_checkpoint),
+        "replay_buffer": buffer,
+        "collector": collector,
+        "eval_env": getattr(eval_env, "base_env", eval_env),
+        "monitor": monitor,
+        "counters": counters,
+    }
+
+
+def resume_latest(
+    checkpoints: StageCheckpoints | None, state: dict[str, Any], log: Any
+) -> Path | None:
+    """Loads the newest checkpoint (if any) into ``state`` and rewinds ``log`` (a
+    :class:`MetricsLog`, or anything with its ``rewind``) to the position it recorded in
+    ``state["counters"]["log"]``; returns the checkpoint's path, or ``None``."""
+    latest = checkpoints.latest() if checkpoints is not None else None
+    if latest is not None:
+        checkpoints.load(latest, state)
+        log.rewind(state["counters"]["log"])
+    return latest
 
 
 def checkpoint_or_stop(

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from tensordict import is_tensor_collection
+from tensordict import TensorDict, is_tensor_collection
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 
@@ -107,6 +107,26 @@ class SeedReplayBuffer:
             self.storage.get(key)[:, index] = value
         self.cursor = (self.cursor + m) % self.size
         self.count = min(self.count + m, self.size)
+
+    def state_dict(self) -> dict[str, Any]:
+        """The transitions held (``[num_seeds, len(self)]``, nested dicts of tensors), the ring's
+        cursor and its length: what :meth:`load_state_dict` restores."""
+        held = None if self.storage is None else self.storage[:, : self.count].to_dict()
+        return {"storage": held, "cursor": self.cursor, "count": self.count}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        count, cursor = int(state["count"]), int(state["cursor"])
+        if not (0 <= count <= self.size and 0 <= cursor < max(self.size, 1)):
+            raise ValueError(f"count {count} / cursor {cursor} outside a ring of {self.size}")
+        self.storage, self.cursor, self.count = None, cursor, count
+        if state["storage"] is None:
+            return
+        held = TensorDict(state["storage"], batch_size=[self.num_seeds, count], device=self.device)
+        self.storage = held.apply(
+            lambda x: torch.empty((self.num_seeds, self.size, *x.shape[2:]), dtype=x.dtype),
+            batch_size=[self.num_seeds, self.size],
+        )
+        self.storage[:, :count] = held
 
     def sample(self, batch_size: int, rows: torch.Tensor | None = None):
         """``[num_seeds, batch_size]`` transitions; with ``rows`` (seed indices),

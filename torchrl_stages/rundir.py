@@ -21,7 +21,7 @@ import logging
 import re
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, fields
 from importlib import resources
 from pathlib import Path
@@ -501,13 +501,7 @@ class RunDir:
 
     @staticmethod
     def _refuse_links(paths: list[Path]) -> None:
-        for path in paths:
-            if path.is_symlink():
-                raise RunDirError(
-                    f"{path} is a symbolic link: a run directory's own files are never "
-                    "links (writing or deleting through it would touch another place). "
-                    "Fix: replace it with the file itself, or pick another directory"
-                )
+        refuse_links(paths)
 
     def write_hydra_files(self, files: dict[str, Any]) -> None:
         """``.hydra/<name>`` for each ``{name: config}`` (what ``stages-train`` records of
@@ -727,4 +721,17 @@ __all__ = [
     "check_trusted",
     "load_policy",
     "load_run",
+    "refuse_links",
 ]
+
+
+def refuse_links(paths: Iterable[Path]) -> None:
+    """Raises :class:`RunDirError` naming the first of ``paths`` that is a symbolic link (a
+    run's own files are never links: writing or deleting through one touches another place)."""
+    for path in paths:
+        if path.is_symlink():
+            raise RunDirError(
+                f"{path} is a symbolic link: a run directory's own files are never "
+                "links (writing or deleting through it would touch another place). "
+                "Fix: replace it with the file itself, or pick another directory"
+            )

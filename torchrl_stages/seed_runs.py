@@ -11,22 +11,29 @@ from __future__ import annotations
 
 import copy
 import logging
+import re
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
+from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError, apply_all_stages, check
 from torchrl_stages.experiment import Experiment, build_task, one_line, with_env_stages
 from torchrl_stages.learners import make_learner
 from torchrl_stages.loggers import StopRun
 from torchrl_stages.preemption import Interrupted, handle_signals
+from torchrl_stages.rundir import refuse_links
 from torchrl_stages.schedules import SCHEDULES, get_schedule
 from torchrl_stages.stage import DivergenceError
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import hold_threads
 
 log = logging.getLogger("torchrl_stages")
+
+CHECKPOINTS = "seed_checkpoints"
 
 __all__ = ["SeedRuns", "seed_dir", "validate_seeds"]
 
@@ -188,7 +195,9 @@ class SeedRuns:
                         stores=stores,
                         logs=[store.log for store in stores],
                         progress=bool(cfg.progress),
+                        checkpoints=self._checkpoints(),
                     )
+                    self._drop_checkpoints(every=False)
                     for run in trained:  # eval.json: its wall-clock is that of all of them
                         run.extra["trained_with_seeds"] = list(self.seeds)
                     results = [
@@ -213,6 +222,45 @@ class SeedRuns:
             self.close()
         self.summarize(plots=bool(cfg.eval.get("plots", True)))
         return results
+
+    @property
+    def checkpoint_root(self) -> Path:
+        """Where the checkpoints of a stage in progress live: one state for all the seeds,
+        beside their directories (``<run_dir>/seed_checkpoints/stage_<k>/``)."""
+        return self.run_dir / CHECKPOINTS
+
+    def _checkpoints(self) -> Callable[[int | str], StageCheckpoints]:
+        """The checkpoints of each scope (a stage) for this launch. A launch that does not
+        resume every seed drops those of an earlier launch; a resumed one drops those of the
+        stages whose config changed (:attr:`~torchrl_stages.experiment.Experiment.restarted`)."""
+        cfg, root = self.experiments[0].cfg, self.checkpoint_root
+        refuse_links([root, *(root.rglob("*") if root.is_dir() else [])])
+        if not all(experiment.resuming for experiment in self.experiments):
+            self._drop_checkpoints(every=True)
+        else:
+            schedule = get_schedule(str(cfg.schedule.name))
+            for stage in self.experiments[0].restarted:
+                self._at(schedule.checkpoint_scope(stage)).clear()
+        return self._at
+
+    def _at(self, scope: int | str) -> StageCheckpoints:
+        cfg = self.experiments[0].cfg
+        name = scope if isinstance(scope, str) else f"stage_{scope}"
+        every, keep = int(cfg.checkpoint_every), int(cfg.checkpoint_keep)
+        return StageCheckpoints(self.checkpoint_root / name, every, keep)
+
+    def _drop_checkpoints(self, every: bool) -> None:
+        """Removes the checkpoint directory when it is empty, or (``every``) with what it holds:
+        the scopes' directories alone (anything else in it is left, and so is the directory)."""
+        root = self.checkpoint_root
+        if not root.is_dir():
+            return
+        if every:
+            for child in root.iterdir():
+                if child.is_dir() and re.fullmatch(r"\w+", child.name):
+                    shutil.rmtree(child)
+        if not any(root.iterdir()):
+            root.rmdir()
 
     def summarize(self, plots: bool = True) -> None:
         """The sweep summary over the seeds' directories, in the run directory (best effort:

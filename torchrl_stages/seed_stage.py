@@ -15,6 +15,7 @@ distribution as a single run's, not the same bits.
 from __future__ import annotations
 
 import copy
+import logging
 import time
 from collections.abc import Callable, Sequence
 
@@ -22,19 +23,30 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
+from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import evaluate_greedy_groups
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.learners.stacking import unstack_learner, update_rows
-from torchrl_stages.loop import EarlyStop, MetricsLog, Stopwatch, first_evaluation, run_loop
+from torchrl_stages.loop import (
+    EarlyStop,
+    MetricsLog,
+    Stopwatch,
+    first_evaluation,
+    loop_state,
+    resume_latest,
+    run_loop,
+)
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.stage import DivergenceError, StageResult
 from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import NonFiniteValueError
 
 __all__ = ["SeedRow", "SeedsEarlyStop", "SeedsStageTrainer"]
+
+log = logging.getLogger("torchrl_stages")
 
 
 def _finite(state: dict[str, torch.Tensor]) -> bool:
@@ -82,9 +94,9 @@ class SeedsEarlyStop:
     evaluation per seed and says whether every seed has stopped; a seed that stops has its
     weights, frames, updates and seconds kept (:attr:`stopped_at`)."""
 
-    def __init__(self, cfg: StageConfig, learner: Learner, start: float) -> None:
+    def __init__(self, cfg: StageConfig, learner: Learner, start: float = 0.0) -> None:
         n = int(learner.seeds or 0)
-        self.learner, self.start = learner, start
+        self.learner, self.start = learner, start  # start: what stop times are measured from
         self.monitors = [EarlyStop(cfg) for _ in range(n)]
         self.rows = [SeedRow(learner, i) for i in range(n)]
         self.stopped_at: list[dict | None] = [None] * n
@@ -113,6 +125,34 @@ class SeedsEarlyStop:
     def active(self) -> list[int]:
         return [i for i, at in enumerate(self.stopped_at) if at is None]
 
+    def state_dict(self) -> dict:
+        return {
+            "monitors": [monitor.state_dict() for monitor in self.monitors],
+            "stopped_at": [at or {} for at in self.stopped_at],
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        monitors, stopped = state["monitors"], state["stopped_at"]
+        if len(monitors) != len(self.monitors) or len(stopped) != len(self.monitors):
+            raise ValueError(f"a state of {len(monitors)} seeds, not {len(self.monitors)}")
+        for monitor, saved in zip(self.monitors, monitors, strict=True):
+            monitor.load_state_dict(saved)
+        self.stopped_at = [dict(at) if at else None for at in stopped]
+
+
+class _SeedLogs:
+    """The seeds' metrics logs as one, for a checkpoint: their positions, and their rewind."""
+
+    def __init__(self, logs: Sequence[MetricsLog]) -> None:
+        self.logs = logs
+
+    def position(self) -> dict[str, dict[str, int]]:
+        return {str(i): log.position() for i, log in enumerate(self.logs)}
+
+    def rewind(self, position: dict[str, dict[str, int]]) -> None:
+        for i, log in enumerate(self.logs):
+            log.rewind(position.get(str(i), {}))
+
 
 class SeedsStageTrainer:
     """Trains stage ``stage`` for every seed of the seed-stacked ``learner`` at once.
@@ -121,8 +161,10 @@ class SeedsStageTrainer:
     seed, seed-major (:meth:`~torchrl_stages.task.StagedTask.stage_env` with ``copies``);
     ``cfg``'s frames, batches and evaluation periods are per seed. ``logs`` (one per seed)
     receive each seed's metrics under the keys a single run logs; ``seeds`` name the rows in
-    messages (default: 0, 1, ...). :meth:`train` returns each
-    seed's ordinary learner (``make_learner()`` builds an empty one) and result.
+    messages (default: 0, 1, ...). With ``checkpoints`` the loop saves the state of every seed
+    together every ``checkpoints.every`` frames per seed and goes on from the newest one on
+    disk, the seeds' logs rewound with it. :meth:`train` returns each seed's ordinary learner
+    (``make_learner()`` builds an empty one) and result.
     """
 
     def __init__(
@@ -138,6 +180,7 @@ class SeedsStageTrainer:
         name: str | None = None,
         progress: bool = False,
         seeds: Sequence[int] | None = None,
+        checkpoints: StageCheckpoints | None = None,
     ) -> None:
         self.stage, self.learner, self.env, self.eval_env, self.cfg = (
             stage,
@@ -154,6 +197,7 @@ class SeedsStageTrainer:
         self.progress = progress
         self.seeds = list(seeds) if seeds is not None else list(range(self.n))
         self.prefix = f"train/stage_{stage}"
+        self.checkpoints = checkpoints
 
     def train(self) -> list[tuple[Learner, StageResult]]:
         cfg, learner, n = self.cfg, self.learner, self.n
@@ -168,9 +212,13 @@ class SeedsStageTrainer:
         draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
         buffer = SeedReplayBuffer(int(cfg.buffer_size), num_seeds=n, device=learner.device)
         keys = learner.replay_keys
-        start = time.perf_counter()
-        monitor = SeedsEarlyStop(cfg, learner, start)
-        counters = {"next_eval": first_evaluation(cfg) * n}
+        monitor = SeedsEarlyStop(cfg, learner)
+        counters = {"next_eval": first_evaluation(cfg) * n, "seconds": 0.0, "log": {}}
+        logs = _SeedLogs(self.logs)
+        state = loop_state(learner, buffer, collector, self.eval_env, monitor, counters)
+        if (latest := resume_latest(self.checkpoints, state, logs)) is not None:
+            log.info("stage %d (%s), %d seeds: resuming from %s", self.stage, self.name, n, latest)
+        start = monitor.start = time.perf_counter() - counters["seconds"]
         watch = Stopwatch()
         value = learner.value(live=True)
 
@@ -234,12 +282,13 @@ class SeedsStageTrainer:
                 model=learner,
                 eval_every=int(cfg.eval_every) * n,
                 counters=counters,
-                checkpoints=None,
-                state={},
-                clock=({}, start, MetricsLog(None)),
+                checkpoints=self.checkpoints,
+                state=state,
+                clock=(counters, start, logs),
                 where=f"stage {self.stage} ({self.name}), {n} seeds",
                 watch=watch,
                 progress=self.progress,
+                count=lambda batch: collector.frames // n,
             )
         except (NonFiniteError, NonFiniteValueError) as err:
             bad = [

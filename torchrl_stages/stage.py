@@ -16,7 +16,7 @@ from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
-from torchrl_stages.checkpoint import StageCheckpoints, StateOf
+from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import evaluate_greedy
@@ -27,6 +27,8 @@ from torchrl_stages.loop import (
     MetricsLog,
     Stopwatch,
     first_evaluation,
+    loop_state,
+    resume_latest,
     run_loop,
 )
 from torchrl_stages.replay import stage_replay_buffer
@@ -206,17 +208,8 @@ class StageTrainer:
         buffer = stage_replay_buffer(cfg.buffer_size, learner.device)
         monitor = EarlyStop(cfg)
         counters = {"next_eval": first_evaluation(cfg), "seconds": 0.0, "log": {}}
-        state = {  # what a checkpoint holds (and the process-global generators)
-            "learner": StateOf(learner.checkpoint, learner.load_checkpoint),
-            "replay_buffer": buffer,
-            "collector": collector,
-            "eval_env": getattr(self.eval_env, "base_env", self.eval_env),
-            "monitor": monitor,
-            "counters": counters,
-        }
-        if self.checkpoints is not None and (latest := self.checkpoints.latest()) is not None:
-            self.checkpoints.load(latest, state)
-            self.log.rewind(counters["log"])
+        state = loop_state(learner, buffer, collector, self.eval_env, monitor, counters)
+        resume_latest(self.checkpoints, state, self.log)
         start = time.perf_counter() - counters["seconds"]
         watch = Stopwatch()
 

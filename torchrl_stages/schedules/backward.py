@@ -164,6 +164,7 @@ def train_backward_seeds(
     stores: Sequence[StageStore | None] | None = None,
     logs: Sequence[MetricsLog] | None = None,
     progress: bool = False,
+    checkpoints: Callable[[int], StageCheckpoints] | None = None,
 ) -> list[Trained]:
     """Trains stages N-1, ..., 0 of ``task`` for every seed of ``seeds`` at once (the backward
     schedule, :class:`SeedsStageTrainer` per stage); returns each seed's learners and results
@@ -172,7 +173,10 @@ def train_backward_seeds(
     Seed ``s``'s stage ``k`` starts from the weights a single run with seed ``s`` starts it
     from (``torch.manual_seed(s + k)`` before its learner is built). ``stores`` (one per seed)
     skip the stages every seed has finished and keep each finished stage; ``logs`` (one per
-    seed) receive each seed's metrics.
+    seed) receive each seed's metrics. ``checkpoints(k)`` gives the checkpoints of stage ``k``
+    in progress, one state for all the seeds (a resumed stage goes on from the newest; without
+    one, each store rewinds its seed's log to where the stage started); they are dropped once
+    every seed's stage is kept.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -214,6 +218,11 @@ def train_backward_seeds(
             stacked = make_learner(cfg, specs, device=task.device, seeds=n)
             next_value = stack_learners(stacked, [d[0] for d in done]).value()
             continue
+        joint = checkpoints(k) if checkpoints is not None else None
+        if joint is None or joint.latest() is None:
+            for store in stores:
+                if store is not None:
+                    store.begin(k)  # a resumed run's log: rewound to where the stage starts
         singles = []
         for s in seeds:
             torch.manual_seed(s + k)
@@ -231,11 +240,14 @@ def train_backward_seeds(
             name=task.stage_names[k],
             progress=progress,
             seeds=seeds,
+            checkpoints=joint,
         )
         for i, (learner, result) in enumerate(trainer.train()):
             learners[i][k], results[i][k] = learner, result
             if stores[i] is not None:
                 stores[i].save(k, learner, result)
+        if joint is not None:
+            joint.clear()
         next_value = stacked.value()
     return [Trained(learners[i], results[i]) for i in range(n)]
 

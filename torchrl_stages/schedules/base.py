@@ -102,7 +102,9 @@ class Schedule:
     def train_seeds(self, task: StagedTask, seeds: Sequence[int], **kwargs: Any) -> list[Trained]:
         """Trains ``task`` for every seed of ``seeds`` at once, their networks stacked (see
         :mod:`torchrl_stages.seed_stage`); one :class:`Trained` per seed. ``kwargs``:
-        ``stores`` and ``logs`` (one per seed), ``progress``."""
+        ``stores`` and ``logs`` (one per seed), ``progress``, and ``checkpoints``: the
+        :class:`~torchrl_stages.checkpoint.StageCheckpoints` of a checkpoint scope
+        (:meth:`checkpoint_scope`), one state for all the seeds."""
         raise NotImplementedError(f"schedule {self.name} does not train seeds in one process")
 
     def frozen_stages(self, finished: set[int], num_stages: int) -> set[int]:
