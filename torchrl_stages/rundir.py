@@ -714,17 +714,6 @@ def load_policy(
     return StackedPolicy([learner.policy for learner in run.learners])
 
 
-__all__ = [
-    "LoadedRun",
-    "RunDir",
-    "RunDirError",
-    "check_trusted",
-    "load_policy",
-    "load_run",
-    "refuse_links",
-]
-
-
 def refuse_links(paths: Iterable[Path]) -> None:
     """Raises :class:`RunDirError` naming the first of ``paths`` that is a symbolic link (a
     run's own files are never links: writing or deleting through one touches another place)."""
@@ -735,3 +724,15 @@ def refuse_links(paths: Iterable[Path]) -> None:
                 "links (writing or deleting through it would touch another place). "
                 "Fix: replace it with the file itself, or pick another directory"
             )
+
+
+__all__ = [
+    "LoadedRun",
+    "RunDir",
+    "RunDirError",
+    "check_trusted",
+    "load_policy",
+    "load_run",
+    "refuse_links",
+]
+
