@@ -6,7 +6,8 @@ Three measurements, each a table in ``OUT/table.md``:
 presets (``homo``, ``hetero``) with ``seeds=[...]`` in one process, every seed's run checked
 against the bars of ``benchmark_gridworld.py`` (success from every start, optimal path, value
 error <= 0.05), and ``--manipulator``: the manipulator's seeds the same way (success over its
-whole-task episodes).
+whole-task episodes; ``--manipulator-experiment manipulator_td3``: with that experiment's TD3
+stages).
 
 ``--timing``: one sweep of ``--seeds`` on the grid world (default config), wall-clock of the
 whole command from launch to exit, in four ways, each ``--repeats`` times, alternated:
@@ -105,16 +106,19 @@ def quality(args: argparse.Namespace) -> list[str]:
         if failed:
             notes.append(f"- grid world / {variant}: seeds that fail a bar: {failed}")
     if args.manipulator:
-        run_dir = args.out / "quality_manipulator"
+        experiment = args.manipulator_experiment
+        run_dir = args.out / f"quality_{experiment or 'manipulator'}"
         seeds = args.manipulator
-        argv = [stages_train(), "task=manipulator", f"seeds=[{','.join(map(str, seeds))}]"]
+        task = f"experiment={experiment}" if experiment else "task=manipulator"
+        argv = [stages_train(), task, f"seeds=[{','.join(map(str, seeds))}]"]
         argv += [f"hydra.run.dir={run_dir}", "eval.plots=false", "progress=false"]
         timed(argv, run_dir.with_suffix(".log"))
         results = seed_results(run_dir, seeds)
         rates = [r["success_rate"] for r in results]
         frames = [sum(st["frames"] for st in r["training"]["stages"]) for r in results]
+        name = f"manipulator ({experiment})" if experiment else "manipulator"
         lines.append(
-            f"| manipulator | {seeds[0]}-{seeds[-1]} | {sum(x >= 0.95 for x in rates)}/"
+            f"| {name} | {seeds[0]}-{seeds[-1]} | {sum(x >= 0.95 for x in rates)}/"
             f"{len(rates)} at >= 95% success ({', '.join(f'{x:.1%}' for x in rates)}) | - | "
             f"median {statistics.median(frames):.0f} |"
         )
@@ -160,8 +164,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
     parser.add_argument("--quality", action="store_true")
-    parser.add_argument("--variants", nargs="+", default=["homo", "hetero"], choices=list(VARIANTS))
+    parser.add_argument("--variants", nargs="*", default=["homo", "hetero"], choices=list(VARIANTS))
     parser.add_argument("--manipulator", type=int, nargs="*", default=[], help="its seeds")
+    parser.add_argument(
+        "--manipulator-experiment",
+        default="",
+        help="train the manipulator's seeds with experiment=<this> (e.g. manipulator_td3)",
+    )
     parser.add_argument("--timing", action="store_true")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--memory", action="store_true")

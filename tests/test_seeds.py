@@ -29,13 +29,14 @@ from torchrl_stages.learners.stacking import (
     unstack_learner,
     update_rows,
 )
+from torchrl_stages.learners.td3 import TD3Config
 from torchrl_stages.loggers import RunLogger
 from torchrl_stages.loop import MetricsLog
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.rundir import load_run
 from torchrl_stages.schedules.backward import train_backward_seeds
-from torchrl_stages.seed_runs import validate_seeds
+from torchrl_stages.seed_runs import SeedRuns, validate_seeds
 from torchrl_stages.seed_stage import SeedRow
 from torchrl_stages.task import StagedTask, tile_starts
 
@@ -64,6 +65,13 @@ CASES = {
     ),
     "ddpg": (
         DDPGConfig(gamma=0.9, max_grad_norm=1.0),
+        Bounded(-1, 1, (2,)),
+        lambda lead: torch.rand(*lead, 2) * 2 - 1,
+    ),
+    # twin critics, stacked by the loss module on top of the seeds ([2, seeds, ...]); no
+    # target smoothing noise, which the seeds would draw in another order
+    "td3": (
+        TD3Config(gamma=0.9, max_grad_norm=1.0, policy_noise=0.0, policy_update_delay=2),
         Bounded(-1, 1, (2,)),
         lambda lead: torch.rand(*lead, 2) * 2 - 1,
     ),
@@ -328,3 +336,22 @@ def test_an_interrupted_stage_of_many_seeds_resumes_bitwise_from_its_checkpoint(
         logged = (interrupted / f"seed_{s}.csv").read_bytes()
         assert logged == (tmp_path / "reference" / f"seed_{s}.csv").read_bytes()
     assert not (interrupted / "stage_0").exists()  # dropped once the stage is kept
+
+
+def test_td3_seeds_train_in_one_process(compose_cfg, tmp_path):
+    # twin critics and a delayed actor loss (logged on every other update) through the whole run
+    cfg = compose_cfg(
+        "task=manipulator",
+        "algo@task.stages.coarse=td3",
+        "algo@task.stages.fine=td3",
+        "experiment=smoke",
+        "seeds=[0,1]",
+        "eval.plots=false",
+        "progress=false",
+    )
+    results = SeedRuns(cfg, tmp_path / "run").run()
+    assert len(results) == 2
+    for seed in (0, 1):
+        logged = (tmp_path / "run" / f"seed_{seed}" / "metrics.csv").read_text()
+        assert "train/stage_0/loss_actor" in logged and "train/stage_1/loss_qvalue" in logged
+        assert load_run(tmp_path / "run" / f"seed_{seed}").cfg.task.stages.fine.algo == "td3"

@@ -735,4 +735,3 @@ __all__ = [
     "load_run",
     "refuse_links",
 ]
-

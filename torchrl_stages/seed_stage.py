@@ -29,7 +29,7 @@ from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import evaluate_greedy_groups
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
-from torchrl_stages.learners.stacking import unstack_learner, update_rows
+from torchrl_stages.learners.stacking import seed_axes, unstack_learner, update_rows
 from torchrl_stages.loop import (
     EarlyStop,
     MetricsLog,
@@ -75,18 +75,17 @@ class SeedRow:
 
     def __init__(self, learner: Learner, seed: int) -> None:
         self.learner, self.seed = learner, seed
-        n = int(learner.seeds or 0)
-        self.rows = {k: v.ndim >= 2 and v.shape[0] == n for k, v in learner.state_dict().items()}
+        self.axes = {k: a for k, a in seed_axes(learner).items() if a is not None}
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         state = self.learner.state_dict()
-        return {k: state[k][self.seed].clone() for k, row in self.rows.items() if row}
+        return {k: state[k].select(axis, self.seed).clone() for k, axis in self.axes.items()}
 
     @torch.no_grad()
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         own = self.learner.state_dict(keep_vars=True)
         for key, value in state.items():
-            own[key].data[self.seed].copy_(value)
+            own[key].data.select(self.axes[key], self.seed).copy_(value)
 
 
 class SeedsEarlyStop:
@@ -333,7 +332,9 @@ class SeedsStageTrainer:
             return
         parts = batch.reshape(self.n, -1)
         keys = dict.fromkeys(k for loss in losses for k in loss)
-        means = {k: torch.stack([loss[k] for loss in losses]).mean(0).tolist() for k in keys}
+        means = {  # an entry some updates leave out (TD3's delayed actor loss): over the others
+            k: torch.stack([loss[k] for loss in losses if k in loss]).mean(0).tolist() for k in keys
+        }
         for i in active:
             metrics = {**MetricsLog.episodes(parts[i]), **{k: v[i] for k, v in means.items()}}
             metrics["updates"] = self.learner.num_updates

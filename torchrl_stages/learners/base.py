@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,7 +24,7 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_stages.config import StageChecks, StageConfig, as_dataclass
 from torchrl_stages.learners.networks import ConvSpec
-from torchrl_stages.learners.stacking import current_rows, current_seeds
+from torchrl_stages.learners.stacking import current_rows, current_seeds, seed_axes
 
 
 @dataclass
@@ -198,19 +199,36 @@ def total_grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
     return torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
 
 
-def seed_grad_norms(grads: list[torch.Tensor], num_seeds: int) -> torch.Tensor:
-    """The 2-norm of each seed's gradients (``[num_seeds]``) over seed-stacked gradients
-    (``[num_seeds, ...]`` each)."""
-    per_tensor = torch.stack([g.reshape(num_seeds, -1).norm(dim=1) for g in grads])
+def seed_grad_norms(
+    grads: list[torch.Tensor], num_seeds: int, axes: Sequence[int] | None = None
+) -> torch.Tensor:
+    """The 2-norm of each seed's gradients (``[num_seeds]``) over seed-stacked gradients, the
+    seeds on axis ``axes[i]`` of ``grads[i]`` (default: 0)."""
+    axes = axes if axes is not None else [0] * len(grads)
+    per_tensor = torch.stack(
+        [
+            g.movedim(a, 0).reshape(num_seeds, -1).norm(dim=1)
+            for g, a in zip(grads, axes, strict=True)
+        ]
+    )
     return torch.linalg.vector_norm(per_tensor, 2.0, dim=0)
 
 
-def clip_seed_grads(grads: list[torch.Tensor], max_norm: float, norms: torch.Tensor) -> None:
-    """Scales each seed's gradients to at most ``max_norm`` (``norms``: their norms), as
-    ``torch.nn.utils.clip_grads_with_norm_`` does for one set of parameters."""
+def clip_seed_grads(
+    grads: list[torch.Tensor],
+    max_norm: float,
+    norms: torch.Tensor,
+    axes: Sequence[int] | None = None,
+) -> None:
+    """Scales each seed's gradients to at most ``max_norm`` (``norms``: their norms; the seeds
+    on axis ``axes[i]`` of ``grads[i]``, default 0), as ``torch.nn.utils.clip_grads_with_norm_``
+    does for one set of parameters."""
     coef = (max_norm / (norms + 1e-6)).clamp(max=1.0)
-    for g in grads:
-        g.mul_(coef.view(-1, *[1] * (g.ndim - 1)))
+    axes = axes if axes is not None else [0] * len(grads)
+    for g, a in zip(grads, axes, strict=True):
+        shape = [1] * g.ndim
+        shape[a] = -1
+        g.mul_(coef.view(shape))
 
 
 def td0_target(
@@ -488,9 +506,10 @@ class Learner(nn.Module, ABC):
                 if max_norm is not None:
                     torch.nn.utils.clip_grads_with_norm_(params, float(max_norm), norm)
             else:
-                norm = seed_grad_norms(grads, self.seeds)
+                axes = self._grad_seed_axes(params)
+                norm = seed_grad_norms(grads, self.seeds, axes)
                 if max_norm is not None:
-                    clip_seed_grads(grads, float(max_norm), norm)
+                    clip_seed_grads(grads, float(max_norm), norm, axes)
             if not bool(torch.isfinite(norm).all()):
                 raise NonFiniteError(f"the gradient of the {name} parameters", self.num_updates + 1)
             self.grad_norms[name] = norm.detach()
@@ -501,6 +520,26 @@ class Learner(nn.Module, ABC):
             else:
                 optimizer.step()
             optimizer.zero_grad(set_to_none=True)
+
+    def _grad_seed_axes(self, params: list[torch.Tensor]) -> list[int]:
+        """The seeds' axis in each of ``params`` that has a gradient (a seed-stacked learner)."""
+        names = self.__dict__.get("_param_names")
+        if names is None:
+            names = {id(p): n for n, p in self.named_parameters(remove_duplicate=False)}
+            self.__dict__["_param_names"] = names
+        axes = seed_axes(self)
+        out = []
+        for p in params:
+            if p.grad is None:
+                continue
+            axis = axes.get(names.get(id(p), ""))
+            if axis is None:
+                raise RuntimeError(
+                    f"a trained parameter of shape {tuple(p.shape)} has no seeds' axis: "
+                    f"{type(self).__name__} cannot train stacked seeds (stacks_seeds)"
+                )
+            out.append(axis)
+        return out
 
     def check_finite(self) -> None:
         """Raises :class:`NonFiniteError` if a parameter or buffer (targets included) is NaN or

@@ -153,26 +153,60 @@ def stack_for_seeds(module: nn.Module) -> nn.Module:
     return module
 
 
+def seed_axes(learner: Learner) -> dict[str, int | None]:
+    """The axis that indexes the seeds in each ``state_dict`` entry of the seed-stacked
+    ``learner``: 0 for a network's layers (``[N, out, in]``), 1 for the copies a loss module
+    stacks itself (twin critics: ``[2, N, out, in]``), ``None`` for an entry the seeds share
+    (an exploration schedule). Read off two small twins of it built for 1 and 2 seeds (global
+    generators left as they were), once per learner.
+
+    Examples:
+        >>> from torchrl.data import Bounded
+        >>> from torchrl_stages.learners import StageSpecs, make_learner
+        >>> from torchrl_stages.learners.td3 import TD3Config
+        >>> specs = StageSpecs(["observation"], 3, "action", Bounded(-1, 1, (2,)))
+        >>> axes = seed_axes(make_learner(TD3Config(num_cells=[8]), specs, seeds=3))
+        >>> axes["critic.module.0.weight"], axes["loss.qvalue_network_params.module.0.weight"]
+        (0, 1)
+        >>> axes["noise.sigma"] is None
+        True
+    """
+    cached = learner.__dict__.get("_seed_axes")
+    if cached is not None:
+        return cached
+    twins = []
+    with torch.random.fork_rng(devices=[]):
+        for n in (1, 2):
+            with stacked_networks(n):
+                twins.append(type(learner)(learner.cfg, learner.specs).state_dict())
+    axes: dict[str, int | None] = {}
+    for key, one in twins[0].items():
+        two = twins[1][key]
+        differ = [i for i, (a, b) in enumerate(zip(one.shape, two.shape, strict=True)) if a != b]
+        axes[key] = differ[0] if differ else None
+    learner.__dict__["_seed_axes"] = axes
+    return axes
+
+
 def _seed_rows(
-    stacked: dict[str, torch.Tensor], plain: dict[str, torch.Tensor], num_seeds: int
-) -> dict[str, bool]:
-    """Which entries of a stacked learner's ``state_dict`` hold one row per seed (the others are
-    shared, e.g. an exploration schedule), checked against an ordinary learner's."""
-    if stacked.keys() != plain.keys():
+    stacked: Learner, stacked_state: dict[str, torch.Tensor], plain: dict[str, torch.Tensor]
+) -> dict[str, int | None]:
+    """:func:`seed_axes` of ``stacked``, its ``state_dict`` checked against an ordinary
+    learner's: every entry is the ordinary one with the seeds' axis inserted, or the same."""
+    if stacked_state.keys() != plain.keys():
         raise ValueError("the stacked and the ordinary learner have different entries")
-    rows = {}
-    for key, value in stacked.items():
-        other = plain[key]
-        if value.ndim == other.ndim + 1 and value.shape == (num_seeds, *other.shape):
-            rows[key] = True
-        elif value.shape == other.shape:
-            rows[key] = False
-        else:
+    axes, n = seed_axes(stacked), int(stacked.seeds or 0)
+    for key, value in stacked_state.items():
+        other, axis = plain[key], axes.get(key)
+        shape = tuple(other.shape)
+        if axis is not None:
+            shape = (*shape[:axis], n, *shape[axis:])
+        if tuple(value.shape) != shape:
             raise ValueError(
-                f"{key}: shape {tuple(value.shape)} is neither {tuple(other.shape)} nor "
-                f"({num_seeds}, ...) of it"
+                f"{key}: shape {tuple(value.shape)} where {shape} (the ordinary learner's "
+                f"{tuple(other.shape)}, the seeds on axis {axis}) was expected"
             )
-    return rows
+    return axes
 
 
 def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
@@ -181,9 +215,14 @@ def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
     the first learner."""
     states = [learner.state_dict() for learner in learners]
     own = stacked.state_dict()
-    rows = _seed_rows(own, states[0], len(learners))
+    if len(learners) != stacked.seeds:
+        raise ValueError(f"{len(learners)} learners for {stacked.seeds} seeds")
+    axes = _seed_rows(stacked, own, states[0])
     stacked.load_state_dict(
-        {k: torch.stack([s[k] for s in states]) if rows[k] else states[0][k] for k in own}
+        {
+            k: states[0][k] if axes[k] is None else torch.stack([s[k] for s in states], axes[k])
+            for k in own
+        }
     )
     stacked.num_updates = max(learner.num_updates for learner in learners)
     return stacked
@@ -193,9 +232,12 @@ def unstack_learner(stacked: Learner, seed: int, learner: Learner) -> Learner:
     """Loads row ``seed`` of the seed-stacked ``stacked`` into the ordinary ``learner`` (built
     with the same config and specs); returns ``learner``."""
     state, own = stacked.state_dict(), learner.state_dict()
-    rows = _seed_rows(state, own, int(stacked.seeds or 0))
+    axes = _seed_rows(stacked, state, own)
     learner.load_state_dict(
-        {k: v[seed].clone() if rows[k] else v.clone() for k, v in state.items()}
+        {
+            k: v.clone() if axes[k] is None else v.select(axes[k], seed).clone()
+            for k, v in state.items()
+        }
     )
     learner.num_updates = stacked.num_updates
     return learner

@@ -48,6 +48,7 @@ class TD3Learner(DeterministicActorCriticLearner):
     Config = TD3Config
     torchrl_loss = TD3Loss
     update_draws_random = True  # the target policy's smoothing noise
+    stacks_seeds = True
 
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
@@ -112,7 +113,7 @@ class TD3Learner(DeterministicActorCriticLearner):
                 batch.get("steps_to_next_obs", None),
             )
         preds = self.critic_values(self.loss.qvalue_network_params["module"], *obs, action)
-        return sum(distance(p, target, cfg.loss_function).mean() for p in preds)
+        return sum(self.batch_mean(distance(p, target, cfg.loss_function)) for p in preds)
 
     def _plain_actor_loss(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """``-Q_1(s, mu(s))`` with the critics' parameters detached, and the penalty."""
@@ -120,7 +121,7 @@ class TD3Learner(DeterministicActorCriticLearner):
         u = self.actor_module(*obs)
         first = self.loss.qvalue_network_params["module"].detach()[:1]
         (q,) = self.critic_values(first, *obs, self.squash(u))
-        return -q.mean(), self.penalty(u)
+        return -self.batch_mean(q), self.penalty(u)
 
     def _shared_value_loss(self, batch: TensorDictBase) -> torch.Tensor:
         """:meth:`_plain_value_loss` with one encoder: ``s'`` is encoded once, by the target
@@ -147,7 +148,7 @@ class TD3Learner(DeterministicActorCriticLearner):
         preds = self.head_values(
             self.loss.qvalue_network_params["module", "body"], features, action
         )
-        return sum(distance(p, target, cfg.loss_function).mean() for p in preds)
+        return sum(self.batch_mean(distance(p, target, cfg.loss_function)) for p in preds)
 
     def _shared_actor_loss(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`_plain_actor_loss` on the shared encoder's features of ``s``, detached: the
@@ -157,7 +158,7 @@ class TD3Learner(DeterministicActorCriticLearner):
         u = self.actor_module.body(features)
         first = self.loss.qvalue_network_params["module", "body"].detach()[:1]
         (q,) = self.head_values(first, features, self.squash(u))
-        return -q.mean(), self.penalty(u)
+        return -self.batch_mean(q), self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_q = self._value_loss(batch)
