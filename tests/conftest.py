@@ -45,3 +45,15 @@ def train_tiny(tmp_path):
         return run_cli(argv, tmp_path), run_dir
 
     return run
+
+
+def pytest_collection_modifyitems(config, items):
+    """With ``pytest -n N --dist loadgroup`` (pytest-xdist, what CI runs): the tests of one
+    module run on one worker, so a module-scoped fixture (a trained run several tests read) is
+    built once; the documentation pages, the longest tests and independent of each other, are
+    spread over the workers."""
+    if not config.pluginmanager.hasplugin("xdist"):
+        return
+    for item in items:
+        if item.path.name != "test_docs.py":
+            item.add_marker(pytest.mark.xdist_group(item.path.stem))
