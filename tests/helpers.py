@@ -14,9 +14,10 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.store import register_configs
+from torchrl_stages.task import StagedTask
 
 
 def assert_figure(path: Path, min_side: int = 200) -> None:
@@ -111,3 +112,22 @@ def docstring_ids(tree: ast.AST) -> set[int]:
         and isinstance(node.body[0], ast.Expr)
         and isinstance(node.body[0].value, ast.Constant)
     }
+
+
+def two_stage_grid(a, b=None, size: int = 10, **env) -> StagedTask:
+    """A two-stage ``size`` x ``size`` grid world task whose stages ``a`` and ``b`` (default:
+    ``a``'s) are stage configs (dataclasses or dicts)."""
+    return StagedTask(
+        OmegaConf.create(
+            {
+                "name": "grid",
+                "stages": {"a": a, "b": a if b is None else b},
+                "env": {
+                    "_target_": "torchrl_stages.envs.GridWorldEnv",
+                    "size": size,
+                    "num_stages": 2,
+                    **env,
+                },
+            }
+        )
+    )

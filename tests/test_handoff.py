@@ -7,8 +7,7 @@ import logging
 
 import pytest
 import torch
-from helpers import hydra_config
-from omegaconf import OmegaConf
+from helpers import hydra_config, two_stage_grid
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
@@ -73,21 +72,7 @@ class ConstantValue:
 
 
 def grid(**env) -> StagedTask:
-    stage = {"gamma": 0.9, "num_envs": 16}
-    return StagedTask(
-        OmegaConf.create(
-            {
-                "name": "grid",
-                "stages": {"a": stage, "b": stage},
-                "env": {
-                    "_target_": "torchrl_stages.envs.GridWorldEnv",
-                    "size": 10,
-                    "num_stages": 2,
-                    **env,
-                },
-            }
-        )
-    )
+    return two_stage_grid({"gamma": 0.9, "num_envs": 16}, **env)
 
 
 def handed_over(task: StagedTask, rows: list[int]) -> Handoffs:

@@ -9,7 +9,7 @@ import signal
 
 import pytest
 import torch
-from helpers import run_cli, tiny_grid
+from helpers import run_cli, tiny_grid, two_stage_grid
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.data import Bounded, Categorical
@@ -181,19 +181,7 @@ def test_seed_replay_keeps_each_seeds_transitions_apart():
 
 
 def test_stage_envs_hold_one_copy_of_the_starts_per_seed():
-    task = StagedTask(
-        OmegaConf.create(
-            {
-                "name": "grid",
-                "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9, "eval_episodes": 4}},
-                "env": {
-                    "_target_": "torchrl_stages.envs.GridWorldEnv",
-                    "size": 10,
-                    "num_stages": 2,
-                },
-            }
-        )
-    )
+    task = two_stage_grid({"gamma": 0.9}, {"gamma": 0.9, "eval_episodes": 4})
     one = task.stage_eval_env(1).base_env.start_cell
     three = task.stage_eval_env(1, copies=3).base_env.start_cell
     assert three.shape[0] == 3 * one.shape[0]
@@ -277,19 +265,7 @@ def _tiny_task() -> StagedTask:
         success_threshold=0.5,
         min_frames=0,
     )
-    return StagedTask(
-        OmegaConf.create(
-            {
-                "name": "grid",
-                "stages": {"a": stage, "b": stage},
-                "env": {
-                    "_target_": "torchrl_stages.envs.GridWorldEnv",
-                    "size": 10,
-                    "num_stages": 2,
-                },
-            }
-        )
-    )
+    return two_stage_grid(stage)
 
 
 def test_an_interrupted_stage_of_many_seeds_resumes_bitwise_from_its_checkpoint(

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from helpers import two_stage_grid
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
@@ -27,19 +28,7 @@ SIZE, NUM_ENVS = 10, 16
 
 def _task(stage=None) -> StagedTask:
     stage = stage if stage is not None else DQNConfig(gamma=0.9)
-    return StagedTask(
-        OmegaConf.create(
-            {
-                "name": "grid",
-                "stages": {"a": stage, "b": stage},
-                "env": {
-                    "_target_": "torchrl_stages.envs.GridWorldEnv",
-                    "size": SIZE,
-                    "num_stages": 2,
-                },
-            }
-        )
-    )
+    return two_stage_grid(stage, size=SIZE)
 
 
 def _cfg(**kw) -> DQNConfig:

@@ -506,7 +506,7 @@ class Learner(nn.Module, ABC):
                 if max_norm is not None:
                     torch.nn.utils.clip_grads_with_norm_(params, float(max_norm), norm)
             else:
-                axes = self._grad_seed_axes(params)
+                axes = self._seed_axes_of(name, params)
                 norm = seed_grad_norms(grads, self.seeds, axes)
                 if max_norm is not None:
                     clip_seed_grads(grads, float(max_norm), norm, axes)
@@ -521,18 +521,18 @@ class Learner(nn.Module, ABC):
                 optimizer.step()
             optimizer.zero_grad(set_to_none=True)
 
-    def _grad_seed_axes(self, params: list[torch.Tensor]) -> list[int]:
-        """The seeds' axis in each of ``params`` that has a gradient (a seed-stacked learner)."""
-        names = self.__dict__.get("_param_names")
-        if names is None:
+    def _seed_axes_of(self, name: str, params: list[torch.Tensor]) -> list[int]:
+        """The seeds' axis in each of ``params`` (optimizer ``name``'s) that has a gradient, in
+        a seed-stacked learner; the axes are read once per optimizer."""
+        cache = self.__dict__.setdefault("_optimizer_seed_axes", {})
+        if name not in cache:
             names = {id(p): n for n, p in self.named_parameters(remove_duplicate=False)}
-            self.__dict__["_param_names"] = names
-        axes = seed_axes(self)
+            axes = seed_axes(self)
+            cache[name] = [axes.get(names.get(id(p), "")) for p in params]
         out = []
-        for p in params:
+        for p, axis in zip(params, cache[name], strict=True):
             if p.grad is None:
                 continue
-            axis = axes.get(names.get(id(p), ""))
             if axis is None:
                 raise RuntimeError(
                     f"a trained parameter of shape {tuple(p.shape)} has no seeds' axis: "
