@@ -107,7 +107,7 @@ class GymStageEnv(GymWrapper):
         ...     num_stages=2,  # the pole leans left, then right
         ...     batch_size=(4,),
         ... )
-        >>> env.rollout(3)["observation"].shape, env.max_steps
+        >>> env.rollout(3, break_when_any_done=False)["observation"].shape, env.max_steps
         (torch.Size([4, 3, 4]), 500)
         >>> env.close()
     """

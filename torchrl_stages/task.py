@@ -51,7 +51,7 @@ class StagedTask:
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
         ...             "num_stages": 2},
         ... }))
-        >>> task.stage_env(1, batch_size=4).rollout(2)["stage"].shape
+        >>> task.stage_env(1, batch_size=4).rollout(2, break_when_any_done=False)["stage"].shape
         torch.Size([4, 2, 1])
     """
 

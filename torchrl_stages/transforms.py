@@ -160,7 +160,7 @@ class StageTransform(Transform):
         >>> from torchrl_stages.transforms import StageTransform
         >>> base = GridWorldEnv(batch_size=(4,))
         >>> env = TransformedEnv(base, StageTransform(base.stage_fn, base.num_stages))
-        >>> td = env.rollout(3)
+        >>> td = env.rollout(3, break_when_any_done=False)
         >>> td["stage"].shape, td["next", "stage_transition"].dtype
         (torch.Size([4, 3, 1]), torch.bool)
     """
