@@ -14,12 +14,18 @@ whole command from launch to exit, in four ways, each ``--repeats`` times, alter
   vectorized     stages-train seeds=[...] threads=1
   vectorized-2t  stages-train seeds=[...] threads=2
   sequential     stages-train -m seed=... threads=1 (Hydra's basic launcher: one job after another)
-  joblib         stages-train -m seed=... threads=1 hydra/launcher=joblib, 2 jobs at a time
+  joblib         stages-train -m seed=... threads=1 hydra/launcher=joblib, --jobs at a time (2)
 with each command's largest resident memory (for the vectorized ones: all seeds in one process;
 ``--memory`` adds a one-seed vectorized run, so that the memory a seed adds can be read off).
 
+``--scaling 1 10 100`` (on a GPU: ``--device cuda``): the grid world's first 1, 10, 100 seeds
+vectorized on ``--device``, one launch each, its wall-clock, every seed checked against the
+bars of ``--quality``, the largest resident memory and (on a GPU) the GPU's largest memory in
+use; with, as the sequential reference, one seed on this machine's CPU (``threads=1``).
+
     python scripts/benchmark_seeds.py --quality --seeds 0 1 2 ... 19 --out results/seeds_q
     python scripts/benchmark_seeds.py --timing --seeds 0 1 ... 9 --memory --out results/seeds_t
+    python scripts/benchmark_seeds.py --scaling 1 10 100 --device cuda --out results/seeds_gpu
 """
 
 from __future__ import annotations
@@ -27,9 +33,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -40,7 +48,37 @@ WAYS = ("vectorized", "vectorized-2t", "sequential", "joblib")
 
 
 def stages_train() -> str:
-    return str(Path(sys.executable).parent / "stages-train")
+    """The ``stages-train`` console script beside this interpreter, else on ``PATH`` (a
+    package installed with ``pip install --target``)."""
+    beside = Path(sys.executable).parent / "stages-train"
+    return str(beside) if beside.exists() else shutil.which("stages-train") or str(beside)
+
+
+class GPUMemory:
+    """The GPUs' largest memory in use (MiB, ``nvidia-smi``, read every 0.2 s) while the
+    ``with`` block runs; ``None`` without ``nvidia-smi``."""
+
+    def __enter__(self) -> GPUMemory:
+        self.peak: float | None = None
+        self._stop = threading.Event()
+        self._thread = None
+        if shutil.which("nvidia-smi"):
+            self._thread = threading.Thread(target=self._poll, daemon=True)
+            self._thread.start()
+        return self
+
+    def _poll(self) -> None:
+        query = ["nvidia-smi", "--query-gpu=memory.used", "--format=csv,noheader,nounits"]
+        while not self._stop.wait(0.2):
+            out = subprocess.run(query, capture_output=True, text=True, check=False).stdout
+            used = [float(x) for x in out.split() if x.replace(".", "", 1).isdigit()]
+            if used:
+                self.peak = max(self.peak or 0.0, sum(used))
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
 
 
 def timed(argv: list[str], log: Path) -> tuple[float, float]:
@@ -56,7 +94,7 @@ def timed(argv: list[str], log: Path) -> tuple[float, float]:
     return seconds, usage.ru_maxrss / 1024
 
 
-def sweep_argv(way: str, seeds: list[int], out: Path) -> list[str]:
+def sweep_argv(way: str, seeds: list[int], out: Path, jobs: int = 2) -> list[str]:
     listed = ",".join(str(s) for s in seeds)
     common = ["eval.plots=false", "progress=false"]
     if way.startswith("vectorized"):
@@ -68,7 +106,7 @@ def sweep_argv(way: str, seeds: list[int], out: Path) -> list[str]:
             f"hydra.run.dir={out}",
             *common,
         ]
-    launcher = ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"] if way == "joblib" else []
+    launcher = ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}"] if way == "joblib" else []
     return [
         stages_train(),
         "-m",
@@ -126,26 +164,29 @@ def quality(args: argparse.Namespace) -> list[str]:
 
 
 def timing(args: argparse.Namespace) -> list[str]:
-    measured: dict[str, list[tuple[float, float]]] = {way: [] for way in WAYS}
+    measured: dict[str, list[tuple[float, float]]] = {way: [] for way in args.ways}
     for rep in range(args.repeats):
-        order = WAYS if rep % 2 == 0 else tuple(reversed(WAYS))
+        order = args.ways if rep % 2 == 0 else tuple(reversed(args.ways))
         for way in order:
             out = args.out / f"timing_{way}_{rep}"
-            seconds, rss = timed(sweep_argv(way, args.seeds, out), out.with_suffix(".log"))
+            argv = sweep_argv(way, args.seeds, out, args.jobs)
+            seconds, rss = timed(argv, out.with_suffix(".log"))
             measured[way].append((seconds, rss))
             print(f"{way} (repeat {rep}): {seconds:.1f} s, {rss:.0f} MiB", flush=True)
-    base = statistics.median(s for s, _ in measured["sequential"])
+    sequential = [s for s, _ in measured.get("sequential", [])]
+    base = statistics.median(sequential) if sequential else None
     lines = [
         f"| {len(args.seeds)} grid-world seeds, launched as | wall-clock (s), each repeat | "
         "median | vs sequential | largest resident memory (MiB) |",
         "|---|---|---|---|---|",
     ]
-    for way in WAYS:
+    for way in args.ways:
         secs = [s for s, _ in measured[way]]
         med = statistics.median(secs)
         lines.append(
             f"| {way} | {', '.join(f'{s:.1f}' for s in secs)} | {med:.1f} | "
-            f"{base / med:.2f}x | {max(r for _, r in measured[way]):.0f} |"
+            f"{f'{base / med:.2f}x' if base else '-'} | "
+            f"{max(r for _, r in measured[way]):.0f} |"
         )
     notes = []
     if args.memory:
@@ -158,6 +199,52 @@ def timing(args: argparse.Namespace) -> list[str]:
             f"{rss_all:.0f} MiB: {per_seed:.1f} MiB per added seed"
         )
     return [*lines, "", *notes]
+
+
+def scaling(args: argparse.Namespace) -> list[str]:
+    """The grid world's first ``n`` seeds vectorized on ``args.device``, for each ``n`` of
+    ``args.scaling``, and one seed on the CPU as the sequential reference."""
+    lines = [
+        "| seeds in one process | device | wall-clock (s) | per seed (s) | pass | "
+        "frames per seed (median, max) | largest resident memory (MiB) | GPU memory (MiB) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    # the reference is an ordinary single run (seed=0) on the CPU, as a sequential sweep runs each
+    for sequential, n, device in [(True, 1, "cpu")] + [
+        (False, n, args.device) for n in args.scaling
+    ]:
+        seeds = list(range(n))
+        run_dir = args.out / (f"sequential_{device}" if sequential else f"scaling_{n}_{device}")
+        runs = "seed=0" if sequential else f"seeds=[{','.join(map(str, seeds))}]"
+        argv = [stages_train(), runs, f"device={device}", f"hydra.run.dir={run_dir}"]
+        argv += ["eval.plots=false", "progress=false", *(["threads=1"] if sequential else [])]
+        with GPUMemory() as gpu:
+            seconds, rss = timed(argv, run_dir.with_suffix(".log"))
+        if sequential:
+            results = [json.loads((run_dir / "eval.json").read_text())]
+        else:
+            results = seed_results(run_dir, seeds)
+        rows = [grid_row("homo", s, r) for s, r in zip(seeds, results, strict=True)]
+        frames = [r["frames"] for r in rows]
+        failed = [r["seed"] for r in rows if not r["pass"]]
+        shown = "-" if sequential or gpu.peak is None else f"{gpu.peak:.0f}"
+        way = "1 (one run, threads=1)" if sequential else str(n)
+        lines.append(
+            f"| {way} | {device} | {seconds:.1f} | {seconds / n:.2f} | {n - len(failed)}/{n} | "
+            f"{statistics.median(frames):.0f}, {max(frames)} | {rss:.0f} | {shown} |"
+        )
+        print(lines[-1], flush=True)
+        if failed:
+            lines.append(f"<!-- {n} seeds on {device}: seeds that fail a bar: {failed} -->")
+    return lines
+
+
+def device_note() -> str:
+    """The machine the table ran on: its CPUs and, where there is one, the GPU and torch."""
+    import torch
+
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return f"- torch {torch.__version__}, {os.cpu_count()} CPUs, {gpu}"
 
 
 def main() -> None:
@@ -173,7 +260,11 @@ def main() -> None:
     )
     parser.add_argument("--timing", action="store_true")
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--ways", nargs="+", default=list(WAYS), choices=WAYS, help="--timing's")
+    parser.add_argument("--jobs", type=int, default=2, help="the joblib way's jobs at a time")
     parser.add_argument("--memory", action="store_true")
+    parser.add_argument("--scaling", type=int, nargs="*", default=[], help="numbers of seeds")
+    parser.add_argument("--device", default="cpu", help="--scaling's device (cuda: a GPU)")
     parser.add_argument("--out", type=Path, required=True)
     add_table_argument(parser)
     args = parser.parse_args()
@@ -184,8 +275,10 @@ def main() -> None:
         table += quality(args)
     if args.timing:
         table += ["", *timing(args)] if args.quality else timing(args)
+    if args.scaling:
+        table += ["", *scaling(args)] if args.quality or args.timing else scaling(args)
     table.append(speed_note(speed, machine_speed()))
-    table.append(f"- {os.cpu_count()} CPUs")
+    table.append(device_note())
     save_table(args.out, table, args.table)
     print("\n".join(table))
 

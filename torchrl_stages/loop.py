@@ -288,13 +288,31 @@ class MetricsLog:
     @staticmethod
     def episodes(batch: TensorDictBase) -> dict[str, float]:
         """``episode_return`` and ``episode_success`` of the episodes a batch ended."""
-        done = batch["next", "done"].squeeze(-1)
-        if not done.any():
-            return {}
-        return {
-            "episode_return": batch["next", "episode_reward"][done].mean().item(),
-            "episode_success": batch["next", "terminated"][done].float().mean().item(),
-        }
+        return MetricsLog.episodes_by_row(batch.reshape(1, -1))[0]
+
+    @staticmethod
+    def episodes_by_row(batch: TensorDictBase) -> list[dict[str, float]]:
+        """:meth:`episodes` of each row of a ``[rows, ...]`` batch (one row per seed), read
+        back from the device at once.
+
+        Examples:
+            >>> from tensordict import TensorDict
+            >>> done = torch.tensor([[True, False], [False, False]]).unsqueeze(-1)
+            >>> batch = TensorDict({"next": {"done": done, "terminated": done,
+            ...     "episode_reward": torch.tensor([[[2.0], [5.0]], [[1.0], [1.0]]])}}, [2, 2])
+            >>> MetricsLog.episodes_by_row(batch)
+            [{'episode_return': 2.0, 'episode_success': 1.0}, {}]
+        """
+        rows = batch.shape[0]
+        done = batch["next", "done"].reshape(rows, -1)
+        ended = done.to(torch.float64)
+        returns = batch["next", "episode_reward"].reshape(rows, -1).to(torch.float64) * ended
+        success = (batch["next", "terminated"].reshape(rows, -1) & done).to(torch.float64)
+        counts, totals, wins = torch.stack([ended.sum(1), returns.sum(1), success.sum(1)]).tolist()
+        return [
+            {"episode_return": total / count, "episode_success": win / count} if count else {}
+            for count, total, win in zip(counts, totals, wins, strict=True)
+        ]
 
     @staticmethod
     def losses(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, float]:

@@ -123,7 +123,9 @@ class SeedReplayBuffer:
             return
         held = TensorDict(state["storage"], batch_size=[self.num_seeds, count], device=self.device)
         self.storage = held.apply(
-            lambda x: torch.empty((self.num_seeds, self.size, *x.shape[2:]), dtype=x.dtype),
+            lambda x: torch.empty(
+                (self.num_seeds, self.size, *x.shape[2:]), dtype=x.dtype, device=x.device
+            ),
             batch_size=[self.num_seeds, self.size],
         )
         self.storage[:, :count] = held

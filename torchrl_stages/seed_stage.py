@@ -335,7 +335,8 @@ class SeedsStageTrainer:
         means = {  # an entry some updates leave out (TD3's delayed actor loss): over the others
             k: torch.stack([loss[k] for loss in losses if k in loss]).mean(0).tolist() for k in keys
         }
+        episodes = MetricsLog.episodes_by_row(parts)
         for i in active:
-            metrics = {**MetricsLog.episodes(parts[i]), **{k: v[i] for k, v in means.items()}}
+            metrics = {**episodes[i], **{k: v[i] for k, v in means.items()}}
             metrics["updates"] = self.learner.num_updates
             self.logs[i]({f"{self.prefix}/{k}": v for k, v in metrics.items()}, frames)
