@@ -1,13 +1,14 @@
 """Many seeds in one process (``stages-train seeds=[...]``) against the same seeds run apart.
 
-Three measurements, each a table in ``OUT/table.md``:
+Four measurements, each a table in ``OUT/table.md``:
 
 ``--quality`` (no wall-clock: it may run beside other work): the grid world's discount
 presets (``homo``, ``hetero``) with ``seeds=[...]`` in one process, every seed's run checked
 against the bars of ``benchmark_gridworld.py`` (success from every start, optimal path, value
-error <= 0.05), and ``--manipulator``: the manipulator's seeds the same way (success over its
-whole-task episodes; ``--manipulator-experiment manipulator_td3``: with that experiment's TD3
-stages).
+error <= 0.05) (``--schedule flat``: the flat schedule's; ``--apart``: also each seed in a run
+of its own, one after another, the same bars), and ``--manipulator``: the manipulator's seeds
+the same way (success over its whole-task episodes; ``--manipulator-experiment
+manipulator_td3``: with that experiment's TD3 stages).
 
 ``--timing``: one sweep of ``--seeds`` on the grid world (default config), wall-clock of the
 whole command from launch to exit, in four ways, each ``--repeats`` times, alternated:
@@ -126,23 +127,42 @@ def quality(args: argparse.Namespace) -> list[str]:
     lines = ["| task / preset | seeds | pass | max abs V error (median, max) | frames per seed |"]
     lines.append("|---|---|---|---|---|")
     notes = []
+    listed = ",".join(str(s) for s in args.seeds)
+    schedule = [] if args.schedule == "backward" else [f"schedule={args.schedule}"]
+    ways = ["in one process", "apart"] if args.apart else ["in one process"]
     for variant in args.variants:
-        run_dir = args.out / f"quality_{variant}"
-        listed = ",".join(str(s) for s in args.seeds)
-        argv = [stages_train(), f"seeds=[{listed}]", *VARIANTS[variant], f"hydra.run.dir={run_dir}"]
-        timed([*argv, "eval.plots=false", "progress=false"], run_dir.with_suffix(".log"))
-        results = seed_results(run_dir, args.seeds)
-        rows = [grid_row(variant, s, r) for s, r in zip(args.seeds, results, strict=True)]
-        errors = [r["value_error"] for r in rows]
-        frames = [r["frames"] for r in rows]
-        failed = [r["seed"] for r in rows if not r["pass"]]
-        lines.append(
-            f"| grid world / {variant} | {args.seeds[0]}-{args.seeds[-1]} | "
-            f"{len(rows) - len(failed)}/{len(rows)} | {statistics.median(errors):.3f}, "
-            f"{max(errors):.3f} | median {statistics.median(frames):.0f} |"
-        )
-        if failed:
-            notes.append(f"- grid world / {variant}: seeds that fail a bar: {failed}")
+        for way in ways:
+            name = f"quality_{variant}" + (
+                "" if args.schedule == "backward" else f"_{args.schedule}"
+            )
+            run_dir = args.out / (name if way == "in one process" else f"{name}_apart")
+            common = [*VARIANTS[variant], *schedule, "eval.plots=false", "progress=false"]
+            if way == "apart":  # Hydra's basic launcher: one job after another
+                argv = [stages_train(), "-m", f"seed={listed}", f"hydra.sweep.dir={run_dir}"]
+            else:
+                argv = [stages_train(), f"seeds=[{listed}]", f"hydra.run.dir={run_dir}"]
+            timed([*argv, *common], run_dir.with_suffix(".log"))
+            if way == "apart":
+                results = [
+                    json.loads((run_dir / str(i) / "eval.json").read_text())
+                    for i in range(len(args.seeds))
+                ]
+            else:
+                results = seed_results(run_dir, args.seeds)
+            rows = [grid_row(variant, s, r) for s, r in zip(args.seeds, results, strict=True)]
+            errors = [r["value_error"] for r in rows]
+            frames = [r["frames"] for r in rows]
+            failed = [r["seed"] for r in rows if not r["pass"]]
+            label = (
+                variant if not (schedule or args.apart) else f"{variant}, {args.schedule}, {way}"
+            )
+            lines.append(
+                f"| grid world / {label} | {args.seeds[0]}-{args.seeds[-1]} | "
+                f"{len(rows) - len(failed)}/{len(rows)} | {statistics.median(errors):.3f}, "
+                f"{max(errors):.3f} | median {statistics.median(frames):.0f} |"
+            )
+            if failed:
+                notes.append(f"- grid world / {label}: seeds that fail a bar: {failed}")
     if args.manipulator:
         experiment = args.manipulator_experiment
         run_dir = args.out / f"quality_{experiment or 'manipulator'}"
@@ -252,6 +272,12 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
     parser.add_argument("--quality", action="store_true")
     parser.add_argument("--variants", nargs="*", default=["homo", "hetero"], choices=list(VARIANTS))
+    parser.add_argument(
+        "--schedule", default="backward", choices=["backward", "flat"], help="--quality's schedule"
+    )
+    parser.add_argument(
+        "--apart", action="store_true", help="--quality: also each seed in a run of its own"
+    )
     parser.add_argument("--manipulator", type=int, nargs="*", default=[], help="its seeds")
     parser.add_argument(
         "--manipulator-experiment",

@@ -35,6 +35,7 @@ from torchrl_stages.loop import MetricsLog
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.rundir import load_run
+from torchrl_stages.schedules import flat as flat_module
 from torchrl_stages.schedules.backward import train_backward_seeds
 from torchrl_stages.seed_runs import SeedRuns, validate_seeds
 from torchrl_stages.seed_stage import SeedRow
@@ -85,8 +86,10 @@ def test_a_stacked_learner_updates_each_seed_as_its_own_learner_would(algo):
     n, size = 3, 16
     singles = [make_learner(cfg, specs) for _ in range(n)]
     stacked = stack_learners(make_learner(cfg, specs, seeds=n), singles)
-    for _ in range(4):
+    for step in range(4):
         batch = _batch((n, size), action((n, size)))
+        if step % 2:  # the flat schedule's per-stage discounts (StageDiscount)
+            batch["steps_to_next_obs"] = torch.rand(n, size, 1) + 0.5
         expected = [learner.update(batch[i]) for i, learner in enumerate(singles)]
         losses = stacked.update(batch)
         for key, value in losses.items():
@@ -314,20 +317,71 @@ def test_an_interrupted_stage_of_many_seeds_resumes_bitwise_from_its_checkpoint(
     assert not (interrupted / "stage_0").exists()  # dropped once the stage is kept
 
 
+def _two_seeds_in_one_process(compose_cfg, tmp_path, *overrides: str) -> list[dict]:
+    """``SeedRuns`` of seeds 0 and 1 in ``tmp_path / "run"``, smoke budget: each seed's
+    ``eval.json``."""
+    quiet = ["experiment=smoke", "seeds=[0,1]", "eval.plots=false", "progress=false"]
+    return SeedRuns(compose_cfg(*overrides, *quiet), tmp_path / "run").run()
+
+
 def test_td3_seeds_train_in_one_process(compose_cfg, tmp_path):
     # twin critics and a delayed actor loss (logged on every other update) through the whole run
-    cfg = compose_cfg(
+    results = _two_seeds_in_one_process(
+        compose_cfg,
+        tmp_path,
         "task=manipulator",
         "algo@task.stages.coarse=td3",
         "algo@task.stages.fine=td3",
-        "experiment=smoke",
-        "seeds=[0,1]",
-        "eval.plots=false",
-        "progress=false",
     )
-    results = SeedRuns(cfg, tmp_path / "run").run()
     assert len(results) == 2
     for seed in (0, 1):
         logged = (tmp_path / "run" / f"seed_{seed}" / "metrics.csv").read_text()
         assert "train/stage_0/loss_actor" in logged and "train/stage_1/loss_qvalue" in logged
         assert load_run(tmp_path / "run" / f"seed_{seed}").cfg.task.stages.fine.algo == "td3"
+
+
+class _Captured(Exception):
+    pass
+
+
+def test_each_flat_seed_starts_from_the_weights_of_its_own_flat_run(monkeypatch):
+    task = two_stage_grid(DQNConfig(gamma=0.9, frames=256), DQNConfig(gamma=0.5, frames=256))
+    seen = {}
+
+    def capture(kind):
+        def trainer(stage, learner, env, eval_env, cfg, **kwargs):
+            seen[kind] = (learner, env, eval_env, kwargs)
+            raise _Captured
+
+        return trainer
+
+    monkeypatch.setattr(flat_module, "SeedsStageTrainer", capture("stacked"))
+    monkeypatch.setattr(flat_module, "StageTrainer", capture("single"))
+    with pytest.raises(_Captured):
+        flat_module.train_flat_seeds(task, [4, 1])
+    stacked, env, eval_env, kwargs = seen["stacked"]
+    assert kwargs["gammas"] == [0.9, 0.5] and kwargs["extra_keys"] == ["steps_to_next_obs"]
+    single_env = flat_module.flat_envs(task, flat_module.flat_config(task), 4)[0]
+    assert env.batch_size[0] == 2 * single_env.batch_size[0]
+    assert eval_env.batch_size[0] == 2 * task.task_env(None).batch_size[0]
+    for i, seed in enumerate([4, 1]):
+        with pytest.raises(_Captured):
+            flat_module.train_flat(task, seed=seed)
+        single = seen["single"][0].state_dict()
+        row = unstack_learner(
+            stacked, i, make_learner(flat_module.flat_config(task), task.specs(0))
+        )
+        assert all(torch.equal(row.state_dict()[k], v) for k, v in single.items()), seed
+
+
+def test_flat_seeds_train_in_one_process(compose_cfg, tmp_path):
+    results = _two_seeds_in_one_process(compose_cfg, tmp_path, "schedule=flat")
+    assert len(results) == 2
+    for seed in (0, 1):
+        seed_dir = tmp_path / "run" / f"seed_{seed}"
+        run = load_run(seed_dir)
+        assert run.cfg.schedule.name == "flat" and run.cfg.seed == seed
+        assert len({id(learner) for learner in run.learners}) == 1  # one learner acts everywhere
+        result = json.loads((seed_dir / "eval.json").read_text())
+        assert len(result["training"]["stages"]) == 1
+        assert "eval/stage_0/success_rate" in (seed_dir / "metrics.csv").read_text()

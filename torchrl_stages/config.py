@@ -254,9 +254,10 @@ class TrainConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     seed: int = 0
-    # several seeds of this config in one process, their networks stacked (backward schedule;
-    # algorithms that stack seeds: dqn, ddpg): seeds=[0,1,2] writes hydra.run.dir/seed_<s>/, one
-    # ordinary run directory per seed, and the sweep summary over them (null: one run, `seed`)
+    # several seeds of this config in one process, their networks stacked (backward and flat
+    # schedules; algorithms that stack seeds: dqn, ddpg, td3): seeds=[0,1,2] writes
+    # hydra.run.dir/seed_<s>/, one ordinary run directory per seed, and the sweep summary over
+    # them (null: one run, `seed`)
     seeds: list[int] | None = None
     device: str = "cpu"
     # torch intra-op threads; default: the task's (task.threads). Use 1 per job when a launcher

@@ -18,9 +18,11 @@ import copy
 import logging
 import time
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
 from torchrl.envs import EnvBase
 
 from torchrl_stages.checkpoint import StageCheckpoints
@@ -29,7 +31,12 @@ from torchrl_stages.config import StageConfig
 from torchrl_stages.evaluate import evaluate_greedy_groups
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
-from torchrl_stages.learners.stacking import seed_axes, unstack_learner, update_rows
+from torchrl_stages.learners.stacking import (
+    seed_axes,
+    stack_learners,
+    unstack_learner,
+    update_rows,
+)
 from torchrl_stages.loop import (
     EarlyStop,
     MetricsLog,
@@ -44,7 +51,14 @@ from torchrl_stages.stage import DivergenceError, StageResult
 from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import NonFiniteValueError
 
-__all__ = ["SeedRow", "SeedsEarlyStop", "SeedsStageTrainer"]
+__all__ = [
+    "SeedRow",
+    "SeedsEarlyStop",
+    "SeedsStageTrainer",
+    "finished_for_every_seed",
+    "seed_stacked_learner",
+    "start_stage_logs",
+]
 
 log = logging.getLogger("torchrl_stages")
 
@@ -162,8 +176,10 @@ class SeedsStageTrainer:
     receive each seed's metrics under the keys a single run logs; ``seeds`` name the rows in
     messages (default: 0, 1, ...). With ``checkpoints`` the loop saves the state of every seed
     together every ``checkpoints.every`` frames per seed and goes on from the newest one on
-    disk, the seeds' logs rewound with it. :meth:`train` returns each seed's ordinary learner
-    (``make_learner()`` builds an empty one) and result.
+    disk, the seeds' logs rewound with it. ``gammas``, ``postproc`` and ``extra_keys`` are
+    :class:`~torchrl_stages.stage.StageTrainer`'s (the flat schedule's per-stage discounts).
+    :meth:`train` returns each seed's ordinary learner (``make_learner()`` builds an empty one)
+    and result.
     """
 
     def __init__(
@@ -180,7 +196,12 @@ class SeedsStageTrainer:
         progress: bool = False,
         seeds: Sequence[int] | None = None,
         checkpoints: StageCheckpoints | None = None,
+        gammas: Sequence[float] | None = None,
+        postproc: Callable[[TensorDictBase], TensorDictBase] | None = None,
+        extra_keys: Sequence[NestedKey] = (),
     ) -> None:
+        self.gammas, self.postproc = gammas, postproc
+        self.keys = list(dict.fromkeys([*learner.replay_keys, *extra_keys]))
         self.stage, self.learner, self.env, self.eval_env, self.cfg = (
             stage,
             learner,
@@ -210,7 +231,6 @@ class SeedsStageTrainer:
         steps = int(cfg.updates_per_batch)
         draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
         buffer = SeedReplayBuffer(int(cfg.buffer_size), num_seeds=n, device=learner.device)
-        keys = learner.replay_keys
         monitor = SeedsEarlyStop(cfg, learner)
         counters = {"next_eval": first_evaluation(cfg) * n, "seconds": 0.0, "log": {}}
         logs = _SeedLogs(self.logs)
@@ -223,7 +243,9 @@ class SeedsStageTrainer:
 
         def learn(batch: TensorDictBase, frames: int) -> list[dict[str, torch.Tensor]]:
             with watch("collect"):
-                buffer.extend(batch.select(*keys, strict=False))
+                if self.postproc is not None:
+                    batch = self.postproc(batch)
+                buffer.extend(batch.select(*self.keys, strict=False))
             per_seed = frames // n
             learner.anneal(per_seed)
             losses = []
@@ -252,7 +274,7 @@ class SeedsStageTrainer:
                 learner.policy,
                 value,
                 max_steps,
-                float(cfg.gamma),
+                self.gammas or float(cfg.gamma),
                 cfg.value_error_reduce,
                 groups=n,
             )
@@ -340,3 +362,46 @@ class SeedsStageTrainer:
             metrics = {**episodes[i], **{k: v[i] for k, v in means.items()}}
             metrics["updates"] = self.learner.num_updates
             self.logs[i]({f"{self.prefix}/{k}": v for k, v in metrics.items()}, frames)
+
+
+def finished_for_every_seed(
+    stores: Sequence[Any], seeds: Sequence[int], stage: int, resume: str
+) -> list[tuple[Learner, StageResult]] | None:
+    """Each seed's finished ``stage`` (``store.finished(stage)``) when every seed's store has
+    it, ``None`` when none has; a ``RuntimeError`` naming the seeds and the fix (``resume``: the
+    command that resumes one seed's run directory) when only some have."""
+    done = [store.finished(stage) if store is not None else None for store in stores]
+    if all(d is None for d in done):
+        return None
+    missing = [s for s, d in zip(seeds, done, strict=True) if d is None]
+    if missing:
+        raise RuntimeError(
+            f"stage {stage}: finished for some seeds but not for seeds {missing}; Fix: resume "
+            f"those seeds' run directories one by one ({resume})"
+        )
+    return done
+
+
+def start_stage_logs(
+    stores: Sequence[Any], checkpoints: StageCheckpoints | None, stage: int
+) -> None:
+    """Without a checkpoint of ``stage`` to go on from, each seed's log is rewound to where
+    the stage starts (``store.begin(stage)``: a resumed run drops the rows of the attempt that
+    was interrupted)."""
+    if checkpoints is None or checkpoints.latest() is None:
+        for store in stores:
+            if store is not None:
+                store.begin(stage)
+
+
+def seed_stacked_learner(
+    make: Callable[..., Learner], seeds: Sequence[int], offset: int = 0
+) -> Learner:
+    """``make(seeds=len(seeds))`` holding, in row ``i``, the initial weights of
+    ``make()`` built right after ``torch.manual_seed(seeds[i] + offset)`` (those of a single
+    run with that seed)."""
+    singles = []
+    for seed in seeds:
+        torch.manual_seed(seed + offset)
+        singles.append(make())
+    return stack_learners(make(seeds=len(seeds)), singles)

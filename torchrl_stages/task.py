@@ -167,13 +167,19 @@ class StagedTask:
         )
 
     def task_env(
-        self, batch_size: int | None = None, *, train: bool = False, **overrides: Any
+        self,
+        batch_size: int | None = None,
+        *,
+        train: bool = False,
+        copies: int = 1,
+        **overrides: Any,
     ) -> TransformedEnv:
         """Whole-task env (stage tags only), with ``task.eval_env`` starts unless overridden.
 
         ``batch_size=None`` gives one element per whole-task start state (the env must
         enumerate them, see :meth:`start_states`). ``train`` adds ``RewardSum`` (episode
-        returns for the training logs).
+        returns for the training logs). ``copies``: the batch holds that many consecutive
+        copies of it (one per seed of a seed-stacked learner, :func:`tile_starts`).
         """
         eval_env = self.cfg.get("eval_env") or {}
         kwargs = {**OmegaConf.to_container(OmegaConf.create(eval_env), resolve=True), **overrides}
@@ -181,9 +187,9 @@ class StagedTask:
             starts = self.start_states(None)
             if starts is None:
                 raise ValueError(f"the env of task '{self.name}' cannot enumerate its starts.")
-            kwargs = {**starts, **kwargs}
+            kwargs = {**tile_starts(starts, copies), **kwargs}
         else:
-            kwargs["batch_size"] = batch_size
+            kwargs["batch_size"] = batch_size * copies
         base = self.base_env(**kwargs)
         tags = StageTransform(base.stage_fn, base.num_stages)
         return TransformedEnv(base, Compose(tags, RewardSum()) if train else tags)

@@ -18,7 +18,12 @@ from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.stacking import stack_learners
 from torchrl_stages.loop import MetricsLog
 from torchrl_stages.schedules.base import Probe, Schedule, StageStore, Trained, register_schedule
-from torchrl_stages.seed_stage import SeedsStageTrainer
+from torchrl_stages.seed_stage import (
+    SeedsStageTrainer,
+    finished_for_every_seed,
+    seed_stacked_learner,
+    start_stage_logs,
+)
 from torchrl_stages.stage import StageResult, StageTrainer
 from torchrl_stages.task import StagedTask
 
@@ -198,36 +203,22 @@ def train_backward_seeds(
     learners: list[list[Learner | None]] = [[None] * num_stages for _ in range(n)]
     results: list[list[StageResult | None]] = [[None] * num_stages for _ in range(n)]
     next_value = None
+    resume = "stages-train seed=<s> resume=true hydra.run.dir=<its directory>"
     for k in reversed(range(num_stages)):
         cfg, specs = task.stage_cfg(k), task.specs(k)
 
-        def plain(cfg=cfg, specs=specs) -> Learner:
-            return make_learner(cfg, specs, device=task.device)
+        def plain(seeds: int | None = None, cfg=cfg, specs=specs) -> Learner:
+            return make_learner(cfg, specs, device=task.device, seeds=seeds)
 
-        done = [store.finished(k) if store is not None else None for store in stores]
-        if any(d is not None for d in done):
-            missing = [s for s, d in zip(seeds, done, strict=True) if d is None]
-            if missing:
-                raise RuntimeError(
-                    f"stage {k}: finished for some seeds but not for seeds {missing}; "
-                    "Fix: resume those seeds' run directories one by one (stages-train "
-                    "seed=<s> resume=true hydra.run.dir=<its directory>)"
-                )
+        if (done := finished_for_every_seed(stores, seeds, k, resume)) is not None:
             for i, (learner, result) in enumerate(done):
                 learners[i][k], results[i][k] = learner, result
-            stacked = make_learner(cfg, specs, device=task.device, seeds=n)
-            next_value = stack_learners(stacked, [d[0] for d in done]).value()
+            next_value = stack_learners(plain(n), [d[0] for d in done]).value()
             continue
         joint = checkpoints(k) if checkpoints is not None else None
-        if joint is None or joint.latest() is None:
-            for store in stores:
-                if store is not None:
-                    store.begin(k)  # a resumed run's log: rewound to where the stage starts
-        singles = []
-        for s in seeds:
-            torch.manual_seed(s + k)
-            singles.append(plain())
-        stacked = stack_learners(make_learner(cfg, specs, device=task.device, seeds=n), singles)
+        start_stage_logs(stores, joint, k)
+        # seeded_stage_envs seeds the generator with seed + k before a run builds stage k
+        stacked = seed_stacked_learner(plain, seeds, offset=k)
         env, eval_env = seeded_stage_envs(task, k, next_value, seeds[0], copies=n)
         trainer = SeedsStageTrainer(
             k,

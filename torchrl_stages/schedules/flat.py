@@ -3,13 +3,25 @@ baseline)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from typing import Any
+
 import torch
 from omegaconf import DictConfig
+from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
+from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import check
 from torchrl_stages.learners import Learner, make_learner
+from torchrl_stages.loop import MetricsLog
 from torchrl_stages.schedules.base import Probe, Schedule, StageStore, Trained, register_schedule
+from torchrl_stages.seed_stage import (
+    SeedsStageTrainer,
+    finished_for_every_seed,
+    seed_stacked_learner,
+    start_stage_logs,
+)
 from torchrl_stages.stage import StageResult, StageTrainer
 from torchrl_stages.task import StagedTask
 from torchrl_stages.transforms import StageDiscount
@@ -59,12 +71,7 @@ def train_flat(
     if done is not None:
         return [done[0]] * task.num_stages, [done[1]]
     cfg = flat_config(task)
-    gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
-    torch.manual_seed(seed)
-    env = task.task_env(int(cfg.num_envs), start_stage=None, train=True)
-    env.set_seed(seed)
-    eval_env = task.task_env(None if task.start_states(None) is not None else cfg.eval_episodes)
-    eval_env.set_seed(seed + 10_000)
+    env, eval_env = flat_envs(task, cfg, seed)
     learner = make_learner(cfg, task.specs(0), compile, task.device)
     trainer = StageTrainer(
         0,
@@ -76,15 +83,93 @@ def train_flat(
         progress=progress,
         name="flat",
         checkpoints=store.begin(0) if store is not None else None,
-        gammas=gammas,
-        postproc=StageDiscount(gammas, float(cfg.gamma)),
-        extra_keys=["steps_to_next_obs"],
         on_evaluate=None if probe is None else lambda f: probe([learner] * task.num_stages, f),
+        **stage_discounts(task, cfg),
     )
     result = trainer.train()
     if store is not None:
         store.save(0, learner, result)
     return [learner] * task.num_stages, [result]
+
+
+def flat_envs(
+    task: StagedTask, cfg: DictConfig, seed: int, copies: int = 1
+) -> tuple[EnvBase, EnvBase]:
+    """The flat learner's training env (the task's own starts) and evaluation env (every
+    whole-task start, else ``eval_episodes``), ``copies`` of each (one per seed of a stacked
+    learner), seeded as a flat run is: the global generator and the training env with
+    ``seed``, the evaluation env with ``seed + 10_000``."""
+    torch.manual_seed(seed)
+    env = task.task_env(int(cfg.num_envs), start_stage=None, train=True, copies=copies)
+    env.set_seed(seed)
+    episodes = None if task.start_states(None) is not None else int(cfg.eval_episodes)
+    eval_env = task.task_env(episodes, copies=copies)
+    eval_env.set_seed(seed + 10_000)
+    return env, eval_env
+
+
+def stage_discounts(task: StagedTask, cfg: DictConfig) -> dict[str, Any]:
+    """The stage trainer's arguments that discount each transition with its stage's gamma
+    (:class:`~torchrl_stages.transforms.StageDiscount`), in training and in evaluations."""
+    gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
+    return {
+        "gammas": gammas,
+        "postproc": StageDiscount(gammas, float(cfg.gamma)),
+        "extra_keys": ["steps_to_next_obs"],
+    }
+
+
+def train_flat_seeds(
+    task: StagedTask,
+    seeds: Sequence[int],
+    *,
+    stores: Sequence[StageStore | None] | None = None,
+    logs: Sequence[MetricsLog] | None = None,
+    progress: bool = False,
+    checkpoints: Callable[[int], StageCheckpoints] | None = None,
+) -> list[Trained]:
+    """:func:`train_flat` for every seed of ``seeds`` at once, their learners stacked
+    (:class:`~torchrl_stages.seed_stage.SeedsStageTrainer`); ``stores``, ``logs`` and
+    ``checkpoints`` as in :func:`~torchrl_stages.schedules.backward.train_backward_seeds`.
+    Seed ``s`` starts from the weights of a flat run with seed ``s``."""
+    n = len(seeds)
+    stores = list(stores) if stores is not None else [None] * n
+    logs = list(logs) if logs is not None else [MetricsLog(None) for _ in range(n)]
+    resume = "stages-train schedule=flat seed=<s> resume=true hydra.run.dir=<its directory>"
+    if (done := finished_for_every_seed(stores, seeds, 0, resume)) is not None:
+        return [Trained([learner] * task.num_stages, [result]) for learner, result in done]
+    cfg, specs = flat_config(task), task.specs(0)
+
+    def plain(seeds: int | None = None) -> Learner:
+        return make_learner(cfg, specs, device=task.device, seeds=seeds)
+
+    joint = checkpoints(0) if checkpoints is not None else None
+    start_stage_logs(stores, joint, 0)
+    # flat_envs seeds the generator with the seed before a flat run builds its learner
+    stacked = seed_stacked_learner(plain, seeds)
+    env, eval_env = flat_envs(task, cfg, seeds[0], copies=n)
+    trainer = SeedsStageTrainer(
+        0,
+        stacked,
+        env,
+        eval_env,
+        cfg,
+        logs=logs,
+        make_learner=plain,
+        name="flat",
+        progress=progress,
+        seeds=seeds,
+        checkpoints=joint,
+        **stage_discounts(task, cfg),
+    )
+    out = []
+    for store, (learner, result) in zip(stores, trainer.train(), strict=True):
+        if store is not None:
+            store.save(0, learner, result)
+        out.append(Trained([learner] * task.num_stages, [result]))
+    if joint is not None:
+        joint.clear()
+    return out
 
 
 @register_schedule
@@ -93,9 +178,13 @@ class FlatSchedule(Schedule):
     acting in every stage (which must then share their observation and action entries)."""
 
     name = "flat"
+    stacks_seeds = True
 
     def train(self, task: StagedTask, store: StageStore | None = None, **kwargs) -> Trained:
         return Trained(*train_flat(task, store=store, **kwargs))
+
+    def train_seeds(self, task: StagedTask, seeds: Sequence[int], **kwargs) -> list[Trained]:
+        return train_flat_seeds(task, seeds, **kwargs)
 
     def checkpoint_scope(self, stage: int) -> int:
         return 0
