@@ -4,6 +4,7 @@ seed."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 
@@ -385,3 +386,52 @@ def test_flat_seeds_train_in_one_process(compose_cfg, tmp_path):
         result = json.loads((seed_dir / "eval.json").read_text())
         assert len(result["training"]["stages"]) == 1
         assert "eval/stage_0/success_rate" in (seed_dir / "metrics.csv").read_text()
+
+
+def test_an_interrupted_flat_run_of_many_seeds_resumes_bitwise_from_its_checkpoint(
+    tmp_path, monkeypatch
+):
+    seeds = [0, 3]
+    stage = DQNConfig(
+        gamma=0.9,
+        frames=512,  # the flat learner's budget: the stages' sum
+        frames_per_batch=128,
+        num_envs=16,
+        init_random_frames=128,
+        batch_size=32,
+        updates_per_batch=2,
+        eval_every=256,
+        eval_episodes=8,
+        success_threshold=1.1,  # never met: both seeds train the whole budget
+        min_frames=0,
+    )
+    task = two_stage_grid(stage, dataclasses.replace(stage, gamma=0.5))
+
+    def launch(root):
+        logs = [MetricsLog(RunLogger(root / f"seed_{s}.csv")) for s in seeds]
+
+        def checkpoints(scope):
+            return StageCheckpoints(root / f"stage_{scope}", every=256, keep=2)
+
+        return flat_module.train_flat_seeds(task, seeds, logs=logs, checkpoints=checkpoints)
+
+    reference = launch(tmp_path / "reference")
+    interrupted = tmp_path / "interrupted"
+    periodic = interrupted / "stage_0" / "frames-000000000512"
+    monkeypatch.setattr(
+        loop_module, "requested", lambda: signal.SIGTERM if periodic.exists() else None
+    )
+    with pytest.raises(Interrupted, match="stage 0"):
+        launch(interrupted)
+    monkeypatch.undo()
+    assert periodic.exists()  # what the next launch goes on from
+    resumed = launch(interrupted)
+    assert not (interrupted / "stage_0").exists()  # dropped once the learner is kept
+    for ref, res in zip(reference, resumed, strict=True):
+        assert ref.learners[0] is ref.learners[1] and res.learners[0] is res.learners[1]
+        assert ref.results[0].frames == res.results[0].frames == 1024
+        a, b = ref.learners[0].state_dict(), res.learners[0].state_dict()
+        assert all(torch.equal(a[key], b[key]) for key in a)
+    for s in seeds:
+        logged = (interrupted / f"seed_{s}.csv").read_bytes()
+        assert logged == (tmp_path / "reference" / f"seed_{s}.csv").read_bytes()
