@@ -24,7 +24,9 @@ from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.learners.networks import mlp
 from torchrl_stages.learners.sac import SACConfig
 from torchrl_stages.learners.stacking import (
+    StackedConv2d,
     StackedLinear,
+    stack_for_seeds,
     stack_learners,
     stacked_networks,
     unstack_learner,
@@ -42,20 +44,36 @@ from torchrl_stages.seed_runs import SeedRuns, validate_seeds
 from torchrl_stages.seed_stage import SeedRow
 from torchrl_stages.task import StagedTask, tile_starts
 
+# a 1 x 6 x 6 occupancy image and a 2-vector, like the cargo stages' window and target
+IMAGE = ["window", "target"], [(1, 6, 6), (2,)]
+CNN = {"num_cells": [16, 16], "cnn_channels": [4], "cnn_kernels": [3], "cnn_strides": [2]}
 
-def _batch(lead: tuple[int, ...], action: torch.Tensor) -> TensorDict:
-    def obs() -> torch.Tensor:
-        return torch.randn(*lead, 3)
 
+def _obs(lead: tuple[int, ...], image: bool) -> dict[str, torch.Tensor]:
+    if image:
+        window = (torch.rand(*lead, 1, 6, 6) < 0.3).to(torch.uint8)
+        return {"window": window, "target": torch.randn(*lead, 2)}
+    return {"observation": torch.randn(*lead, 3)}
+
+
+def _batch(lead: tuple[int, ...], action: torch.Tensor, image: bool = False) -> TensorDict:
     done = torch.zeros(*lead, 1, dtype=torch.bool)
     nxt = TensorDict(
-        observation=obs(),
+        **_obs(lead, image),
         reward=torch.randn(*lead, 1),
         done=done,
         terminated=torch.rand(*lead, 1) < 0.2,
         batch_size=lead,
     )
-    return TensorDict(observation=obs(), action=action, next=nxt, batch_size=lead)
+    return TensorDict(**_obs(lead, image), action=action, next=nxt, batch_size=lead)
+
+
+def _specs(algo: str) -> StageSpecs:
+    spec = CASES[algo][1]
+    if algo.endswith("cnn"):
+        keys, shapes = IMAGE
+        return StageSpecs(keys, 2, "action", spec, shapes)
+    return StageSpecs(["observation"], 3, "action", spec)
 
 
 CASES = {
@@ -77,18 +95,30 @@ CASES = {
         Bounded(-1, 1, (2,)),
         lambda lead: torch.rand(*lead, 2) * 2 - 1,
     ),
+    # image inputs: each seed's CNN in one grouped convolution
+    "dqn-cnn": (
+        DQNConfig(gamma=0.9, max_grad_norm=0.5, **CNN),
+        Categorical(4),
+        lambda lead: torch.randint(0, 4, lead),
+    ),
+    # the cargo slider's kind: one CNN shared by the actor and the critics
+    "td3-shared-cnn": (
+        TD3Config(gamma=0.9, policy_noise=0.0, shared_encoder=True, **CNN),
+        Bounded(-1, 1, (1,)),
+        lambda lead: torch.rand(*lead, 1) * 2 - 1,
+    ),
 }
 
 
 @pytest.mark.parametrize("algo", list(CASES))
 def test_a_stacked_learner_updates_each_seed_as_its_own_learner_would(algo):
-    cfg, spec, action = CASES[algo]
-    specs = StageSpecs(["observation"], 3, "action", spec)
+    cfg, _, action = CASES[algo]
+    specs, image = _specs(algo), algo.endswith("cnn")
     n, size = 3, 16
     singles = [make_learner(cfg, specs) for _ in range(n)]
     stacked = stack_learners(make_learner(cfg, specs, seeds=n), singles)
     for step in range(4):
-        batch = _batch((n, size), action((n, size)))
+        batch = _batch((n, size), action((n, size)), image)
         if step % 2:  # the flat schedule's per-stage discounts (StageDiscount)
             batch["steps_to_next_obs"] = torch.rand(n, size, 1) + 0.5
         expected = [learner.update(batch[i]) for i, learner in enumerate(singles)]
@@ -102,10 +132,10 @@ def test_a_stacked_learner_updates_each_seed_as_its_own_learner_would(algo):
         for key, value in single.state_dict().items():
             torch.testing.assert_close(out[key], value, rtol=1e-4, atol=1e-6, msg=key)
     # the stage value of every seed, on a seed-major batch
-    obs = torch.randn(n * 5, 3)
-    stacked_v = stacked.value()(TensorDict(observation=obs, batch_size=[n * 5]))["state_value"]
+    obs = TensorDict(_obs((n * 5,), image), batch_size=[n * 5])
+    stacked_v = stacked.value()(obs.clone())["state_value"]
     for i, single in enumerate(singles):
-        part = TensorDict(observation=obs[i * 5 : (i + 1) * 5], batch_size=[5])
+        part = obs[i * 5 : (i + 1) * 5].clone()
         torch.testing.assert_close(
             stacked_v[i * 5 : (i + 1) * 5], single.value()(part)["state_value"], atol=1e-5, rtol=0
         )
@@ -115,12 +145,12 @@ def test_a_stacked_learner_updates_each_seed_as_its_own_learner_would(algo):
 def test_updating_some_rows_updates_those_seeds_alone(algo):
     # what a stage of many seeds does once some have stopped: the others update as they would
     # on their own, and a stopped seed's parameters get no gradient
-    cfg, spec, action = CASES[algo]
-    specs = StageSpecs(["observation"], 3, "action", spec)
+    cfg, _, action = CASES[algo]
+    specs = _specs(algo)
     n, size, rows = 3, 16, torch.tensor([0, 2])
     singles = [make_learner(cfg, specs) for _ in range(n)]
     stacked = stack_learners(make_learner(cfg, specs, seeds=n), singles)
-    batch = _batch((2, size), action((2, size)))
+    batch = _batch((2, size), action((2, size)), algo.endswith("cnn"))
     expected = [singles[int(r)].update(batch[i]) for i, r in enumerate(rows)]
     with update_rows(rows):
         losses = stacked.update(batch)
@@ -141,12 +171,17 @@ def test_stacked_networks_refuse_what_cannot_be_stacked():
     specs = StageSpecs(["observation"], 3, "action", Bounded(-1, 1, (2,)))
     with pytest.raises(ConfigError, match="cannot train several seeds in one process"):
         make_learner(SACConfig(), specs, seeds=2)
-    with stacked_networks(2), pytest.raises(TypeError, match="Conv2d"):
-        mlp([(1, 6, 6)], 2, [8])
+    with stacked_networks(2), pytest.raises(TypeError, match="LayerNorm"):
+        stack_for_seeds(torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.LayerNorm(4)))
+    with stacked_networks(2), pytest.raises(TypeError, match="dilation"):
+        stack_for_seeds(torch.nn.Conv2d(1, 4, 3, dilation=2))
     with stacked_networks(2):
         net = mlp(4, 2, [8])
+        cnn = mlp([(1, 6, 6)], 2, [8])
     assert all(type(m) is not torch.nn.Linear for m in net.modules())
     assert isinstance(net[0], StackedLinear) and net[0].weight.shape == (2, 8, 4)
+    convs = [m for m in cnn.modules() if isinstance(m, StackedConv2d)]
+    assert convs and not any(type(m) is torch.nn.Conv2d for m in cnn.modules())
 
 
 def test_a_seed_row_reads_and_restores_one_seed():
@@ -435,3 +470,13 @@ def test_an_interrupted_flat_run_of_many_seeds_resumes_bitwise_from_its_checkpoi
     for s in seeds:
         logged = (interrupted / f"seed_{s}.csv").read_bytes()
         assert logged == (tmp_path / "reference" / f"seed_{s}.csv").read_bytes()
+
+
+def test_image_inputs_train_in_one_process(compose_cfg, tmp_path):
+    # cargo: the slider's TD3 with one CNN for its actor and critics, then the propelled
+    # robot's DQN over a CNN, each seed's convolutions one group of a grouped convolution
+    results = _two_seeds_in_one_process(compose_cfg, tmp_path, "task=cargo")
+    assert len(results) == 2
+    for seed in (0, 1):
+        run = load_run(tmp_path / "run" / f"seed_{seed}")
+        assert any(isinstance(m, torch.nn.Conv2d) for m in run.learners[0].modules())

@@ -2,7 +2,8 @@
 
 A learner built inside :func:`stacked_networks` (``make_learner(..., seeds=N)``) has every
 ``nn.Linear`` of the networks :mod:`~torchrl_stages.learners.networks` builds replaced by a
-:class:`StackedLinear`: one weight ``[N, out, in]``, seed ``i``'s layer in row ``i``. Its inputs
+:class:`StackedLinear`: one weight ``[N, out, in]``, seed ``i``'s layer in row ``i`` (and every
+``nn.Conv2d`` of a CNN by a :class:`StackedConv2d`, one grouped convolution). Its inputs
 are laid out seed-major (``[N * M, ...]`` or ``[N, M, ...]``: seed ``i``'s elements first come
 seed ``i - 1``'s), so everything between two layers (activations, the dueling head's mean, the
 Fourier features) runs on all seeds unchanged, and one ``baddbmm`` per layer replaces N
@@ -72,6 +73,105 @@ class StackedLinear(nn.Module):
         return f"in={self.in_features}, out={self.out_features}, num_seeds={self.num_seeds}"
 
 
+class StackedConv2d(nn.Module):
+    """``num_seeds`` independent ``nn.Conv2d`` layers (no dilation, one group, zero padding) in
+    one module: one grouped convolution, seed ``i``'s channels in group ``i``.
+
+    ``weight`` is ``[num_seeds, out, in, kh, kw]`` and ``bias`` ``[num_seeds, out]`` (row
+    ``i``: seed ``i``'s layer, initialized as ``nn.Conv2d`` initializes). The input's leading
+    dimensions are seed-major, as for :class:`StackedLinear`: ``[num_seeds * M, C, H, W]``
+    or ``[num_seeds, M, C, H, W]``; the output has the input's leading dimensions.
+
+    Examples:
+        >>> layer = StackedConv2d(1, 4, 3, stride=2, padding=1, num_seeds=3)
+        >>> x = torch.randn(3 * 5, 1, 6, 6)
+        >>> layer(x).shape
+        torch.Size([15, 4, 3, 3])
+        >>> one = torch.nn.functional.conv2d(x[5:10], layer.weight[1], layer.bias[1], 2, 1)
+        >>> torch.allclose(layer(x)[5:10], one, atol=1e-6)
+        True
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int | tuple[int, int],
+        *,
+        stride: int | tuple[int, int] = 1,
+        padding: int | tuple[int, int] = 0,
+        num_seeds: int,
+    ) -> None:
+        super().__init__()
+        layers = [
+            nn.Conv2d(in_channels, out_channels, kernel_size, stride, padding)
+            for _ in range(num_seeds)
+        ]
+        self.in_channels, self.out_channels = in_channels, out_channels
+        self.stride, self.padding = layers[0].stride, layers[0].padding
+        self.weight = nn.Parameter(torch.stack([layer.weight.detach() for layer in layers]))
+        self.bias = nn.Parameter(torch.stack([layer.bias.detach() for layer in layers]))
+
+    @property
+    def num_seeds(self) -> int:
+        return self.weight.shape[0]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        weight, bias, rows = self.weight, self.bias, _ROWS.get()
+        if rows is not None:  # only these seeds' layers (update_rows)
+            weight, bias = weight[rows], bias[rows]
+        n, (c, h, w) = weight.shape[0], x.shape[-3:]
+        # seed-major [n, M, C, H, W] -> [M, n * C, H, W]: seed i's channels are group i
+        grouped = x.reshape(n, -1, c, h, w).transpose(0, 1).reshape(-1, n * c, h, w)
+        out = nn.functional.conv2d(
+            grouped,
+            weight.reshape(-1, *weight.shape[2:]),
+            bias.reshape(-1),
+            self.stride,
+            self.padding,
+            groups=n,
+        )
+        out = out.reshape(out.shape[0], n, self.out_channels, *out.shape[-2:]).transpose(0, 1)
+        return out.reshape(*x.shape[:-3], *out.shape[-3:])
+
+    def extra_repr(self) -> str:
+        return (
+            f"in={self.in_channels}, out={self.out_channels}, kernel={tuple(self.weight.shape[3:])}"
+            f", stride={self.stride}, padding={self.padding}, num_seeds={self.num_seeds}"
+        )
+
+
+def _stacked(name: str, layer: nn.Module, n: int) -> nn.Module | None:
+    """The stacked twin of ``layer`` for ``n`` seeds (``None``: not a layer that stacks);
+    ``TypeError`` for a stackable kind with options the twin does not have."""
+    if type(layer) is nn.Linear:
+        if layer.bias is None:
+            raise TypeError(f"{name}: a Linear without bias cannot be stacked for seeds")
+        return StackedLinear(layer.in_features, layer.out_features, num_seeds=n)
+    if type(layer) is nn.Conv2d:
+        plain = (
+            layer.bias is not None
+            and layer.groups == 1
+            and layer.dilation == (1, 1)
+            and layer.padding_mode == "zeros"
+            and not isinstance(layer.padding, str)
+        )
+        if not plain:
+            raise TypeError(
+                f"{name}: only a Conv2d with bias, one group, no dilation and numeric zero "
+                "padding can be stacked for seeds"
+            )
+        return StackedConv2d(
+            layer.in_channels,
+            layer.out_channels,
+            layer.kernel_size,
+            stride=layer.stride,
+            padding=layer.padding,
+            num_seeds=n,
+        )
+    return None
+
+
 def current_seeds() -> int | None:
     """The number of seeds networks are stacked for now (``None``: not stacked)."""
     return _SEEDS.get()
@@ -127,28 +227,28 @@ def update_rows(rows: torch.Tensor | None) -> Iterator[None]:
 
 
 def stack_for_seeds(module: nn.Module) -> nn.Module:
-    """``module`` with each ``nn.Linear`` replaced by a :class:`StackedLinear` for the seeds of
-    :func:`stacked_networks` (unchanged outside it). Raises ``TypeError`` for a module that
-    holds parameters of another kind (e.g. a CNN's ``Conv2d``), which cannot be stacked."""
+    """``module`` with each ``nn.Linear`` replaced by a :class:`StackedLinear` and each
+    ``nn.Conv2d`` by a :class:`StackedConv2d` for the seeds of :func:`stacked_networks`
+    (unchanged outside it). Raises ``TypeError`` for a module that holds parameters of another
+    kind, which cannot be stacked."""
     n = current_seeds()
     if n is None:
         return module
-    targets = [name for name, m in module.named_modules() if type(m) is nn.Linear]
-    for name in targets:
+    for name, old in list(module.named_modules()):
+        new = _stacked(name, old, n)
+        if new is None:
+            continue
         parent, _, attr = name.rpartition(".")
-        old = module.get_submodule(name)
-        if old.bias is None:
-            raise TypeError(f"{name}: a Linear without bias cannot be stacked for seeds")
-        new = StackedLinear(old.in_features, old.out_features, num_seeds=n)
         if parent or attr:
             setattr(module.get_submodule(parent), attr, new)
         else:
             module = new
     for name, m in module.named_modules():
-        if not isinstance(m, StackedLinear) and any(True for _ in m.parameters(recurse=False)):
+        stacked = isinstance(m, StackedLinear | StackedConv2d)
+        if not stacked and any(True for _ in m.parameters(recurse=False)):
             raise TypeError(
                 f"{name or type(m).__name__} ({type(m).__name__}) holds parameters that cannot "
-                "be stacked for seeds: only Linear layers can (no image inputs)"
+                "be stacked for seeds: only Linear and Conv2d layers can"
             )
     return module
 
