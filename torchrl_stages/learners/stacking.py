@@ -31,7 +31,27 @@ _SEEDS: ContextVar[int | None] = ContextVar("torchrl_stages_seeds", default=None
 _ROWS: ContextVar[torch.Tensor | None] = ContextVar("torchrl_stages_seed_rows", default=None)
 
 
-class StackedLinear(nn.Module):
+class _StackedLayer(nn.Module):
+    """What the stacked layers share: ``weight`` and ``bias`` stacked from ``num_seeds``
+    ordinary layers (row ``i``: seed ``i``'s), read for the seeds computed now."""
+
+    def _stack(self, layers: Sequence[nn.Module]) -> None:
+        self.weight = nn.Parameter(torch.stack([layer.weight.detach() for layer in layers]))
+        self.bias = nn.Parameter(torch.stack([layer.bias.detach() for layer in layers]))
+
+    @property
+    def num_seeds(self) -> int:
+        return self.weight.shape[0]
+
+    def _rows(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``weight`` and ``bias`` of the seeds computed now (:func:`update_rows`)."""
+        rows = _ROWS.get()
+        if rows is None:
+            return self.weight, self.bias
+        return self.weight[rows], self.bias[rows]
+
+
+class StackedLinear(_StackedLayer):
     """``num_seeds`` independent ``nn.Linear(in_features, out_features)`` layers in one module.
 
     ``weight`` is ``[num_seeds, out, in]`` and ``bias`` ``[num_seeds, out]`` (row ``i``: seed
@@ -51,18 +71,10 @@ class StackedLinear(nn.Module):
     def __init__(self, in_features: int, out_features: int, *, num_seeds: int) -> None:
         super().__init__()
         self.in_features, self.out_features = in_features, out_features
-        layers = [nn.Linear(in_features, out_features) for _ in range(num_seeds)]
-        self.weight = nn.Parameter(torch.stack([layer.weight.detach() for layer in layers]))
-        self.bias = nn.Parameter(torch.stack([layer.bias.detach() for layer in layers]))
-
-    @property
-    def num_seeds(self) -> int:
-        return self.weight.shape[0]
+        self._stack([nn.Linear(in_features, out_features) for _ in range(num_seeds)])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        weight, bias, rows = self.weight, self.bias, _ROWS.get()
-        if rows is not None:  # only these seeds' layers (update_rows)
-            weight, bias = weight[rows], bias[rows]
+        weight, bias = self._rows()
         n = weight.shape[0]
         out = torch.baddbmm(
             bias.unsqueeze(1), x.reshape(n, -1, x.shape[-1]), weight.transpose(1, 2)
@@ -73,7 +85,7 @@ class StackedLinear(nn.Module):
         return f"in={self.in_features}, out={self.out_features}, num_seeds={self.num_seeds}"
 
 
-class StackedConv2d(nn.Module):
+class StackedConv2d(_StackedLayer):
     """``num_seeds`` independent ``nn.Conv2d`` layers (no dilation, one group, zero padding) in
     one module: one grouped convolution, seed ``i``'s channels in group ``i``.
 
@@ -109,17 +121,10 @@ class StackedConv2d(nn.Module):
         ]
         self.in_channels, self.out_channels = in_channels, out_channels
         self.stride, self.padding = layers[0].stride, layers[0].padding
-        self.weight = nn.Parameter(torch.stack([layer.weight.detach() for layer in layers]))
-        self.bias = nn.Parameter(torch.stack([layer.bias.detach() for layer in layers]))
-
-    @property
-    def num_seeds(self) -> int:
-        return self.weight.shape[0]
+        self._stack(layers)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        weight, bias, rows = self.weight, self.bias, _ROWS.get()
-        if rows is not None:  # only these seeds' layers (update_rows)
-            weight, bias = weight[rows], bias[rows]
+        weight, bias = self._rows()
         n, (c, h, w) = weight.shape[0], x.shape[-3:]
         # seed-major [n, M, C, H, W] -> [M, n * C, H, W]: seed i's channels are group i
         grouped = x.reshape(n, -1, c, h, w).transpose(0, 1).reshape(-1, n * c, h, w)
@@ -244,7 +249,7 @@ def stack_for_seeds(module: nn.Module) -> nn.Module:
         else:
             module = new
     for name, m in module.named_modules():
-        stacked = isinstance(m, StackedLinear | StackedConv2d)
+        stacked = isinstance(m, _StackedLayer)
         if not stacked and any(True for _ in m.parameters(recurse=False)):
             raise TypeError(
                 f"{name or type(m).__name__} ({type(m).__name__}) holds parameters that cannot "
