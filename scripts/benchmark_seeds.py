@@ -8,7 +8,7 @@ against the bars of ``benchmark_gridworld.py`` (success from every start, optima
 error <= 0.05) (``--schedule flat``: the flat schedule's; ``--apart``: also each seed in a run
 of its own, one after another, the same bars), and ``--manipulator``: the manipulator's seeds
 the same way (success over its whole-task episodes; ``--manipulator-experiment
-manipulator_td3``: with that experiment's TD3 stages).
+manipulator_td3``: with that experiment's TD3 stages), ``--cargo``: cargo's seeds the same way.
 
 ``--timing``: one sweep of ``--seeds`` on the grid world (default config), wall-clock of the
 whole command from launch to exit, in four ways, each ``--repeats`` times, alternated:
@@ -165,22 +165,29 @@ def quality(args: argparse.Namespace) -> list[str]:
                 notes.append(f"- grid world / {label}: seeds that fail a bar: {failed}")
     if args.manipulator:
         experiment = args.manipulator_experiment
-        run_dir = args.out / f"quality_{experiment or 'manipulator'}"
-        seeds = args.manipulator
         task = f"experiment={experiment}" if experiment else "task=manipulator"
-        argv = [stages_train(), task, f"seeds=[{','.join(map(str, seeds))}]"]
-        argv += [f"hydra.run.dir={run_dir}", "eval.plots=false", "progress=false"]
-        timed(argv, run_dir.with_suffix(".log"))
-        results = seed_results(run_dir, seeds)
-        rates = [r["success_rate"] for r in results]
-        frames = [sum(st["frames"] for st in r["training"]["stages"]) for r in results]
         name = f"manipulator ({experiment})" if experiment else "manipulator"
-        lines.append(
-            f"| {name} | {seeds[0]}-{seeds[-1]} | {sum(x >= 0.95 for x in rates)}/"
-            f"{len(rates)} at >= 95% success ({', '.join(f'{x:.1%}' for x in rates)}) | - | "
-            f"median {statistics.median(frames):.0f} |"
-        )
+        lines.append(success_row(args, name, experiment or "manipulator", task, args.manipulator))
+    if args.cargo:
+        lines.append(success_row(args, "cargo", "cargo", "task=cargo", args.cargo))
     return [*lines, "", *notes]
+
+
+def success_row(args: argparse.Namespace, name: str, run: str, task: str, seeds: list[int]) -> str:
+    """``seeds`` of ``task`` in one process: the row of their whole-task success rates against
+    the 95% bar."""
+    run_dir = args.out / f"quality_{run}"
+    argv = [stages_train(), task, f"seeds=[{','.join(map(str, seeds))}]"]
+    argv += [f"hydra.run.dir={run_dir}", "eval.plots=false", "progress=false"]
+    timed(argv, run_dir.with_suffix(".log"))
+    results = seed_results(run_dir, seeds)
+    rates = [r["success_rate"] for r in results]
+    frames = [sum(st["frames"] for st in r["training"]["stages"]) for r in results]
+    return (
+        f"| {name} | {seeds[0]}-{seeds[-1]} | {sum(x >= 0.95 for x in rates)}/"
+        f"{len(rates)} at >= 95% success ({', '.join(f'{x:.1%}' for x in rates)}) | - | "
+        f"median {statistics.median(frames):.0f} |"
+    )
 
 
 def timing(args: argparse.Namespace) -> list[str]:
@@ -279,6 +286,7 @@ def main() -> None:
         "--apart", action="store_true", help="--quality: also each seed in a run of its own"
     )
     parser.add_argument("--manipulator", type=int, nargs="*", default=[], help="its seeds")
+    parser.add_argument("--cargo", type=int, nargs="*", default=[], help="its seeds")
     parser.add_argument(
         "--manipulator-experiment",
         default="",
