@@ -137,18 +137,14 @@ def quality(args: argparse.Namespace) -> list[str]:
             )
             run_dir = args.out / (name if way == "in one process" else f"{name}_apart")
             common = [*VARIANTS[variant], *schedule, "eval.plots=false", "progress=false"]
-            if way == "apart":  # Hydra's basic launcher: one job after another
+            if way == "apart":  # Hydra's basic launcher: one job after another, job i in i/
                 argv = [stages_train(), "-m", f"seed={listed}", f"hydra.sweep.dir={run_dir}"]
+                dirs = [run_dir / str(i) for i in range(len(args.seeds))]
             else:
                 argv = [stages_train(), f"seeds=[{listed}]", f"hydra.run.dir={run_dir}"]
+                dirs = [run_dir / f"seed_{s}" for s in args.seeds]
             timed([*argv, *common], run_dir.with_suffix(".log"))
-            if way == "apart":
-                results = [
-                    json.loads((run_dir / str(i) / "eval.json").read_text())
-                    for i in range(len(args.seeds))
-                ]
-            else:
-                results = seed_results(run_dir, args.seeds)
+            results = [json.loads((d / "eval.json").read_text()) for d in dirs]
             rows = [grid_row(variant, s, r) for s, r in zip(args.seeds, results, strict=True)]
             errors = [r["value_error"] for r in rows]
             frames = [r["frames"] for r in rows]

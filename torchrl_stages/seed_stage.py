@@ -58,6 +58,7 @@ __all__ = [
     "finished_for_every_seed",
     "seed_stacked_learner",
     "start_stage_logs",
+    "train_and_keep",
 ]
 
 log = logging.getLogger("torchrl_stages")
@@ -405,3 +406,18 @@ def seed_stacked_learner(
         torch.manual_seed(seed + offset)
         singles.append(make())
     return stack_learners(make(seeds=len(seeds)), singles)
+
+
+def train_and_keep(
+    trainer: SeedsStageTrainer, stores: Sequence[Any]
+) -> list[tuple[Learner, StageResult]]:
+    """Trains ``trainer``'s stage; each seed's learner and result is kept in its store
+    (``store.save``; a ``None`` store keeps nothing), then the stage's checkpoints, which the
+    kept stage supersedes, are dropped. Returns each seed's learner and result."""
+    out = trainer.train()
+    for store, (learner, result) in zip(stores, out, strict=True):
+        if store is not None:
+            store.save(trainer.stage, learner, result)
+    if trainer.checkpoints is not None:
+        trainer.checkpoints.clear()
+    return out

@@ -23,6 +23,7 @@ from torchrl_stages.seed_stage import (
     finished_for_every_seed,
     seed_stacked_learner,
     start_stage_logs,
+    train_and_keep,
 )
 from torchrl_stages.stage import StageResult, StageTrainer
 from torchrl_stages.task import StagedTask
@@ -233,12 +234,8 @@ def train_backward_seeds(
             seeds=seeds,
             checkpoints=joint,
         )
-        for i, (learner, result) in enumerate(trainer.train()):
+        for i, (learner, result) in enumerate(train_and_keep(trainer, stores)):
             learners[i][k], results[i][k] = learner, result
-            if stores[i] is not None:
-                stores[i].save(k, learner, result)
-        if joint is not None:
-            joint.clear()
         next_value = stacked.value()
     return [Trained(learners[i], results[i]) for i in range(n)]
 

@@ -21,6 +21,7 @@ from torchrl_stages.seed_stage import (
     finished_for_every_seed,
     seed_stacked_learner,
     start_stage_logs,
+    train_and_keep,
 )
 from torchrl_stages.stage import StageResult, StageTrainer
 from torchrl_stages.task import StagedTask
@@ -162,14 +163,10 @@ def train_flat_seeds(
         checkpoints=joint,
         **stage_discounts(task, cfg),
     )
-    out = []
-    for store, (learner, result) in zip(stores, trainer.train(), strict=True):
-        if store is not None:
-            store.save(0, learner, result)
-        out.append(Trained([learner] * task.num_stages, [result]))
-    if joint is not None:
-        joint.clear()
-    return out
+    return [
+        Trained([learner] * task.num_stages, [result])
+        for learner, result in train_and_keep(trainer, stores)
+    ]
 
 
 @register_schedule
