@@ -5,7 +5,7 @@ Four measurements, each a table in ``OUT/table.md``:
 ``--quality`` (no wall-clock: it may run beside other work): the grid world's discount
 presets (``homo``, ``hetero``) with ``seeds=[...]`` in one process, every seed's run checked
 against the bars of ``benchmark_gridworld.py`` (success from every start, optimal path, value
-error <= 0.05) (``--schedule flat``: the flat schedule's; ``--apart``: also each seed in a run
+error <= 0.05) (``--schedule joint|flat``: that schedule's; ``--apart``: also each seed in a run
 of its own, one after another, the same bars), and ``--manipulator``: the manipulator's seeds
 the same way (success over its whole-task episodes; ``--manipulator-experiment
 manipulator_td3``: with that experiment's TD3 stages), ``--cargo``: cargo's seeds the same way.
@@ -276,7 +276,10 @@ def main() -> None:
     parser.add_argument("--quality", action="store_true")
     parser.add_argument("--variants", nargs="*", default=["homo", "hetero"], choices=list(VARIANTS))
     parser.add_argument(
-        "--schedule", default="backward", choices=["backward", "flat"], help="--quality's schedule"
+        "--schedule",
+        default="backward",
+        choices=["backward", "joint", "flat"],
+        help="--quality's schedule",
     )
     parser.add_argument(
         "--apart", action="store_true", help="--quality: also each seed in a run of its own"

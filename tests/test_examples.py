@@ -16,6 +16,7 @@ TRAINING_EXAMPLES = [
     backward.train_stage,
     flat.train_flat,
     joint.JointTrainer,
+    joint.SeedsJointTrainer,
     stage.StageTrainer,
 ]
 

@@ -40,6 +40,12 @@ from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.rundir import load_run
 from torchrl_stages.schedules import flat as flat_module
 from torchrl_stages.schedules.backward import train_backward_seeds
+from torchrl_stages.schedules.joint import (
+    JointSchedule,
+    JointTrainer,
+    SeedsJointTrainer,
+    train_joint_seeds,
+)
 from torchrl_stages.seed_runs import SeedRuns, validate_seeds
 from torchrl_stages.seed_stage import SeedRow
 from torchrl_stages.task import StagedTask, tile_starts
@@ -205,6 +211,39 @@ def test_a_seed_row_reads_and_restores_one_seed():
         torch.testing.assert_close(after[key][0], before[key][0] + 1.0)
 
 
+def test_seed_replay_rings_fill_at_each_seeds_pace():
+    # the joint schedule's stage buffers: each seed brings its own number of transitions
+    generator = torch.Generator().manual_seed(0)
+    n, size = 3, 7
+    rb = SeedReplayBuffer(size, num_seeds=n)
+    held: list[list[int]] = [[] for _ in range(n)]
+    value = 0
+    for _ in range(40):
+        m = int(torch.randint(1, 20, (1,), generator=generator))
+        seeds = torch.randint(0, n, (m,), generator=generator)  # in any order
+        x = torch.arange(value, value + m)
+        value += m
+        rb.extend(TensorDict(x=x, next=TensorDict(y=-x, batch_size=[m]), batch_size=[m]), seeds)
+        for seed, v in zip(seeds.tolist(), x.tolist(), strict=True):
+            held[seed] = [*held[seed], v][-size:]  # each seed's newest `size`
+        for i in range(n):
+            count = int(rb.counts[i])
+            assert sorted(rb.storage["x"][i, :count].tolist()) == sorted(held[i])
+            assert torch.equal(rb.storage["next", "y"][i, :count], -rb.storage["x"][i, :count])
+        copy = SeedReplayBuffer(size, num_seeds=n)
+        copy.load_state_dict(rb.state_dict())
+        assert torch.equal(copy.counts, rb.counts) and torch.equal(copy.cursors, rb.cursors)
+        if bool((rb.counts > 0).all()):
+            drawn = rb.sample(50)["x"]
+            assert all(set(drawn[i].tolist()) <= set(held[i]) for i in range(n))
+    few = SeedReplayBuffer(4, num_seeds=2)
+    few.extend(TensorDict(x=torch.tensor([5]), batch_size=[1]), torch.tensor([1]))
+    assert few.counts.tolist() == [0, 1]
+    assert few.sample(3, torch.tensor([1]))["x"].tolist() == [[5, 5, 5]]
+    with pytest.raises(ValueError, match=r"seeds \[0\] hold no transitions"):
+        few.sample(3)
+
+
 def test_seed_replay_keeps_each_seeds_transitions_apart():
     rb = SeedReplayBuffer(5, num_seeds=2)
     for step in range(4):  # 3 per seed per extend: the ring wraps
@@ -230,7 +269,7 @@ def test_stage_envs_hold_one_copy_of_the_starts_per_seed():
     assert tiled["batch_size"] == (2,)
 
 
-def test_validate_seeds_names_each_fix():
+def test_validate_seeds_names_each_fix(monkeypatch):
     def cfg(seeds, schedule="backward", probe=False):
         return OmegaConf.create(
             {"seeds": seeds, "schedule": {"name": schedule}, "eval": {"probe": probe}}
@@ -244,8 +283,10 @@ def test_validate_seeds_names_each_fix():
     ]:
         with pytest.raises(ConfigError, match=match):
             validate_seeds(cfg(bad))
-    with pytest.raises(ConfigError, match="schedule=joint seed=0,1"):
-        validate_seeds(cfg([0, 1], schedule="joint"))
+    with monkeypatch.context() as patch:  # a schedule that trains its seeds apart
+        patch.setattr(JointSchedule, "stacks_seeds", False)
+        with pytest.raises(ConfigError, match="schedule=joint seed=0,1"):
+            validate_seeds(cfg([0, 1], schedule="joint"))
     with pytest.raises(ConfigError, match="eval.probe=false"):
         validate_seeds(cfg([0, 1], probe=True))
 
@@ -279,8 +320,6 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
     again = run_cli([*argv, "resume=true"], tmp_path)
     assert again.returncode == 0, again.stderr[-2000:]
     assert (again.stdout + again.stderr).count("finished earlier, loaded") == 4
-    refused = run_cli([*argv[:-1], "schedule=joint"], tmp_path)
-    assert refused.returncode == 2 and "seeds=[0, 3]" in refused.stderr
     # an algorithm that does not stack: refused before anything is trained or written
     other = tmp_path / "other"
     sac = ["stages-train", "seeds=[0,1]", f"hydra.run.dir={other}", *two_stages]
@@ -290,10 +329,10 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
     assert not list(other.glob("seed_*/stage_*.pt"))
 
 
-def _tiny_task() -> StagedTask:
+def _tiny_task(frames: int = 2048) -> StagedTask:
     # a low bar: seeds 3 and 5 meet it at different times (stage 0: 384 and 1536 frames)
     stage = DQNConfig(
-        frames=2048,
+        frames=frames,
         frames_per_batch=128,
         num_envs=16,
         init_random_frames=128,
@@ -423,6 +462,20 @@ def test_flat_seeds_train_in_one_process(compose_cfg, tmp_path):
         assert "eval/stage_0/success_rate" in (seed_dir / "metrics.csv").read_text()
 
 
+def _stopped_then_resumed(monkeypatch, launch, periodic, where: str):
+    """``launch(root)`` stopped by SIGTERM once the checkpoint ``periodic`` (in ``root``) is
+    written, then launched again: what the second launch returns."""
+    root = periodic.parent.parent
+    monkeypatch.setattr(
+        loop_module, "requested", lambda: signal.SIGTERM if periodic.exists() else None
+    )
+    with pytest.raises(Interrupted, match=where):
+        launch(root)
+    monkeypatch.undo()
+    assert periodic.exists()  # what the next launch goes on from
+    return launch(root)
+
+
 def test_an_interrupted_flat_run_of_many_seeds_resumes_bitwise_from_its_checkpoint(
     tmp_path, monkeypatch
 ):
@@ -453,14 +506,7 @@ def test_an_interrupted_flat_run_of_many_seeds_resumes_bitwise_from_its_checkpoi
     reference = launch(tmp_path / "reference")
     interrupted = tmp_path / "interrupted"
     periodic = interrupted / "stage_0" / "frames-000000000512"
-    monkeypatch.setattr(
-        loop_module, "requested", lambda: signal.SIGTERM if periodic.exists() else None
-    )
-    with pytest.raises(Interrupted, match="stage 0"):
-        launch(interrupted)
-    monkeypatch.undo()
-    assert periodic.exists()  # what the next launch goes on from
-    resumed = launch(interrupted)
+    resumed = _stopped_then_resumed(monkeypatch, launch, periodic, "stage 0")
     assert not (interrupted / "stage_0").exists()  # dropped once the learner is kept
     for ref, res in zip(reference, resumed, strict=True):
         assert ref.learners[0] is ref.learners[1] and res.learners[0] is res.learners[1]
@@ -480,3 +526,71 @@ def test_image_inputs_train_in_one_process(compose_cfg, tmp_path):
     for seed in (0, 1):
         run = load_run(tmp_path / "run" / f"seed_{seed}")
         assert any(isinstance(m, torch.nn.Conv2d) for m in run.learners[0].modules())
+
+
+def test_each_joint_seed_starts_from_the_weights_of_its_own_joint_run():
+    task = _tiny_task()
+    trainer = SeedsJointTrainer(task, [4, 1])
+    assert trainer.buffers[0].num_seeds == 2
+    assert trainer._env(1, 16).batch_size == (32,)  # one copy of each batch per seed
+    starts = JointTrainer(task)._env(1, 8, eval_env=True).batch_size[0]  # every stage-1 start
+    assert trainer._env(1, 8, eval_env=True).batch_size[0] == 2 * starts
+    for i, seed in enumerate([4, 1]):
+        single = JointTrainer(task, seed=seed).learners
+        for m, learner in enumerate(single):
+            row = unstack_learner(
+                trainer.learners[m], i, make_learner(task.stage_cfg(m), task.specs(m))
+            )
+            own = learner.state_dict()
+            assert all(torch.equal(row.state_dict()[k], v) for k, v in own.items()), (seed, m)
+
+
+def test_joint_seeds_train_in_one_process(compose_cfg, tmp_path):
+    results = _two_seeds_in_one_process(compose_cfg, tmp_path, "schedule=joint")
+    assert len(results) == 2
+    for seed in (0, 1):
+        seed_dir = tmp_path / "run" / f"seed_{seed}"
+        run = load_run(seed_dir)
+        assert run.cfg.schedule.name == "joint" and run.cfg.seed == seed
+        assert len(run.learners) == run.task.num_stages
+        training = json.loads((seed_dir / "eval.json").read_text())["training"]
+        phases = [phase["start_stage"] for phase in training["phases"]]
+        assert phases == list(reversed(range(run.task.num_stages)))
+        assert all(stage["updates"] > 0 for stage in training["stages"])
+        logged = (seed_dir / "metrics.csv").read_text()
+        assert "eval/joint_0/success_rate" in logged and "train/stage_0/loss" in logged
+
+
+def test_an_interrupted_joint_run_of_many_seeds_resumes_bitwise_from_its_checkpoint(
+    tmp_path, monkeypatch
+):
+    # seed 2 stops in the phase from stage 1 (at 768 frames), seed 1 trains it on: the signal
+    # comes after the stop, inside the first phase; the second phase follows the resume
+    seeds = [1, 2]
+    task = _tiny_task(frames=1024)
+
+    def launch(root):
+        logs = [MetricsLog(RunLogger(root / f"seed_{s}.csv")) for s in seeds]
+
+        def checkpoints(scope):
+            return StageCheckpoints(root / scope, every=256, keep=2)
+
+        return train_joint_seeds(task, seeds, logs=logs, checkpoints=checkpoints)
+
+    reference = launch(tmp_path / "reference")
+    stops = [[(p["frames"], p["early_stopped"]) for p in run.extra["phases"]] for run in reference]
+    assert stops[1][0] == (768, True) and stops[0][0] == (1024, False)  # what it covers
+    interrupted = tmp_path / "interrupted"
+    periodic = interrupted / "joint" / "frames-000000000768"
+    resumed = _stopped_then_resumed(monkeypatch, launch, periodic, "joint phase from stage 1")
+    assert not (interrupted / "joint").exists()  # dropped once the stages are kept
+    for ref, res in zip(reference, resumed, strict=True):
+        assert ref.extra["phases"] == res.extra["phases"]
+        for k in (0, 1):
+            assert ref.results[k].frames == res.results[k].frames
+            assert ref.results[k].updates == res.results[k].updates
+            a, b = ref.learners[k].state_dict(), res.learners[k].state_dict()
+            assert all(torch.equal(a[key], b[key]) for key in a), k
+    for s in seeds:
+        logged = (interrupted / f"seed_{s}.csv").read_bytes()
+        assert logged == (tmp_path / "reference" / f"seed_{s}.csv").read_bytes()

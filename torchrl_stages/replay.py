@@ -64,10 +64,12 @@ class SeedReplayBuffer:
     """One uniform replay buffer per seed, in one storage ``[num_seeds, size]``.
 
     :meth:`extend` takes a seed-major batch (its first dimension grouped by seed, as a
-    seed-stacked learner's envs collect it) and appends each seed's part to its own ring;
-    :meth:`sample` returns ``[num_seeds, batch_size]`` transitions, each seed's drawn uniformly
-    from its own part with its own indices, in one gather. (torchrl's buffers keep one ring and
-    one sampler; N of them would cost N samples and a stack per update.)
+    seed-stacked learner's envs collect it) and appends each seed's part to its own ring; with
+    ``seeds`` (the seed of each element) the seeds may bring different numbers of elements (the
+    joint schedule routes each transition to the buffer of its stage). :meth:`sample` returns
+    ``[num_seeds, batch_size]`` transitions, each seed's drawn uniformly from its own part with
+    its own indices, in one gather. (torchrl's buffers keep one ring and one sampler; N of them
+    would cost N samples and a stack per update.)
 
     Examples:
         >>> from tensordict import TensorDict
@@ -79,56 +81,92 @@ class SeedReplayBuffer:
         True
         >>> rb.sample(5, rows=torch.tensor([1]))["x"].shape  # seed 1's alone
         torch.Size([1, 5])
+        >>> rb.extend(TensorDict(x=torch.tensor([12, 13, 14]), batch_size=[3]),
+        ...           seeds=torch.tensor([1, 1, 1]))  # seed 1 alone, 3 elements
+        >>> rb.counts.tolist(), rb.sample(4, rows=torch.tensor([1]))["x"].min().item() >= 11
+        ([2, 4], True)
     """
 
     def __init__(self, size: int, *, num_seeds: int, device: torch.device | str = "cpu") -> None:
         self.size, self.num_seeds, self.device = int(size), int(num_seeds), torch.device(device)
         self.storage = None
-        self.cursor = 0
-        self.count = 0
+        self.cursors = torch.zeros(self.num_seeds, dtype=torch.long)  # each seed's ring
+        self.counts = torch.zeros(self.num_seeds, dtype=torch.long)
 
     def __len__(self) -> int:
-        """Transitions held per seed."""
-        return self.count
+        """Transitions held by the seed that holds the fewest."""
+        return int(self.counts.min())
 
-    def extend(self, batch) -> None:
+    def extend(self, batch, seeds: torch.Tensor | None = None) -> None:
+        """Appends ``batch`` (seed-major, ``num_seeds`` equal parts), or with ``seeds`` (one
+        seed index per element, in ``batch``'s order) each element to its seed's ring."""
         n = self.num_seeds
-        batch = batch.reshape(n, -1).to(self.device)
-        m = batch.shape[1]
+        if seeds is None:
+            batch = batch.reshape(n, -1).to(self.device)
+            m = batch.shape[1]
+            self._allocate(batch, 2)
+            if m > self.size:  # only the newest fit
+                batch, m = batch[:, m - self.size :], self.size
+            cursor = int(self.cursors[0])  # every seed's ring moves together here
+            index = (cursor + torch.arange(m, device=self.device)) % self.size
+            for key, value in batch.items(True, True):
+                self.storage.get(key)[:, index] = value
+            added = torch.full((n,), m, dtype=torch.long)
+        else:
+            batch = batch.reshape(-1).to(self.device)
+            seeds = seeds.reshape(-1).cpu()
+            added = torch.bincount(seeds, minlength=n)
+            if added.numel() != n:
+                raise ValueError(f"a seed index outside 0..{n - 1}")
+            # each element's place among its seed's elements, the newest ``size`` kept
+            order = torch.argsort(seeds, stable=True)
+            rank = torch.empty_like(seeds)
+            rank[order] = torch.arange(seeds.numel()) - (added.cumsum(0) - added)[seeds[order]]
+            keep = rank >= (added - self.size).clamp(min=0)[seeds]
+            slot = (self.cursors[seeds] + rank) % self.size
+            self._allocate(batch, 1)
+            rows, slot = seeds[keep].to(self.device), slot[keep].to(self.device)
+            kept = keep.to(self.device)
+            for key, value in batch.items(True, True):
+                self.storage.get(key)[rows, slot] = value[kept]
+        self.cursors = (self.cursors + added) % self.size
+        self.counts = (self.counts + added).clamp(max=self.size)
+
+    def _allocate(self, batch, skip: int) -> None:
+        """The storage, the first time: entries of ``batch`` past its ``skip`` leading dims."""
         if self.storage is None:
+            n = self.num_seeds
             self.storage = batch.apply(
-                lambda x: torch.empty((n, self.size, *x.shape[2:]), dtype=x.dtype, device=x.device),
+                lambda x: torch.zeros(
+                    (n, self.size, *x.shape[skip:]), dtype=x.dtype, device=x.device
+                ),
                 batch_size=[n, self.size],
             )
-        if m > self.size:  # only the newest fit
-            batch, m = batch[:, m - self.size :], self.size
-        index = (self.cursor + torch.arange(m, device=self.device)) % self.size
-        for key, value in batch.items(True, True):
-            self.storage.get(key)[:, index] = value
-        self.cursor = (self.cursor + m) % self.size
-        self.count = min(self.count + m, self.size)
 
     def state_dict(self) -> dict[str, Any]:
-        """The transitions held (``[num_seeds, len(self)]``, nested dicts of tensors), the ring's
-        cursor and its length: what :meth:`load_state_dict` restores."""
-        held = None if self.storage is None else self.storage[:, : self.count].to_dict()
-        return {"storage": held, "cursor": self.cursor, "count": self.count}
+        """The transitions held (``[num_seeds, max(counts)]``, nested dicts of tensors), each
+        seed's ring cursor and length: what :meth:`load_state_dict` restores."""
+        held = None
+        if self.storage is not None:
+            held = self.storage[:, : int(self.counts.max())].to_dict()
+        return {"storage": held, "cursor": self.cursors.tolist(), "count": self.counts.tolist()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        count, cursor = int(state["count"]), int(state["cursor"])
-        if not (0 <= count <= self.size and 0 <= cursor < max(self.size, 1)):
-            raise ValueError(f"count {count} / cursor {cursor} outside a ring of {self.size}")
-        self.storage, self.cursor, self.count = None, cursor, count
+        n = self.num_seeds
+        cursors = torch.as_tensor(state["cursor"], dtype=torch.long).expand(n).clone()
+        counts = torch.as_tensor(state["count"], dtype=torch.long).expand(n).clone()
+        bad = (counts < 0) | (counts > self.size) | (cursors < 0) | (cursors >= max(self.size, 1))
+        if bool(bad.any()):
+            raise ValueError(
+                f"counts {counts.tolist()} / cursors {cursors.tolist()} outside rings of "
+                f"{self.size}"
+            )
+        self.storage, self.cursors, self.counts = None, cursors, counts
         if state["storage"] is None:
             return
-        held = TensorDict(state["storage"], batch_size=[self.num_seeds, count], device=self.device)
-        self.storage = held.apply(
-            lambda x: torch.empty(
-                (self.num_seeds, self.size, *x.shape[2:]), dtype=x.dtype, device=x.device
-            ),
-            batch_size=[self.num_seeds, self.size],
-        )
-        self.storage[:, :count] = held
+        held = TensorDict(state["storage"], batch_size=[n, int(counts.max())], device=self.device)
+        self._allocate(held, 2)
+        self.storage[:, : held.shape[1]] = held
 
     def sample(self, batch_size: int, rows: torch.Tensor | None = None):
         """``[num_seeds, batch_size]`` transitions; with ``rows`` (seed indices),
@@ -136,6 +174,13 @@ class SeedReplayBuffer:
         if rows is None:
             rows = torch.arange(self.num_seeds, device=self.device)
         n = rows.numel()
-        index = torch.randint(self.count, (n, batch_size), device=self.device)
+        counts = self.counts[rows.cpu()]
+        if bool((counts == counts[0]).all()):  # one draw for rings of one length
+            index = torch.randint(int(counts[0]), (n, batch_size), device=self.device)
+        else:
+            if not bool(counts.all()):
+                raise ValueError(f"seeds {rows[counts == 0].tolist()} hold no transitions")
+            draw = torch.rand((n, batch_size), dtype=torch.float64, device=self.device)
+            index = (draw * counts.to(self.device, torch.float64).unsqueeze(1)).long()
         rows = rows.to(self.device).unsqueeze(1)
         return self.storage.apply(lambda x: x[rows, index], batch_size=[n, batch_size])

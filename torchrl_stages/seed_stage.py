@@ -55,7 +55,9 @@ __all__ = [
     "SeedRow",
     "SeedsEarlyStop",
     "SeedsStageTrainer",
+    "TeamRow",
     "finished_for_every_seed",
+    "metrics_per_seed",
     "seed_stacked_learner",
     "start_stage_logs",
     "train_and_keep",
@@ -68,7 +70,7 @@ def _finite(state: dict[str, torch.Tensor]) -> bool:
     return all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point())
 
 
-def _per_seed(
+def metrics_per_seed(
     metrics: dict[str, torch.Tensor], rows: torch.Tensor | None, n: int
 ) -> dict[str, torch.Tensor]:
     """An update's metrics with one entry per seed (``[n]``): those computed for ``rows`` alone
@@ -103,35 +105,71 @@ class SeedRow:
             own[key].data.select(self.axes[key], self.seed).copy_(value)
 
 
+class TeamRow:
+    """Seed ``seed``'s row of every seed-stacked learner of ``learners`` as one
+    :class:`SeedRow` (entries ``<m>.<key>``: learner ``m``'s): what a whole-task early stop
+    keeps and restores of one seed.
+
+    Examples:
+        >>> from torchrl.data import Categorical
+        >>> from torchrl_stages.learners import StageSpecs, make_learner
+        >>> from torchrl_stages.learners.dqn import DQNConfig
+        >>> specs = StageSpecs(["observation"], 3, "action", Categorical(2, (1,)))
+        >>> team = [make_learner(DQNConfig(num_cells=[8]), specs, seeds=2) for _ in range(2)]
+        >>> row = TeamRow(team, 1)
+        >>> state = row.state_dict()  # learner 1's target network, seed 1's row
+        >>> state["1.loss.target_value_network_params.module.0.module.value.2.weight"].shape
+        torch.Size([1, 8])
+    """
+
+    def __init__(self, learners: Sequence[Learner], seed: int) -> None:
+        self.rows = [SeedRow(learner, seed) for learner in learners]
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {
+            f"{m}.{k}": v for m, row in enumerate(self.rows) for k, v in row.state_dict().items()
+        }
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        for m, row in enumerate(self.rows):
+            prefix = f"{m}."
+            row.load_state_dict(
+                {k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)}
+            )
+
+
 class SeedsEarlyStop:
     """One :class:`~torchrl_stages.loop.EarlyStop` per seed: :meth:`record` takes one
     evaluation per seed and says whether every seed has stopped; a seed that stops has its
-    weights, frames, updates and seconds kept (:attr:`stopped_at`)."""
+    weights (its row of each learner, ``rows[i]``), frames, updates and seconds kept
+    (:attr:`stopped_at`)."""
 
-    def __init__(self, cfg: StageConfig, learner: Learner, start: float = 0.0) -> None:
-        n = int(learner.seeds or 0)
-        self.learner, self.start = learner, start  # start: what stop times are measured from
-        self.monitors = [EarlyStop(cfg) for _ in range(n)]
-        self.rows = [SeedRow(learner, i) for i in range(n)]
-        self.stopped_at: list[dict | None] = [None] * n
+    def __init__(self, cfg: StageConfig, rows: Sequence[Any], start: float = 0.0) -> None:
+        self.start = start  # what stop times are measured from
+        self.rows = list(rows)
+        self.monitors = [EarlyStop(cfg) for _ in self.rows]
+        self.stopped_at: list[dict | None] = [None] * len(self.rows)
 
     def record(
         self,
-        learner: Learner,
+        updates: Sequence[int] | int,
         success: Sequence[float],
         value_error: Sequence[float],
-        frames: int,
+        frames: Sequence[int] | int,
         ret: Sequence[float | None],
     ) -> bool:
-        """``frames``: per seed."""
+        """``updates`` and ``frames``: each seed's so far (one number: the same for all)."""
+        n = len(self.monitors)
+        updates = [updates] * n if isinstance(updates, int) else list(updates)
+        frames = [frames] * n if isinstance(frames, int) else list(frames)
         for i, monitor in enumerate(self.monitors):
             if self.stopped_at[i] is not None:
                 continue
-            if monitor.record(self.rows[i], success[i], value_error[i], frames, ret[i]):
+            if monitor.record(self.rows[i], success[i], value_error[i], frames[i], ret[i]):
                 self.stopped_at[i] = {
                     "state": copy.deepcopy(self.rows[i].state_dict()),
-                    "frames": frames,
-                    "updates": learner.num_updates,
+                    "frames": frames[i],
+                    "updates": updates[i],
                     "seconds": time.perf_counter() - self.start,
                 }
         return all(at is not None for at in self.stopped_at)
@@ -232,7 +270,7 @@ class SeedsStageTrainer:
         steps = int(cfg.updates_per_batch)
         draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
         buffer = SeedReplayBuffer(int(cfg.buffer_size), num_seeds=n, device=learner.device)
-        monitor = SeedsEarlyStop(cfg, learner)
+        monitor = SeedsEarlyStop(cfg, [SeedRow(learner, i) for i in range(n)])
         counters = {"next_eval": first_evaluation(cfg) * n, "seconds": 0.0, "log": {}}
         logs = _SeedLogs(self.logs)
         state = loop_state(learner, buffer, collector, self.eval_env, monitor, counters)
@@ -263,7 +301,7 @@ class SeedsStageTrainer:
                     for sample in samples:
                         with watch("update"), update_rows(rows):
                             keep_threads()
-                            losses.append(_per_seed(learner.update(sample), rows, n))
+                            losses.append(metrics_per_seed(learner.update(sample), rows, n))
                 learner.check_finite()
             return losses
 
@@ -290,7 +328,7 @@ class SeedsStageTrainer:
 
         class PerSeedFrames:  # run_loop's early stop gets the frames of each seed
             def record(self, model, success, value_error, frames, ret) -> bool:
-                return monitor.record(model, success, value_error, frames // n, ret)
+                return monitor.record(learner.num_updates, success, value_error, frames // n, ret)
 
         try:
             run_loop(
