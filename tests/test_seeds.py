@@ -559,6 +559,8 @@ def test_joint_seeds_train_in_one_process(compose_cfg, tmp_path):
         assert all(stage["updates"] > 0 for stage in training["stages"])
         logged = (seed_dir / "metrics.csv").read_text()
         assert "eval/joint_0/success_rate" in logged and "train/stage_0/loss" in logged
+        steps = [int(line.split(",")[1]) for line in logged.splitlines()[1:]]
+        assert steps == sorted(steps)  # each seed's frames, counted on across the phases
 
 
 def test_an_interrupted_joint_run_of_many_seeds_resumes_bitwise_from_its_checkpoint(

@@ -508,6 +508,7 @@ class SeedsJointTrainer(JointTrainer):
         return {
             "phase": 0,
             "frames": 0,  # every phase's frames so far, per seed (the checkpoints' names)
+            "trained": [0] * n,  # each seed's frames while it trained (its metrics' x axis)
             "stored": [[0] * stages for _ in range(n)],  # per seed and stage
             "updates": [[0] * stages for _ in range(n)],
             "seconds": 0.0,
@@ -539,11 +540,11 @@ class SeedsJointTrainer(JointTrainer):
         def learn(batch: TensorDictBase, frames: int) -> dict[int, list[dict]]:
             active = monitor.active()
             with watch("collect"):
-                self._route_seeds(batch, active, counters["stored"], phase["frames"])
+                self._route_seeds(batch, active, counters, phase["frames"])
             return self._update_seeds(active, counters, watch)
 
         def evaluate() -> tuple[list[float], list[float], list[float]]:
-            summaries = self.evaluate_seeds(k, eval_env, monitor.active(), phase["frames"])
+            summaries = self.evaluate_seeds(k, eval_env, monitor.active(), counters["trained"])
             return tuple(
                 [s[key] for s in summaries]
                 for key in ("success_rate", "value_error", "discounted_return")
@@ -558,7 +559,7 @@ class SeedsJointTrainer(JointTrainer):
             collector,
             learn=learn,
             log_batch=lambda batch, losses: self._log_seeds(
-                k, batch, losses, phase["frames"], monitor.active(), counters["updates"]
+                k, batch, losses, counters["trained"], monitor.active(), counters["updates"]
             ),
             evaluate=evaluate,
             early_stop=PerSeed(),
@@ -596,11 +597,13 @@ class SeedsJointTrainer(JointTrainer):
         self,
         batch: TensorDictBase,
         active: list[int],
-        stored: list[list[int]],
+        counters: dict[str, Any],
         frames: list[int],
     ) -> None:
         """Each transition of a seed still training into its seed's ring of the buffer of
-        the stage of its state s_t (a stopped seed's are dropped)."""
+        the stage of its state s_t (a stopped seed's are dropped), counted in its stage's
+        ``stored``, its phase's ``frames`` and its run's ``trained`` frames."""
+        stored = counters["stored"]
         n = len(self.seeds)
         parts = batch.reshape(n, -1)  # seed-major
         stage = parts.get("stage").reshape(n, -1)
@@ -616,6 +619,7 @@ class SeedsJointTrainer(JointTrainer):
                     stored[i][m] += count
         for i in active:
             frames[i] += parts.shape[1]
+            counters["trained"][i] += parts.shape[1]
 
     def _update_seeds(
         self, active: list[int], counters: dict[str, Any], watch: Stopwatch
