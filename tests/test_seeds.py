@@ -44,6 +44,7 @@ from torchrl_stages.schedules.joint import (
     JointSchedule,
     JointTrainer,
     SeedsJointTrainer,
+    seed_moments,
     train_joint_seeds,
 )
 from torchrl_stages.seed_runs import SeedRuns, validate_seeds
@@ -596,3 +597,24 @@ def test_an_interrupted_joint_run_of_many_seeds_resumes_bitwise_from_its_checkpo
     for s in seeds:
         logged = (interrupted / f"seed_{s}.csv").read_bytes()
         assert logged == (tmp_path / "reference" / f"seed_{s}.csv").read_bytes()
+
+
+def test_a_stopped_seeds_adam_moments_are_put_back():
+    # the joint schedule: a seed that stops in a phase goes on in the next one; meanwhile its
+    # rows get no gradient, but Adam decays their moments at every step of the others
+    cfg, _, action = CASES["dqn"]
+    specs = _specs("dqn")
+    stacked = make_learner(cfg, specs, seeds=2)
+    for _ in range(3):
+        stacked.update(_batch((2, 8), action((2, 8))))
+    kept = seed_moments([stacked], 1)
+    assert kept and all("exp_avg" in key for key in kept)
+    with update_rows(torch.tensor([0])):
+        for _ in range(3):
+            stacked.update(_batch((1, 8), action((1, 8))))
+    decayed = seed_moments([stacked], 1)
+    assert any(not torch.equal(decayed[k], v) for k, v in kept.items())
+    seed_0 = seed_moments([stacked], 0)
+    seed_moments([stacked], 1, load=kept)
+    assert all(torch.equal(seed_moments([stacked], 1)[k], v) for k, v in kept.items())
+    assert all(torch.equal(seed_moments([stacked], 0)[k], v) for k, v in seed_0.items())

@@ -49,7 +49,12 @@ from torchrl_stages.collector import StageCollector
 from torchrl_stages.evaluate import evaluate_greedy, evaluate_greedy_groups
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
-from torchrl_stages.learners.stacking import stack_learners, unstack_learner, update_rows
+from torchrl_stages.learners.stacking import (
+    seed_axes,
+    stack_learners,
+    unstack_learner,
+    update_rows,
+)
 from torchrl_stages.loop import (
     EarlyStop,
     MetricsLog,
@@ -550,10 +555,16 @@ class SeedsJointTrainer(JointTrainer):
                 for key in ("success_rate", "value_error", "discounted_return")
             )
 
+        learners = self.learners
+
         class PerSeed:  # run_loop's early stop gets each seed's frames and updates
             def record(self, model, success, value_error, frames, ret) -> bool:
+                training = set(monitor.active())
                 updates = [sum(u) for u in counters["updates"]]
-                return monitor.record(updates, success, value_error, phase["frames"], ret)
+                done = monitor.record(updates, success, value_error, phase["frames"], ret)
+                for i in training.difference(monitor.active()):  # its optimizers' state too
+                    monitor.stopped_at[i]["moments"] = seed_moments(learners, i)
+                return done
 
         run_loop(
             collector,
@@ -576,8 +587,9 @@ class SeedsJointTrainer(JointTrainer):
         )
         for i, (row, early) in enumerate(zip(rows, monitor.monitors, strict=True)):
             at, restored = monitor.stopped_at[i], False
-            if at is not None:  # the weights it stopped with (the others trained on)
-                row.load_state_dict(at["state"])
+            if at is not None:  # the weights it stopped with (the others trained on), and
+                row.load_state_dict(at["state"])  # its Adam moments, which decayed meanwhile
+                seed_moments(self.learners, i, load=at.get("moments", {}))
             else:
                 restored = early.restore_best(row)
             success, value_error = early.final
@@ -713,6 +725,34 @@ class SeedsJointTrainer(JointTrainer):
                     metrics[f"train/stage_{m}/{key}"] = value
                 metrics[f"train/stage_{m}/updates"] = updates[i][m]
             self.logs[i](metrics, frames[i])
+
+
+def seed_moments(
+    learners: Sequence[Learner], seed: int, load: dict[str, torch.Tensor] | None = None
+) -> dict[str, torch.Tensor]:
+    """Seed ``seed``'s rows of the Adam moments (``exp_avg``, ``exp_avg_sq``) of every
+    optimizer of the seed-stacked ``learners``, copied out; with ``load`` (what this returned)
+    written back instead. A seed that stops while the others train on is left out of their
+    updates, but Adam still decays its moments at every step; written back, the seed goes on
+    in the next phase from the optimizer state it stopped with, as a run of its own would."""
+    out: dict[str, torch.Tensor] = {}
+    for m, learner in enumerate(learners):
+        names = {id(p): n for n, p in learner.named_parameters(remove_duplicate=False)}
+        axes = seed_axes(learner)
+        for optimizer_name, optimizer in learner.optimizers.items():
+            for group in optimizer.param_groups:
+                for param in group["params"]:
+                    name = names.get(id(param), "")
+                    axis, state = axes.get(name), optimizer.state.get(param, {})
+                    for key in ("exp_avg", "exp_avg_sq"):
+                        if axis is None or key not in state:
+                            continue
+                        entry = f"{m}.{optimizer_name}.{name}.{key}"
+                        if load is None:
+                            out[entry] = state[key].select(axis, seed).clone()
+                        elif entry in load:
+                            state[key].select(axis, seed).copy_(load[entry])
+    return out
 
 
 def _finite_row(learners: Sequence[Learner], seed: int) -> bool:
