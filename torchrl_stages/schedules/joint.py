@@ -68,6 +68,7 @@ from torchrl_stages.schedules.base import Schedule, StageStore, Trained, registe
 from torchrl_stages.seed_stage import (
     SeedsEarlyStop,
     TeamRow,
+    _finite,
     _SeedLogs,
     finished_for_every_seed,
     metrics_per_seed,
@@ -661,7 +662,12 @@ class SeedsJointTrainer(JointTrainer):
                             losses[m].append(metrics_per_seed(learner.update(sample), rows, n))
                 learner.check_finite()
             except (NonFiniteError, NonFiniteValueError) as err:
-                bad = [self.seeds[i] for i in ready if not _finite_row(self.learners, i)]
+                rows_of = [TeamRow(self.learners, i) for i in ready]
+                bad = [
+                    self.seeds[i]
+                    for i, row in zip(ready, rows_of, strict=True)
+                    if not _finite(row.state_dict())
+                ]
                 where = f" (seeds {bad}: their weights are not finite)" if bad else ""
                 cause = FloatingPointError(f"{err}{where}")
                 raise DivergenceError(m, self.task.stage_names[m], learner, cause) from err
@@ -753,11 +759,6 @@ def seed_moments(
                         elif entry in load:
                             state[key].select(axis, seed).copy_(load[entry])
     return out
-
-
-def _finite_row(learners: Sequence[Learner], seed: int) -> bool:
-    state = TeamRow(learners, seed).state_dict()
-    return all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point())
 
 
 def train_joint_seeds(
