@@ -8,7 +8,8 @@ against the bars of ``benchmark_gridworld.py`` (success from every start, optima
 error <= 0.05) (``--schedule joint|flat``: that schedule's; ``--apart``: also each seed in a run
 of its own, one after another, the same bars), and ``--manipulator``: the manipulator's seeds
 the same way (success over its whole-task episodes; ``--manipulator-experiment
-manipulator_td3``: with that experiment's TD3 stages), ``--cargo``: cargo's seeds the same way.
+manipulator_td3``: with that experiment's TD3 stages, ``--manipulator-algo sac``: both stages
+with that algorithm), ``--cargo``: cargo's seeds the same way.
 
 ``--timing``: one sweep of ``--seeds`` on the grid world (default config), wall-clock of the
 whole command from launch to exit, in four ways, each ``--repeats`` times, alternated:
@@ -160,20 +161,25 @@ def quality(args: argparse.Namespace) -> list[str]:
             if failed:
                 notes.append(f"- grid world / {label}: seeds that fail a bar: {failed}")
     if args.manipulator:
-        experiment = args.manipulator_experiment
-        task = f"experiment={experiment}" if experiment else "task=manipulator"
-        name = f"manipulator ({experiment})" if experiment else "manipulator"
-        lines.append(success_row(args, name, experiment or "manipulator", task, args.manipulator))
+        experiment, algo = args.manipulator_experiment, args.manipulator_algo
+        task = [f"experiment={experiment}" if experiment else "task=manipulator"]
+        task += [f"algo@task.stages.{stage}={algo}" for stage in ("coarse", "fine") if algo]
+        which = experiment or algo
+        name = f"manipulator ({which})" if which else "manipulator"
+        run = "_".join(["manipulator", *([algo] if algo else [])]) if not experiment else experiment
+        lines.append(success_row(args, name, run, task, args.manipulator))
     if args.cargo:
-        lines.append(success_row(args, "cargo", "cargo", "task=cargo", args.cargo))
+        lines.append(success_row(args, "cargo", "cargo", ["task=cargo"], args.cargo))
     return [*lines, "", *notes]
 
 
-def success_row(args: argparse.Namespace, name: str, run: str, task: str, seeds: list[int]) -> str:
-    """``seeds`` of ``task`` in one process: the row of their whole-task success rates against
-    the 95% bar."""
+def success_row(
+    args: argparse.Namespace, name: str, run: str, task: list[str], seeds: list[int]
+) -> str:
+    """``seeds`` of ``task`` (its overrides) in one process: the row of their whole-task
+    success rates against the 95% bar."""
     run_dir = args.out / f"quality_{run}"
-    argv = [stages_train(), task, f"seeds=[{','.join(map(str, seeds))}]"]
+    argv = [stages_train(), *task, f"seeds=[{','.join(map(str, seeds))}]"]
     argv += [f"hydra.run.dir={run_dir}", "eval.plots=false", "progress=false"]
     timed(argv, run_dir.with_suffix(".log"))
     results = seed_results(run_dir, seeds)
@@ -290,6 +296,11 @@ def main() -> None:
         "--manipulator-experiment",
         default="",
         help="train the manipulator's seeds with experiment=<this> (e.g. manipulator_td3)",
+    )
+    parser.add_argument(
+        "--manipulator-algo",
+        default="",
+        help="train both of the manipulator's stages with this algorithm (e.g. sac)",
     )
     parser.add_argument("--timing", action="store_true")
     parser.add_argument("--repeats", type=int, default=2)

@@ -11,8 +11,14 @@ set-up (optimizer state, CUDA libraries) with ``compile=off``; ``reduce-overhead
 CUDA graphs on the second call, in the warm-up. An update includes its target update (timed
 apart in ``profile_stage.py``).
 
+``--seeds 10`` also times learners of 10 seeds stacked (as ``seeds=[...]`` trains them), each
+seed on its own batch: the cost per seed and update, against the single learner's, is what
+stacking saves. With ``compile=off`` each row counts an update's floating-point operations
+(``torch.utils.flop_counter``: the matrix products, forward and backward) and gives the rate
+it ran at, in GFLOP/s: how close an update is to the CPU's arithmetic limit.
+
     python scripts/profile_update.py [OVERRIDE ...] --stages gridworld:4 cargo:0
-        [--compile off default reduce-overhead] [--updates 200]
+        [--compile off default reduce-overhead] [--seeds 2 10] [--updates 200]
 
 Each ``TASK:STAGE`` is built from the task's config with the overrides (``device=cuda`` for the
 GPU); a stage below the last reads an untrained next-stage value (its cost does not depend on
@@ -22,6 +28,7 @@ the values).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import re
@@ -40,6 +47,7 @@ from _benchmark import (
     speed_note,
 )
 from tensordict import TensorDictBase
+from torch.utils.flop_counter import FlopCounterMode
 
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.experiment import build_task, compile_mode
@@ -57,8 +65,11 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def replay_batch(task: StagedTask, stage: int, learner: Learner) -> TensorDictBase:
-    """A replay sample of ``stage``'s first collected batch, as its stage loop draws one."""
+def replay_batch(
+    task: StagedTask, stage: int, learner: Learner, samples: int = 1
+) -> TensorDictBase:
+    """``samples`` replay samples of ``stage``'s first collected batch, as its stage loop
+    draws one, concatenated."""
     cfg = task.stage_cfg(stage)
     next_value = None
     if stage < task.num_stages - 1:
@@ -75,13 +86,22 @@ def replay_batch(task: StagedTask, stage: int, learner: Learner) -> TensorDictBa
     batch = next(iter(collector))
     buffer = stage_replay_buffer(cfg.buffer_size, learner.device)
     buffer.extend(batch.reshape(-1).select(*learner.loss.in_keys, strict=False))
-    return buffer.sample(cfg.batch_size)
+    return buffer.sample(cfg.batch_size * samples)
+
+
+def update_flops(learner: Learner, batch: TensorDictBase) -> int:
+    """The floating-point operations of one update of ``learner`` on ``batch`` (its matrix
+    products, forward and backward, as ``torch.utils.flop_counter`` counts them)."""
+    with FlopCounterMode(display=False) as counter:
+        learner.update(batch)
+    return counter.get_total_flops()
 
 
 def profile(
-    spec: str, mode: str, overrides: list[str], updates: int, warmup: int
+    spec: str, mode: str, overrides: list[str], updates: int, warmup: int, seeds: int | None
 ) -> dict[str, Any]:
-    """Times the update of ``spec`` (``TASK:STAGE``) under ``compile=mode``; returns its row."""
+    """Times the update of ``spec`` (``TASK:STAGE``) under ``compile=mode`` (``seeds``: that
+    many seeds stacked in one learner, each on its own batch); returns its row."""
     task_name, stage = spec.split(":")
     stage = int(stage)
     cfg = compose_config(task_name, *overrides, f"compile={mode}")
@@ -92,7 +112,12 @@ def profile(
     task = build_task(cfg)
     learner = make_learner(task.stage_cfg(stage), task.specs(stage), mode, task.device)
     device = learner.device
-    batch = replay_batch(task, stage, learner)
+    batch = replay_batch(task, stage, learner, seeds or 1)
+    if seeds is not None:  # seed-major [seeds, batch_size], as a seeds trainer samples
+        batch = batch.reshape(seeds, -1)
+        learner = make_learner(
+            task.stage_cfg(stage), task.specs(stage), mode, task.device, seeds=seeds
+        )
     synchronize(device)
     start = time.perf_counter()
     learner.update(batch)
@@ -106,16 +131,20 @@ def profile(
         learner.update(batch)
     synchronize(device)
     per_update = (time.perf_counter() - start) / updates
+    flops = update_flops(learner, batch) if mode == "off" else None  # compiled: not counted
     return {
         "task": task_name,
         "stage": stage,
         "algo": learner.algo,
         "compile": mode,
         "device": str(device),
-        "batch_size": int(batch.batch_size[0]),
+        "seeds": seeds,
+        "batch_size": int(batch.batch_size[-1]),
         "first_call_s": first,
         "ms_per_update": per_update * 1e3,
         "updates_per_s": 1.0 / per_update,
+        "ms_per_seed_update": per_update * 1e3 / (seeds or 1),
+        "gflops_per_s": None if flops is None else flops / per_update / 1e9,
     }
 
 
@@ -126,6 +155,13 @@ def main() -> None:
     parser.add_argument("--stages", nargs="+", default=["gridworld:4", "cargo:0", "manipulator:0"])
     parser.add_argument(
         "--compile", nargs="+", default=["off", "reduce-overhead"], help=f"modes among {MODES}"
+    )
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        default=None,
+        help="also time learners of that many seeds stacked (seeds=[...]), each on its own batch",
     )
     parser.add_argument("--updates", type=int, default=200)
     parser.add_argument("--warmup", type=int, default=20)
@@ -152,16 +188,19 @@ def main() -> None:
     machine = f"torch {torch.__version__}, {os.cpu_count()} CPUs{gpu}"
     print(f"{command}\n{machine}", flush=True)
     speed = machine_speed()
-    header = ["task", "stage", "algo", "compile", "first call (s)", "ms per update", "updates/s"]
+    header = ["task", "stage", "algo", "seeds", "compile", "first call (s)", "ms per update"]
+    header += ["updates/s", "ms per seed and update", "GFLOP/s"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     rows = []
     for spec in args.stages:
-        for mode in args.compile:
-            row = profile(spec, mode, args.overrides, args.updates, args.warmup)
+        for seeds, mode in itertools.product([None, *(args.seeds or [])], args.compile):
+            row = profile(spec, mode, args.overrides, args.updates, args.warmup, seeds)
             rows.append(row)
-            cells = [row["task"], str(row["stage"]), row["algo"], mode]
+            cells = [row["task"], str(row["stage"]), row["algo"], str(seeds or "-"), mode]
             cells += [f"{row['first_call_s']:.1f}", f"{row['ms_per_update']:.2f}"]
-            cells.append(f"{row['updates_per_s']:.0f}")
+            cells += [f"{row['updates_per_s']:.0f}", f"{row['ms_per_seed_update']:.2f}"]
+            gflops = row["gflops_per_s"]
+            cells.append("-" if gflops is None else f"{gflops:.1f}")
             lines.append("| " + " | ".join(cells) + " |")
             print(lines[-1], flush=True)
             (out / "rows.json").write_text(json.dumps(rows, indent=2))

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import signal
+from pathlib import Path
 
 import pytest
 import torch
@@ -20,6 +21,7 @@ from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError
 from torchrl_stages.learners import StageSpecs, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
+from torchrl_stages.learners.discrete_sac import DiscreteSACConfig
 from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.learners.networks import mlp
 from torchrl_stages.learners.sac import SACConfig
@@ -114,11 +116,44 @@ CASES = {
         Bounded(-1, 1, (1,)),
         lambda lead: torch.rand(*lead, 1) * 2 - 1,
     ),
+    # one entropy coefficient per seed; the update's expectations are exact (no draws)
+    "discrete_sac": (
+        DiscreteSACConfig(gamma=0.9, max_grad_norm=1.0, alpha_lr=0.1),
+        Categorical(4),
+        lambda lead: torch.randint(0, 4, lead),
+    ),
+    # its update samples actions: the noise is injected (_same_noise_per_seed); its stage
+    # value draws its own fixed noise, the same for each seed's block of states
+    "sac": (
+        SACConfig(gamma=0.9, max_grad_norm=1.0, alpha_lr=0.1, value_samples=4),
+        Bounded(-1, 1, (2,)),
+        lambda lead: torch.rand(*lead, 2) * 2 - 1,
+    ),
+    "sac-shared-cnn": (
+        SACConfig(gamma=0.9, alpha_lr=0.1, shared_encoder=True, value_samples=4, **CNN),
+        Bounded(-1, 1, (1,)),
+        lambda lead: torch.rand(*lead, 1) * 2 - 1,
+    ),
 }
 
 
+def _same_noise_per_seed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every Gaussian draw of an update (SAC's actions) gets noise that depends on the
+    position within a seed's batch alone, so that a stacked learner's seeds draw what their
+    ordinary learners draw: a fixed pattern over a batch's last two dimensions (``[B, d]``),
+    repeated over the seeds' (``[N, B, d]``)."""
+
+    def pattern(shape, dtype=None, device=None) -> torch.Tensor:
+        size = shape[-2] * shape[-1]
+        noise = torch.sin(torch.arange(size, dtype=dtype, device=device) * 1.3 + 0.4) * 1.5
+        return noise.reshape(shape[-2:]).expand(shape).clone()
+
+    monkeypatch.setattr(torch.distributions.normal, "_standard_normal", pattern)
+
+
 @pytest.mark.parametrize("algo", list(CASES))
-def test_a_stacked_learner_updates_each_seed_as_its_own_learner_would(algo):
+def test_a_stacked_learner_updates_each_seed_as_its_own_learner_would(algo, monkeypatch):
+    _same_noise_per_seed(monkeypatch)
     cfg, _, action = CASES[algo]
     specs, image = _specs(algo), algo.endswith("cnn")
     n, size = 3, 16
@@ -149,7 +184,8 @@ def test_a_stacked_learner_updates_each_seed_as_its_own_learner_would(algo):
 
 
 @pytest.mark.parametrize("algo", list(CASES))
-def test_updating_some_rows_updates_those_seeds_alone(algo):
+def test_updating_some_rows_updates_those_seeds_alone(algo, monkeypatch):
+    _same_noise_per_seed(monkeypatch)
     # what a stage of many seeds does once some have stopped: the others update as they would
     # on their own, and a stopped seed's parameters get no gradient
     cfg, _, action = CASES[algo]
@@ -175,9 +211,10 @@ def test_updating_some_rows_updates_those_seeds_alone(algo):
 
 
 def test_stacked_networks_refuse_what_cannot_be_stacked():
-    specs = StageSpecs(["observation"], 3, "action", Bounded(-1, 1, (2,)))
-    with pytest.raises(ConfigError, match="cannot train several seeds in one process"):
-        make_learner(SACConfig(), specs, seeds=2)
+    own = OmegaConf.create({"algo": "tiny_q", "learner": {"_target_": "my_learner.TinyQLearner"}})
+    specs = StageSpecs(["observation"], 3, "action", Categorical(4))
+    with pytest.raises(ConfigError, match="tiny_q: cannot train several seeds in one process"):
+        make_learner(own, specs, seeds=2)
     with stacked_networks(2), pytest.raises(TypeError, match="LayerNorm"):
         stack_for_seeds(torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.LayerNorm(4)))
     with stacked_networks(2), pytest.raises(TypeError, match="dilation"):
@@ -321,12 +358,14 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
     again = run_cli([*argv, "resume=true"], tmp_path)
     assert again.returncode == 0, again.stderr[-2000:]
     assert (again.stdout + again.stderr).count("finished earlier, loaded") == 4
-    # an algorithm that does not stack: refused before anything is trained or written
+    # a learner that does not stack (the user's own): refused before anything is trained or
+    # written
     other = tmp_path / "other"
-    sac = ["stages-train", "seeds=[0,1]", f"hydra.run.dir={other}", *two_stages]
-    refused = run_cli([*sac, "algo@task.stages.s0=discrete_sac"], tmp_path)
+    own = ["stages-train", "seeds=[0,1]", f"hydra.run.dir={other}", *two_stages]
+    own.append("+task.stages.s0.learner._target_=my_learner.TinyQLearner")
+    refused = run_cli(own, tmp_path, PYTHONPATH=str(Path(__file__).parent))
     assert refused.returncode == 2, refused.stderr[-2000:]
-    assert "task.stages.s0: algo=discrete_sac: cannot train several seeds" in refused.stderr
+    assert "task.stages.s0: algo=tiny_q: cannot train several seeds" in refused.stderr
     assert not list(other.glob("seed_*/stage_*.pt"))
 
 
@@ -414,6 +453,29 @@ def test_td3_seeds_train_in_one_process(compose_cfg, tmp_path):
         logged = (tmp_path / "run" / f"seed_{seed}" / "metrics.csv").read_text()
         assert "train/stage_0/loss_actor" in logged and "train/stage_1/loss_qvalue" in logged
         assert load_run(tmp_path / "run" / f"seed_{seed}").cfg.task.stages.fine.algo == "td3"
+
+
+@pytest.mark.parametrize(
+    ("task", "algo", "stages"),
+    [("manipulator", "sac", ("coarse", "fine")), ("gridworld", "discrete_sac", ("s0", "s4"))],
+)
+def test_sac_seeds_train_in_one_process_each_with_its_own_entropy_coefficient(
+    compose_cfg, tmp_path, task, algo, stages
+):
+    picks = [f"algo@task.stages.{stage}={algo}" for stage in stages]
+    results = _two_seeds_in_one_process(compose_cfg, tmp_path, f"task={task}", *picks)
+    assert len(results) == 2
+    alphas = []
+    for seed in (0, 1):
+        run = load_run(tmp_path / "run" / f"seed_{seed}")  # an ordinary run: one alpha
+        assert run.cfg.task.stages[stages[-1]].algo == algo
+        log_alpha = run.learners[-1].loss.log_alpha
+        assert log_alpha.shape == () and bool(torch.isfinite(log_alpha))
+        alphas.append(log_alpha.item())
+        logged = (tmp_path / "run" / f"seed_{seed}" / "metrics.csv").read_text()
+        assert f"train/stage_{len(run.learners) - 1}/alpha" in logged
+    # each tuned on its own seed's batches from the same start: they moved apart
+    assert alphas[0] != alphas[1]
 
 
 class _Captured(Exception):

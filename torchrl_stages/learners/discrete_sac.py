@@ -25,6 +25,7 @@ from torchrl_stages.learners.base import (
 )
 from torchrl_stages.learners.entropy import EntropyRegularized
 from torchrl_stages.learners.networks import mlp
+from torchrl_stages.learners.stacking import per_seed, seed_rows
 from torchrl_stages.values import with_params
 
 
@@ -60,7 +61,8 @@ class DiscreteSoftValue(nn.Module):
         actor: the actor network (observations in, logits out).
         critic: the critic network (observations in, every action's value out).
         critic_params: the stacked parameters of the twin critics (``[num_critics, ...]``).
-        log_alpha: the entropy coefficient's log (a tensor it reads at every call).
+        log_alpha: the entropy coefficient's log (a tensor it reads at every call; one per
+            seed, ``[N]``, for seed-stacked networks, whose observations are seed-major).
     """
 
     def __init__(self, actor: nn.Module, critic: nn.Module, critic_params, log_alpha) -> None:
@@ -71,7 +73,8 @@ class DiscreteSoftValue(nn.Module):
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
         probs = torch.distributions.Categorical(logits=self.actor(*obs)).probs
         q = torch.stack(stacked_calls(self.critic, self.critic_params, *obs)).amin(0)
-        soft = q - self.log_alpha.detach().exp() * _log_probs(probs)
+        alpha = per_seed(seed_rows(self.log_alpha).detach().exp(), probs)
+        soft = q - alpha * _log_probs(probs)
         return (probs * soft).sum(-1, keepdim=True)
 
 
@@ -99,6 +102,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
     Config = DiscreteSACConfig
     action_spaces = ("discrete",)
     torchrl_loss = DiscreteSACLoss
+    stacks_seeds = True
 
     def __init__(self, cfg: DiscreteSACConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
@@ -135,6 +139,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
         self.loss.set_keys(action=specs.action_key)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
         self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
+        self.stack_alpha()
         self.optimizers = {
             "actor": self.adam(self.loss.actor_network_params.values(True, True), cfg.actor_lr),
             "critic": self.adam(self.loss.qvalue_network_params.values(True, True), cfg.lr),
@@ -171,12 +176,11 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
         ``r + gamma (1 - terminated) V_target(s')`` (summed over the twins), the actor's
         ``sum_a pi (alpha log pi - min_i Q_i)`` and the entropy coefficient's loss."""
         obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
-        alpha = self.loss.log_alpha.detach().exp()
         critics, targets = self.loss.qvalue_network_params, self.loss.target_qvalue_network_params
         with torch.no_grad():
             next_probs = torch.distributions.Categorical(logits=self.actor_module(*next_obs)).probs
             next_q = torch.stack(stacked_calls(self.critic_module, targets["module"], *next_obs))
-            soft = next_q.min(0).values - alpha * _log_probs(next_probs)
+            soft = next_q.min(0).values - self.alpha(next_probs) * _log_probs(next_probs)
             target = td0_target(
                 batch.get("next"),
                 (next_probs * soft).sum(-1, keepdim=True),
@@ -185,14 +189,14 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
             )
         q = torch.stack(stacked_calls(self.critic_module, critics["module"], *obs))
         chosen = self._chosen(q, batch.get(self.specs.action_key))
-        loss_q = distance(chosen, target.expand_as(chosen), self.cfg.loss_function).sum(0).mean()
+        distances = distance(chosen, target.expand_as(chosen), self.cfg.loss_function)
+        loss_q = self.batch_mean(distances.sum(0))
         dist = torch.distributions.Categorical(logits=self.actor_module(*obs))
         probs, log_probs = dist.probs, dist.logits
         detached = critics["module"].detach()
         min_q = torch.stack(stacked_calls(self.critic_module, detached, *obs)).min(0).values
-        loss_actor = (probs * (alpha * log_probs - min_q)).sum(-1).mean()
-        entropy_gap = (log_probs * probs).sum(-1).detach() + self.loss.target_entropy
-        return loss_actor, loss_q, (-self.loss.log_alpha * entropy_gap).mean()
+        loss_actor = self.batch_mean((probs * (self.alpha(probs) * log_probs - min_q)).sum(-1))
+        return loss_actor, loss_q, self.alpha_loss((log_probs * probs).sum(-1))
 
     @classmethod
     def value_from_loss(cls, loss: DiscreteSACLoss, live: bool = False) -> TensorDictModuleBase:

@@ -23,6 +23,7 @@ from torchrl_stages.learners.base import (
 )
 from torchrl_stages.learners.entropy import EntropyRegularized
 from torchrl_stages.learners.networks import Chain
+from torchrl_stages.learners.stacking import per_seed, seed_rows
 from torchrl_stages.values import with_params
 
 
@@ -48,6 +49,10 @@ class SoftValue(nn.Module):
     critic targets use, as the mean over ``samples`` actions drawn with fixed noise (a seeded
     generator of its own: ``V`` is a function of ``s``, and the global one is left alone).
 
+    Seed-stacked (``log_alpha`` one per seed, ``[N]``), its observations are seed-major and
+    each seed's block of states gets the same noise, that of an ordinary learner's ``V`` on
+    that block alone.
+
     Args:
         actor: the actor network and its ``NormalParamExtractor`` (observations in,
             ``(loc, scale)`` out).
@@ -65,15 +70,28 @@ class SoftValue(nn.Module):
 
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
         loc, scale = self.actor(*obs)
+        lead, dim = loc.shape[:-1], loc.shape[-1]
+        alpha = seed_rows(self.log_alpha).detach().exp()
+        n = alpha.shape[0] if alpha.ndim else 1
+        # [seeds, 1, M, d]: each seed's block of M states, the samples' axis behind the seeds
+        # (stacked layers read seed-major inputs)
+        loc, scale = (t.reshape(n, 1, -1, dim) for t in (loc, scale))
         dist = TanhNormal(loc, scale, **self.dist_kwargs)
         devices = [loc.device] if loc.device.type == "cuda" else []
         with torch.random.fork_rng(devices=devices):
             torch.manual_seed(0)
-            action, log_prob = rsample_and_log_prob(dist, (self.samples,))
-        obs_k = [o.expand(self.samples, *o.shape) for o in obs]
-        q = stacked_calls(self.critic, self.critic_params, *obs_k, action)
-        soft = torch.stack(q).amin(0) - self.log_alpha.detach().exp() * log_prob.unsqueeze(-1)
-        return soft.mean(0)
+            noise = torch.empty(self.samples, *loc.shape[-2:], device=loc.device).normal_()
+        # what TanhNormal.rsample_and_log_prob computes, on the noise every seed shares
+        preimage = loc + noise * scale
+        squash = dist.transforms[0]
+        action = squash(preimage)
+        jacobian = squash.log_abs_det_jacobian(preimage, action).sum(-1)
+        log_prob = dist.base_dist.log_prob(preimage) - jacobian
+        obs_k = [o.reshape(n, 1, -1, *o.shape[len(lead) :]) for o in obs]
+        obs_k = [o.expand(n, self.samples, *o.shape[2:]) for o in obs_k]
+        q = torch.stack(stacked_calls(self.critic, self.critic_params, *obs_k, action)).amin(0)
+        soft = q - per_seed(alpha, q) * log_prob.unsqueeze(-1)
+        return soft.mean(1).reshape(*lead, 1)
 
 
 @register_algorithm
@@ -99,11 +117,13 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
     Config = SACConfig
     torchrl_loss = SACLoss
     update_draws_random = True  # its actions are sampled
+    stacks_seeds = True
     ACTOR_PATH = ("module", "0", "module", "0")
 
     def __init__(self, cfg: SACConfig, specs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
         self.loss.target_entropy  # noqa: B018 - a lazy buffer: in the state dict from the start
+        self.stack_alpha()
         self.optimizers["alpha"] = self.adam([self.loss.log_alpha], cfg.alpha_lr)
 
     @classmethod
@@ -157,10 +177,11 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         return TanhNormal(loc, scale, **self.actor[1].distribution_kwargs)
 
     def _soft_target(
-        self, batch: TensorDictBase, next_q: list[torch.Tensor], next_log_prob, alpha
+        self, batch: TensorDictBase, next_q: list[torch.Tensor], next_log_prob: torch.Tensor
     ) -> torch.Tensor:
         """``r + gamma (1 - terminated) min_i (Q_i,target(s', a') - alpha log pi(a'|s'))``."""
-        soft = torch.stack(next_q) - alpha * next_log_prob.unsqueeze(-1)
+        next_log_prob = next_log_prob.unsqueeze(-1)
+        soft = torch.stack(next_q) - self.alpha(next_log_prob) * next_log_prob
         return td0_target(
             batch.get("next"),
             soft.min(0).values,
@@ -168,39 +189,37 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
             batch.get("steps_to_next_obs", None),
         )
 
-    def _critic_and_alpha_losses(self, preds, target, q_actor, log_prob, alpha):
+    def _critic_and_alpha_losses(self, preds, target, q_actor, log_prob):
         """The critics' loss (summed over the twins), the actor's ``alpha log pi - min_i Q_i``
         and the entropy coefficient's ``-log_alpha (log pi + target_entropy)``."""
         preds = torch.stack(preds)
-        loss_q = distance(preds, target.expand_as(preds), self.cfg.loss_function).sum(0).mean()
+        distances = distance(preds, target.expand_as(preds), self.cfg.loss_function)
+        loss_q = self.batch_mean(distances.sum(0))
         q = torch.stack(q_actor).min(0).values.squeeze(-1)
-        loss_actor = (alpha * log_prob - q).mean()
-        entropy_gap = log_prob.detach() + self.loss.target_entropy
-        return loss_actor, loss_q, (-self.loss.log_alpha * entropy_gap).mean()
+        loss_actor = self.batch_mean(self.alpha(log_prob) * log_prob - q)
+        return loss_actor, loss_q, self.alpha_loss(log_prob)
 
     def _plain_losses(self, batch: TensorDictBase):
         """What ``SACLoss`` computes (version 2, no value network), on plain tensors, its two
         draws in its order: the next actions for the critics' target, then the actor's."""
         obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
-        alpha = self.loss.log_alpha.detach().exp()
         critics, targets = self.loss.qvalue_network_params, self.loss.target_qvalue_network_params
         with torch.no_grad():
             next_action, next_log_prob = rsample_and_log_prob(
                 self._dist(self.actor_module(*next_obs))
             )
             next_q = self.critic_values(targets["module"], *next_obs, next_action)
-            target = self._soft_target(batch, next_q, next_log_prob, alpha)
+            target = self._soft_target(batch, next_q, next_log_prob)
         preds = self.critic_values(critics["module"], *obs, batch.get(self.specs.action_key))
         action, log_prob = rsample_and_log_prob(self._dist(self.actor_module(*obs)))
         q_actor = self.critic_values(critics["module"].detach(), *obs, action)
-        return self._critic_and_alpha_losses(preds, target, q_actor, log_prob, alpha)
+        return self._critic_and_alpha_losses(preds, target, q_actor, log_prob)
 
     def _shared_losses(self, batch: TensorDictBase):
         """:meth:`_plain_losses` with one encoder: ``s`` is encoded once by the trained encoder
         (trained by the critics' loss; the actor reads its features detached), ``s'`` by the
         trained one for the actor and by the target one for the target critics."""
         obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
-        alpha = self.loss.log_alpha.detach().exp()
         encoder, actor_head = self.actor_module.encoder, self.actor_module.body
         heads = self.loss.qvalue_network_params["module", "body"]
         with torch.no_grad():
@@ -210,13 +229,13 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
             target_features = self._target_actor.encoder(*next_obs)
             target_heads = self.loss.target_qvalue_network_params["module", "body"]
             next_q = self.head_values(target_heads, target_features, next_action)
-            target = self._soft_target(batch, next_q, next_log_prob, alpha)
+            target = self._soft_target(batch, next_q, next_log_prob)
         features = encoder(*obs)
         preds = self.head_values(heads, features, batch.get(self.specs.action_key))
         features = features.detach()
         action, log_prob = rsample_and_log_prob(self._dist(actor_head(features)))
         q_actor = self.head_values(heads.detach(), features, action)
-        return self._critic_and_alpha_losses(preds, target, q_actor, log_prob, alpha)
+        return self._critic_and_alpha_losses(preds, target, q_actor, log_prob)
 
     @classmethod
     def value_from_loss(cls, loss: SACLoss, live: bool = False) -> TensorDictModuleBase:

@@ -231,6 +231,31 @@ def update_rows(rows: torch.Tensor | None) -> Iterator[None]:
         _ROWS.reset(token)
 
 
+def seed_rows(values: torch.Tensor) -> torch.Tensor:
+    """``values`` held one per seed (``[N, ...]``) for the seeds computed now
+    (:func:`update_rows`); a scalar (an ordinary learner's) as it is."""
+    rows = _ROWS.get()
+    return values if rows is None or values.ndim == 0 else values[rows]
+
+
+def per_seed(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """``values`` (one per seed computed now, ``[n]``) shaped to broadcast against ``like``,
+    whose leading dimensions are seed-major (``[n, ...]`` or ``[n * M, ...]``); a scalar (an
+    ordinary learner's) as it is.
+
+    Examples:
+        >>> alpha = torch.tensor([1.0, 10.0])
+        >>> per_seed(alpha, torch.ones(2, 3)).shape, per_seed(alpha, torch.ones(6, 4))[:, 0]
+        (torch.Size([2, 1]), tensor([ 1.,  1.,  1., 10., 10., 10.]))
+    """
+    if values.ndim == 0:
+        return values
+    n, lead = values.shape[0], like.shape[0]
+    if lead != n:
+        values = values.repeat_interleave(lead // n)
+    return values.reshape(lead, *[1] * (like.ndim - 1))
+
+
 def stack_for_seeds(module: nn.Module) -> nn.Module:
     """``module`` with each ``nn.Linear`` replaced by a :class:`StackedLinear` and each
     ``nn.Conv2d`` by a :class:`StackedConv2d` for the seeds of :func:`stacked_networks`
