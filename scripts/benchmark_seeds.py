@@ -6,8 +6,8 @@ Four measurements, each a table in ``OUT/table.md``:
 presets (``homo``, ``hetero``) with ``seeds=[...]`` in one process, every seed's run checked
 against the bars of ``benchmark_gridworld.py`` (success from every start, optimal path, value
 error <= 0.05) (``--schedule joint|flat``: that schedule's; ``--apart``: also each seed in a run
-of its own, one after another, the same bars), and ``--manipulator``: the manipulator's seeds
-the same way (success over its whole-task episodes; ``--manipulator-experiment
+of its own, one after another, the same bars; for every task), and ``--manipulator``: the
+manipulator's seeds the same way (success over its whole-task episodes; ``--manipulator-experiment
 manipulator_td3``: with that experiment's TD3 stages, ``--manipulator-algo sac``: both stages
 with that algorithm), ``--cargo``: cargo's seeds the same way.
 
@@ -167,29 +167,41 @@ def quality(args: argparse.Namespace) -> list[str]:
         which = experiment or algo
         name = f"manipulator ({which})" if which else "manipulator"
         run = "_".join(["manipulator", *([algo] if algo else [])]) if not experiment else experiment
-        lines.append(success_row(args, name, run, task, args.manipulator))
+        lines += success_rows(args, name, run, task, args.manipulator)
     if args.cargo:
-        lines.append(success_row(args, "cargo", "cargo", ["task=cargo"], args.cargo))
+        lines += success_rows(args, "cargo", "cargo", ["task=cargo"], args.cargo)
     return [*lines, "", *notes]
 
 
-def success_row(
+def success_rows(
     args: argparse.Namespace, name: str, run: str, task: list[str], seeds: list[int]
-) -> str:
-    """``seeds`` of ``task`` (its overrides) in one process: the row of their whole-task
-    success rates against the 95% bar."""
-    run_dir = args.out / f"quality_{run}"
-    argv = [stages_train(), *task, f"seeds=[{','.join(map(str, seeds))}]"]
-    argv += [f"hydra.run.dir={run_dir}", "eval.plots=false", "progress=false"]
-    timed(argv, run_dir.with_suffix(".log"))
-    results = seed_results(run_dir, seeds)
-    rates = [r["success_rate"] for r in results]
-    frames = [sum(st["frames"] for st in r["training"]["stages"]) for r in results]
-    return (
-        f"| {name} | {seeds[0]}-{seeds[-1]} | {sum(x >= 0.95 for x in rates)}/"
-        f"{len(rates)} at >= 95% success ({', '.join(f'{x:.1%}' for x in rates)}) | - | "
-        f"median {statistics.median(frames):.0f} |"
-    )
+) -> list[str]:
+    """``seeds`` of ``task`` (its overrides) in one process (and with ``--apart`` each in a
+    run of its own, one after another): the rows of their whole-task success rates against
+    the 95% bar."""
+    listed = ",".join(map(str, seeds))
+    rows = []
+    for way in ["in one process", "apart"] if args.apart else ["in one process"]:
+        run_dir = args.out / (
+            f"quality_{run}" if way == "in one process" else f"quality_{run}_apart"
+        )
+        if way == "apart":  # Hydra's basic launcher: one job after another, job i in i/
+            argv = [stages_train(), *task, "-m", f"seed={listed}", f"hydra.sweep.dir={run_dir}"]
+            dirs = [run_dir / str(i) for i in range(len(seeds))]
+        else:
+            argv = [stages_train(), *task, f"seeds=[{listed}]", f"hydra.run.dir={run_dir}"]
+            dirs = [run_dir / f"seed_{s}" for s in seeds]
+        timed([*argv, "eval.plots=false", "progress=false"], run_dir.with_suffix(".log"))
+        results = [json.loads((d / "eval.json").read_text()) for d in dirs]
+        rates = [r["success_rate"] for r in results]
+        frames = [sum(st["frames"] for st in r["training"]["stages"]) for r in results]
+        label = f"{name}, {way}" if args.apart else name
+        rows.append(
+            f"| {label} | {seeds[0]}-{seeds[-1]} | {sum(x >= 0.95 for x in rates)}/"
+            f"{len(rates)} at >= 95% success ({', '.join(f'{x:.1%}' for x in rates)}) | - | "
+            f"median {statistics.median(frames):.0f} |"
+        )
+    return rows
 
 
 def timing(args: argparse.Namespace) -> list[str]:
