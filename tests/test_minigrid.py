@@ -73,6 +73,23 @@ def test_the_stage_follows_the_level_and_never_goes_back(level):
     assert obs["stage"].tolist() == [2] and terminated and reward == 1.0 and not truncated
 
 
+def test_a_level_that_can_no_longer_be_solved_ends_failed():
+    # UnlockPickup's box breaks open when toggled: nothing to pick up any more
+    env = StagedMiniGrid(gymnasium.make("MiniGrid-UnlockPickup-v0"), start_stage=2)
+    env.reset(seed=0)
+    _face(env, env.target.cur_pos)
+    obs, reward, terminated, truncated, _ = env.step(env.action("left"))
+    assert not terminated  # turning away leaves it be
+    env.step(env.action("right"))
+    obs, reward, terminated, truncated, _ = env.step(env.action("toggle"))
+    assert terminated and reward == 0.0 and not truncated
+    # a ball (KeyCorridor) cannot be broken: toggling it changes nothing
+    env = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R1-v0"), start_stage=2)
+    env.reset(seed=0)
+    _face(env, env.target.cur_pos)
+    assert not env.step(env.action("toggle"))[2]
+
+
 @pytest.mark.parametrize("level", LEVELS)
 @pytest.mark.parametrize("stage", [0, 1, 2])
 def test_episodes_start_inside_the_stage_where_the_agent_can_stand(level, stage):
