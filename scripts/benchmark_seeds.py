@@ -186,7 +186,7 @@ def success_rows(
             f"quality_{run}" if way == "in one process" else f"quality_{run}_apart"
         )
         if way == "apart":  # Hydra's basic launcher: one job after another, job i in i/
-            argv = [stages_train(), *task, "-m", f"seed={listed}", f"hydra.sweep.dir={run_dir}"]
+            argv = [stages_train(), "-m", *task, f"seed={listed}", f"hydra.sweep.dir={run_dir}"]
             dirs = [run_dir / str(i) for i in range(len(seeds))]
         else:
             argv = [stages_train(), *task, f"seeds=[{listed}]", f"hydra.run.dir={run_dir}"]
