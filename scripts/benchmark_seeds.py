@@ -124,28 +124,39 @@ def seed_results(run_dir: Path, seeds: list[int]) -> list[dict]:
     return [json.loads((run_dir / f"seed_{s}" / "eval.json").read_text()) for s in seeds]
 
 
+def ways(args: argparse.Namespace) -> list[str]:
+    """How ``--quality`` trains the seeds: in one process, and with ``--apart`` also apart."""
+    return ["in one process", "apart"] if args.apart else ["in one process"]
+
+
+def train_seeds(way: str, overrides: list[str], seeds: list[int], run: Path) -> list[dict]:
+    """Trains ``seeds`` of one config (``overrides``) in one process (``seeds=[...]``, seed s in
+    ``run/seed_s``) or ``"apart"`` (Hydra's basic launcher: one job after another, job i in
+    ``run_i/i``); returns each seed's ``eval.json``."""
+    listed = ",".join(map(str, seeds))
+    if way == "apart":
+        run = run.with_name(f"{run.name}_apart")
+        argv = [stages_train(), "-m", *overrides, f"seed={listed}", f"hydra.sweep.dir={run}"]
+        dirs = [run / str(i) for i in range(len(seeds))]
+    else:
+        argv = [stages_train(), *overrides, f"seeds=[{listed}]", f"hydra.run.dir={run}"]
+        dirs = [run / f"seed_{s}" for s in seeds]
+    timed([*argv, "eval.plots=false", "progress=false"], run.with_suffix(".log"))
+    return [json.loads((d / "eval.json").read_text()) for d in dirs]
+
+
 def quality(args: argparse.Namespace) -> list[str]:
     lines = ["| task / preset | seeds | pass | max abs V error (median, max) | frames per seed |"]
     lines.append("|---|---|---|---|---|")
     notes = []
-    listed = ",".join(str(s) for s in args.seeds)
     schedule = [] if args.schedule == "backward" else [f"schedule={args.schedule}"]
-    ways = ["in one process", "apart"] if args.apart else ["in one process"]
     for variant in args.variants:
-        for way in ways:
+        for way in ways(args):
             name = f"quality_{variant}" + (
                 "" if args.schedule == "backward" else f"_{args.schedule}"
             )
-            run_dir = args.out / (name if way == "in one process" else f"{name}_apart")
-            common = [*VARIANTS[variant], *schedule, "eval.plots=false", "progress=false"]
-            if way == "apart":  # Hydra's basic launcher: one job after another, job i in i/
-                argv = [stages_train(), "-m", f"seed={listed}", f"hydra.sweep.dir={run_dir}"]
-                dirs = [run_dir / str(i) for i in range(len(args.seeds))]
-            else:
-                argv = [stages_train(), f"seeds=[{listed}]", f"hydra.run.dir={run_dir}"]
-                dirs = [run_dir / f"seed_{s}" for s in args.seeds]
-            timed([*argv, *common], run_dir.with_suffix(".log"))
-            results = [json.loads((d / "eval.json").read_text()) for d in dirs]
+            overrides = [*VARIANTS[variant], *schedule]
+            results = train_seeds(way, overrides, args.seeds, args.out / name)
             rows = [grid_row(variant, s, r) for s, r in zip(args.seeds, results, strict=True)]
             errors = [r["value_error"] for r in rows]
             frames = [r["frames"] for r in rows]
@@ -179,20 +190,9 @@ def success_rows(
     """``seeds`` of ``task`` (its overrides) in one process (and with ``--apart`` each in a
     run of its own, one after another): the rows of their whole-task success rates against
     the 95% bar."""
-    listed = ",".join(map(str, seeds))
     rows = []
-    for way in ["in one process", "apart"] if args.apart else ["in one process"]:
-        run_dir = args.out / (
-            f"quality_{run}" if way == "in one process" else f"quality_{run}_apart"
-        )
-        if way == "apart":  # Hydra's basic launcher: one job after another, job i in i/
-            argv = [stages_train(), "-m", *task, f"seed={listed}", f"hydra.sweep.dir={run_dir}"]
-            dirs = [run_dir / str(i) for i in range(len(seeds))]
-        else:
-            argv = [stages_train(), *task, f"seeds=[{listed}]", f"hydra.run.dir={run_dir}"]
-            dirs = [run_dir / f"seed_{s}" for s in seeds]
-        timed([*argv, "eval.plots=false", "progress=false"], run_dir.with_suffix(".log"))
-        results = [json.loads((d / "eval.json").read_text()) for d in dirs]
+    for way in ways(args):
+        results = train_seeds(way, task, seeds, args.out / f"quality_{run}")
         rates = [r["success_rate"] for r in results]
         frames = [sum(st["frames"] for st in r["training"]["stages"]) for r in results]
         label = f"{name}, {way}" if args.apart else name

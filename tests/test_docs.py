@@ -87,15 +87,19 @@ def _strip_comment(line: str) -> str:
 
 def runnable(command: str, number: int) -> str | None:
     """``command`` as the test runs it: install steps dropped, training shortened to
-    ``experiment=smoke`` in a run directory of its own; ``None`` when nothing is left."""
+    ``experiment=smoke`` (after the command's own preset: ``experiment=[<preset>,smoke]``) in a
+    run directory of its own; ``None`` when nothing is left."""
     parts = [p for p in command.split(" && ") if not INSTALL.match(p.strip())]
     out = []
     for part in parts:
         words = part.split()
         program = next((w for w in words if "=" not in w), "")
         if program in TRAINS and "--help" not in words and "--cfg" not in words:
-            if not any(w.startswith("experiment=") for w in words):
+            preset = next((w for w in words if w.startswith("experiment=")), None)
+            if preset is None:
                 part += " experiment=smoke"
+            elif preset != "experiment=smoke":  # a preset of its own, shortened by smoke's
+                part = part.replace(preset, f"{preset.replace('=', '=[', 1)},smoke]")
             if program == "stages-train" and not any(w.startswith("eval.plots=") for w in words):
                 part += " eval.plots=false"  # the figures are tested apart; here they cost time
             if program == "stages-train":
@@ -248,6 +252,9 @@ def test_runnable_commands():
         "stages-train -m seed=0,1 hydra.sweep.dir=s eval.plots=true experiment=smoke"
     )
     assert runnable("python3 -m venv .venv && . .venv/bin/activate", 3) is None
+    assert runnable("stages-train experiment=manipulator_td3 hydra.run.dir=r", 4) == (
+        "stages-train experiment=[manipulator_td3,smoke] hydra.run.dir=r eval.plots=false"
+    )
     assert commands("a \\\n  b  # note\n'#' c\n") == ["a b", "'#' c"]
 
 

@@ -19,7 +19,7 @@ from scipy.stats import trim_mean
 
 from torchrl_stages.cli import report
 from torchrl_stages.sweeps import aggregate_jobs, find_jobs, read_job, summarize_sweep
-from torchrl_stages.sweeps.stats import performance_profiles
+from torchrl_stages.sweeps.stats import _mean_and_iqm, performance_profiles
 
 TIMEOUT_S = 300
 
@@ -112,6 +112,32 @@ def test_performance_profile_is_the_fraction_of_runs_above_each_threshold():
     assert interval.shape == (2, 5) and np.all(interval[0] <= profile + 1e-12)
     assert np.all(profile <= interval[1] + 1e-12)
     assert profiles["lr=2"][0].tolist() == [1.0, 1.0, 0.0, 0.0, 0.0]
+
+
+def test_the_bootstrapped_statistics_are_rliables():
+    # the summary computes rliable's mean, IQM and score distribution its own faster way; the
+    # bootstrap intervals come from the same resamples either way
+    from rliable import library as rly
+    from rliable import metrics as rlm
+
+    from torchrl_stages.sweeps.stats import interval_estimates
+
+    rng = np.random.default_rng(0)
+    taus = np.linspace(-0.1, 1.1, 13)
+    for n in (1, 2, 3, 4, 5, 7, 20, 101):
+        scores = rng.random((n, 1)).round(2)  # ties, as success rates have
+        ours = _mean_and_iqm(scores)
+        assert ours[0] == pytest.approx(rlm.aggregate_mean(scores), rel=1e-12)
+        assert ours[1] == pytest.approx(rlm.aggregate_iqm(scores), rel=1e-12)
+        profile = performance_profiles(_jobs(scores.ravel().tolist()), taus)["lr=1"]
+        assert profile[0].tolist() == rly.score_distributions(scores, taus).tolist()
+    scores = rng.random((9, 1))
+    reference = interval_estimates(
+        scores, lambda s: np.array([rlm.aggregate_mean(s), rlm.aggregate_iqm(s)]), seed=2
+    )
+    ours = interval_estimates(scores, _mean_and_iqm, seed=2)
+    for a, b in zip(ours, reference, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12)
 
 
 def test_find_jobs_any_depth_in_natural_order(sweep):

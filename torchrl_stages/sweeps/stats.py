@@ -90,9 +90,12 @@ class Aggregate:
 
 
 def _mean_and_iqm(scores: np.ndarray) -> np.ndarray:
-    from rliable import metrics as rlm
-
-    return np.array([rlm.aggregate_mean(scores), rlm.aggregate_iqm(scores)])
+    """rliable's ``aggregate_mean`` and ``aggregate_iqm`` (the 25% trimmed mean of every score)
+    in one sort: the bootstrap calls this ``REPS`` times per metric, where scipy's ``trim_mean``
+    and its argument checks took 0.2 ms a call (tests/test_sweeps.py holds them equal)."""
+    ordered = np.sort(scores, axis=None)
+    cut = int(0.25 * ordered.size)
+    return np.array([ordered.mean(), ordered[cut : ordered.size - cut].mean()])
 
 
 def aggregate_jobs(
@@ -124,10 +127,12 @@ def performance_profiles(
     above each of ``taus`` (rliable's score distribution) and its bootstrap interval
     (``(2, len(taus))``)."""
 
-    from rliable import library as rly
+    taus = np.asarray(taus, dtype=float)
 
     def profile(scores: np.ndarray) -> np.ndarray:
-        return rly.score_distributions(scores, taus)
+        # rliable's score_distributions, one comparison for every tau at once (it loops over
+        # them with np.vectorize; tests/test_sweeps.py holds the two equal)
+        return (scores.reshape(1, -1) > taus.reshape(-1, 1)).mean(axis=1)
 
     out = {}
     for config in configs(jobs):
