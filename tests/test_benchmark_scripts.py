@@ -71,6 +71,27 @@ def test_benchmark_minigrid_writes_its_table(tmp_path):
     assert len(rows[0]["stage_frames"]) == 3 and rows[0]["episodes"] == 32
     assert (tmp_path / f"minigrid_{level}_backward_seed0.png").is_file()
     assert f"{level} backward: success mean" in (tmp_path / "table.md").read_text()
+    # where its greedy stage policy fails: the loop each failed start ends in
+    run_dir = tmp_path / f"{level}_backward_seed0"
+    out = tmp_path / "failures"
+    args = ["--stage", "2", "--starts", "4", "--steps", "12", "--out", str(out), str(run_dir)]
+    done = run_script("minigrid_greedy_failures.py", *args)
+    assert done.returncode == 0, done.stderr[-3000:]
+    row = (out / "table.md").read_text().splitlines()[-1].split(" | ")
+    assert row[0] == f"| {run_dir.name}" and row[1] == "gamma=0.99" and row[2] == "2"
+    loops = row[4].removesuffix(" |")
+    failed = 0 if loops == "-" else sum(int(p.rsplit(" ", 1)[1]) for p in loops.split("; "))
+    assert row[3].endswith("/4") and int(row[3].split("/")[0]) + failed == 4
+
+
+def test_a_failed_greedy_episode_is_classified_by_its_loop(monkeypatch):
+    monkeypatch.syspath_prepend(str(SCRIPTS))
+    from minigrid_greedy_failures import loop_kind
+
+    assert loop_kind(["pickup"] * 8) == "repeats pickup"
+    assert loop_kind(["right", "left"] * 4) == "alternates left, right"
+    assert loop_kind(["left", "left", "right", "right"]) == "other"
+    assert loop_kind(["forward", "left", "forward", "right"]) == "other"
 
 
 def test_minigrid_rows_from_launches_apart_make_one_table(tmp_path, monkeypatch):

@@ -16,11 +16,13 @@ pytest.importorskip("minigrid", reason=MISSING)
 import gymnasium  # noqa: E402
 
 from torchrl_stages.envs.minigrid import (  # noqa: E402
+    DOORS,
     FEATURES,
     MiniGridEnv,
     StagedMiniGrid,
     stage_names,
 )
+from torchrl_stages.envs.minigrid.env import VIEW  # noqa: E402
 from torchrl_stages.experiment import build_task  # noqa: E402
 from torchrl_stages.validate import ConfigError  # noqa: E402
 
@@ -73,16 +75,24 @@ def test_the_stage_follows_the_level_and_never_goes_back(level):
     assert obs["stage"].tolist() == [2] and terminated and reward == 1.0 and not truncated
 
 
-def test_a_level_that_can_no_longer_be_solved_ends_failed():
-    # UnlockPickup's box breaks open when toggled: nothing to pick up any more
+def test_the_box_does_not_break_so_that_every_termination_is_a_success():
+    # in UnlockPickup itself, a toggled box is replaced by its (empty) contents and the level
+    # can no longer be solved; evaluations count every termination as a success, so the
+    # wrapper never ends an episode failed: the toggle leaves the box be
+    level = gymnasium.make("MiniGrid-UnlockPickup-v0")
+    level.reset(seed=0)
+    box = level.unwrapped.obj
+    assert box.toggle(level.unwrapped, box.cur_pos)  # MiniGrid's own box opens
     env = StagedMiniGrid(gymnasium.make("MiniGrid-UnlockPickup-v0"), start_stage=2)
     env.reset(seed=0)
     _face(env, env.target.cur_pos)
-    obs, reward, terminated, truncated, _ = env.step(env.action("left"))
-    assert not terminated  # turning away leaves it be
-    env.step(env.action("right"))
-    obs, reward, terminated, truncated, _ = env.step(env.action("toggle"))
-    assert terminated and reward == 0.0 and not truncated
+    for _ in range(3):
+        obs, reward, terminated, truncated, _ = env.step(env.action("toggle"))
+        assert not terminated and reward == 0.0
+        assert env.unwrapped.grid.get(*env.target.cur_pos) is env.target
+    env.unwrapped.carrying = None  # as if it had dropped the key
+    obs, reward, terminated, truncated, _ = env.step(env.action("pickup"))
+    assert terminated and reward == 1.0  # still there to pick up
     # a ball (KeyCorridor) cannot be broken: toggling it changes nothing
     env = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R1-v0"), start_stage=2)
     env.reset(seed=0)
@@ -145,6 +155,77 @@ def test_stage_0_starts_spread_over_the_rooms_only_where_the_level_has_rooms():
         level.reset(seed=seed)
         assert tuple(doorkey.unwrapped.agent_pos) == tuple(level.unwrapped.agent_pos)
         assert doorkey.unwrapped.agent_dir == level.unwrapped.agent_dir
+
+
+def test_view_doors_adds_where_the_doors_around_the_agent_are():
+    # a closed door is as blocked as a wall in blocked_*: door_* tells them apart
+    plain = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"), start_stage=0)
+    doors = StagedMiniGrid(
+        gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"), start_stage=0, view_doors=True
+    )
+    assert doors.features == FEATURES + DOORS and len(DOORS) == (2 * VIEW + 1) ** 2
+    assert doors.observation_space["observation"].shape == (len(FEATURES) + len(DOORS),)
+    seen_closed = False
+    for seed in range(6):
+        a, _ = plain.reset(seed=seed)
+        b, _ = doors.reset(seed=seed)
+        for step in range(30):
+            # the features before are the plain observation's, unchanged
+            np.testing.assert_array_equal(a["observation"], b["observation"][: len(FEATURES)])
+            level = doors.unwrapped
+            ax, ay = (int(v) for v in level.agent_pos)
+            for i, name in enumerate(DOORS):
+                dx, dy = (int(v) for v in name.split("_")[1:])
+                x, y = ax + dx, ay + dy
+                inside = 0 <= x < level.width and 0 <= y < level.height
+                cell = level.grid.get(x, y) if inside else None
+                is_door = cell is not None and cell.type == "door"
+                assert b["observation"][len(FEATURES) + i] == float(is_door)
+                blocked = b["observation"][FEATURES.index(f"blocked_{dx}_{dy}")]
+                seen_closed |= is_door and not cell.is_open and blocked == 1.0
+            action = (seed + 3 * step) % doors.action_space.n
+            a = plain.step(action)[0]
+            b = doors.step(action)[0]
+    assert seen_closed
+    env = MiniGridEnv("MiniGrid-KeyCorridorS3R1-v0", batch_size=(2,), view_doors=True)
+    try:
+        assert env.reset()["observation"].shape == (2, len(FEATURES) + len(DOORS))
+    finally:
+        env.close()
+
+
+def test_no_op_reward_is_paid_for_actions_that_change_nothing_only():
+    env = StagedMiniGrid(
+        gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"), start_stage=0, no_op_reward=-0.1
+    )
+    plain = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"), start_stage=0)
+    paid = 0
+    for seed in range(4):
+        env.reset(seed=seed)
+        plain.reset(seed=seed)
+        for step in range(60):
+            level = env.unwrapped
+            front = level.grid.get(*level.front_pos)
+            action = env.actions[(seed + 5 * step) % env.action_space.n]
+            # MiniGrid changes nothing for these (the key stage carries nothing yet)
+            nothing = (
+                (action == "forward" and front is not None and not front.can_overlap())
+                or (action == "pickup" and (front is None or not front.can_pickup()))
+                or (
+                    action == "toggle"
+                    and (front is None or front.type != "door" or front.is_locked)
+                )
+                or (action == "drop" and level.carrying is None)
+            )
+            obs, reward, terminated, *_ = env.step(env.action(action))
+            base = plain.step(plain.action(action))
+            np.testing.assert_array_equal(obs["observation"], base[0]["observation"])
+            assert reward == base[1] + (-0.1 if nothing else 0.0), (seed, step, action)
+            assert terminated == base[2]  # the episode goes on: exploration is untouched
+            paid += nothing
+            if terminated or obs["stage"][0] > 0:
+                break
+    assert paid > 10
 
 
 def test_the_agent_uses_the_actions_its_family_needs():

@@ -27,6 +27,7 @@ from torchrl_stages.gym_env import GymStageEnv
 
 __all__ = [
     "ACTIONS",
+    "DOORS",
     "FAMILIES",
     "FEATURES",
     "MiniGridEnv",
@@ -67,6 +68,11 @@ FEATURES = (
     "front_target", "front_other",
     *(f"blocked_{dx}_{dy}" for dy in range(-VIEW, VIEW + 1) for dx in range(-VIEW, VIEW + 1)),
 )  # fmt: skip
+#: the features ``view_doors=True`` appends: which of the cells around the agent are doors
+#: (open or closed). In ``blocked_*`` a closed door looks like a wall; KeyCorridor's side rooms
+#: are joined to the corridor and to each other by doors, and the key's room is reached
+#: through one of them
+DOORS = tuple(f"door_{dx}_{dy}" for dy in range(-VIEW, VIEW + 1) for dx in range(-VIEW, VIEW + 1))
 
 
 def import_minigrid() -> Any:
@@ -124,11 +130,14 @@ class StagedMiniGrid(gymnasium.Wrapper):
       carry over between layouts.
     * **Reward**: 1 on success (the level's own, ``1 - 0.9 t / T``, depends on the step count,
       which is not part of the state; each stage's discount makes the policy fast).
-    * **Termination**: the level's own, and a failed end where it can no longer be solved:
-      UnlockPickup's box, toggled, breaks open and is gone. Left running, the episode would go
-      on in states that look like those next to the box (its offset stays where it was) and
-      are worth nothing: they took the learner of the box stage to 0-14% success in 300 000
-      frames, where a random walk from its starts succeeds 18% of the time.
+    * **Termination**: the level's own, on success only (an evaluation counts every episode
+      that terminates as solved). UnlockPickup's box does not open: in the level, toggling it
+      replaces it by its (empty) contents, and the level can no longer be solved; here the
+      toggle changes nothing. No optimal policy toggles the box, so none changes. Left
+      breakable, the episode went on in states that look like those next to the box (its
+      offset stays where it was) and are worth nothing: they took the learner of the box
+      stage to 0-14% success in 300 000 frames, where a random walk from its starts succeeds
+      18% of the time.
     * **Actions**: ``actions`` (MiniGrid's names, e.g. ``("left", "right", "forward")``):
       action ``i`` of the wrapper is ``actions[i]`` of the level; default: the family's
       (:data:`ACTIONS`), every action its levels can need. ``"all"``: the level's seven.
@@ -140,6 +149,15 @@ class StagedMiniGrid(gymnasium.Wrapper):
       is the corridor, the key is in a side room); on DoorKey and UnlockPickup the level's own
       start already is a uniform cell of the key's room, and is kept. ``None``: the level's
       own start.
+    * **view_doors**: append :data:`DOORS` to the observation, where the doors around the agent
+      are (a closed door is as blocked as a wall).
+    * **no_op_reward**: the reward of an action that changes nothing (forward into a wall,
+      pickup with nothing to pick up, toggle on a wall; a turn never), 0 by default. At 0 such
+      a step is worth ``gamma V(s)``, within ``(1 - gamma) V(s)`` of the best action: small
+      Q-value errors make it the greedy one, and a greedy policy that takes it once takes it
+      again until the step limit. A negative reward widens that gap by its size, and no
+      optimal policy changes: a step that changes nothing is never part of one (it only
+      delays the reward). Exploration is untouched (the episode goes on).
 
     Examples:
         >>> env = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), start_stage=2)
@@ -159,6 +177,8 @@ class StagedMiniGrid(gymnasium.Wrapper):
         env: gymnasium.Env,
         start_stage: int | None = None,
         actions: Sequence[str] | str | None = None,
+        view_doors: bool = False,
+        no_op_reward: float = 0.0,
     ) -> None:
         super().__init__(env)
         level = env.spec.id if env.spec is not None else type(env.unwrapped).__name__
@@ -169,8 +189,12 @@ class StagedMiniGrid(gymnasium.Wrapper):
         self.actions = _actions(level, actions, env.unwrapped.actions)
         self._level_actions = [int(env.unwrapped.actions[name]) for name in self.actions]
         self.action_space = gymnasium.spaces.Discrete(len(self.actions))
+        self.view_doors = bool(view_doors)
+        self.no_op_reward = float(no_op_reward)
+        #: the names of the observation's features, in order
+        self.features = FEATURES + (DOORS if self.view_doors else ())
         self.observation_space = gymnasium.spaces.Dict(
-            observation=gymnasium.spaces.Box(-1.0, 1.0, (len(FEATURES),), np.float32),
+            observation=gymnasium.spaces.Box(-1.0, 1.0, (len(self.features),), np.float32),
             stage=gymnasium.spaces.Box(0, self.num_stages - 1, (1,), np.int64),
         )
         self.stage = 0
@@ -198,6 +222,8 @@ class StagedMiniGrid(gymnasium.Wrapper):
                 self.target = obj
         if getattr(level, "obj", None) is not None:  # KeyCorridor, UnlockPickup
             self.target = level.obj
+        if self.target is not None and self.target.type == "box":
+            self.target.toggle = _keep_closed  # (this box; see the class's Termination)
 
     def _progress(self) -> int:
         level = self.env.unwrapped
@@ -274,13 +300,14 @@ class StagedMiniGrid(gymnasium.Wrapper):
             kinds[5] = 1
         else:
             kinds[6] = 1
-        blocked = []
+        blocked, doors = [], []
         for dy in range(-VIEW, VIEW + 1):
             for dx in range(-VIEW, VIEW + 1):
                 x, y = ax + dx, ay + dy
                 inside = 0 <= x < level.width and 0 <= y < level.height
                 cell = level.grid.get(x, y) if inside else None
                 blocked.append(float(not inside or (cell is not None and not cell.can_overlap())))
+                doors.append(float(cell is not None and cell.type == "door"))
         direction = np.eye(4, dtype=np.float32)[level.agent_dir]
         carrying = level.carrying
         return np.array(
@@ -297,6 +324,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
                 *offset(self.target),
                 *kinds,
                 *blocked,
+                *(doors if self.view_doors else ()),
             ],
             np.float32,
         )
@@ -313,26 +341,35 @@ class StagedMiniGrid(gymnasium.Wrapper):
         self.stage = self._progress()
         return self._obs(), info
 
-    def _target_lost(self) -> bool:
-        """Whether the target is gone, so that the level can no longer be solved: UnlockPickup's
-        box, toggled, is replaced by its (empty) contents."""
+    def _state(self) -> tuple:
+        """What an action can change: the agent's cell, direction and load, and the cell it
+        faces (the object there and its state)."""
         level = self.env.unwrapped
-        target = self.target
-        if target is None or level.carrying is target or target.cur_pos is None:
-            return False
-        x, y = (int(v) for v in target.cur_pos)
-        return not (0 <= x < level.width and 0 <= y < level.height) or (
-            level.grid.get(x, y) is not target
+        front = level.grid.get(*level.front_pos)
+        door = (
+            (front.is_open, front.is_locked) if front is not None and front.type == "door" else ()
+        )
+        return (
+            tuple(int(v) for v in level.agent_pos),
+            int(level.agent_dir),
+            id(level.carrying),
+            id(front),
+            door,
         )
 
     def step(self, action):
+        before = self._state() if self.no_op_reward else None
         _, reward, terminated, truncated, info = self.env.step(self._level_actions[int(action)])
         self.stage = max(self.stage, self._progress())
-        success = bool(terminated and reward > 0)
-        # a level that can no longer be solved ends, failed: what follows would be steps in
-        # states that look like the ones next to the target, worth nothing
-        terminated = terminated or self._target_lost()
-        return self._obs(), float(success), bool(terminated), bool(truncated), info
+        reward = float(terminated and reward > 0)
+        if before is not None and self._state() == before:
+            reward += self.no_op_reward  # an action that changed nothing
+        return self._obs(), reward, bool(terminated), bool(truncated), info
+
+
+def _keep_closed(env: Any, pos: Any) -> bool:
+    """A box's ``toggle`` that leaves it be (MiniGrid's replaces the box by its contents)."""
+    return False
 
 
 def _actions(level: str, actions: Sequence[str] | str | None, enum: Any) -> tuple[str, ...]:
@@ -363,6 +400,9 @@ class MiniGridEnv(GymStageEnv):
         start_stage: ``None`` (the level's own start) or k: start inside stage k.
         actions: the level's actions the agent uses (:class:`StagedMiniGrid`; ``None``: the
             family's default, :data:`ACTIONS`; ``"all"``: all seven).
+        view_doors: append where the doors around the agent are to the observation
+            (:data:`DOORS`).
+        no_op_reward: the reward of an action that changes nothing (:class:`StagedMiniGrid`).
         **kwargs: the level's own constructor keys (e.g. ``max_steps``).
 
     Examples:
@@ -382,11 +422,19 @@ class MiniGridEnv(GymStageEnv):
         device: str | torch.device = "cpu",
         start_stage: int | None = None,
         actions: Sequence[str] | str | None = None,
+        view_doors: bool = False,
+        no_op_reward: float = 0.0,
         **kwargs: Any,
     ) -> None:
         import_minigrid()
         _check_id(env_id)
-        wrapper = functools.partial(StagedMiniGrid, start_stage=start_stage, actions=actions)
+        wrapper = functools.partial(
+            StagedMiniGrid,
+            start_stage=start_stage,
+            actions=actions,
+            view_doors=view_doors,
+            no_op_reward=no_op_reward,
+        )
         super().__init__(
             env_id,
             stage_fn=None,  # the wrapper writes "stage"
