@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import inspect
 from pathlib import Path
 
 import gymnasium
@@ -24,8 +25,9 @@ from tensordict import TensorDict
 from torchrl_stages import load_run
 from torchrl_stages.envs.minigrid import StagedMiniGrid, import_minigrid
 
-#: the run's env keys the wrapper takes (the rest are the level's own)
-WRAPPER_KEYS = ("actions", "view_doors", "no_op_reward")
+#: the run's env keys the wrapper takes (the rest are the level's own); those but ``actions``
+#: are the settings the table shows
+WRAPPER_KEYS = tuple(inspect.signature(StagedMiniGrid).parameters)[2:]  # after env, start_stage
 
 
 def loop_kind(actions: list[str]) -> str:
@@ -54,7 +56,7 @@ def failures(
     policy = learner.policy
     keys = run.cfg.task.env
     wrapper = {k: keys[k] for k in WRAPPER_KEYS if k in keys}
-    settings = [f"{k}={wrapper[k]}" for k in ("view_doors", "no_op_reward") if wrapper.get(k)]
+    settings = [f"{k}={v}" for k, v in wrapper.items() if k != "actions" and v]
     settings.append(f"gamma={learner.cfg.gamma}")
     env = StagedMiniGrid(
         gymnasium.make(str(keys.env_id), max_steps=steps), start_stage=stage, **wrapper

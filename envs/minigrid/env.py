@@ -307,7 +307,8 @@ class StagedMiniGrid(gymnasium.Wrapper):
                 inside = 0 <= x < level.width and 0 <= y < level.height
                 cell = level.grid.get(x, y) if inside else None
                 blocked.append(float(not inside or (cell is not None and not cell.can_overlap())))
-                doors.append(float(cell is not None and cell.type == "door"))
+                if self.view_doors:
+                    doors.append(float(cell is not None and cell.type == "door"))
         direction = np.eye(4, dtype=np.float32)[level.agent_dir]
         carrying = level.carrying
         return np.array(
@@ -324,7 +325,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
                 *offset(self.target),
                 *kinds,
                 *blocked,
-                *(doors if self.view_doors else ()),
+                *doors,
             ],
             np.float32,
         )
