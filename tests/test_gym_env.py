@@ -18,10 +18,16 @@ import torch
 from helpers import assert_figure, cli_env, console_script
 from line_env import line_stage, unbatched_line
 from omegaconf import OmegaConf
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.envs import TransformedEnv
 
 from torchrl_stages import GymStageEnv, StagedTask, StageTrainer
+from torchrl_stages.evaluate import evaluate_policy
 from torchrl_stages.experiment import build_task
+from torchrl_stages.gym_env import SuccessReader
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
+from torchrl_stages.transforms import StageTransform
 from torchrl_stages.validate import ConfigError
 
 TESTS = Path(__file__).resolve().parent
@@ -238,3 +244,68 @@ def test_stage_trainer_refuses_an_unbatched_env():
     trainer = StageTrainer(0, learner, env, batched, cfg)
     with pytest.raises(ValueError, match=r"one batch dimension \[num_envs\].*SerialEnv"):
         trainer.train()
+
+
+# ------------------------------------------------------------------ success flags
+def _always(action: int) -> TensorDictModule:
+    """A policy that always takes ``action`` (0: left, 1: right)."""
+    return TensorDictModule(
+        lambda obs: torch.full(obs.shape[:-1], action, dtype=torch.int64),
+        in_keys=["observation"],
+        out_keys=["action"],
+    )
+
+
+@pytest.mark.parametrize("success_key", [None, "is_success"])
+def test_a_failure_termination_counts_as_failed_where_the_env_reports_success(success_key):
+    env = GymStageEnv(
+        "LineWorld-v0", line_stage, batch_size=(3,), pit=True, success_key=success_key
+    )
+    try:
+        left, _ = evaluate_policy(env, _always(0), max_steps=20)  # falls in the pit at once
+        right, _ = evaluate_policy(env, _always(1), max_steps=20)  # reaches x = 1
+    finally:
+        env.close()
+    assert left.length.tolist() == [1, 1, 1] and right.length.tolist() == [8, 8, 8]
+    assert right.success.all()
+    # without the flag every termination is a success, the pit's too
+    assert left.success.tolist() == [success_key is None] * 3
+
+
+def test_leaving_stage_k_is_stage_ks_success_unless_the_task_failed():
+    base = GymStageEnv(
+        "LineWorld-v0", line_stage, batch_size=(2,), pit=True, success_key="is_success"
+    )
+    env = TransformedEnv(base, StageTransform(line_stage, 2, train_stage=0, standalone=True))
+    try:
+        left, _ = evaluate_policy(env, _always(0), max_steps=20)
+        right, rollout = evaluate_policy(env, _always(1), max_steps=20)
+    finally:
+        env.close()
+    assert right.length.tolist() == [4, 4]  # x = 0.5 leaves stage 0: its episode ends there
+    assert right.success.all() and not rollout["next", "terminated"][:, :3].any()
+    assert not left.success.any()  # the pit ends stage 0's episode unsolved
+
+
+def test_a_success_key_the_env_never_reports_is_refused():
+    reader = SuccessReader("is_succes", batch_size=(2,), patience=3)
+    td = reader({"is_succes": [True, False]}, TensorDict(batch_size=[2]))
+    assert td["success"].squeeze(-1).tolist() == [True, False]
+    for _ in range(5):  # reported once: later steps without it read False
+        assert not reader({}, TensorDict(batch_size=[2]))["success"].any()
+    never = SuccessReader("is_succes", batch_size=(2,), patience=3)
+    never({}, TensorDict(batch_size=[2]))
+    never({}, TensorDict(batch_size=[2]))
+    with pytest.raises(KeyError, match=r"task\.env\.success_key='is_succes'.*Fix: set task"):
+        never({}, TensorDict(batch_size=[2]))
+
+
+def test_the_gym_template_passes_the_success_key(compose_cfg):
+    cfg = compose_cfg("task=gym", *LINE, "+task.env.pit=true", "task.env.success_key=is_success")
+    task = build_task(cfg)
+    env = task.base_env(2)
+    try:
+        assert env.observation_spec["success"].dtype == torch.bool
+    finally:
+        env.close()
+    assert task.specs(0).observation_keys == ["observation"]  # the flag is no input

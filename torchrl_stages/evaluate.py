@@ -16,7 +16,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_stages.handoff import Handoffs, collect_handoffs
 from torchrl_stages.preemption import check
 from torchrl_stages.threads import keep_threads
-from torchrl_stages.transforms import StageTransform
+from torchrl_stages.transforms import SUCCESS_KEY, StageTransform
 
 if TYPE_CHECKING:
     from torchrl_stages.task import StagedTask
@@ -89,11 +89,30 @@ def rollout_first_episodes(
     return torch.stack(steps, dim=-1)
 
 
+def ended_well(td: TensorDictBase) -> torch.Tensor:
+    """Whether each step of ``td`` (its ``"next"`` content read) ends an episode solved, if it
+    ends one: the env's boolean ``"success"`` entry where it writes one, else ``terminated``
+    (a task whose episodes terminate only where it succeeds).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> no = torch.zeros(2, 1, dtype=torch.bool)
+        >>> td = TensorDict({"next": {"terminated": ~no}}, [2])
+        >>> ended_well(td).squeeze(-1).tolist()
+        [True, True]
+        >>> td["next", "success"] = torch.tensor([[True], [False]])  # the second one failed
+        >>> ended_well(td).squeeze(-1).tolist()
+        [True, False]
+    """
+    flag = td.get(("next", SUCCESS_KEY), None)
+    return td.get(("next", "terminated")) if flag is None else flag
+
+
 @dataclass
 class EpisodeStats:
     """Statistics of each batch element's first episode in a rollout."""
 
-    success: torch.Tensor  # bool [B]: ended by termination (not truncation, not unfinished)
+    success: torch.Tensor  # bool [B]: solved (ended_well) on its last step, not unfinished
     length: torch.Tensor  # int64 [B]: steps of the first episode
     ret: torch.Tensor  # float [B]: undiscounted return of the first episode
 
@@ -118,9 +137,10 @@ class EpisodeStats:
 
 
 def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
-    """Success, length and return of the first episode of each row of a ``[B, T]`` rollout."""
+    """Success (:func:`ended_well` on its last step), length and return of the first episode
+    of each row of a ``[B, T]`` rollout."""
     done = rollout.get(("next", "done")).squeeze(-1)  # [B, T]
-    terminated = rollout.get(("next", "terminated")).squeeze(-1)
+    solved = ended_well(rollout).squeeze(-1)
     reward = rollout.get(("next", "reward")).squeeze(-1)
     T = done.shape[-1]
     steps = torch.arange(T, device=done.device)
@@ -129,7 +149,7 @@ def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
         any_done, done.float().argmax(-1), torch.full_like(any_done, T - 1, dtype=torch.long)
     )
     in_first = steps <= first.unsqueeze(-1)
-    success = any_done & terminated.gather(-1, first.unsqueeze(-1)).squeeze(-1)
+    success = any_done & solved.gather(-1, first.unsqueeze(-1)).squeeze(-1)
     length = torch.where(any_done, first + 1, torch.full_like(first, T))
     return EpisodeStats(success=success, length=length, ret=(reward * in_first).sum(-1))
 

@@ -14,13 +14,16 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium
+import numpy as np
 import torch
 from hydra.utils import get_method
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
+from torchrl.data import Categorical, Composite
 from torchrl.envs import GymWrapper
+from torchrl.envs.gym_like import BaseInfoDictReader
 
-__all__ = ["GymStageEnv", "threshold_stage"]
+__all__ = ["GymStageEnv", "SuccessReader", "threshold_stage"]
 
 StageFn = Callable[[TensorDictBase], torch.Tensor]
 _UNSET = object()
@@ -69,6 +72,65 @@ def _stage_function(stage_fn: StageFn | str) -> StageFn:
 VECTORIZE = ("sync", "async")
 
 
+class SuccessReader(BaseInfoDictReader):
+    """Reads a gymnasium env's success flag, ``info[info_key]`` (``"is_success"`` in
+    gymnasium-robotics and Stable-Baselines3), into a boolean ``"success"`` entry ``[n, 1]``:
+    the entry evaluations count an episode's success by (see
+    :func:`torchrl_stages.evaluate.episode_stats`). A copy that does not report it reads
+    ``False``; a key that no step has reported in ``patience`` steps is refused (a misspelled
+    key would count every episode as failed).
+
+    Examples:
+        >>> import numpy as np
+        >>> from tensordict import TensorDict
+        >>> reader = SuccessReader("is_success", batch_size=(2,))
+        >>> td = reader({"is_success": np.array([True, False])}, TensorDict(batch_size=[2]))
+        >>> td["success"].squeeze(-1).tolist()
+        [True, False]
+    """
+
+    def __init__(
+        self,
+        info_key: str,
+        *,
+        batch_size: Sequence[int],
+        device: str | torch.device = "cpu",
+        patience: int = 1_000,
+    ) -> None:
+        self.info_key = info_key
+        self.patience = patience
+        self._calls = 0
+        self._seen = False
+        shape = (*batch_size, 1)
+        self._spec = Composite(
+            success=Categorical(2, shape=shape, dtype=torch.bool, device=device),
+            shape=tuple(batch_size),
+            device=device,
+        )
+
+    @property
+    def info_spec(self) -> Composite:
+        return self._spec
+
+    def __call__(self, info_dict: dict[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
+        value = info_dict.get(self.info_key)
+        if value is None:
+            self._calls += 1
+            if not self._seen and self._calls >= self.patience:
+                raise KeyError(
+                    f"task.env.success_key={self.info_key!r}: no step of the env has reported "
+                    f"info[{self.info_key!r}] in {self._calls} steps, so every episode would "
+                    "count as failed. Fix: set task.env.success_key to the key the env's "
+                    "`info` carries, or null to count terminations as successes"
+                )
+            flag = torch.zeros(tensordict.batch_size, dtype=torch.bool)
+        else:
+            self._seen = True
+            flag = torch.as_tensor(np.asarray(value).astype(bool))
+        tensordict.set("success", flag.reshape(*tensordict.batch_size, 1).to(tensordict.device))
+        return tensordict
+
+
 class GymStageEnv(GymWrapper):
     """A gymnasium env as a multi-stage task: ``batch_size[0]`` copies stepped as one gymnasium
     vector env (``SyncVectorEnv``, or ``AsyncVectorEnv`` worker processes), wrapped by torchrl's
@@ -85,6 +147,10 @@ class GymStageEnv(GymWrapper):
         num_stages: the number of stages (default: the gymnasium env's ``num_stages``).
 
     Keyword Args:
+        success_key: the ``info`` key of the env's success flag (e.g. ``"is_success"``), read
+            into a boolean ``"success"`` entry (:class:`SuccessReader`): evaluations count an
+            episode as solved when it is true on the episode's last step. ``None`` (default):
+            an episode is solved when it terminates (for envs that terminate only on success).
         vectorize: ``"sync"`` (default: the copies step one after another in this process) or
             ``"async"`` (one worker process per copy: for envs whose step costs more than the
             inter-process round trip, about 0.1 ms).
@@ -118,6 +184,7 @@ class GymStageEnv(GymWrapper):
         stage_fn: StageFn | str | None,
         num_stages: int | None = None,
         *,
+        success_key: str | None = None,
         vectorize: str = "sync",
         wrappers: Sequence[Callable[[gymnasium.Env], gymnasium.Env]] = (),
         batch_size: Sequence[int],
@@ -168,6 +235,10 @@ class GymStageEnv(GymWrapper):
             device=device,
             _torchrl_native_autoreset_requested=native,
         )
+        if success_key is not None:
+            self.set_info_dict_reader(
+                SuccessReader(str(success_key), batch_size=batch, device=self.device)
+            )
         self.env_id = env_id
         self.num_stages = int(num_stages if num_stages is not None else found)
         self.stage_fn = None if stage_fn is None else _stage_function(stage_fn)

@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 from torchrl_stages.checkpoint import StageCheckpoints, StateOf
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
+from torchrl_stages.evaluate import ended_well
 from torchrl_stages.preemption import Interrupted, requested
 from torchrl_stages.threads import keep_threads
 
@@ -307,7 +308,7 @@ class MetricsLog:
         done = batch["next", "done"].reshape(rows, -1)
         ended = done.to(torch.float64)
         returns = batch["next", "episode_reward"].reshape(rows, -1).to(torch.float64) * ended
-        success = (batch["next", "terminated"].reshape(rows, -1) & done).to(torch.float64)
+        success = (ended_well(batch).reshape(rows, -1) & done).to(torch.float64)
         counts, totals, wins = torch.stack([ended.sum(1), returns.sum(1), success.sum(1)]).tolist()
         return [
             {"episode_return": total / count, "episode_success": win / count} if count else {}

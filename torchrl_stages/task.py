@@ -12,7 +12,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Compose, EnvBase, RewardSum, TransformedEnv
 
 from torchrl_stages.learners import StageSpecs
-from torchrl_stages.transforms import StageTransform
+from torchrl_stages.transforms import SUCCESS_KEY, StageTransform
 
 
 def tile_starts(starts: dict[str, Any], copies: int) -> dict[str, Any]:
@@ -200,8 +200,11 @@ class StagedTask:
         if hasattr(env, "stage_observation_keys"):
             obs_keys = list(env.stage_observation_keys(stage))
         else:
-            # every observation but the stage tag (an env that writes "stage" itself)
-            obs_keys = [k for k in env.observation_spec.keys(True, True) if k != "stage"]
+            # every observation but the stage tag (an env that writes "stage" itself) and the
+            # success flag (what evaluations read, not what a policy sees)
+            obs_keys = [
+                k for k in env.observation_spec.keys(True, True) if k not in ("stage", SUCCESS_KEY)
+            ]
         action_key = (
             env.stage_action_key(stage) if hasattr(env, "stage_action_key") else (env.action_key)
         )

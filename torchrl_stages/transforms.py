@@ -17,6 +17,9 @@ from torchrl.envs import Transform
 
 StageFn = Callable[[TensorDictBase], torch.Tensor]
 
+# an env's own success flag (torchrl's convention, e.g. LIBERO's): bool, [*batch, 1]
+SUCCESS_KEY = "success"
+
 
 class NonFiniteValueError(FloatingPointError):
     """The next stage's value of a transition is NaN or infinite."""
@@ -152,6 +155,9 @@ class StageTransform(Transform):
         terminated_key: the termination flag's key.
         done_key: the done flag's key.
         value_key: the key the next stage's value module writes.
+        success_key: the env's success flag, if it writes one (evaluations count an episode
+            as solved by it, :func:`~torchrl_stages.evaluate.ended_well`): in training mode
+            for stage k the step that leaves stage k sets it.
 
     Examples:
         >>> import torch
@@ -182,6 +188,7 @@ class StageTransform(Transform):
         truncated_key: NestedKey = "truncated",
         done_key: NestedKey = "done",
         value_key: NestedKey = "state_value",
+        success_key: NestedKey = SUCCESS_KEY,
     ) -> None:
         if num_stages < 1:
             raise ValueError(f"num_stages must be >= 1, got {num_stages}.")
@@ -214,6 +221,7 @@ class StageTransform(Transform):
         self.truncated_key = truncated_key
         self.done_key = done_key
         self.value_key = value_key
+        self.success_key = success_key
         self.next_value = None
         self.set_next_value(next_value)
 
@@ -247,9 +255,15 @@ class StageTransform(Transform):
         The step that leaves stage k ends stage k's episode. With ``rewrite_in_env`` it is
         ``terminated`` for stage k's loss and its reward gains gamma_k * V_{k+1}(s_{t+1}) unless
         the task itself terminated on that step; otherwise it is ``truncated`` (the stored
-        transition stays raw for a :class:`StageRewardTransform`). ``done`` follows.
+        transition stays raw for a :class:`StageRewardTransform`). ``done`` follows. Where the
+        env writes a ``success_key`` entry, the step that leaves stage k sets it (stage k's
+        episode is solved) unless the task terminated on it unsolved.
         """
         leaving = next_td.get(self.transition_key) & (stage_t == self.train_stage)
+        success = next_td.get(self.success_key, None)
+        if success is not None:  # leaving stage k is stage k's success, unless the task failed
+            failed = next_td.get(self.terminated_key) & ~success
+            next_td.set(self.success_key, success | (leaving & ~failed))
         if not self.rewrite_in_env:
             truncated = next_td.get(self.truncated_key) | leaving
             next_td.set(self.truncated_key, truncated)
