@@ -12,6 +12,7 @@ import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from cli_server import shared_server
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
@@ -88,17 +89,12 @@ def cli_env(**extra: str) -> dict[str, str]:
 
 
 def run_cli(argv: list, cwd: Path, timeout: float = 300, **env: str) -> subprocess.CompletedProcess:
-    """Runs a console script (``argv[0]``: its name) to completion; returns the process."""
-    argv = [console_script(argv[0]), *(str(a) for a in argv[1:])]
-    return subprocess.run(
-        argv,
-        cwd=cwd,
-        env=cli_env(**env),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        stdin=subprocess.DEVNULL,
-    )
+    """Runs a console script (``argv[0]``: its name) to completion; returns the process. It
+    runs in a fork of a process that has imported the package (``cli_server``: the script's
+    argv, directory, environment, output and exit status, without its import)."""
+    console_script(argv[0])  # installed
+    argv = [Path(argv[0]).name, *(str(a) for a in argv[1:])]  # a name or the script's path
+    return shared_server().run(argv, Path(cwd), cli_env(**env), timeout)
 
 
 def docstring_ids(tree: ast.AST) -> set[int]:

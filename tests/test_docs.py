@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from cli_server import CLIServer, plain_command, shared_server
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -100,7 +101,7 @@ def runnable(command: str, number: int) -> str | None:
                 part += " experiment=smoke"
             elif preset != "experiment=smoke":  # a preset of its own, shortened by smoke's
                 part = part.replace(preset, f"{preset.replace('=', '=[', 1)},smoke]")
-            if program == "stages-train" and not any(w.startswith("eval.plots=") for w in words):
+            if not any(w.startswith("eval.plots=") for w in words):
                 part += " eval.plots=false"  # the figures are tested apart; here they cost time
             if program == "stages-train":
                 key = "hydra.sweep.dir" if "-m" in words else "hydra.run.dir"
@@ -138,6 +139,20 @@ def _run(args: list[str], scratch: Path, where: str) -> subprocess.CompletedProc
         return subprocess.run(
             args, cwd=scratch, env=_env(scratch), capture_output=True, text=True, timeout=TIMEOUT
         )
+    except subprocess.TimeoutExpired as error:
+        pytest.fail(f"{where}: did not finish in {TIMEOUT} s: {error}")
+
+
+def _run_shell(command: str, scratch: Path, where: str) -> subprocess.CompletedProcess:
+    """``bash -c command``; a plain console-script command runs in a fork of a process that
+    has imported the package instead (``cli_server``: the same argv, directory, environment
+    and exit status, without the 4 s import)."""
+    plain = plain_command(command)
+    if plain is None:
+        return _run(["bash", "-c", command], scratch, where)
+    assignments, argv = plain
+    try:
+        return shared_server().run(argv, scratch, {**_env(scratch), **assignments}, TIMEOUT)
     except subprocess.TimeoutExpired as error:
         pytest.fail(f"{where}: did not finish in {TIMEOUT} s: {error}")
 
@@ -181,7 +196,7 @@ def run_page(page: Path, scratch: Path) -> list[str]:
                 shell = runnable(command, block.line * 100 + number)
                 if shell is None:
                     continue
-                done = _run(["bash", "-c", shell], scratch, f"{where}: {command}")
+                done = _run_shell(shell, scratch, f"{where}: {command}")
                 last = number == len(cmds) - 1
                 _check(done, output if last else None, f"{where}: {command}")
     return skipped
@@ -256,6 +271,41 @@ def test_runnable_commands():
         "stages-train experiment=[manipulator_td3,smoke] hydra.run.dir=r eval.plots=false"
     )
     assert commands("a \\\n  b  # note\n'#' c\n") == ["a b", "'#' c"]
+    assert runnable("stages-tune tune.n_trials=2", 5) == (
+        "stages-tune tune.n_trials=2 experiment=smoke eval.plots=false"
+    )
+
+
+def test_plain_commands_run_in_a_fork_the_rest_in_bash():
+    assert plain_command("PYTHONPATH=. stages-train 'a=b c' seeds=[0,1]") == (
+        {"PYTHONPATH": "."},
+        ["stages-train", "a=b c", "seeds=[0,1]"],
+    )
+    for shell in ("stages-train && stages-eval r", "stages-report s | head", "python x.py"):
+        assert plain_command(shell) is None, shell
+    for expansion in ("stages-store ls ~/stages", "stages-store ls $HOME/s", "stages-eval `pwd`"):
+        assert plain_command(expansion) is None, expansion
+
+
+def test_a_forked_command_is_the_console_script(tmp_path):
+    """The same output and exit status as the installed script, in bash, for a good command
+    and a refused one."""
+    server = CLIServer()
+    try:
+        for args in (["--help"], ["task.stages.s2.gamma=1.5"]):
+            script = subprocess.run(
+                ["bash", "-c", " ".join(["stages-train", *args])],
+                cwd=tmp_path,
+                env=_env(tmp_path),
+                capture_output=True,
+                text=True,
+                timeout=120,
+            )
+            forked = server.run(["stages-train", *args], tmp_path, _env(tmp_path), 120)
+            assert (forked.returncode, forked.stdout) == (script.returncode, script.stdout)
+            assert forked.stderr.splitlines()[-1:] == script.stderr.splitlines()[-1:]
+    finally:
+        server.close()
 
 
 @pytest.mark.slow

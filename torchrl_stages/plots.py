@@ -12,10 +12,11 @@ import re
 from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from matplotlib.figure import Figure
-from matplotlib.patches import Circle
-from matplotlib.ticker import MaxNLocator
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn: it costs every CLI start
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle
 
 __all__ = ["DPI", "circle", "plot_learning_curves", "read_stage_metrics", "save_figure"]
 
@@ -102,6 +103,9 @@ def plot_learning_curves(
     if not rows:
         return None
     ncols = max(len(panels) for _, panels in rows)
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
     fig = Figure(figsize=(3.6 * ncols, 2.7 * len(rows) + 0.4))
     axes = fig.subplots(len(rows), ncols, squeeze=False)
     for r, (stage, panels) in enumerate(rows):
@@ -143,4 +147,6 @@ def plot_learning_curves(
 
 def circle(center: Sequence[float], radius: float, color: str, style: str) -> Circle:
     """An unfilled circle patch."""
+    from matplotlib.patches import Circle
+
     return Circle(tuple(center), radius, fill=False, color=color, linestyle=style)

@@ -1,0 +1,189 @@
+"""The package's console scripts run in forks of one process that has already imported them.
+
+A console script is ``sys.exit(<entry point>())`` after ``import torchrl_stages.cli``, and that
+import (torch, tensordict, torchrl) is most of a short command's time: about 4 of a smoke
+run's 6-8 seconds. :class:`CLIServer` starts one server process per test worker that imports
+the package once; each command then runs in a fork of it, as the console script would: its own
+``argv``, working directory, environment (``PYTHONPATH`` entries put on ``sys.path``), stdin
+from ``/dev/null``, stdout and stderr to files, and the entry point's exit status.
+
+Only plain commands go this way (``[VAR=value ...] <console script> args``, no shell syntax):
+:func:`plain_command` says which; the others run in ``bash`` as before.
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from importlib.metadata import entry_points
+from pathlib import Path
+
+ASSIGNMENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
+SHELL = re.compile(r"[$`~\\]")  # expansions and escapes: leave these to bash
+
+
+def console_scripts() -> dict[str, str]:
+    """The package's console scripts: name -> ``module:function``."""
+    return {
+        ep.name: ep.value
+        for ep in entry_points(group="console_scripts")
+        if ep.value.startswith("torchrl_stages.")
+    }
+
+
+def plain_command(command: str) -> tuple[dict[str, str], list[str]] | None:
+    """``(assignments, argv)`` of a command a fork can run like ``bash -c`` would: optional
+    ``VAR=value`` words, then one of the package's console scripts and its arguments, quoted as
+    the shell quotes but with no operator, redirection or expansion. ``None`` otherwise."""
+    if SHELL.search(command):
+        return None
+    lexer = shlex.shlex(command, posix=True, punctuation_chars=True)
+    lexer.whitespace_split = True
+    try:
+        words = list(lexer)
+    except ValueError:  # unbalanced quotes
+        return None
+    if any(w and set(w) <= set("();<>|&") for w in words):  # operators and redirections
+        return None
+    assignments = {}
+    while words and ASSIGNMENT.match(words[0]):
+        name, value = words.pop(0).split("=", 1)
+        assignments[name] = value
+    if not words or words[0] not in console_scripts():
+        return None
+    return assignments, words
+
+
+class CLIServer:
+    """A server process that has imported the package; :meth:`run` forks it per command."""
+
+    def __init__(self) -> None:
+        self.scratch = Path(tempfile.mkdtemp(prefix="cli_server_"))  # the commands' outputs
+        self.proc = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve())],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+
+    def run(
+        self, argv: list[str], cwd: Path, env: dict[str, str], timeout: float
+    ) -> subprocess.CompletedProcess:
+        """Runs ``argv`` (a console script and its arguments) in a fork, in ``cwd`` with
+        ``env``; its output is returned as a subprocess's would be. A command still running
+        after ``timeout`` seconds is killed: :class:`subprocess.TimeoutExpired`."""
+        out, err = self.scratch / "stdout", self.scratch / "stderr"
+        request = {"argv": argv, "cwd": str(cwd), "env": env, "timeout": timeout}
+        request |= {"stdout": str(out), "stderr": str(err)}
+        self.proc.stdin.write(json.dumps(request) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"the CLI server exited (status {self.proc.wait()})")
+        reply = json.loads(line)
+        stdout, stderr = out.read_text(), err.read_text()
+        out.unlink()
+        err.unlink()
+        if reply["timed_out"]:
+            raise subprocess.TimeoutExpired(argv, timeout, stdout, stderr)
+        return subprocess.CompletedProcess(argv, reply["returncode"], stdout, stderr)
+
+    def close(self) -> None:
+        self.proc.stdin.close()  # the server's loop ends
+        self.proc.wait(timeout=30)
+        self.proc.stdout.close()
+        shutil.rmtree(self.scratch, ignore_errors=True)
+
+
+_SHARED: list[CLIServer] = []
+
+
+def shared_server() -> CLIServer:
+    """This test process's server, started on first use and closed when the process exits."""
+    if not _SHARED or _SHARED[0].proc.poll() is not None:
+        _SHARED[:] = [CLIServer()]
+        atexit.register(_SHARED[0].close)
+    return _SHARED[0]
+
+
+# ------------------------------------------------------------------------------ the server
+def _child(request: dict, scripts: dict[str, str]) -> None:
+    """In the fork: becomes the command, then exits with its status (never returns)."""
+    code = 1
+    try:
+        os.chdir(request["cwd"])
+        os.environ.clear()
+        os.environ.update(request["env"])
+        paths = [p for p in request["env"].get("PYTHONPATH", "").split(os.pathsep) if p]
+        sys.path[:0] = [os.path.abspath(p) for p in paths]
+        os.dup2(os.open(os.devnull, os.O_RDONLY), 0)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC
+        os.dup2(os.open(request["stdout"], flags), 1)
+        os.dup2(os.open(request["stderr"], flags), 2)
+        sys.argv = list(request["argv"])
+        module, function = scripts[sys.argv[0]].split(":")
+        __import__(module)
+        entry = getattr(sys.modules[module], function)
+        try:
+            status = entry()
+        except SystemExit as stop:
+            status = stop.code
+        if status is None:
+            code = 0
+        elif isinstance(status, int):
+            code = status
+        else:  # sys.exit("message"): printed, status 1
+            print(status, file=sys.stderr)
+            code = 1
+    except BaseException:  # noqa: BLE001 - the command's traceback, as the interpreter prints it
+        traceback.print_exc()
+        code = 1
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001
+                pass
+        os._exit(code)
+
+
+def _wait(pid: int, timeout: float) -> tuple[int, bool]:
+    deadline = time.monotonic() + timeout
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return os.waitstatus_to_exitcode(status), False
+        if time.monotonic() > deadline:
+            os.kill(pid, 9)
+            os.waitpid(pid, 0)
+            return -9, True
+        time.sleep(0.02)
+
+
+def serve() -> None:
+    if sys.path[0] == str(Path(__file__).resolve().parent):
+        del sys.path[0]  # a console script does not see the tests' modules
+    import torchrl_stages.cli  # noqa: F401 - what every fork inherits
+
+    scripts = console_scripts()
+    for line in sys.stdin:
+        request = json.loads(line)
+        pid = os.fork()
+        if pid == 0:
+            _child(request, scripts)
+        code, timed_out = _wait(pid, request["timeout"])
+        sys.stdout.write(json.dumps({"returncode": code, "timed_out": timed_out}) + "\n")
+        sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    serve()
