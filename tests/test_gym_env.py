@@ -25,8 +25,9 @@ from torchrl.envs import TransformedEnv
 from torchrl_stages import GymStageEnv, StagedTask, StageTrainer
 from torchrl_stages.evaluate import evaluate_policy
 from torchrl_stages.experiment import build_task
-from torchrl_stages.gym_env import SuccessReader
+from torchrl_stages.gym_env import SuccessKeyError, SuccessReader
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
+from torchrl_stages.loop import MetricsLog
 from torchrl_stages.transforms import StageTransform
 from torchrl_stages.validate import ConfigError
 
@@ -60,6 +61,8 @@ COMMANDS = {
         "algo@task.stage_template=sac",
         "experiment=smoke",
     ],
+    # a success key the env does not report: stopped with the key and the fix
+    "bad_success_key": ["task=gym", *LINE, "+task.env.pit=true", "task.env.success_key=is_succes"],
     # a factory that ignores batch_size: refused before training, with the fix
     "unbatched": [
         "task=custom",
@@ -149,6 +152,13 @@ def test_unbatched_env_is_refused_with_the_fix(cli):
     assert "invalid config: task.env._target_='line_env.unbatched_line'" in err
     assert "batch_size=[]" in err and "Fix:" in err and "Traceback" not in err
     assert not (run_dir / "metrics.csv").exists()
+
+
+def test_a_success_key_the_env_does_not_report_stops_the_run_with_the_fix(cli):
+    code, out, err, run_dir = cli("bad_success_key")
+    assert code == 1, (out + err)[-4000:]
+    assert "task.env.success_key='is_succes'" in err and "Fix: set" in err
+    assert "Traceback" not in err
 
 
 # ------------------------------------------------------------------ in-process
@@ -288,16 +298,73 @@ def test_leaving_stage_k_is_stage_ks_success_unless_the_task_failed():
 
 
 def test_a_success_key_the_env_never_reports_is_refused():
+    def ended(*done: bool) -> TensorDict:  # a step's output: the env's own done
+        return TensorDict(done=torch.tensor(done).unsqueeze(-1), batch_size=[len(done)])
+
     reader = SuccessReader("is_succes", batch_size=(2,), patience=3)
-    td = reader({"is_succes": [True, False]}, TensorDict(batch_size=[2]))
+    td = reader({"is_succes": [True, False]}, ended(True, True))
     assert td["success"].squeeze(-1).tolist() == [True, False]
-    for _ in range(5):  # reported once: later steps without it read False
-        assert not reader({}, TensorDict(batch_size=[2]))["success"].any()
+    for _ in range(5):  # reported once: later episodes without it read False
+        assert not reader({}, ended(True, True))["success"].any()
     never = SuccessReader("is_succes", batch_size=(2,), patience=3)
-    never({}, TensorDict(batch_size=[2]))
-    never({}, TensorDict(batch_size=[2]))
-    with pytest.raises(KeyError, match=r"task\.env\.success_key='is_succes'.*Fix: set task"):
+    for _ in range(5):  # resets and steps that end no episode do not count
         never({}, TensorDict(batch_size=[2]))
+        never({}, ended(False, False))
+    never({}, ended(True, False))
+    never({}, ended(False, True))
+    with pytest.raises(SuccessKeyError, match=r"task\.env\.success_key='is_succes'.*Fix: set"):
+        never({}, ended(True, False))
+
+
+class _OnlyAtTheEnd(gymnasium.Wrapper):
+    """Reports ``is_success`` on an episode's last step only (as Stable-Baselines3 asks)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if not (terminated or truncated):
+            info.pop("is_success", None)
+        return obs, reward, terminated, truncated, info
+
+
+def test_a_stage_whose_episodes_leave_it_needs_no_report_of_the_key():
+    """Stage 0's episodes end where they leave stage 0, where the env's own episode goes on:
+    the key is never reported, and that is no error."""
+    base = GymStageEnv(
+        "LineWorld-v0",
+        line_stage,
+        batch_size=(2,),
+        pit=True,
+        success_key="is_success",
+        wrappers=[_OnlyAtTheEnd],
+        start_stage=0,
+    )
+    env = TransformedEnv(base, StageTransform(line_stage, 2, train_stage=0, standalone=True))
+    try:
+        td, policy, ended, solved = env.reset(), _always(1), 0, 0
+        for _ in range(600):  # 1 to 4 steps each: 300 stage-0 episodes or more
+            out, td = env.step_and_maybe_reset(policy(td))
+            done = out["next", "done"]
+            ended += int(done.sum())
+            solved += int(out["next", "success"][done].sum())
+        assert ended >= 300 and solved == ended
+    finally:
+        env.close()
+
+
+def test_training_episodes_count_the_flag():
+    done = torch.tensor([[True, True]]).unsqueeze(-1)
+    batch = TensorDict(
+        {
+            "next": {
+                "done": done,
+                "terminated": done,
+                "success": torch.tensor([[[True], [False]]]),
+                "episode_reward": torch.zeros(1, 2, 1),
+            }
+        },
+        [1, 2],
+    )
+    assert MetricsLog.episodes_by_row(batch)[0]["episode_success"] == 0.5
 
 
 def test_the_gym_template_passes_the_success_key(compose_cfg):

@@ -31,6 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import apply_all_stages, objective_value, stage_keys_set
 from torchrl_stages.experiment import Experiment, one_line
+from torchrl_stages.gym_env import SuccessKeyError
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
 from torchrl_stages.seed_runs import SeedRuns, seed_dir
@@ -108,7 +109,7 @@ def _train_app(cfg: DictConfig) -> float:
         _fail(run_dir, "failed", str(err), EXIT_INVALID, write_status=False)
     except OSError as err:
         _fail(run_dir, "failed", _cannot_write(err, run_dir), EXIT_INVALID, write_status=False)
-    except EnvError as err:
+    except (EnvError, SuccessKeyError) as err:
         _fail(run_dir, "failed", str(err), EXIT_FAILED, write_status=False)
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()

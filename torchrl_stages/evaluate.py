@@ -105,7 +105,7 @@ def ended_well(td: TensorDictBase) -> torch.Tensor:
         [True, False]
     """
     flag = td.get(("next", SUCCESS_KEY), None)
-    return td.get(("next", "terminated")) if flag is None else flag
+    return td.get(("next", "terminated")) if flag is None else flag.to(torch.bool)
 
 
 @dataclass

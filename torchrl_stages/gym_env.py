@@ -23,7 +23,9 @@ from torchrl.data import Categorical, Composite
 from torchrl.envs import GymWrapper
 from torchrl.envs.gym_like import BaseInfoDictReader
 
-__all__ = ["GymStageEnv", "SuccessReader", "threshold_stage"]
+from torchrl_stages.transforms import SUCCESS_KEY
+
+__all__ = ["GymStageEnv", "SuccessKeyError", "SuccessReader", "threshold_stage"]
 
 StageFn = Callable[[TensorDictBase], torch.Tensor]
 _UNSET = object()
@@ -72,13 +74,18 @@ def _stage_function(stage_fn: StageFn | str) -> StageFn:
 VECTORIZE = ("sync", "async")
 
 
+class SuccessKeyError(ValueError):
+    """The env's ``info`` has never carried the success key on an episode's last step."""
+
+
 class SuccessReader(BaseInfoDictReader):
     """Reads a gymnasium env's success flag, ``info[info_key]`` (``"is_success"`` in
     gymnasium-robotics and Stable-Baselines3), into a boolean ``"success"`` entry ``[n, 1]``:
     the entry evaluations count an episode's success by (see
-    :func:`torchrl_stages.evaluate.episode_stats`). A copy that does not report it reads
-    ``False``; a key that no step has reported in ``patience`` steps is refused (a misspelled
-    key would count every episode as failed).
+    :func:`torchrl_stages.evaluate.ended_well`). The env must report it at least on the last
+    step of every episode; a copy that does not report it on a step reads ``False``. Once
+    ``patience`` episodes have ended with the key never reported, :class:`SuccessKeyError`
+    stops the run (a misspelled key would count every episode as failed).
 
     Examples:
         >>> import numpy as np
@@ -95,15 +102,14 @@ class SuccessReader(BaseInfoDictReader):
         *,
         batch_size: Sequence[int],
         device: str | torch.device = "cpu",
-        patience: int = 1_000,
+        patience: int = 100,
     ) -> None:
         self.info_key = info_key
         self.patience = patience
-        self._calls = 0
+        self._ended = 0  # episodes ended (the env's own done) while the key was never reported
         self._seen = False
-        shape = (*batch_size, 1)
         self._spec = Composite(
-            success=Categorical(2, shape=shape, dtype=torch.bool, device=device),
+            {SUCCESS_KEY: Categorical(2, shape=(*batch_size, 1), dtype=torch.bool, device=device)},
             shape=tuple(batch_size),
             device=device,
         )
@@ -115,19 +121,23 @@ class SuccessReader(BaseInfoDictReader):
     def __call__(self, info_dict: dict[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
         value = info_dict.get(self.info_key)
         if value is None:
-            self._calls += 1
-            if not self._seen and self._calls >= self.patience:
-                raise KeyError(
-                    f"task.env.success_key={self.info_key!r}: no step of the env has reported "
-                    f"info[{self.info_key!r}] in {self._calls} steps, so every episode would "
-                    "count as failed. Fix: set task.env.success_key to the key the env's "
-                    "`info` carries, or null to count terminations as successes"
-                )
+            done = tensordict.get("done", None)  # a step's (a reset has none)
+            if not self._seen and done is not None:
+                self._ended += int(done.sum())
+                if self._ended >= self.patience:
+                    raise SuccessKeyError(
+                        f"task.env.success_key={self.info_key!r}: {self._ended} episodes of "
+                        f"the env ended and none reported info[{self.info_key!r}], so every "
+                        "episode would count as failed. Fix: set task.env.success_key to the "
+                        "key the env's `info` carries on every episode's last step, or null to "
+                        "count terminations as successes"
+                    )
             flag = torch.zeros(tensordict.batch_size, dtype=torch.bool)
         else:
             self._seen = True
             flag = torch.as_tensor(np.asarray(value).astype(bool))
-        tensordict.set("success", flag.reshape(*tensordict.batch_size, 1).to(tensordict.device))
+        flag = flag.reshape(*tensordict.batch_size, 1).to(tensordict.device)
+        tensordict.set(SUCCESS_KEY, flag)
         return tensordict
 
 

@@ -282,12 +282,13 @@ class StageTrainer:
     def evaluate(self, frames: int) -> tuple[float, float, float]:
         """Greedy episodes from the evaluation env's starts; logs and returns three numbers.
 
-        ``success_rate``: episodes that terminate (leave the stage or end the task) before the
-        time limit. ``value_error``: ``|V(s_0) - G|`` between the stage's value estimate at the
-        start and the discounted return the greedy policy actually got, reduced over the starts
-        by ``cfg.value_error_reduce`` (mean or max), a check that the values handed to the
-        previous stage have converged. ``discounted_return``: the mean of those returns, the
-        stage's objective.
+        ``success_rate``: episodes that leave the stage or end the task solved
+        (:func:`~torchrl_stages.evaluate.ended_well`: terminated, or the env's success flag)
+        before the time limit. ``value_error``: ``|V(s_0) - G|`` between the stage's value
+        estimate at the start and the discounted return the greedy policy actually got, reduced
+        over the starts by ``cfg.value_error_reduce`` (mean or max), a check that the values
+        handed to the previous stage have converged. ``discounted_return``: the mean of those
+        returns, the stage's objective.
         """
         cfg = self.cfg
         max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))

@@ -8,7 +8,7 @@ from typing import Any
 
 import torch
 
-from torchrl_stages.evaluate import TaskEvaluation
+from torchrl_stages.evaluate import TaskEvaluation, ended_well
 from torchrl_stages.learners import Learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.task import StagedTask
@@ -36,7 +36,7 @@ def greedy_episode(task: StagedTask, learners: Sequence[Learner], seed: int):
         features = torch.cat([rollout["observation"][:1], rollout["next", "observation"]])
         cells = (features[:, :2] * size).round().long().tolist()
         stages = torch.cat([rollout["stage"][:1], rollout["next", "stage"]]).squeeze(-1).tolist()
-        success = bool(rollout["next", "terminated"][-1])
+        success = bool(ended_well(rollout[-1:])[-1])
     finally:
         env.close()
     return cells, stages, success, frame
