@@ -14,6 +14,7 @@ Only plain commands go this way (``[VAR=value ...] <console script> args``, no s
 from __future__ import annotations
 
 import atexit
+import functools
 import json
 import os
 import re
@@ -31,6 +32,7 @@ ASSIGNMENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
 SHELL = re.compile(r"[$`~\\]")  # expansions and escapes: leave these to bash
 
 
+@functools.cache
 def console_scripts() -> dict[str, str]:
     """The package's console scripts: name -> ``module:function``."""
     return {

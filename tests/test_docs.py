@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from cli_server import CLIServer, plain_command, shared_server
+from cli_server import plain_command, shared_server
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -290,22 +290,18 @@ def test_plain_commands_run_in_a_fork_the_rest_in_bash():
 def test_a_forked_command_is_the_console_script(tmp_path):
     """The same output and exit status as the installed script, in bash, for a good command
     and a refused one."""
-    server = CLIServer()
-    try:
-        for args in (["--help"], ["task.stages.s2.gamma=1.5"]):
-            script = subprocess.run(
-                ["bash", "-c", " ".join(["stages-train", *args])],
-                cwd=tmp_path,
-                env=_env(tmp_path),
-                capture_output=True,
-                text=True,
-                timeout=120,
-            )
-            forked = server.run(["stages-train", *args], tmp_path, _env(tmp_path), 120)
-            assert (forked.returncode, forked.stdout) == (script.returncode, script.stdout)
-            assert forked.stderr.splitlines()[-1:] == script.stderr.splitlines()[-1:]
-    finally:
-        server.close()
+    for args in (["--help"], ["task.stages.s2.gamma=1.5"]):
+        script = subprocess.run(
+            ["bash", "-c", " ".join(["stages-train", *args])],
+            cwd=tmp_path,
+            env=_env(tmp_path),
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        forked = shared_server().run(["stages-train", *args], tmp_path, _env(tmp_path), 120)
+        assert (forked.returncode, forked.stdout) == (script.returncode, script.stdout)
+        assert forked.stderr.splitlines()[-1:] == script.stderr.splitlines()[-1:]
 
 
 @pytest.mark.slow
