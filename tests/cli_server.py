@@ -5,7 +5,9 @@ import (torch, tensordict, torchrl) is most of a short command's time: about 4 o
 run's 6-8 seconds. :class:`CLIServer` starts one server process per test worker that imports
 the package once; each command then runs in a fork of it, as the console script would: its own
 ``argv``, working directory, environment (``PYTHONPATH`` entries put on ``sys.path``), stdin
-from ``/dev/null``, stdout and stderr to files, and the entry point's exit status.
+from ``/dev/null``, stdout and stderr to files, the entry point's exit status, and the
+interpreter's exit handlers (a failed sweep writes its summary in one). Commands started
+together run at the same time, each in its own fork, as background processes would.
 
 Only plain commands go this way (``[VAR=value ...] <console script> args``, no shell syntax):
 :func:`plain_command` says which; the others run in ``bash`` as before.
@@ -18,8 +20,10 @@ import functools
 import json
 import os
 import re
+import select
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -30,6 +34,7 @@ from pathlib import Path
 
 ASSIGNMENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
 SHELL = re.compile(r"[$`~\\]")  # expansions and escapes: leave these to bash
+POLL_S = 0.02  # how often the server looks for ended commands
 
 
 @functools.cache
@@ -66,7 +71,11 @@ def plain_command(command: str) -> tuple[dict[str, str], list[str]] | None:
 
 
 class CLIServer:
-    """A server process that has imported the package; :meth:`run` forks it per command."""
+    """A server process that has imported the package; each command runs in a fork of it.
+
+    :meth:`start` sends a command and returns at once (several may run at the same time, as
+    background processes would); :meth:`wait` returns its result; :meth:`run` does both.
+    """
 
     def __init__(self) -> None:
         self.scratch = Path(tempfile.mkdtemp(prefix="cli_server_"))  # the commands' outputs
@@ -76,30 +85,62 @@ class CLIServer:
             stdout=subprocess.PIPE,
             text=True,
         )
+        self._jobs: dict[int, list[str]] = {}  # started and not yet waited for: job -> argv
+        self._replies: dict[int, dict] = {}  # finished and not yet waited for
+        self._next = 0
 
-    def run(
-        self, argv: list[str], cwd: Path, env: dict[str, str], timeout: float
-    ) -> subprocess.CompletedProcess:
-        """Runs ``argv`` (a console script and its arguments) in a fork, in ``cwd`` with
-        ``env``; its output is returned as a subprocess's would be. A command still running
-        after ``timeout`` seconds is killed: :class:`subprocess.TimeoutExpired`."""
-        out, err = self.scratch / "stdout", self.scratch / "stderr"
-        request = {"argv": argv, "cwd": str(cwd), "env": env, "timeout": timeout}
-        request |= {"stdout": str(out), "stderr": str(err)}
+    def start(self, argv: list[str], cwd: Path, env: dict[str, str], timeout: float) -> int:
+        """Starts ``argv`` (a console script and its arguments) in a fork, in ``cwd`` with
+        ``env``; returns the job to :meth:`wait` for. A command still running after
+        ``timeout`` seconds is killed."""
+        job, self._next = self._next, self._next + 1
+        request = {"job": job, "argv": argv, "cwd": str(cwd), "env": env, "timeout": timeout}
+        request |= {
+            "stdout": str(self._output(job, "stdout")),
+            "stderr": str(self._output(job, "stderr")),
+        }
         self.proc.stdin.write(json.dumps(request) + "\n")
         self.proc.stdin.flush()
-        line = self.proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"the CLI server exited (status {self.proc.wait()})")
-        reply = json.loads(line)
+        self._jobs[job] = argv
+        return job
+
+    def wait(self, job: int) -> subprocess.CompletedProcess:
+        """The result of a started command, as a subprocess's would be (once per job); one
+        that ran past its timeout raises :class:`subprocess.TimeoutExpired`."""
+        argv = self._jobs.pop(job)
+        while job not in self._replies:
+            line = self.proc.stdout.readline()
+            if not line:
+                raise RuntimeError(f"the CLI server exited (status {self.proc.wait()})")
+            reply = json.loads(line)
+            self._replies[reply["job"]] = reply
+        reply = self._replies.pop(job)
+        out, err = self._output(job, "stdout"), self._output(job, "stderr")
         stdout, stderr = out.read_text(), err.read_text()
         out.unlink()
         err.unlink()
         if reply["timed_out"]:
-            raise subprocess.TimeoutExpired(argv, timeout, stdout, stderr)
+            raise subprocess.TimeoutExpired(argv, reply["timeout"], stdout, stderr)
         return subprocess.CompletedProcess(argv, reply["returncode"], stdout, stderr)
 
+    def run(
+        self, argv: list[str], cwd: Path, env: dict[str, str], timeout: float
+    ) -> subprocess.CompletedProcess:
+        """Runs ``argv`` to completion (:meth:`start`, then :meth:`wait`)."""
+        return self.wait(self.start(argv, cwd, env, timeout))
+
+    def kill(self, job: int) -> None:
+        """Stops a started command that has not been waited for (its result is dropped)."""
+        if job in self._jobs:
+            self.proc.stdin.write(json.dumps({"kill": job}) + "\n")
+            self.proc.stdin.flush()
+            self.wait(job)
+
+    def _output(self, job: int, stream: str) -> Path:
+        return self.scratch / f"{job}.{stream}"
+
     def close(self) -> None:
+        """Ends the server; commands still running are killed."""
         self.proc.stdin.close()  # the server's loop ends
         self.proc.wait(timeout=30)
         self.proc.stdout.close()
@@ -150,6 +191,7 @@ def _child(request: dict, scripts: dict[str, str]) -> None:
         traceback.print_exc()
         code = 1
     finally:
+        atexit._run_exitfuncs()  # as the interpreter does at exit (a sweep's summary is written so)
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()
@@ -158,33 +200,51 @@ def _child(request: dict, scripts: dict[str, str]) -> None:
         os._exit(code)
 
 
-def _wait(pid: int, timeout: float) -> tuple[int, bool]:
-    deadline = time.monotonic() + timeout
-    while True:
-        done, status = os.waitpid(pid, os.WNOHANG)
-        if done:
-            return os.waitstatus_to_exitcode(status), False
-        if time.monotonic() > deadline:
-            os.kill(pid, 9)
-            os.waitpid(pid, 0)
-            return -9, True
-        time.sleep(0.02)
-
-
 def serve() -> None:
+    """Reads one request per line from stdin, forks each, and writes one reply per line to
+    stdout when it ends (in the order they end); at the end of stdin, kills what still runs."""
     if sys.path[0] == str(Path(__file__).resolve().parent):
         del sys.path[0]  # a console script does not see the tests' modules
     import torchrl_stages.cli  # noqa: F401 - what every fork inherits
 
     scripts = console_scripts()
-    for line in sys.stdin:
-        request = json.loads(line)
-        pid = os.fork()
-        if pid == 0:
-            _child(request, scripts)
-        code, timed_out = _wait(pid, request["timeout"])
-        sys.stdout.write(json.dumps({"returncode": code, "timed_out": timed_out}) + "\n")
-        sys.stdout.flush()
+    running: dict[int, tuple[dict, float]] = {}  # pid -> (request, deadline)
+    requests, pending = sys.stdin.fileno(), b""
+    while requests is not None or running:
+        if requests is not None and select.select([requests], [], [], POLL_S)[0]:
+            chunk = os.read(requests, 1 << 16)
+            if not chunk:  # the client closed: nothing will read a reply
+                requests = None
+                for pid in running:
+                    os.kill(pid, signal.SIGKILL)
+            *lines, pending = (pending + chunk).split(b"\n")
+            for line in filter(bytes.strip, lines):
+                request = json.loads(line)
+                if "kill" in request:  # a started command the client stops
+                    for pid, (started, _) in running.items():
+                        if started["job"] == request["kill"]:
+                            os.kill(pid, signal.SIGKILL)
+                    continue
+                pid = os.fork()
+                if pid == 0:
+                    _child(request, scripts)
+                running[pid] = (request, time.monotonic() + request["timeout"])
+        elif requests is None:
+            time.sleep(POLL_S)
+        for pid, (request, deadline) in list(running.items()):
+            done, status = os.waitpid(pid, os.WNOHANG)
+            timed_out = not done and time.monotonic() > deadline
+            if timed_out:
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+            elif not done:
+                continue
+            del running[pid]
+            if requests is not None:
+                code = -signal.SIGKILL if timed_out else os.waitstatus_to_exitcode(status)
+                reply = {"job": request["job"], "returncode": code, "timed_out": timed_out}
+                sys.stdout.write(json.dumps({**reply, "timeout": request["timeout"]}) + "\n")
+                sys.stdout.flush()
 
 
 if __name__ == "__main__":

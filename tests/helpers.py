@@ -88,13 +88,34 @@ def cli_env(**extra: str) -> dict[str, str]:
     return env
 
 
+class Launched:
+    """A console script (``argv[0]``: its name or path) started in the background; its
+    :meth:`result` waits for it. It runs in a fork of a process that has imported the package
+    (``cli_server``: the script's argv, directory, environment, output and exit status,
+    without its import); several run at the same time, as background processes would."""
+
+    def __init__(self, argv: list, cwd: Path, timeout: float = 300, **env: str) -> None:
+        console_script(argv[0])  # installed
+        argv = [Path(argv[0]).name, *(str(a) for a in argv[1:])]
+        self.server = shared_server()
+        self.job = self.server.start(argv, Path(cwd), cli_env(**env), timeout)
+        self._result: subprocess.CompletedProcess | None = None
+
+    def result(self) -> subprocess.CompletedProcess:
+        """The finished command (:class:`subprocess.TimeoutExpired` past its timeout)."""
+        if self._result is None:
+            self._result = self.server.wait(self.job)
+        return self._result
+
+    def stop(self) -> None:
+        """Kills it if it still runs and nothing waited for it."""
+        if self._result is None:
+            self.server.kill(self.job)
+
+
 def run_cli(argv: list, cwd: Path, timeout: float = 300, **env: str) -> subprocess.CompletedProcess:
-    """Runs a console script (``argv[0]``: its name) to completion; returns the process. It
-    runs in a fork of a process that has imported the package (``cli_server``: the script's
-    argv, directory, environment, output and exit status, without its import)."""
-    console_script(argv[0])  # installed
-    argv = [Path(argv[0]).name, *(str(a) for a in argv[1:])]  # a name or the script's path
-    return shared_server().run(argv, Path(cwd), cli_env(**env), timeout)
+    """Runs a console script (``argv[0]``: its name or path) to completion (:class:`Launched`)."""
+    return Launched(argv, cwd, timeout, **env).result()
 
 
 def docstring_ids(tree: ast.AST) -> set[int]:

@@ -1,10 +1,10 @@
 """End-to-end tests of the console scripts ``stages-train`` and ``stages-eval``.
 
-Every command runs as a subprocess in a temporary directory, with ``hydra.run.dir`` /
-``hydra.sweep.dir`` pointing there and tiny per-stage budgets. A subprocess spends several
-seconds importing torch, so the commands that do not depend on each other all start together
-(when the module's first test runs) and each test only waits for the ones it reads; the finished
-training run is shared by the tests that inspect it.
+Every command runs as the console script would, in a temporary directory, with
+``hydra.run.dir`` / ``hydra.sweep.dir`` pointing there and tiny per-stage budgets (in a fork of a
+process that has imported the package, ``helpers.Launched``). The commands that do not depend
+on each other all start together (when the module's first test runs) and each test only waits
+for the ones it reads; the finished training run is shared by the tests that inspect it.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ import csv
 import json
 import os
 import shutil
-import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from helpers import assert_figure, cli_env, console_script
+from helpers import Launched, assert_figure, console_script
 
 from torchrl_stages import StackedPolicy, StagedTask, load_policy, load_run
 from torchrl_stages.cli import evaluate as stages_eval_main
@@ -74,39 +73,6 @@ class Result:
         return self.stdout + self.stderr
 
 
-class Launched:
-    """A command started in the background; :meth:`result` waits for it (once).
-
-    Its output goes to files (a full pipe would stall a command nobody is reading yet).
-    """
-
-    def __init__(self, argv: list[str], cwd: Path, log_stem: Path) -> None:
-        self.argv = [str(a) for a in argv]
-        self._out, self._err = log_stem.with_suffix(".out"), log_stem.with_suffix(".err")
-        with self._out.open("w") as out, self._err.open("w") as err:
-            self.proc = subprocess.Popen(
-                self.argv, cwd=cwd, env=cli_env(), stdout=out, stderr=err, stdin=subprocess.DEVNULL
-            )
-        self._result: Result | None = None
-
-    def result(self) -> Result:
-        if self._result is None:
-            try:
-                self.proc.wait(timeout=TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.stop()
-                raise
-            self._result = Result(
-                self.proc.returncode, self._out.read_text(), self._err.read_text()
-            )
-        return self._result
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-
-
 class Commands:
     """The module's CLI commands, by name, started at most once each."""
 
@@ -143,14 +109,12 @@ class Commands:
 
     def start(self, name: str) -> Launched:
         if name not in self.launched:
-            logs = self.root / "logs"
-            logs.mkdir(exist_ok=True)
-            stem = logs / name.replace(":", "_")
-            self.launched[name] = Launched(self.argv(name), cwd=self.root, log_stem=stem)
+            self.launched[name] = Launched(self.argv(name), self.root, TIMEOUT_S)
         return self.launched[name]
 
     def result(self, name: str) -> Result:
-        return self.start(name).result()
+        done = self.start(name).result()
+        return Result(done.returncode, done.stdout, done.stderr)
 
     def stop_all(self) -> None:
         for launched in self.launched.values():

@@ -304,6 +304,27 @@ def test_a_forked_command_is_the_console_script(tmp_path):
         assert forked.stderr.splitlines()[-1:] == script.stderr.splitlines()[-1:]
 
 
+def test_forked_commands_run_side_by_side(tmp_path):
+    """Started commands run at once; each result reaches its own job, in any order; a command
+    past its timeout, or stopped, is killed and the server goes on."""
+    server, env = shared_server(), _env(tmp_path)
+    # a stage with no early stop and 10^7 frames: minutes
+    long = ["stages-train", "task.stages.s4.frames=10_000_000", "task.stages.s4.eval_every=0"]
+    long.append(f"hydra.run.dir={tmp_path / 'long'}")
+    stopped = server.start(long, tmp_path, env, 120)
+    late = server.start(["stages-train", "task.stages.s2.gamma=1.5"], tmp_path, env, 120)
+    timed_out = server.start([*long[:-1], f"hydra.run.dir={tmp_path / 'timed'}"], tmp_path, env, 2)
+    helped = server.start(["stages-train", "--help"], tmp_path, env, 120)
+    assert server.wait(helped).returncode == 0
+    with pytest.raises(subprocess.TimeoutExpired):
+        server.wait(timed_out)
+    refused = server.wait(late)
+    assert refused.returncode != 0 and "task.stages.s2.gamma" in refused.stderr
+    assert not (tmp_path / "long" / "eval.json").exists()
+    server.kill(stopped)
+    assert server.run(["stages-eval", "--help"], tmp_path, env, 120).returncode == 0
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_MKDOCS, reason='mkdocs is not installed (pip install -e ".[docs]")')
 def test_mkdocs_build_strict(tmp_path):

@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 from pathlib import Path
 
 import gymnasium
 import pytest
 import torch
-from helpers import assert_figure, cli_env, console_script
+from helpers import Launched, assert_figure
 from line_env import line_stage, unbatched_line
 from omegaconf import OmegaConf
 from tensordict import TensorDict
@@ -76,29 +75,22 @@ COMMANDS = {
 @pytest.fixture(scope="module")
 def cli(tmp_path_factory):
     root = tmp_path_factory.mktemp("byoe")
-    path = [str(TESTS), str(SCRIPTS), os.environ.get("PYTHONPATH", "")]
-    env = cli_env(PYTHONPATH=os.pathsep.join(path))
-    procs = {}
+    path = os.pathsep.join([str(TESTS), str(SCRIPTS), os.environ.get("PYTHONPATH", "")])
+    launched = {}
     for name, args in COMMANDS.items():
-        argv = [console_script("stages-train"), *args]
+        argv = ["stages-train", *args]
         if not name.startswith("waypoints"):
             argv += ["experiment=smoke", "eval.episodes=8"]
         argv.append(f"hydra.run.dir={root / name}")
-        with (root / f"{name}.out").open("w") as out, (root / f"{name}.err").open("w") as err:
-            procs[name] = subprocess.Popen(
-                argv, cwd=root, env=env, stdout=out, stderr=err, stdin=subprocess.DEVNULL
-            )
+        launched[name] = Launched(argv, root, TIMEOUT_S, PYTHONPATH=path)
 
     def result(name: str) -> tuple[int, str, str, Path]:
-        code = procs[name].wait(timeout=TIMEOUT_S)
-        out, err = (root / f"{name}.out").read_text(), (root / f"{name}.err").read_text()
-        return code, out, err, root / name
+        done = launched[name].result()
+        return done.returncode, done.stdout, done.stderr, root / name
 
     yield result
-    for proc in procs.values():
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    for command in launched.values():
+        command.stop()
 
 
 @pytest.mark.e2e

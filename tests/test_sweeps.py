@@ -1,5 +1,5 @@
 """Sweep summaries: ``torchrl_stages.sweeps`` on hand-made job directories (in-process), and the
-Hydra callback and ``stages-report`` on real sweeps (subprocesses, tiny ``experiment=smoke``).
+Hydra callback and ``stages-report`` on real sweeps (the console script, tiny ``experiment=smoke``).
 
 The two ``stages-train -m`` commands start together when the module's first test runs (two
 cores) and each test waits only for the one it reads.
@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import csv
 import json
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_figure, cli_env, console_script
+from helpers import Launched, assert_figure
 from scipy.stats import trim_mean
 
 from torchrl_stages.cli import report
@@ -230,24 +229,18 @@ SWEEPS = {
 @pytest.fixture(scope="module")
 def sweeps(tmp_path_factory):
     root = tmp_path_factory.mktemp("sweeps")
-    procs = {}
-    for name, args in SWEEPS.items():
-        argv = [console_script("stages-train"), *args, f"hydra.sweep.dir={root / name}"]
-        with (root / f"{name}.out").open("w") as out, (root / f"{name}.err").open("w") as err:
-            procs[name] = subprocess.Popen(
-                argv, cwd=root, env=cli_env(), stdout=out, stderr=err, stdin=subprocess.DEVNULL
-            )
+    launched = {
+        name: Launched(["stages-train", *args, f"hydra.sweep.dir={root / name}"], root, TIMEOUT_S)
+        for name, args in SWEEPS.items()
+    }
 
     def result(name: str) -> tuple[int, str, Path]:
-        code = procs[name].wait(timeout=TIMEOUT_S)
-        output = (root / f"{name}.out").read_text() + (root / f"{name}.err").read_text()
-        return code, output, root / name
+        done = launched[name].result()
+        return done.returncode, done.stdout + done.stderr, root / name
 
     yield result
-    for proc in procs.values():
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    for command in launched.values():
+        command.stop()
 
 
 @pytest.mark.e2e
