@@ -281,6 +281,8 @@ OUT_OF_RANGE = [
     ("task.stages.s4.loss_function", "huber"),
     ("task.stages.s4.eps_init", 2.0),
     ("task.stages.s4.eps_end", -0.1),
+    ("task.stages.s4.advantage_learning", 1.0),
+    ("task.stages.s4.advantage_learning", -0.1),
     ("task.stages.s0.success_threshold", 1.5),
     ("task.stages.s0.patience", 0),
     ("eval.episodes", 0),

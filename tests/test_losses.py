@@ -97,6 +97,31 @@ def test_dqn_loss_is_torchrls_dqn_loss(double, dueling, loss_function):
     assert_same_grads(grads(learner.loss.value_network_params), expected)
 
 
+@pytest.mark.parametrize("double", [True, False])
+def test_advantage_learning_is_torchrls_dqn_loss_with_the_gap_off_the_reward(double):
+    """Its target is DQN's less ``alpha (max_b Q_target(s, b) - Q_target(s, a))``: torchrl's
+    loss on the batch whose rewards carry that term is the reference."""
+    alpha = 0.9
+    cfg = DQNConfig(double_dqn=double, advantage_learning=alpha, fourier_features=3)
+    learner = DQNLearner(OmegaConf.structured(cfg), DISCRETE)
+    perturb(learner.loss.target_value_network_params)
+    data = batch(2, torch.randint(4, (64,)))
+    with torch.no_grad(), learner.loss.target_value_network_params.to_module(learner.qnet):
+        q_target = learner.qnet(data.clone())["action_value"]
+    gap = q_target.max(-1, keepdim=True).values - q_target.gather(-1, data["action"][:, None])
+    assert (gap >= 0).all() and (gap > 0).any()
+    shifted = data.clone()
+    shifted["next", "reward"] = data["next", "reward"] - alpha * gap
+    reference = learner.loss(shifted)["loss"]
+    reference.backward()
+    expected = grads(learner.loss.value_network_params)
+    learner.optimizers["qvalue"].zero_grad()
+    fast = learner._plain_loss(data.clone())
+    fast.backward()
+    torch.testing.assert_close(fast, reference)
+    assert_same_grads(grads(learner.loss.value_network_params), expected)
+
+
 @pytest.mark.parametrize("penalty", [0.0, 1.0])
 def test_ddpg_losses_are_torchrls_ddpg_loss(penalty):
     learner = DDPGLearner(OmegaConf.structured(DDPGConfig(saturation_penalty=penalty)), CONTINUOUS)

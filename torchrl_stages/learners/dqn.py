@@ -39,6 +39,12 @@ class DQNConfig(StageConfig):
     # apart from the value they would otherwise be lost in, and the greedy action stops flipping.
     dueling: bool = True
     loss_function: str = "l2"  # l1 | l2 | smooth_l1
+    # advantage learning (Baird 1999; Bellemare et al. 2016, "Increasing the action gap"):
+    # the target y - alpha (max_b Q_target(s, b) - Q_target(s, a)). Where discounting leaves
+    # the actions of a state (1 - gamma) V(s) apart, a Q error that size flips the greedy
+    # action and a greedy policy loops; this widens every gap by about 1 / (1 - alpha) and
+    # changes neither the greedy policy nor max_a Q, the value a stage hands on. 0: plain DQN
+    advantage_learning: float = 0.0
     eps_init: float = 1.0
     eps_end: float = 0.05  # epsilon decays linearly to it over `annealing_frames`
 
@@ -118,6 +124,13 @@ class DQNLearner(Learner):
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
         check_loss_function(checks)
+        alpha = checks.cfg["advantage_learning"]
+        checks(
+            0 <= alpha < 1,
+            "advantage_learning",
+            "must be in [0, 1) (1 widens the gaps without bound)",
+            f"set {checks.key}.advantage_learning=0.9, or 0 for plain DQN",
+        )
         checks.fraction("eps_init")
         checks.fraction("eps_end")
         checks.non_negative("annealing_frames")
@@ -132,13 +145,16 @@ class DQNLearner(Learner):
     def _plain_loss(self, batch: TensorDictBase) -> torch.Tensor:
         """What ``DQNLoss`` computes, on plain tensors: ``(Q(s, a) - y)`` under the loss
         function, ``y = r + gamma (1 - terminated) Q_target(s', a')`` with ``a'`` the online
-        argmax (double DQN) or the target's own (DQN)."""
-        q = self.q_module(*self.inputs(batch))
+        argmax (double DQN) or the target's own (DQN); with ``advantage_learning`` (alpha > 0)
+        ``y - alpha (max_b Q_target(s, b) - Q_target(s, a))``."""
+        obs = self.inputs(batch)
+        q = self.q_module(*obs)
         action = batch.get(self.specs.action_key)
         if isinstance(self.specs.action_spec, OneHot):
-            pred = (q * action.to(q.dtype)).sum(-1, keepdim=True)
+            index = action.argmax(-1, keepdim=True)
         else:
-            pred = q.gather(-1, action.reshape(*q.shape[:-1], 1))
+            index = action.reshape(*q.shape[:-1], 1)
+        pred = q.gather(-1, index)
         with torch.no_grad():
             next_obs = self.inputs(batch, nxt=True)
             q_next = self._target_q(*next_obs)
@@ -152,6 +168,10 @@ class DQNLearner(Learner):
                 float(self.cfg.gamma),
                 batch.get("steps_to_next_obs", None),
             )
+            if self.cfg.advantage_learning:
+                q_target = self._target_q(*obs)
+                gap = q_target.max(-1, keepdim=True).values - q_target.gather(-1, index)
+                target = target - self.cfg.advantage_learning * gap
         return self.batch_mean(distance(pred, target, self.cfg.loss_function))
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
