@@ -77,6 +77,19 @@ def assert_same_grads(a, b) -> None:
             torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-6)
 
 
+def assert_dqn_loss_is(learner: DQNLearner, data: TensorDict, reference_data: TensorDict) -> None:
+    """The learner's loss on ``data`` is torchrl's ``DQNLoss`` on ``reference_data``, gradients
+    included."""
+    reference = learner.loss(reference_data.clone())["loss"]
+    reference.backward()
+    expected = grads(learner.loss.value_network_params)
+    learner.optimizers["qvalue"].zero_grad()
+    fast = learner._plain_loss(data.clone())
+    fast.backward()
+    torch.testing.assert_close(fast, reference)
+    assert_same_grads(grads(learner.loss.value_network_params), expected)
+
+
 @pytest.mark.parametrize("double", [True, False])
 @pytest.mark.parametrize("dueling", [True, False])
 @pytest.mark.parametrize("loss_function", ["l2", "smooth_l1"])
@@ -87,14 +100,7 @@ def test_dqn_loss_is_torchrls_dqn_loss(double, dueling, loss_function):
     learner = DQNLearner(OmegaConf.structured(cfg), DISCRETE)
     perturb(learner.loss.target_value_network_params)
     data = batch(2, torch.randint(4, (64,)))
-    reference = learner.loss(data.clone())["loss"]
-    reference.backward()
-    expected = grads(learner.loss.value_network_params)
-    learner.optimizers["qvalue"].zero_grad()
-    fast = learner._plain_loss(data.clone())
-    fast.backward()
-    torch.testing.assert_close(fast, reference)
-    assert_same_grads(grads(learner.loss.value_network_params), expected)
+    assert_dqn_loss_is(learner, data, data)
 
 
 @pytest.mark.parametrize("double", [True, False])
@@ -112,14 +118,7 @@ def test_advantage_learning_is_torchrls_dqn_loss_with_the_gap_off_the_reward(dou
     assert (gap >= 0).all() and (gap > 0).any()
     shifted = data.clone()
     shifted["next", "reward"] = data["next", "reward"] - alpha * gap
-    reference = learner.loss(shifted)["loss"]
-    reference.backward()
-    expected = grads(learner.loss.value_network_params)
-    learner.optimizers["qvalue"].zero_grad()
-    fast = learner._plain_loss(data.clone())
-    fast.backward()
-    torch.testing.assert_close(fast, reference)
-    assert_same_grads(grads(learner.loss.value_network_params), expected)
+    assert_dqn_loss_is(learner, data, shifted)
 
 
 @pytest.mark.parametrize("penalty", [0.0, 1.0])
