@@ -104,6 +104,12 @@ CASES = {
         Bounded(-1, 1, (2,)),
         lambda lead: torch.rand(*lead, 2) * 2 - 1,
     ),
+    # its target reads the target network at s too
+    "dqn-advantage-learning": (
+        DQNConfig(gamma=0.9, advantage_learning=0.9),
+        Categorical(4),
+        lambda lead: torch.randint(0, 4, lead),
+    ),
     # image inputs: each seed's CNN in one grouped convolution
     "dqn-cnn": (
         DQNConfig(gamma=0.9, max_grad_norm=0.5, **CNN),
