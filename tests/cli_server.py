@@ -20,6 +20,7 @@ import functools
 import json
 import os
 import re
+import runpy
 import select
 import shlex
 import shutil
@@ -90,7 +91,8 @@ class CLIServer:
         self._next = 0
 
     def start(self, argv: list[str], cwd: Path, env: dict[str, str], timeout: float) -> int:
-        """Starts ``argv`` (a console script and its arguments) in a fork, in ``cwd`` with
+        """Starts ``argv`` (a console script and its arguments, or a ``.py`` script and its
+        arguments, run as ``python`` would run it) in a fork, in ``cwd`` with
         ``env``; returns the job to :meth:`wait` for. A command still running after
         ``timeout`` seconds is killed."""
         job, self._next = self._next, self._next + 1
@@ -173,11 +175,15 @@ def _child(request: dict, scripts: dict[str, str]) -> None:
         os.dup2(os.open(request["stdout"], flags), 1)
         os.dup2(os.open(request["stderr"], flags), 2)
         sys.argv = list(request["argv"])
-        module, function = scripts[sys.argv[0]].split(":")
-        __import__(module)
-        entry = getattr(sys.modules[module], function)
         try:
-            status = entry()
+            if sys.argv[0].endswith(".py"):  # python <script> args: the script as __main__
+                sys.path.insert(0, os.path.dirname(os.path.abspath(sys.argv[0])))
+                runpy.run_path(sys.argv[0], run_name="__main__")
+                status = None
+            else:  # sys.exit(<entry point>())
+                module, function = scripts[sys.argv[0]].split(":")
+                __import__(module)
+                status = getattr(sys.modules[module], function)()
         except SystemExit as stop:
             status = stop.code
         if status is None:

@@ -118,6 +118,17 @@ def run_cli(argv: list, cwd: Path, timeout: float = 300, **env: str) -> subproce
     return Launched(argv, cwd, timeout, **env).result()
 
 
+def run_script(
+    script: Path, *args: object, cwd: Path | None = None, timeout: float = 300, **env: str
+) -> subprocess.CompletedProcess:
+    """``python <script> args`` to completion, in ``cwd`` (default: this one) with this
+    process's environment and ``env``: run as ``__main__`` in a fork of a process that has
+    imported the package (``cli_server``), as :class:`Launched` runs the console scripts."""
+    argv = [str(script), *(str(a) for a in args)]
+    directory = Path.cwd() if cwd is None else Path(cwd)
+    return shared_server().run(argv, directory, {**os.environ, **env}, timeout)
+
+
 def docstring_ids(tree: ast.AST) -> set[int]:
     """The ``id`` of every docstring constant of a parsed module (module, classes, functions):
     what checks of a module's code leave out."""

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
+import helpers
 import pytest
 from helpers import TINY_STAGE
 
@@ -21,14 +21,7 @@ except ImportError:
 
 
 def run_script(name: str, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, str(SCRIPTS / name), *args],
-        cwd=SCRIPTS,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        stdin=subprocess.DEVNULL,
-    )
+    return helpers.run_script(SCRIPTS / name, *args, cwd=SCRIPTS)
 
 
 @pytest.mark.e2e

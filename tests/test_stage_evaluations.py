@@ -1,10 +1,10 @@
 """scripts/stage_evaluations.py: a stage's evaluations read back from run directories."""
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import run_script
 
 pytestmark = [pytest.mark.e2e]
 
@@ -12,9 +12,7 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "stage_evaluations.py
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=120
-    )
+    return run_script(SCRIPT, *args, timeout=120)
 
 
 def test_prints_each_stages_evaluations_per_run(tmp_path):
