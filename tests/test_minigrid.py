@@ -293,6 +293,17 @@ def test_the_task_has_three_stages_from_its_template(compose_cfg):
     task.spec_env.close()
 
 
+def test_the_keycorridor_preset_gives_every_stage_its_keys(compose_cfg):
+    for level in ([], ["task.env.env_id=MiniGrid-KeyCorridorS3R2-v0"]):
+        task = build_task(compose_cfg("experiment=minigrid_keycorridor", *level))
+        assert task.cfg.env.env_id.startswith("MiniGrid-KeyCorridorS3R") and task.cfg.env.view_doors
+        for k in range(task.num_stages):
+            cfg = task.stage_cfg(k)
+            assert (cfg.gamma, cfg.advantage_learning, cfg.algo) == (0.95, 0.9, "dqn")
+        task.spec_env.close()
+    assert task.cfg.env.env_id == "MiniGrid-KeyCorridorS3R2-v0"
+
+
 @pytest.mark.e2e
 @pytest.mark.slow
 def test_minigrid_trains_from_the_cli(tmp_path):
