@@ -58,6 +58,8 @@ def failures(
     wrapper = {k: keys[k] for k in WRAPPER_KEYS if k in keys}
     settings = [f"{k}={v}" for k, v in wrapper.items() if k != "actions" and v]
     settings.append(f"gamma={learner.cfg.gamma}")
+    if getattr(learner.cfg, "advantage_learning", 0):
+        settings.append(f"advantage_learning={learner.cfg.advantage_learning}")
     env = StagedMiniGrid(
         gymnasium.make(str(keys.env_id), max_steps=steps), start_stage=stage, **wrapper
     )

@@ -374,11 +374,18 @@ def test_dqn_double_and_dueling_build_and_update():
     assert value["state_value"].shape == (5, 1)
 
 
-def test_dqn_one_hot_actions():
+@pytest.mark.parametrize("alpha", [0.0, 0.9])
+@pytest.mark.parametrize("dtype", [torch.long, torch.bool])
+def test_dqn_one_hot_actions_give_the_loss_of_their_indices(alpha, dtype):
     specs = StageSpecs(["observation"], OBS_DIM, "action", OneHot(NUM_ACTIONS))
-    learner = DQNLearner(dqn_cfg(), specs)
+    torch.manual_seed(0)
+    learner = DQNLearner(dqn_cfg(advantage_learning=alpha), specs)
+    torch.manual_seed(0)
+    indexed = DQNLearner(dqn_cfg(advantage_learning=alpha), DISCRETE)
     batch = batch_for(DISCRETE)
-    batch["action"] = torch.nn.functional.one_hot(batch["action"], NUM_ACTIONS)
+    expected = indexed._plain_loss(batch.clone())
+    batch["action"] = torch.nn.functional.one_hot(batch["action"], NUM_ACTIONS).to(dtype)
+    torch.testing.assert_close(learner._plain_loss(batch.clone()), expected)
     assert torch.isfinite(learner.update(batch)["loss"])
 
 

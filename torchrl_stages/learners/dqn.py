@@ -150,11 +150,13 @@ class DQNLearner(Learner):
         obs = self.inputs(batch)
         q = self.q_module(*obs)
         action = batch.get(self.specs.action_key)
-        if isinstance(self.specs.action_spec, OneHot):
-            index = action.argmax(-1, keepdim=True)
-        else:
-            index = action.reshape(*q.shape[:-1], 1)
-        pred = q.gather(-1, index)
+
+        def taken(values: torch.Tensor) -> torch.Tensor:  # the values of the actions taken
+            if isinstance(self.specs.action_spec, OneHot):
+                return (values * action.to(values.dtype)).sum(-1, keepdim=True)
+            return values.gather(-1, action.reshape(*values.shape[:-1], 1))
+
+        pred = taken(q)
         with torch.no_grad():
             next_obs = self.inputs(batch, nxt=True)
             q_next = self._target_q(*next_obs)
@@ -170,7 +172,7 @@ class DQNLearner(Learner):
             )
             if self.cfg.advantage_learning:
                 q_target = self._target_q(*obs)
-                gap = q_target.max(-1, keepdim=True).values - q_target.gather(-1, index)
+                gap = q_target.max(-1, keepdim=True).values - taken(q_target)
                 target = target - self.cfg.advantage_learning * gap
         return self.batch_mean(distance(pred, target, self.cfg.loss_function))
 
