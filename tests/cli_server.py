@@ -91,10 +91,10 @@ class CLIServer:
         self._next = 0
 
     def start(self, argv: list[str], cwd: Path, env: dict[str, str], timeout: float) -> int:
-        """Starts ``argv`` (a console script and its arguments, or a ``.py`` script and its
-        arguments, run as ``python`` would run it) in a fork, in ``cwd`` with
-        ``env``; returns the job to :meth:`wait` for. A command still running after
-        ``timeout`` seconds is killed."""
+        """Starts ``argv`` in a fork, in ``cwd`` with ``env``: a console script and its
+        arguments, or a ``.py`` script and its arguments (run as ``python`` runs it). Returns
+        the job to :meth:`wait` for; a command still running after ``timeout`` seconds is
+        killed."""
         job, self._next = self._next, self._next + 1
         request = {"job": job, "argv": argv, "cwd": str(cwd), "env": env, "timeout": timeout}
         request |= {
