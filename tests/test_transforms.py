@@ -16,6 +16,7 @@ from torchrl.envs import Compose, RewardSum, SerialEnv, StepCounter, Transformed
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from torchrl_stages.envs import GridWorldEnv
+from torchrl_stages.evaluate import ended_well, episode_stats
 from torchrl_stages.transforms import StageRewardTransform, StageTransform, freeze
 
 UP, DOWN, LEFT, RIGHT = 0, 1, 2, 3
@@ -520,6 +521,23 @@ def test_done_is_terminated_or_truncated_with_rewrite_in_env():
     nxt = data["next"]
     assert torch.equal(nxt["done"], nxt["terminated"] | nxt["truncated"])
     assert nxt["terminated"].squeeze(-1).tolist() == [[True] * 3, [True] * 3, [False, True, False]]
+
+
+@pytest.mark.parametrize("rewrite_in_env", [True, False])
+def test_leaving_stage_k_counts_as_solved_in_both_modes(rewrite_in_env):
+    # the grid world writes no success flag: with rewrite_in_env leaving stage 0 terminates,
+    # without it the transform writes the flag (leaving is then a truncation)
+    base, data = collect_raw(rewrite_in_env=rewrite_in_env)
+    nxt = data["next"]
+    done_rows = nxt["done"].squeeze(-1).tolist()
+    assert done_rows == [[True] * 3, [True] * 3, [False, True, False]]
+    assert ended_well(data).squeeze(-1).tolist() == done_rows
+    assert episode_stats(data).success.tolist() == [True, True, True]
+    assert ("success" in nxt.keys()) is not rewrite_in_env
+    env = TransformedEnv(
+        base, StageTransform(base.stage_fn, 5, train_stage=0, standalone=True, rewrite_in_env=False)
+    )
+    check_env_specs(env, seed=0)  # the flag it writes is declared
 
 
 def test_reward_transform_gives_stage_k_view_at_sampling_time():

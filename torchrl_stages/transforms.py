@@ -157,7 +157,9 @@ class StageTransform(Transform):
         value_key: the key the next stage's value module writes.
         success_key: the env's success flag, if it writes one (evaluations count an episode
             as solved by it, :func:`~torchrl_stages.evaluate.ended_well`): in training mode
-            for stage k the step that leaves stage k sets it.
+            for stage k the step that leaves stage k sets it. Without ``rewrite_in_env`` the
+            transform writes it where the env does not (``terminated``, or leaving stage k), so
+            an episode that leaves stage k counts as solved in both modes.
 
     Examples:
         >>> import torch
@@ -257,13 +259,16 @@ class StageTransform(Transform):
         the task itself terminated on that step; otherwise it is ``truncated`` (the stored
         transition stays raw for a :class:`StageRewardTransform`). ``done`` follows. Where the
         env writes a ``success_key`` entry, the step that leaves stage k sets it (stage k's
-        episode is solved) unless the task terminated on it unsolved.
+        episode is solved) unless the task terminated on it unsolved; without
+        ``rewrite_in_env`` and an env flag, the transform writes one (``terminated | leaving``).
         """
         leaving = next_td.get(self.transition_key) & (stage_t == self.train_stage)
         success = next_td.get(self.success_key, None)
         if success is not None:  # leaving stage k is stage k's success, unless the task failed
             failed = next_td.get(self.terminated_key) & ~success
             next_td.set(self.success_key, success | (leaving & ~failed))
+        elif not self.rewrite_in_env:  # leaving is a truncation: the flag says it was solved
+            next_td.set(self.success_key, next_td.get(self.terminated_key) | leaving)
         if not self.rewrite_in_env:
             truncated = next_td.get(self.truncated_key) | leaving
             next_td.set(self.truncated_key, truncated)
@@ -279,6 +284,8 @@ class StageTransform(Transform):
         stage = self._stage(tensordict_reset)
         tensordict_reset.set(self.stage_key, stage)
         tensordict_reset.set(self.transition_key, torch.zeros_like(stage, dtype=torch.bool))
+        if self._writes_success and self.success_key not in tensordict_reset.keys(True):
+            tensordict_reset.set(self.success_key, torch.zeros_like(stage, dtype=torch.bool))
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
@@ -308,7 +315,18 @@ class StageTransform(Transform):
         observation_spec[self.transition_key] = Categorical(
             2, shape=shape, dtype=torch.bool, device=device
         )
+        if self._writes_success and self.success_key not in observation_spec.keys(True):
+            observation_spec[self.success_key] = Categorical(
+                2, shape=shape, dtype=torch.bool, device=device
+            )
         return observation_spec
+
+    @property
+    def _writes_success(self) -> bool:
+        """Training stage k without ``rewrite_in_env`` on an env with no success flag: the
+        transform writes one (``terminated``, or leaving stage k), since leaving stage k is then
+        a truncation, which :func:`~torchrl_stages.evaluate.ended_well` would count as failed."""
+        return self.train_stage is not None and not self.rewrite_in_env
 
     def __repr__(self) -> str:
         return (
