@@ -177,7 +177,7 @@ class _Trial:
 
 def test_a_pruned_run_stops_at_its_first_stage_evaluation(compose_cfg, tmp_path):
     trial = _Trial()
-    cfg = compose_cfg(*TINY, "task.stages.s1.frames=4096")  # evaluations at 512, 1024, ...
+    cfg = compose_cfg(*TINY, "task.stages.s1.frames=4096", "all_stages.eval_every=512")
     with pytest.raises(StopRun, match="pruned at stage evaluation 0"):
         Experiment(cfg, tmp_path / "run", observers=[TrialPruning(trial)]).run()
     run = tmp_path / "run"
