@@ -309,7 +309,13 @@ def test_the_keycorridor_preset_gives_every_stage_its_keys(compose_cfg):
 def test_minigrid_trains_from_the_cli(tmp_path):
     run_dir = tmp_path / "run"
     proc = run_cli(
-        ["stages-train", "task=minigrid", "experiment=smoke", f"hydra.run.dir={run_dir}"],
+        [
+            "stages-train",
+            "task=minigrid",
+            "experiment=smoke",
+            "task.eval_env.max_steps=64",  # the level's 640: untrained episodes run to the end
+            f"hydra.run.dir={run_dir}",
+        ],
         cwd=tmp_path,
     )
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
