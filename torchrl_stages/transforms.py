@@ -267,9 +267,9 @@ class StageTransform(Transform):
         if success is not None:  # leaving stage k is stage k's success, unless the task failed
             failed = next_td.get(self.terminated_key) & ~success
             next_td.set(self.success_key, success | (leaving & ~failed))
-        elif not self.rewrite_in_env:  # leaving is a truncation: the flag says it was solved
-            next_td.set(self.success_key, next_td.get(self.terminated_key) | leaving)
         if not self.rewrite_in_env:
+            if success is None:  # leaving is a truncation below: the flag says it was solved
+                next_td.set(self.success_key, next_td.get(self.terminated_key) | leaving)
             truncated = next_td.get(self.truncated_key) | leaving
             next_td.set(self.truncated_key, truncated)
             next_td.set(self.done_key, next_td.get(self.terminated_key) | truncated)
