@@ -65,20 +65,55 @@ def test_batch_where_a_stage_is_absent(stages):
     assert out["action"].tolist() == [expected[s] for s in stages]
 
 
-def test_every_stage_policy_runs_on_the_whole_batch():
-    """Outputs of a stage absent from the batch still exist (zero-filled), so each runs."""
-    calls = []
-
-    def p1_fn(obs):
+def counting_policy(action: int, calls: list) -> TensorDictModule:
+    def act(obs):
         calls.append(obs.shape)
-        return torch.ones(obs.shape[:-1], dtype=torch.int64)
+        return torch.full(obs.shape[:-1], action, dtype=torch.int64)
 
+    return TensorDictModule(act, ["observation"], ["action"])
+
+
+def test_a_stage_absent_from_the_batch_runs_only_in_the_first_call():
+    """The first call runs every stage (it learns each output's shape); later calls leave out
+    the stages absent from the batch."""
+    calls0, calls1 = [], []
+    policy = StackedPolicy([counting_policy(RIGHT, calls0), counting_policy(DOWN, calls1)])
+    for stages in ([0, 0], [0, 0, 0], [1]):
+        out = policy(td_with_stages(stages))
+    assert calls0 == [torch.Size([2, 2]), torch.Size([3, 2])]
+    assert calls1 == [torch.Size([2, 2]), torch.Size([1, 2])]
+    assert out["action"].tolist() == [DOWN]
+
+
+def test_skip_absent_false_runs_every_stage_policy_on_the_whole_batch():
+    calls0, calls1 = [], []
     policy = StackedPolicy(
-        [constant_policy(RIGHT), TensorDictModule(p1_fn, ["observation"], ["action"])]
+        [counting_policy(RIGHT, calls0), counting_policy(DOWN, calls1)], skip_absent=False
     )
-    out = policy(td_with_stages([0, 0]))
-    assert calls == [torch.Size([2, 2])]
+    for _ in range(2):
+        out = policy(td_with_stages([0, 0]))
+    assert calls1 == [torch.Size([2, 2])] * 2 == calls0
     assert out["action"].tolist() == [RIGHT, RIGHT]
+
+
+@pytest.mark.parametrize("out_key", ["per_stage", "shared"])
+def test_skipping_absent_stages_changes_no_output(out_key):
+    """The same outputs as when every stage runs: an output written by absent stages only is
+    zeros, in its shape and dtype."""
+    torch.manual_seed(1)
+    policies = [
+        TensorDictModule(
+            nn.Linear(2, 3), ["observation"], [("out", str(k)) if out_key == "per_stage" else "out"]
+        )
+        for k in range(3)
+    ]
+    skipping, every = StackedPolicy(policies), StackedPolicy(policies, skip_absent=False)
+    for stages in ([0, 1, 2], [2, 2, 2, 2], [[0, 0], [0, 0]], [1]):
+        td = td_with_stages(stages)
+        out, expected = skipping(td.clone()), every(td.clone())
+        assert set(out.keys(True, True)) == set(expected.keys(True, True))
+        for key in expected.keys(True, True):
+            assert torch.equal(out[key], expected[key]), (stages, key)
 
 
 def test_batch_and_time_dims():

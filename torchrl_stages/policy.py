@@ -16,14 +16,18 @@ class StackedPolicy(TensorDictModuleBase):
 
     Each stage policy runs on the whole batch and its outputs are kept where ``stage_key`` names
     that stage; an output written by some stages only (e.g. a per-stage action key) is zero
-    where another stage acts. Stage policies are small, so this costs N forward passes and needs
-    no masking of the batch.
+    where another stage acts. Stage policies are small, so this needs no masking of the batch:
+    one forward pass per stage present in it. A stage with no element in the batch is not run
+    (its outputs are zeros of the shape its first call gave), unless ``skip_absent=False``.
 
     Args:
         policies: one greedy policy per stage, in stage order.
 
     Keyword Args:
         stage_key: the stage tag written by :class:`~torchrl_stages.transforms.StageTransform`.
+        skip_absent: leave out the stages absent from the batch. ``False`` runs every stage
+            policy at every call: for policies that draw random numbers (exploration), the
+            numbers a call draws then do not depend on which stages the batch holds.
 
     Examples:
         >>> import torch
@@ -38,11 +42,18 @@ class StackedPolicy(TensorDictModuleBase):
     """
 
     def __init__(
-        self, policies: Sequence[TensorDictModuleBase], *, stage_key: NestedKey = "stage"
+        self,
+        policies: Sequence[TensorDictModuleBase],
+        *,
+        stage_key: NestedKey = "stage",
+        skip_absent: bool = True,
     ) -> None:
         super().__init__()
         self.policies = nn.ModuleList(policies)
         self.stage_key = stage_key
+        self.skip_absent = skip_absent
+        # each output's trailing shape, dtype and device, from the first call (every stage runs)
+        self._outputs: dict[NestedKey, tuple[torch.Size, torch.dtype, torch.device]] | None = None
         in_keys: list[NestedKey] = [stage_key]
         out_keys: list[NestedKey] = []
         for policy in policies:
@@ -53,8 +64,13 @@ class StackedPolicy(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         stage = tensordict.get(self.stage_key).squeeze(-1)
+        present = None
+        if self.skip_absent and self._outputs is not None:
+            present = torch.bincount(stage.reshape(-1), minlength=len(self.policies)).tolist()
         merged: dict[NestedKey, torch.Tensor] = {}
         for k, policy in enumerate(self.policies):
+            if present is not None and not present[k]:
+                continue
             rows = stage == k
             out = policy(tensordict.select(*policy.in_keys).clone(False))
             for key in policy.out_keys:
@@ -62,6 +78,13 @@ class StackedPolicy(TensorDictModuleBase):
                 mask = rows.reshape(*rows.shape, *([1] * (value.ndim - rows.ndim)))
                 base = merged.get(key, torch.zeros_like(value))
                 merged[key] = torch.where(mask, value, base)
+        if self._outputs is None:
+            self._outputs = {
+                k: (v.shape[stage.ndim :], v.dtype, v.device) for k, v in merged.items()
+            }
+        for key, (shape, dtype, device) in self._outputs.items():
+            if key not in merged:  # written only by stages absent from this batch
+                merged[key] = torch.zeros(*stage.shape, *shape, dtype=dtype, device=device)
         for key, value in merged.items():
             tensordict.set(key, value)
         return tensordict

@@ -11,6 +11,9 @@ any config directory of yours hold), so that ``stages-train --help`` lists what 
 
 from __future__ import annotations
 
+import weakref
+from typing import Any
+
 from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
@@ -41,14 +44,23 @@ def register_configs() -> None:
         OmegaConf.register_new_resolver("stages_options", group_options)
 
 
+# options listed per config loader: Hydra resolves the help template in every compose (it
+# merges its own help config over it), twice a run, and each listing builds a repository
+_OPTIONS: weakref.WeakKeyDictionary[Any, dict[str, str]] = weakref.WeakKeyDictionary()
+
+
 def group_options(group: str) -> str:
     """``a|b|c``: the options of config group ``group`` in the running Hydra app (the schemas
     this module stores are left out); ``?`` outside one."""
     hydra = GlobalHydra.instance()
     if not hydra.is_initialized():
         return "?"
-    names = hydra.config_loader().get_group_options(group)
-    return "|".join(name for name in names if not name.endswith("_schema"))
+    loader = hydra.config_loader()
+    listed = _OPTIONS.setdefault(loader, {})
+    if group not in listed:
+        names = loader.get_group_options(group)
+        listed[group] = "|".join(name for name in names if not name.endswith("_schema"))
+    return listed[group]
 
 
 __all__ = ["register_configs"]

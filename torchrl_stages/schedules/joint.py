@@ -262,7 +262,9 @@ class JointTrainer:
         first = counters["phase"] == 0
         collector = StageCollector(
             env,
-            StackedPolicy([learner.exploration_policy for learner in self.learners]),
+            StackedPolicy(
+                [learner.exploration_policy for learner in self.learners], skip_absent=False
+            ),
             frames_per_batch=int(cfg.frames_per_batch) * copies,
             total_frames=int(cfg.frames) * copies,
             init_random_frames=int(cfg.init_random_frames) * copies if first else 0,
