@@ -52,8 +52,8 @@ class StackedPolicy(TensorDictModuleBase):
         self.policies = nn.ModuleList(policies)
         self.stage_key = stage_key
         self.skip_absent = skip_absent
-        # each output's trailing shape, dtype and device, from the first call (every stage runs)
-        self._outputs: dict[NestedKey, tuple[torch.Size, torch.dtype, torch.device]] | None = None
+        # each output's trailing shape and dtype, from the first call (every stage runs in it)
+        self._outputs: dict[NestedKey, tuple[torch.Size, torch.dtype]] | None = None
         in_keys: list[NestedKey] = [stage_key]
         out_keys: list[NestedKey] = []
         for policy in policies:
@@ -79,10 +79,9 @@ class StackedPolicy(TensorDictModuleBase):
                 base = merged.get(key, torch.zeros_like(value))
                 merged[key] = torch.where(mask, value, base)
         if self._outputs is None:
-            self._outputs = {
-                k: (v.shape[stage.ndim :], v.dtype, v.device) for k, v in merged.items()
-            }
-        for key, (shape, dtype, device) in self._outputs.items():
+            self._outputs = {k: (v.shape[stage.ndim :], v.dtype) for k, v in merged.items()}
+        device = next(iter(merged.values())).device if merged else stage.device
+        for key, (shape, dtype) in self._outputs.items():
             if key not in merged:  # written only by stages absent from this batch
                 merged[key] = torch.zeros(*stage.shape, *shape, dtype=dtype, device=device)
         for key, value in merged.items():
