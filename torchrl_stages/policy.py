@@ -14,11 +14,12 @@ from torch import nn
 class StackedPolicy(TensorDictModuleBase):
     """Runs, for every batch element, the policy of the stage it is in.
 
-    Each stage policy runs on the whole batch and its outputs are kept where ``stage_key`` names
-    that stage; an output written by some stages only (e.g. a per-stage action key) is zero
-    where another stage acts. Stage policies are small, so this needs no masking of the batch:
-    one forward pass per stage present in it. A stage with no element in the batch is not run
-    (its outputs are zeros of the shape its first call gave), unless ``skip_absent=False``.
+    The policy of each stage present in the batch runs on the whole batch, and its outputs are
+    kept where ``stage_key`` names that stage; an output written by some stages only (e.g. a
+    per-stage action key) is zero where another stage acts. Stage policies are small, so this
+    needs no masking of the batch. A stage absent from the batch is not run (unless
+    ``skip_absent=False``): its outputs are zeros, of the shapes the first call, which runs
+    every stage, gave.
 
     Args:
         policies: one greedy policy per stage, in stage order.
