@@ -16,6 +16,7 @@ from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
+from hydra.errors import HydraException
 from omegaconf import OmegaConf
 
 from torchrl_stages.config import LoggerConfig, ScheduleConfig, TrainConfig, TuneAppConfig
@@ -46,21 +47,30 @@ def register_configs() -> None:
 
 # options listed per config loader: Hydra resolves the help template in every compose (it
 # merges its own help config over it), twice a run, and each listing builds a repository
-_OPTIONS: weakref.WeakKeyDictionary[Any, dict[str, str]] = weakref.WeakKeyDictionary()
+_OPTIONS: weakref.WeakKeyDictionary[Any, dict[str, list[str]]] = weakref.WeakKeyDictionary()
 
 
-def group_options(group: str) -> str:
-    """``a|b|c``: the options of config group ``group`` in the running Hydra app (the schemas
-    this module stores are left out); ``?`` outside one."""
+def config_group_options(group: str) -> list[str]:
+    """The options of config group ``group`` in the running Hydra app, the schemas this module
+    stores left out (``[]`` outside one, or for no such group), listed once per config loader."""
     hydra = GlobalHydra.instance()
     if not hydra.is_initialized():
-        return "?"
+        return []
     loader = hydra.config_loader()
     listed = _OPTIONS.setdefault(loader, {})
     if group not in listed:
-        names = loader.get_group_options(group)
-        listed[group] = "|".join(name for name in names if not name.endswith("_schema"))
+        try:
+            names = loader.get_group_options(group)
+        except HydraException:
+            names = []
+        listed[group] = [name for name in names if not name.endswith("_schema")]
     return listed[group]
 
 
-__all__ = ["register_configs"]
+def group_options(group: str) -> str:
+    """``a|b|c``: :func:`config_group_options` for the help (the ``stages_options`` resolver);
+    ``?`` outside a Hydra app."""
+    return "|".join(config_group_options(group)) or "?"
+
+
+__all__ = ["config_group_options", "register_configs"]

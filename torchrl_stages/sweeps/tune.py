@@ -28,7 +28,6 @@ from typing import Any
 
 import hydra
 import yaml
-from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
@@ -47,6 +46,7 @@ from torchrl_stages.loggers import StopRun
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.rundir import RunDir, RunDirError
 from torchrl_stages.stage import DivergenceError, EnvError
+from torchrl_stages.store import config_group_options
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.tasks import format_summary
 from torchrl_stages.validate import validate_config
@@ -450,17 +450,6 @@ def check_settings(tune: DictConfig) -> None:
         )
 
 
-def _group_options(group: str) -> list[str]:
-    hydra_ = GlobalHydra.instance()
-    if not hydra_.is_initialized():
-        return []
-    try:
-        names = hydra_.config_loader().get_group_options(group)
-    except HydraException:
-        return []
-    return [name for name in names if not name.endswith("_schema")]
-
-
 def train_config(compose: Compose, overrides: list[str]) -> DictConfig:
     """The config of a run of ``overrides``, as ``stages-train`` makes it and checked as
     :class:`~torchrl_stages.experiment.Experiment` does before training (:class:`ConfigError`;
@@ -510,7 +499,7 @@ def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> No
                 f"drop {spec.name}=... from the command line, or drop it from tune.params",
             )
         group = spec.group or spec.name
-        options = _group_options(group)
+        options = config_group_options(group)
         if spec.group is not None or (options and "." not in spec.name):
             if not options:
                 _fail(
