@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import shutil
@@ -86,13 +87,17 @@ def _strip_comment(line: str) -> str:
     return line
 
 
+def installed(command: str) -> str:
+    """``command`` without its install steps."""
+    return " && ".join(p for p in command.split(" && ") if not INSTALL.match(p.strip()))
+
+
 def runnable(command: str, number: int) -> str | None:
     """``command`` as the test runs it: install steps dropped, training shortened to
     ``experiment=smoke`` (after the command's own preset: ``experiment=[<preset>,smoke]``) in a
     run directory of its own; ``None`` when nothing is left."""
-    parts = [p for p in command.split(" && ") if not INSTALL.match(p.strip())]
     out = []
-    for part in parts:
+    for part in filter(None, installed(command).split(" && ")):
         words = part.split()
         program = next((w for w in words if "=" not in w), "")
         if program in TRAINS and "--help" not in words and "--cfg" not in words:
@@ -157,6 +162,62 @@ def _run_shell(command: str, scratch: Path, where: str) -> subprocess.CompletedP
         pytest.fail(f"{where}: did not finish in {TIMEOUT} s: {error}")
 
 
+#: keys whose value is a path or names other runs: a command with one reads or writes state
+#: that the commands around it share, and always runs on its own page
+STATEFUL = ("hydra.", "init_from=", "resume=", "stage_store=", "+init_from=")
+
+
+def standalone(command: str) -> bool:
+    """``command`` is a plain ``stages-train`` run of config overrides (or ``--help``) that
+    reads nothing a page wrote before it but files it wrote, and writes a run directory no
+    other command reads: run twice, it does the same thing."""
+    plain = plain_command(command)
+    if plain is None or plain[0] or plain[1][0] != "stages-train":
+        return False
+    words = plain[1][1:]
+    return all(
+        word == "--help"
+        or (
+            "=" in word
+            and not word.startswith(STATEFUL)
+            and not set("/~$").intersection(word.split("=", 1)[1])
+        )
+        for word in words
+    )
+
+
+@functools.cache
+def runs_elsewhere() -> dict[tuple[Path, int, str], str]:
+    """The standalone commands (:func:`standalone`, install steps left out) that an earlier
+    block runs too, on this page or another, with the same files written before them:
+    ``(page, block line, command)`` to where the first runs. The suite runs each once."""
+    first: dict[tuple, str] = {}
+    elsewhere = {}
+    for page in PAGES:
+        written: dict[str, str] = {}
+        found = blocks(page)
+        for index, block in enumerate(found):
+            if block.skip:
+                continue
+            if block.lang in ("python", "yaml", "toml") and block.title:
+                written[block.title] = block.body
+            if block.lang != "bash":
+                continue
+            following = found[index + 1] if index + 1 < len(found) else None
+            checked = following is not None and following.title == "output"
+            cmds = commands(block.body)
+            for number, command in enumerate(cmds):
+                run = installed(command)
+                if not standalone(run) or (checked and number == len(cmds) - 1):
+                    continue
+                key = (run, tuple(sorted(written.items())))
+                if key in first:
+                    elsewhere[(page, block.line, command)] = first[key]
+                else:
+                    first[key] = f"{page.relative_to(ROOT)}:{block.line}"
+    return elsewhere
+
+
 def run_page(page: Path, scratch: Path) -> list[str]:
     """Runs every block of ``page`` in ``scratch``; returns the reasons of skipped blocks."""
     skipped = []
@@ -193,6 +254,8 @@ def run_page(page: Path, scratch: Path) -> list[str]:
             for number, command in enumerate(cmds):
                 if command == readme_test_command:
                     continue  # the suite itself: .ci/run runs it (test_readme_commands)
+                if (page, block.line, command) in runs_elsewhere():
+                    continue  # the same run as an earlier block's (runs_elsewhere)
                 shell = runnable(command, block.line * 100 + number)
                 if shell is None:
                     continue
@@ -274,6 +337,30 @@ def test_runnable_commands():
     assert runnable("stages-tune tune.n_trials=2", 5) == (
         "stages-tune tune.n_trials=2 experiment=smoke eval.plots=false"
     )
+
+
+def test_a_standalone_command_on_several_pages_runs_once():
+    assert standalone("stages-train task=cargo algo@task.stages.fine=td3 task/gammas=hetero")
+    assert standalone("stages-train --help") and standalone(
+        installed("pip install . && stages-train")
+    )
+    for stateful in (
+        "stages-train hydra.run.dir=runs/a",
+        "stages-train task.stages.s1.lr=2e-3 init_from=runs/a",
+        "stages-train resume=true",
+        "stages-train stage_store=~/stages",
+        "stages-train seeds=[0,1] +task.env.path=data/x.npz",
+        "PYTHONPATH=. stages-train task=gym",
+        "stages-train -m seed=0,1",
+        "stages-eval runs/a",
+        "stages-train && stages-eval runs/a",
+    ):
+        assert not standalone(stateful), stateful
+    elsewhere = runs_elsewhere()
+    assert (ROOT / "docs/guides/cli.md", 5, "stages-train schedule=joint") in elsewhere
+    pages = {str(p.relative_to(ROOT)) for p in PAGES}
+    for (_page, _line, command), first in elsewhere.items():
+        assert standalone(installed(command)) and first.split(":")[0] in pages, command
 
 
 def test_plain_commands_run_in_a_fork_the_rest_in_bash():
