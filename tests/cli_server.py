@@ -209,8 +209,9 @@ def _child(request: dict, scripts: dict[str, str]) -> None:
 def _import_what_a_run_imports() -> None:
     """The imports a training run makes after the console script's own, made once here rather
     than in every fork (about 1 of a smoke run's 7 seconds): the package's task modules,
-    Hydra's core plugins, and pandas, which tensordict imports, when installed, on the first
-    random action (``TensorDict.from_any``)."""
+    Hydra's core plugins, pandas, which tensordict imports, when installed, on the first
+    random action (``TensorDict.from_any``), and rliable's statistics, which every sweep,
+    study and report summary imports (1-2 s: scipy, statsmodels, arch; no pyplot)."""
     import importlib
     import importlib.util
 
@@ -218,8 +219,9 @@ def _import_what_a_run_imports() -> None:
 
     importlib.import_module("torchrl_stages.envs")
     Plugins.instance()
-    if importlib.util.find_spec("pandas") is not None:
-        importlib.import_module("pandas")
+    for module in ("pandas", "rliable.library"):
+        if importlib.util.find_spec(module.split(".")[0]) is not None:
+            importlib.import_module(module)
 
 
 def serve() -> None:
