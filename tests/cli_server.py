@@ -36,6 +36,10 @@ from pathlib import Path
 ASSIGNMENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
 SHELL = re.compile(r"[$`~\\]")  # expansions and escapes: leave these to bash
 POLL_S = 0.02  # how often the server looks for ended commands
+#: one torch (OpenMP, MKL) thread in the server and its forks, as in the test processes: two
+#: pytest workers share the machine's cores, and a process of two threads beside a busy one
+#: runs 3-4x slower than one of one thread
+ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 @functools.cache
@@ -85,6 +89,7 @@ class CLIServer:
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
+            env={**os.environ, **ONE_THREAD},  # what the forks inherit: test workers share cores
         )
         self._jobs: dict[int, list[str]] = {}  # started and not yet waited for: job -> argv
         self._replies: dict[int, dict] = {}  # finished and not yet waited for

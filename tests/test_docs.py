@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from cli_server import plain_command, shared_server
+from cli_server import ONE_THREAD, plain_command, shared_server
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -135,6 +135,7 @@ def _env(scratch: Path) -> dict[str, str]:
     env["HOME"] = str(scratch)  # ~/stages and the like stay in the scratch directory
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(scratch), env.get("PYTHONPATH")]))
+    env.update(ONE_THREAD)  # a block's own torch code too: pytest workers share the cores
     env.pop("PYTEST_CURRENT_TEST", None)
     return env
 
