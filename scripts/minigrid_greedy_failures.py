@@ -103,13 +103,15 @@ def main() -> None:
         "| run | settings | stage | left the stage | failures: the loop they end in |",
         "|---|---|---|---|---|",
     ]
+    names = [run_dir.name for run_dir in args.runs]
     for run_dir in args.runs:
         settings, left, kinds = failures(run_dir, args.stage, args.starts, args.steps, args.tail)
         ranked = sorted(kinds.items(), key=lambda kv: (-kv[1], kv[0]))
         loops = "; ".join(f"{kind} {n}" for kind, n in ranked) or "-"
-        table.append(
-            f"| {run_dir.name} | {settings} | {args.stage} | {left}/{args.starts} | {loops} |"
-        )
+        # runs of the same level, schedule and seed from two launches: their launch names them
+        unique = names.count(run_dir.name) == 1
+        name = run_dir.name if unique else f"{run_dir.parent.name}/{run_dir.name}"
+        table.append(f"| {name} | {settings} | {args.stage} | {left}/{args.starts} | {loops} |")
     save_table(args.out, table, args.table)
     print("\n".join(table))
 

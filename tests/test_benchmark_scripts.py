@@ -4,6 +4,7 @@ each writes the rows and the table the docs include."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -75,6 +76,13 @@ def test_benchmark_minigrid_writes_its_table(tmp_path):
     loops = row[4].removesuffix(" |")
     failed = 0 if loops == "-" else sum(int(p.rsplit(" ", 1)[1]) for p in loops.split("; "))
     assert row[3].endswith("/4") and int(row[3].split("/")[0]) + failed == 4
+    # two launches' runs of one level, schedule and seed: named by their launch too
+    again = tmp_path / "again" / run_dir.name
+    shutil.copytree(run_dir, again)
+    done = run_script("minigrid_greedy_failures.py", *args[:-1], str(run_dir), str(again))
+    assert done.returncode == 0, done.stderr[-3000:]
+    names = [r.split(" | ")[0] for r in (out / "table.md").read_text().splitlines()[-2:]]
+    assert names == [f"| {tmp_path.name}/{run_dir.name}", f"| again/{run_dir.name}"]
 
 
 def test_a_failed_greedy_episode_is_classified_by_its_loop(monkeypatch):
