@@ -163,9 +163,9 @@ def _run_shell(command: str, scratch: Path, where: str) -> subprocess.CompletedP
         pytest.fail(f"{where}: did not finish in {TIMEOUT} s: {error}")
 
 
-#: keys whose value is a path or names other runs: a command with one reads or writes state
-#: that the commands around it share, and always runs on its own page
-STATEFUL = ("hydra.", "init_from=", "resume=", "stage_store=", "+init_from=")
+#: top-level keys whose value names other runs or Hydra's directories: a command that sets one
+#: reads or writes state that the commands around it share, and always runs on its own page
+STATEFUL = {"hydra", "init_from", "resume", "stage_store"}
 
 
 def standalone(command: str) -> bool:
@@ -175,16 +175,13 @@ def standalone(command: str) -> bool:
     plain = plain_command(command)
     if plain is None or plain[0] or plain[1][0] != "stages-train":
         return False
-    words = plain[1][1:]
-    return all(
-        word == "--help"
-        or (
-            "=" in word
-            and not word.startswith(STATEFUL)
-            and not set("/~$").intersection(word.split("=", 1)[1])
-        )
-        for word in words
-    )
+
+    def override(word: str) -> bool:
+        key, equals, value = word.partition("=")
+        top = key.lstrip("+~").split(".")[0].split("@")[0]
+        return bool(equals) and top not in STATEFUL and not set("/~$").intersection(value)
+
+    return all(word == "--help" or override(word) for word in plain[1][1:])
 
 
 @functools.cache
@@ -351,6 +348,8 @@ def test_a_standalone_command_on_several_pages_runs_once():
         "stages-train task.stages.s1.lr=2e-3 init_from=runs/a",
         "stages-train resume=true",
         "stages-train stage_store=~/stages",
+        "stages-train ++init_from=runs_a",
+        "stages-train hydra.job.chdir=true",
         "stages-train seeds=[0,1] +task.env.path=data/x.npz",
         "PYTHONPATH=. stages-train task=gym",
         "stages-train -m seed=0,1",
