@@ -47,7 +47,7 @@ def register_configs() -> None:
 
 # options listed per config loader: Hydra resolves the help template in every compose (it
 # merges its own help config over it), twice a run, and each listing builds a repository
-_OPTIONS: weakref.WeakKeyDictionary[Any, dict[str, list[str]]] = weakref.WeakKeyDictionary()
+_OPTIONS: weakref.WeakKeyDictionary[Any, dict[str, tuple[str, ...]]] = weakref.WeakKeyDictionary()
 
 
 def config_group_options(group: str) -> list[str]:
@@ -63,8 +63,8 @@ def config_group_options(group: str) -> list[str]:
             names = loader.get_group_options(group)
         except HydraException:
             names = []
-        listed[group] = [name for name in names if not name.endswith("_schema")]
-    return listed[group]
+        listed[group] = tuple(name for name in names if not name.endswith("_schema"))
+    return list(listed[group])  # a copy: the caller's to change
 
 
 def group_options(group: str) -> str:
