@@ -78,8 +78,9 @@ def plain_command(command: str) -> tuple[dict[str, str], list[str]] | None:
 class CLIServer:
     """A server process that has imported the package; each command runs in a fork of it.
 
-    :meth:`start` sends a command and returns at once (several may run at the same time, as
-    background processes would); :meth:`wait` returns its result; :meth:`run` does both.
+    :meth:`start` sends a command and returns once it is forked (several may run at the same
+    time, as background processes would; :meth:`pid` is the fork's process, which signals
+    reach as they reach any); :meth:`wait` returns its result; :meth:`run` does both.
     """
 
     def __init__(self) -> None:
@@ -88,40 +89,57 @@ class CLIServer:
             [sys.executable, str(Path(__file__).resolve())],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
-            text=True,
+            bufsize=0,  # replies are read as they come (_read), never held in a buffer
             env={**os.environ, **ONE_THREAD},  # what the forks inherit: test workers share cores
         )
         self._jobs: dict[int, list[str]] = {}  # started and not yet waited for: job -> argv
+        self._pids: dict[int, int] = {}  # job -> its fork's process id
         self._replies: dict[int, dict] = {}  # finished and not yet waited for
+        self._pending = b""  # the start of a reply not yet whole
         self._next = 0
 
-    def start(self, argv: list[str], cwd: Path, env: dict[str, str], timeout: float) -> int:
+    def start(
+        self,
+        argv: list[str],
+        cwd: Path,
+        env: dict[str, str],
+        timeout: float,
+        file_size_limit: int | None = None,
+    ) -> int:
         """Starts ``argv`` in a fork, in ``cwd`` with ``env``: a console script and its
         arguments, or a ``.py`` script and its arguments (run as ``python`` runs it). Returns
         the job to :meth:`wait` for; a command still running after ``timeout`` seconds is
-        killed."""
+        killed. ``file_size_limit``: no file it writes may grow past that many bytes."""
         job, self._next = self._next, self._next + 1
         request = {"job": job, "argv": argv, "cwd": str(cwd), "env": env, "timeout": timeout}
+        request["file_size_limit"] = file_size_limit
         request |= {
             "stdout": str(self._output(job, "stdout")),
             "stderr": str(self._output(job, "stderr")),
         }
-        self.proc.stdin.write(json.dumps(request) + "\n")
-        self.proc.stdin.flush()
+        self._send(request)
         self._jobs[job] = argv
+        while job not in self._pids:
+            self._read(block=True)
         return job
+
+    def pid(self, job: int) -> int:
+        """The process id of a started command's fork."""
+        return self._pids[job]
+
+    def finished(self, job: int) -> bool:
+        """Whether a started command has ended (without waiting)."""
+        self._read(block=False)
+        return job in self._replies
 
     def wait(self, job: int) -> subprocess.CompletedProcess:
         """The result of a started command, as a subprocess's would be (once per job); one
         that ran past its timeout raises :class:`subprocess.TimeoutExpired`."""
         argv = self._jobs.pop(job)
         while job not in self._replies:
-            line = self.proc.stdout.readline()
-            if not line:
-                raise RuntimeError(f"the CLI server exited (status {self.proc.wait()})")
-            reply = json.loads(line)
-            self._replies[reply["job"]] = reply
+            self._read(block=True)
         reply = self._replies.pop(job)
+        self._pids.pop(job, None)
         out, err = self._output(job, "stdout"), self._output(job, "stderr")
         stdout, stderr = out.read_text(), err.read_text()
         out.unlink()
@@ -139,9 +157,29 @@ class CLIServer:
     def kill(self, job: int) -> None:
         """Stops a started command that has not been waited for (its result is dropped)."""
         if job in self._jobs:
-            self.proc.stdin.write(json.dumps({"kill": job}) + "\n")
-            self.proc.stdin.flush()
+            self._send({"kill": job})
             self.wait(job)
+
+    def _send(self, request: dict) -> None:
+        self.proc.stdin.write((json.dumps(request) + "\n").encode())
+        self.proc.stdin.flush()
+
+    def _read(self, block: bool) -> None:
+        """Takes in the server's replies that have come (waits for one if ``block``): a
+        command's fork (``pid``) or its end (``returncode``)."""
+        stream = self.proc.stdout.fileno()
+        if not block and not select.select([stream], [], [], 0)[0]:
+            return
+        chunk = os.read(stream, 1 << 16)
+        if not chunk:
+            raise RuntimeError(f"the CLI server exited (status {self.proc.wait()})")
+        *lines, self._pending = (self._pending + chunk).split(b"\n")
+        for line in filter(bytes.strip, lines):
+            reply = json.loads(line)
+            if "pid" in reply:
+                self._pids[reply["job"]] = reply["pid"]
+            else:
+                self._replies[reply["job"]] = reply
 
     def _output(self, job: int, stream: str) -> Path:
         return self.scratch / f"{job}.{stream}"
@@ -179,6 +217,11 @@ def _child(request: dict, scripts: dict[str, str]) -> None:
         flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC
         os.dup2(os.open(request["stdout"], flags), 1)
         os.dup2(os.open(request["stderr"], flags), 2)
+        if request.get("file_size_limit") is not None:  # past it, a write fails (EFBIG)
+            import resource
+
+            limit = int(request["file_size_limit"])
+            resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
         sys.argv = list(request["argv"])
         try:
             if sys.argv[0].endswith(".py"):  # python <script> args: the script as __main__
@@ -215,8 +258,9 @@ def _import_what_a_run_imports() -> None:
     """The imports a training run makes after the console script's own, made once here rather
     than in every fork (about 1 of a smoke run's 7 seconds): the package's task modules,
     Hydra's core plugins, pandas, which tensordict imports, when installed, on the first
-    random action (``TensorDict.from_any``), and rliable's statistics, which every sweep,
-    study and report summary imports (1-2 s: scipy, statsmodels, arch; no pyplot)."""
+    random action (``TensorDict.from_any``), rliable's statistics, which every sweep,
+    study and report summary imports (1-2 s: scipy, statsmodels, arch; no pyplot), and
+    matplotlib's figure and Agg canvas, which every run's figures import (about 0.5 s)."""
     import importlib
     import importlib.util
 
@@ -224,7 +268,12 @@ def _import_what_a_run_imports() -> None:
 
     importlib.import_module("torchrl_stages.envs")
     Plugins.instance()
-    for module in ("pandas", "rliable.library"):
+    for module in (
+        "pandas",
+        "rliable.library",
+        "matplotlib.figure",
+        "matplotlib.backends.backend_agg",
+    ):
         if importlib.util.find_spec(module.split(".")[0]) is not None:
             importlib.import_module(module)
 
@@ -259,6 +308,8 @@ def serve() -> None:
                 if pid == 0:
                     _child(request, scripts)
                 running[pid] = (request, time.monotonic() + request["timeout"])
+                sys.stdout.write(json.dumps({"job": request["job"], "pid": pid}) + "\n")
+                sys.stdout.flush()
         elif requests is None:
             time.sleep(POLL_S)
         for pid, (request, deadline) in list(running.items()):

@@ -7,6 +7,7 @@ import ast
 import contextlib
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -92,13 +93,27 @@ class Launched:
     """A console script (``argv[0]``: its name or path) started in the background; its
     :meth:`result` waits for it. It runs in a fork of a process that has imported the package
     (``cli_server``: the script's argv, directory, environment, output and exit status,
-    without its import); several run at the same time, as background processes would."""
+    without its import); several run at the same time, as background processes would.
 
-    def __init__(self, argv: list, cwd: Path, timeout: float = 300, **env: str) -> None:
+    The fork is a process of its own (:attr:`pid`): :meth:`send_signal`, :meth:`poll` and
+    :meth:`communicate` work as :class:`subprocess.Popen`'s do, so signal and kill tests run
+    without the import too. ``file_size_limit``: no file it writes may grow past that many
+    bytes (``RLIMIT_FSIZE``), for tests of a full disk."""
+
+    def __init__(
+        self,
+        argv: list,
+        cwd: Path,
+        timeout: float = 300,
+        *,
+        file_size_limit: int | None = None,
+        **env: str,
+    ) -> None:
         console_script(argv[0])  # installed
-        argv = [Path(argv[0]).name, *(str(a) for a in argv[1:])]
+        self.args = [Path(argv[0]).name, *(str(a) for a in argv[1:])]
         self.server = shared_server()
-        self.job = self.server.start(argv, Path(cwd), cli_env(**env), timeout)
+        self.job = self.server.start(self.args, Path(cwd), cli_env(**env), timeout, file_size_limit)
+        self.pid = self.server.pid(self.job)
         self._result: subprocess.CompletedProcess | None = None
 
     def result(self) -> subprocess.CompletedProcess:
@@ -111,6 +126,29 @@ class Launched:
         """Kills it if it still runs and nothing waited for it."""
         if self._result is None:
             self.server.kill(self.job)
+
+    @property
+    def returncode(self) -> int | None:
+        return None if self._result is None else self._result.returncode
+
+    def poll(self) -> int | None:
+        """Its exit status if it has ended, else None (without waiting)."""
+        if self._result is None and self.server.finished(self.job):
+            self.result()
+        return self.returncode
+
+    def send_signal(self, signum: int) -> None:
+        """Sends ``signum`` to the command's process, if it still runs."""
+        if self.poll() is None:
+            os.kill(self.pid, signum)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def communicate(self, timeout: float | None = None) -> tuple[str, str]:
+        """Waits for it (its own timeout applies); its ``(stdout, stderr)``."""
+        result = self.result()
+        return result.stdout, result.stderr
 
 
 def run_cli(argv: list, cwd: Path, timeout: float = 300, **env: str) -> subprocess.CompletedProcess:

@@ -2,15 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
-from helpers import hydra_config
+from helpers import hydra_config, run_cli
 from omegaconf import OmegaConf
 from tensordict.nn import TensorDictModule
 from torchrl.data import Categorical
@@ -112,17 +108,7 @@ def test_experiment_raises_divergence_error_and_saves_nothing(tmp_path):
 @pytest.mark.slow
 def test_cli_exits_3_with_the_message(tmp_path):
     run_dir = tmp_path / "run"
-    script = shutil.which("stages-train") or str(Path(sys.executable).parent / "stages-train")
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    env.pop("HYDRA_FULL_ERROR", None)
-    result = subprocess.run(
-        [script, *OVERRIDES, f"hydra.run.dir={run_dir}"],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        env=env,
-        timeout=300,
-    )
+    result = run_cli(["stages-train", *OVERRIDES, f"hydra.run.dir={run_dir}"], tmp_path)
     assert result.returncode == 3, result.stderr[-2000:]
     assert "diverged" in result.stderr
     _check_message(result.stderr)

@@ -1,6 +1,7 @@
 """Runs that survive faults: SIGKILL and resume, no silent overwrite, damaged files, multiruns.
 
-Every command is a ``stages-train`` subprocess on a tiny two-stage 10 x 10 grid world with a
+Every command is a ``stages-train`` process (a fork of one that has imported the package,
+which signals reach as they reach any) on a tiny two-stage 10 x 10 grid world with a
 checkpoint every 256 frames. The uninterrupted reference run and the run that gets killed start
 together (two cores); the other commands are short.
 """
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers import cli_env, console_script
+from helpers import Launched
 from omegaconf import OmegaConf
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -48,36 +49,23 @@ OVERRIDES = [
 ]
 
 
-def spawn(run_dir: Path, *extra: str, multirun: bool = False) -> subprocess.Popen:
+def spawn(run_dir: Path, *extra: str, multirun: bool = False) -> Launched:
+    """``stages-train`` in the background: a process of its own, which signals and SIGKILL
+    reach as they reach any (a fork of a process that has imported the package)."""
     target = f"hydra.sweep.dir={run_dir}" if multirun else f"hydra.run.dir={run_dir}"
-    argv = [
-        console_script("stages-train"),
-        *(["-m"] if multirun else []),
-        *OVERRIDES,
-        target,
-        *extra,
-    ]
-    return subprocess.Popen(
-        argv,
-        cwd=run_dir.parent,
-        env=cli_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        stdin=subprocess.DEVNULL,
-    )
+    argv = ["stages-train", *(["-m"] if multirun else []), *OVERRIDES, target, *extra]
+    return Launched(argv, run_dir.parent, TIMEOUT_S)
 
 
-def finish(proc: subprocess.Popen) -> subprocess.CompletedProcess:
-    out, err = proc.communicate(timeout=TIMEOUT_S)
-    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+def finish(proc: Launched) -> subprocess.CompletedProcess:
+    return proc.result()
 
 
 def run(run_dir: Path, *extra: str, multirun: bool = False) -> subprocess.CompletedProcess:
     return finish(spawn(run_dir, *extra, multirun=multirun))
 
 
-def kill_when(proc: subprocess.Popen, ready, delay: float = 0.0) -> None:
+def kill_when(proc: Launched, ready, delay: float = 0.0) -> None:
     """SIGKILLs ``proc`` ``delay`` seconds after ``ready()`` first holds."""
     deadline = time.monotonic() + TIMEOUT_S
     while not ready():
@@ -307,7 +295,7 @@ def test_joint_schedule_kill_and_resume_is_bitwise_equal(joint):
 
 
 # ---------------------------------------------------------------------- pre-emption
-def _wait(ready, proc: subprocess.Popen) -> None:
+def _wait(ready, proc: Launched) -> None:
     deadline = time.monotonic() + TIMEOUT_S
     while not ready():
         assert proc.poll() is None, "the run ended too early"
@@ -320,9 +308,13 @@ def _in_stage(run_dir: Path, stage: int):
     return lambda: metrics.is_file() and f"train/stage_{stage}/" in metrics.read_text()
 
 
-def _stop(
-    proc: subprocess.Popen, signum: int, seed: int
-) -> tuple[subprocess.CompletedProcess, float]:
+#: a signalled run ends at its next batch, after writing its checkpoint: seconds on an idle
+#: machine; the bound leaves room for a 2-core machine that runs other trainings beside the test
+#: (10 s was once missed by 0.8 s there)
+STOP_WITHIN_S = 30
+
+
+def _stop(proc: Launched, signum: int, seed: int) -> tuple[subprocess.CompletedProcess, float]:
     """Sends ``signum`` after a random delay; returns the finished process and how long it
     took to exit after the signal."""
     import random
@@ -342,7 +334,7 @@ def test_sigterm_mid_stage_checkpoints_and_resume_is_bitwise_equal(runs, seed):
     _wait(_in_stage(stopped, 1), proc)
     result, seconds = _stop(proc, signal.SIGTERM, seed)
     assert result.returncode == 128 + signal.SIGTERM, (seed, result.stderr[-2000:])
-    assert seconds < 10
+    assert seconds < STOP_WITHIN_S
     assert "Traceback" not in result.stderr and "resume=true" in result.stderr
     status = json.loads((stopped / "status.json").read_text())
     assert status["status"] == "interrupted" and status["signal"] == "SIGTERM"
@@ -369,7 +361,7 @@ def test_sigint_ends_with_one_line_and_its_exit_code(tmp_path):
 def test_sigterm_during_the_joint_schedule_resumes_bitwise(joint):
     reference, _, stopped, (result, seconds) = joint
     assert result.returncode == 128 + signal.SIGTERM, result.stderr[-2000:]
-    assert seconds < 10 and list((stopped / "checkpoints" / "joint").glob("frames-*"))
+    assert seconds < STOP_WITHIN_S and list((stopped / "checkpoints" / "joint").glob("frames-*"))
     resumed = run(stopped, "schedule=joint", "checkpoint_every=0", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert_same_run(reference, stopped)
@@ -447,15 +439,6 @@ def test_resume_with_a_config_naming_other_code_is_refused(runs, tmp_path):
 
 
 # ---------------------------------------------------------------------- a file that cannot grow
-def _file_size_limit(limit: int):
-    def preexec() -> None:
-        import resource
-
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-
-    return preexec
-
-
 @pytest.mark.parametrize("checkpoint_every", [0, 256])
 def test_a_write_that_fails_names_the_file_leaves_no_temporary_and_resumes(
     runs, tmp_path, checkpoint_every
@@ -463,16 +446,9 @@ def test_a_write_that_fails_names_the_file_leaves_no_temporary_and_resumes(
     _, reference, _ = runs
     run_dir = tmp_path / "run"
     extra = f"checkpoint_every={checkpoint_every}"
-    argv = [console_script("stages-train"), *OVERRIDES, f"hydra.run.dir={run_dir}", extra]
-    result = subprocess.run(
-        argv,
-        cwd=tmp_path,
-        env=cli_env(),
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-        preexec_fn=_file_size_limit(150_000),  # a stage file or a checkpoint is larger
-    )
+    argv = ["stages-train", *OVERRIDES, f"hydra.run.dir={run_dir}", extra]
+    # a stage file or a checkpoint is larger than the limit
+    result = Launched(argv, tmp_path, TIMEOUT_S, file_size_limit=150_000).result()
     assert result.returncode == 2, result.stderr[-2000:]
     last = result.stderr.strip().splitlines()[-1]
     assert last.startswith("stages-train: cannot write ") and "File too large" in last

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import time
 from pathlib import Path
 
 import pytest
 import torch
-from helpers import TINY_STAGE, cli_env, console_script, hydra_config, run_cli
+from helpers import TINY_STAGE, Launched, console_script, hydra_config, run_cli
 
 from torchrl_stages.cli import stage_store as stages_store_cli
 from torchrl_stages.config import ConfigError
@@ -151,19 +150,12 @@ def test_jobs_that_need_the_same_stage_train_it_once(tmp_path):
     store = tmp_path / "store"
     overrides = [*THREE, f"stage_store={store}", "threads=1"]
     procs = [
-        subprocess.Popen(
-            [console_script("stages-train"), *overrides, f"hydra.run.dir={tmp_path / name}"],
-            cwd=tmp_path,
-            env=cli_env(),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+        Launched(["stages-train", *overrides, f"hydra.run.dir={tmp_path / name}"], tmp_path)
         for name in ("a", "b")
     ]
-    outs = [p.communicate(timeout=300) for p in procs]
-    for proc, (_, err) in zip(procs, outs, strict=True):
-        assert proc.returncode == 0, err[-2000:]
+    results = [p.result() for p in procs]
+    for result in results:
+        assert result.returncode == 0, result.stderr[-2000:]
     reused = [
         json.loads((tmp_path / n / "eval.json").read_text())["training"]["reused"]
         for n in ("a", "b")
@@ -173,7 +165,7 @@ def test_jobs_that_need_the_same_stage_train_it_once(tmp_path):
     for k in range(3):
         assert same_stage(tmp_path / "a", tmp_path / "b", k)
     assert len(SharedStageStore(store).entries()) == 3
-    assert "reused stages" in "".join(out + err for out, err in outs)
+    assert "reused stages" in "".join(r.stdout + r.stderr for r in results)
 
 
 def test_stages_store_lists_removes_and_prunes(tmp_path, capsys):

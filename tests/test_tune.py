@@ -12,13 +12,12 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
-import subprocess
 from pathlib import Path
 
 import hydra
 import pytest
 import yaml
-from helpers import cli_env, console_script, hydra_config, run_cli
+from helpers import Launched, hydra_config, run_cli
 
 from torchrl_stages.config import ConfigError
 from torchrl_stages.experiment import Experiment
@@ -63,25 +62,14 @@ def bad_key(tmp_path_factory):
     beside the study: most of its time is importing torch); yields its launch directory and
     ``wait()`` -> (exit code, stdout + stderr)."""
     cwd = tmp_path_factory.mktemp("bad_key")
-    argv = [console_script("stages-tune"), *TINY, BAD_KEY, "tune.study_name=bad"]
-    proc = subprocess.Popen(
-        argv,
-        cwd=cwd,
-        env=cli_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        stdin=subprocess.DEVNULL,
-        text=True,
-    )
+    proc = Launched(["stages-tune", *TINY, BAD_KEY, "tune.study_name=bad"], cwd)
 
     def wait() -> tuple[int, str]:
-        out, _ = proc.communicate(timeout=300)
-        return proc.returncode, out
+        result = proc.result()
+        return result.returncode, result.stdout + result.stderr
 
     yield cwd, wait
-    if proc.poll() is None:
-        proc.kill()
-        proc.wait()
+    proc.stop()
 
 
 @pytest.fixture(scope="module")
