@@ -111,9 +111,13 @@ class CLIServer:
         the job to :meth:`wait` for; a command still running after ``timeout`` seconds is
         killed. ``file_size_limit``: no file it writes may grow past that many bytes."""
         job, self._next = self._next, self._next + 1
-        request = {"job": job, "argv": argv, "cwd": str(cwd), "env": env, "timeout": timeout}
-        request["file_size_limit"] = file_size_limit
-        request |= {
+        request = {
+            "job": job,
+            "argv": argv,
+            "cwd": str(cwd),
+            "env": env,
+            "timeout": timeout,
+            "file_size_limit": file_size_limit,
             "stdout": str(self._output(job, "stdout")),
             "stderr": str(self._output(job, "stderr")),
         }

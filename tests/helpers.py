@@ -7,7 +7,6 @@ import ast
 import contextlib
 import os
 import shutil
-import signal
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -141,9 +140,6 @@ class Launched:
         """Sends ``signum`` to the command's process, if it still runs."""
         if self.poll() is None:
             os.kill(self.pid, signum)
-
-    def kill(self) -> None:
-        self.send_signal(signal.SIGKILL)
 
     def communicate(self, timeout: float | None = None) -> tuple[str, str]:
         """Waits for it (its own timeout applies); its ``(stdout, stderr)``."""

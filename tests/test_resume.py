@@ -57,12 +57,8 @@ def spawn(run_dir: Path, *extra: str, multirun: bool = False) -> Launched:
     return Launched(argv, run_dir.parent, TIMEOUT_S)
 
 
-def finish(proc: Launched) -> subprocess.CompletedProcess:
-    return proc.result()
-
-
 def run(run_dir: Path, *extra: str, multirun: bool = False) -> subprocess.CompletedProcess:
-    return finish(spawn(run_dir, *extra, multirun=multirun))
+    return spawn(run_dir, *extra, multirun=multirun).result()
 
 
 def kill_when(proc: Launched, ready, delay: float = 0.0) -> None:
@@ -120,7 +116,7 @@ def runs(tmp_path_factory):
     proc = spawn(killed)
     checkpoints = killed / "checkpoints" / "stage_1"
     kill_when(proc, lambda: len(list(checkpoints.glob("frames-*"))) >= 2, delay=0.05)
-    result = finish(ref)
+    result = ref.result()
     assert result.returncode == 0, result.stderr[-3000:]
     return root, reference, killed
 
@@ -282,7 +278,7 @@ def joint(tmp_path_factory):
         assert proc.poll() is None or "kill" not in due, "the run ended before it was killed"
         assert term.poll() is None or "term" not in due, "the run ended before it was stopped"
         time.sleep(0.005)
-    result = finish(ref)
+    result = ref.result()
     assert result.returncode == 0, result.stderr[-3000:]
     return reference, killed, stopped, stopped_result
 
@@ -322,7 +318,7 @@ def _stop(proc: Launched, signum: int, seed: int) -> tuple[subprocess.CompletedP
     time.sleep(random.Random(seed).uniform(0.0, 0.25))
     sent = time.monotonic()
     proc.send_signal(signum)
-    result = finish(proc)
+    result = proc.result()
     return result, time.monotonic() - sent
 
 
@@ -381,11 +377,9 @@ def test_a_second_process_in_the_same_directory_exits_2_naming_the_first(tmp_pat
         assert second.returncode == 2, second.stderr[-2000:]
         assert f"in use by another process (process {first.pid} on" in second.stderr
         first.send_signal(signal.SIGTERM)
-        assert finish(first).returncode == 128 + signal.SIGTERM
+        assert first.result().returncode == 128 + signal.SIGTERM
     finally:
-        if first.poll() is None:
-            first.kill()
-            first.communicate()
+        first.stop()
     assert OmegaConf.load(tmp_path / "run" / "config.yaml").seed == 0
 
 
@@ -469,7 +463,7 @@ def test_many_seeds_killed_mid_stage_then_resumed_are_bitwise_equal(tmp_path):
     proc = spawn(killed, *seeds)
     checkpoints = killed / "seed_checkpoints" / "stage_1"
     kill_when(proc, lambda: any(checkpoints.glob("frames-*")), delay=0.05)
-    result = finish(ref)
+    result = ref.result()
     assert result.returncode == 0, result.stderr[-3000:]
     assert not (killed / "seed_0" / "stage_1.pt").exists()  # killed mid-stage
     resumed = run(killed, *seeds, "resume=true")

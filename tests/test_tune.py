@@ -59,8 +59,8 @@ def _statuses(study_dir: Path) -> list[str]:
 @pytest.fixture(scope="module")
 def bad_key(tmp_path_factory):
     """``stages-tune`` with a search-space key the config lacks, started at once (it runs
-    beside the study: most of its time is importing torch); yields its launch directory and
-    ``wait()`` -> (exit code, stdout + stderr)."""
+    beside the study); yields its launch directory and ``wait()`` -> (exit code, stdout +
+    stderr)."""
     cwd = tmp_path_factory.mktemp("bad_key")
     proc = Launched(["stages-tune", *TINY, BAD_KEY, "tune.study_name=bad"], cwd)
 
