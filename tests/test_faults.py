@@ -26,8 +26,9 @@ from torchrl_stages.checkpoint import CheckpointDamagedError, StageCheckpoints
 from torchrl_stages.cli import evaluate
 from torchrl_stages.experiment import Experiment
 from torchrl_stages.integrity import atomic_write
-from torchrl_stages.rundir import RunDir, RunDirError, load_run
+from torchrl_stages.rundir import RunDir, RunDirError, load_run, shippedtargets
 from torchrl_stages.stage import DivergenceError, EnvError
+from torchrl_stages.store import register_configs
 from torchrl_stages.sweeps import read_job
 from torchrl_stages.validate import ConfigError
 
@@ -111,6 +112,17 @@ def test_a_run_of_your_own_env_loads_with_trust(copy):
     with pytest.raises(RunDirError, match="task 'custom'.*trust=True"):
         load_run(copy)
     assert len(load_run(copy, trust=True).learners) == 2
+
+
+def test_a_shipped_tasks_targets_are_read_without_resolving_it():
+    # a loading process need not have the config's resolvers (minigrid's keys depend on the
+    # level through one): what the task instantiates is read from its YAML as text
+    OmegaConf.clear_resolver("stages_by_prefix")
+    try:
+        targets = shippedtargets("minigrid")
+        assert targets == {"task.env._target_": "torchrl_stages.envs.MiniGridEnv"}
+    finally:
+        register_configs()
 
 
 def _pickle_bomb(marker: Path) -> bytes:

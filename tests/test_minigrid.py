@@ -50,6 +50,27 @@ def _face(env: StagedMiniGrid, cell) -> None:
 
 
 @pytest.mark.parametrize("level", LEVELS)
+def test_the_level_steps_as_before_without_drawing_its_own_view(level):
+    # the wrapper's features replace the level's image: the level no longer draws it, and
+    # its states, rewards and ends are those of the level as it ships (same seed, same actions)
+    env, shipped = StagedMiniGrid(gymnasium.make(level)), gymnasium.make(level).unwrapped
+    env.reset(seed=5)
+    shipped.reset(seed=5)
+    actions = np.random.default_rng(0).integers(len(env.actions), size=300)
+    for action in actions:
+        _, reward, terminated, truncated, _ = env.step(action)
+        out = shipped.step(env.unwrapped.actions[env.actions[action]])
+        assert (reward > 0, terminated, truncated) == (out[1] > 0, out[2], out[3])
+        level = env.unwrapped
+        assert tuple(level.agent_pos) == tuple(shipped.agent_pos)
+        assert (level.agent_dir, level.step_count) == (shipped.agent_dir, shipped.step_count)
+        assert (level.carrying is None) == (shipped.carrying is None)
+        if terminated or truncated:
+            break
+    assert not env.unwrapped.gen_obs()["image"].any() and out[0]["image"].any()
+
+
+@pytest.mark.parametrize("level", LEVELS)
 def test_the_stage_follows_the_level_and_never_goes_back(level):
     env = StagedMiniGrid(gymnasium.make(level))
     obs, _ = env.reset(seed=3)
@@ -293,7 +314,46 @@ def test_the_task_has_three_stages_from_its_template(compose_cfg):
     task.spec_env.close()
 
 
-def test_the_keycorridor_preset_gives_every_stage_its_keys(compose_cfg):
+@pytest.mark.parametrize(
+    "env_id, view_doors, gamma, advantage_learning",
+    [
+        ("MiniGrid-KeyCorridorS3R3-v0", True, 0.95, 0.9),
+        ("MiniGrid-KeyCorridorS3R1-v0", True, 0.95, 0.9),
+        ("MiniGrid-UnlockPickup-v0", False, 0.99, 0.9),
+        ("MiniGrid-DoorKey-16x16-v0", False, 0.99, 0.0),
+    ],
+)
+def test_a_levels_settings_come_with_its_id(
+    compose_cfg, env_id, view_doors, gamma, advantage_learning
+):
+    task = build_task(compose_cfg("task=minigrid", f"task.env.env_id={env_id}"))
+    assert task.cfg.env.view_doors is view_doors
+    for k in range(task.num_stages):
+        cfg = task.stage_cfg(k)
+        assert (cfg.gamma, cfg.advantage_learning, cfg.algo) == (gamma, advantage_learning, "dqn")
+    task.spec_env.close()
+
+
+def test_a_levels_settings_give_way_to_the_command_line(compose_cfg):
+    task = build_task(
+        compose_cfg(
+            "task=minigrid",
+            "task.env.env_id=MiniGrid-KeyCorridorS3R3-v0",
+            "task.env.view_doors=false",
+            "task.stage_template.gamma=0.99",
+            "+task.stages.s0.advantage_learning=0",
+        )
+    )
+    assert task.cfg.env.view_doors is False
+    assert [(task.stage_cfg(k).gamma, task.stage_cfg(k).advantage_learning) for k in range(3)] == [
+        (0.99, 0.0),
+        (0.99, 0.9),
+        (0.99, 0.9),
+    ]
+    task.spec_env.close()
+
+
+def test_the_keycorridor_preset_is_s3r3_with_its_settings(compose_cfg):
     for level in ([], ["task.env.env_id=MiniGrid-KeyCorridorS3R2-v0"]):
         task = build_task(compose_cfg("experiment=minigrid_keycorridor", *level))
         assert task.cfg.env.env_id.startswith("MiniGrid-KeyCorridorS3R") and task.cfg.env.view_doors

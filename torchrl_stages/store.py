@@ -7,17 +7,19 @@
 stage from its algorithm's keys and defaults. The ``stages_algorithms`` resolver lists the
 registered algorithms and ``stages_options`` the options of a config group (what ``conf/`` and
 any config directory of yours hold), so that ``stages-train --help`` lists what there is.
+``stages_by_prefix`` gives a key a value that depends on an id (a task's settings per level).
 """
 
 from __future__ import annotations
 
 import weakref
+from collections.abc import Mapping
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config import LoggerConfig, ScheduleConfig, TrainConfig, TuneAppConfig
 from torchrl_stages.learners import ALGORITHMS
@@ -43,6 +45,30 @@ def register_configs() -> None:
         OmegaConf.register_new_resolver("stages_algorithms", lambda: "|".join(ALGORITHMS))
     if not OmegaConf.has_resolver("stages_options"):
         OmegaConf.register_new_resolver("stages_options", group_options)
+    if not OmegaConf.has_resolver("stages_by_prefix"):
+        OmegaConf.register_new_resolver("stages_by_prefix", by_prefix)
+
+
+def by_prefix(name: str, values: DictConfig, default: Any) -> Any:
+    """The value in ``values`` of the first key that ``name`` starts with; ``default`` when none
+    does. As the ``stages_by_prefix`` resolver it gives a config key a value per level, by the
+    start of the level's id, which a command-line override of the key still replaces::
+
+        view_doors: ${stages_by_prefix:${.env_id},{MiniGrid-KeyCorridor: true},false}
+
+    Examples:
+        >>> by_prefix("MiniGrid-KeyCorridorS3R3-v0", {"MiniGrid-KeyCorridor": 0.95}, 0.99)
+        0.95
+        >>> by_prefix("MiniGrid-DoorKey-8x8-v0", {"MiniGrid-KeyCorridor": 0.95}, 0.99)
+        0.99
+    """
+    if not isinstance(name, str) or not isinstance(values, Mapping | DictConfig):
+        raise ValueError(
+            f"stages_by_prefix:{name!r},{values!r},...: takes an id (a string), a mapping of "
+            "id prefixes to values, and a default. Fix: "
+            "${stages_by_prefix:${task.env.env_id},{Prefix-: value},default}"
+        )
+    return next((value for prefix, value in values.items() if name.startswith(prefix)), default)
 
 
 # options listed per config loader: Hydra resolves the help template in every compose (it
@@ -73,4 +99,4 @@ def group_options(group: str) -> str:
     return "|".join(config_group_options(group)) or "?"
 
 
-__all__ = ["config_group_options", "register_configs"]
+__all__ = ["by_prefix", "config_group_options", "register_configs"]

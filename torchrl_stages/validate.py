@@ -327,7 +327,7 @@ def missing_keys(node: object, prefix: str) -> list[str]:
     for key in node.keys():
         if OmegaConf.is_missing(node, key):
             out.append(f"{prefix}.{key}")
-        else:
+        elif not OmegaConf.is_interpolation(node, key):  # ${...} is set: left unresolved
             out += missing_keys(node[key], f"{prefix}.{key}")
     return out
 

@@ -183,6 +183,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
         super().__init__(env)
         level = env.spec.id if env.spec is not None else type(env.unwrapped).__name__
         _check_id(level)
+        _skip_level_image(env.unwrapped)
         if start_stage is not None and not 0 <= int(start_stage) < self.num_stages:
             raise ValueError(f"start_stage={start_stage}: MiniGrid levels have stages 0, 1, 2")
         self.start_stage = start_stage
@@ -366,6 +367,21 @@ class StagedMiniGrid(gymnasium.Wrapper):
         if before is not None and self._state() == before:
             reward += self.no_op_reward  # an action that changed nothing
         return self._obs(), reward, bool(terminated), bool(truncated), info
+
+
+def _skip_level_image(level: Any) -> None:
+    """Stops ``level`` from drawing its own observation, the agent's 7x7 view as an image,
+    which this wrapper's features replace: drawing it (rotating and masking the view) was about
+    four fifths of a step. Its ``gen_obs`` now returns a blank image of the same space (what
+    the env checker and the vector env see); the level's state, its RNG and every step's result
+    are as before."""
+    space = level.observation_space["image"]
+
+    def gen_obs() -> dict[str, Any]:
+        image = np.zeros(space.shape, space.dtype)  # new each call, as gymnasium asks
+        return {"image": image, "direction": level.agent_dir, "mission": level.mission}
+
+    level.gen_obs = gen_obs
 
 
 def _keep_closed(env: Any, pos: Any) -> bool:
