@@ -52,7 +52,8 @@ def _face(env: StagedMiniGrid, cell) -> None:
 @pytest.mark.parametrize("level", LEVELS)
 def test_the_level_steps_as_before_without_drawing_its_own_view(level):
     # the wrapper's features replace the level's image: the level no longer draws it, and
-    # its states, rewards and ends are those of the level as it ships (same seed, same actions)
+    # its states, rewards and ends are those of the level as it ships (same seed, same actions;
+    # these never toggle UnlockPickup's box, which the wrapper keeps from breaking)
     env, shipped = StagedMiniGrid(gymnasium.make(level)), gymnasium.make(level).unwrapped
     env.reset(seed=5)
     shipped.reset(seed=5)

@@ -19,7 +19,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
 from torchrl_stages.config import LoggerConfig, ScheduleConfig, TrainConfig, TuneAppConfig
 from torchrl_stages.learners import ALGORITHMS
@@ -49,7 +49,7 @@ def register_configs() -> None:
         OmegaConf.register_new_resolver("stages_by_prefix", by_prefix)
 
 
-def by_prefix(name: str, values: DictConfig, default: Any) -> Any:
+def by_prefix(name: str, values: Mapping[str, Any], default: Any) -> Any:
     """The value in ``values`` of the first key that ``name`` starts with; ``default`` when none
     does. As the ``stages_by_prefix`` resolver it gives a config key a value per level, by the
     start of the level's id, which a command-line override of the key still replaces::
@@ -61,8 +61,12 @@ def by_prefix(name: str, values: DictConfig, default: Any) -> Any:
         0.95
         >>> by_prefix("MiniGrid-DoorKey-8x8-v0", {"MiniGrid-KeyCorridor": 0.95}, 0.99)
         0.99
+        >>> by_prefix("MiniGrid-DoorKey-8x8-v0", 0.95, 0.99)
+        Traceback (most recent call last):
+        ...
+        ValueError: stages_by_prefix:'MiniGrid-DoorKey-8x8-v0',0.95,...: takes an id (a string), ...
     """
-    if not isinstance(name, str) or not isinstance(values, Mapping | DictConfig):
+    if not isinstance(name, str) or not isinstance(values, Mapping):
         raise ValueError(
             f"stages_by_prefix:{name!r},{values!r},...: takes an id (a string), a mapping of "
             "id prefixes to values, and a default. Fix: "
