@@ -163,6 +163,15 @@ def _run_shell(command: str, scratch: Path, where: str) -> subprocess.CompletedP
         pytest.fail(f"{where}: did not finish in {TIMEOUT} s: {error}")
 
 
+def _run_python(script: Path, scratch: Path, where: str) -> subprocess.CompletedProcess:
+    """``python script`` in ``scratch``: the script as ``__main__`` in a fork of the process
+    that has imported the package (``cli_server``), as the benchmark scripts' tests run them."""
+    try:
+        return shared_server().run([script.name], scratch, _env(scratch), TIMEOUT)
+    except subprocess.TimeoutExpired as error:
+        pytest.fail(f"{where}: did not finish in {TIMEOUT} s: {error}")
+
+
 #: top-level keys whose value names other runs or Hydra's directories: a command that sets one
 #: reads or writes state that the commands around it share, and always runs on its own page
 STATEFUL = {"hydra", "init_from", "resume", "stage_store"}
@@ -237,17 +246,17 @@ def run_page(page: Path, scratch: Path) -> list[str]:
         if block.lang == "python":
             script = scratch / f"_block_{block.line}.py"
             script.write_text(block.body)
-            done = _run([sys.executable, script.name], scratch, where)
-            _check(done, output, where)
+            _check(_run_python(script, scratch, where), output, where)
         elif block.lang == "pycon":
             script = scratch / f"_block_{block.line}.txt"
             script.write_text(block.body)
-            code = (
-                "import doctest, sys; flags = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE; "
-                f"r = doctest.testfile({script.name!r}, module_relative=False, "
-                "optionflags=flags); sys.exit(1 if r.failed else 0)"
+            runner = scratch / f"_block_{block.line}_doctest.py"
+            runner.write_text(
+                "import doctest, sys\nflags = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE\n"
+                f"r = doctest.testfile({script.name!r}, module_relative=False, optionflags=flags)\n"
+                "sys.exit(1 if r.failed else 0)\n"
             )
-            _check(_run([sys.executable, "-c", code], scratch, where), None, where)
+            _check(_run_python(runner, scratch, where), None, where)
         elif block.lang == "bash":
             cmds = commands(block.body)
             for number, command in enumerate(cmds):

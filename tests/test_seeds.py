@@ -387,6 +387,7 @@ def _tiny_task(frames: int = 2048) -> StagedTask:
         updates_per_batch=2,
         eval_every=128,
         eval_episodes=8,
+        eval_max_steps=64,  # an untrained greedy policy ends its episodes here, not at 200
         success_threshold=0.5,
         min_frames=0,
     )
