@@ -316,22 +316,23 @@ def test_the_task_has_three_stages_from_its_template(compose_cfg):
 
 
 @pytest.mark.parametrize(
-    "env_id, view_doors, gamma, advantage_learning",
+    "env_id, view_doors, gamma, advantage_learning, eval_episodes",
     [
-        ("MiniGrid-KeyCorridorS3R3-v0", True, 0.95, 0.9),
-        ("MiniGrid-KeyCorridorS3R1-v0", True, 0.95, 0.9),
-        ("MiniGrid-UnlockPickup-v0", False, 0.99, 0.9),
-        ("MiniGrid-DoorKey-16x16-v0", False, 0.99, 0.0),
+        ("MiniGrid-KeyCorridorS3R3-v0", True, 0.95, 0.9, 64),
+        ("MiniGrid-KeyCorridorS3R1-v0", True, 0.95, 0.9, 64),
+        ("MiniGrid-UnlockPickup-v0", False, 0.99, 0.9, 64),
+        ("MiniGrid-DoorKey-16x16-v0", False, 0.99, 0.0, 64),
     ],
 )
 def test_a_levels_settings_come_with_its_id(
-    compose_cfg, env_id, view_doors, gamma, advantage_learning
+    compose_cfg, env_id, view_doors, gamma, advantage_learning, eval_episodes
 ):
     task = build_task(compose_cfg("task=minigrid", f"task.env.env_id={env_id}"))
     assert task.cfg.env.view_doors is view_doors
     for k in range(task.num_stages):
         cfg = task.stage_cfg(k)
-        assert (cfg.gamma, cfg.advantage_learning, cfg.algo) == (gamma, advantage_learning, "dqn")
+        settings = (cfg.gamma, cfg.advantage_learning, cfg.eval_episodes, cfg.algo)
+        assert settings == (gamma, advantage_learning, eval_episodes, "dqn")
     task.spec_env.close()
 
 
