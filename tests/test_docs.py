@@ -157,17 +157,17 @@ def _run_shell(command: str, scratch: Path, where: str) -> subprocess.CompletedP
     if plain is None:
         return _run(["bash", "-c", command], scratch, where)
     assignments, argv = plain
-    try:
-        return shared_server().run(argv, scratch, {**_env(scratch), **assignments}, TIMEOUT)
-    except subprocess.TimeoutExpired as error:
-        pytest.fail(f"{where}: did not finish in {TIMEOUT} s: {error}")
+    return _run_forked(argv, scratch, where, assignments)
 
 
-def _run_python(script: Path, scratch: Path, where: str) -> subprocess.CompletedProcess:
-    """``python script`` in ``scratch``: the script as ``__main__`` in a fork of the process
-    that has imported the package (``cli_server``), as the benchmark scripts' tests run them."""
+def _run_forked(
+    argv: list[str], scratch: Path, where: str, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
+    """A console script, or ``python script`` (``argv[0]`` a ``.py`` file: the script as
+    ``__main__``, as the benchmark scripts' tests run them), in a fork of the process that has
+    imported the package (``cli_server``), in ``scratch`` with ``env`` over its environment."""
     try:
-        return shared_server().run([script.name], scratch, _env(scratch), TIMEOUT)
+        return shared_server().run(argv, scratch, {**_env(scratch), **(env or {})}, TIMEOUT)
     except subprocess.TimeoutExpired as error:
         pytest.fail(f"{where}: did not finish in {TIMEOUT} s: {error}")
 
@@ -246,7 +246,7 @@ def run_page(page: Path, scratch: Path) -> list[str]:
         if block.lang == "python":
             script = scratch / f"_block_{block.line}.py"
             script.write_text(block.body)
-            _check(_run_python(script, scratch, where), output, where)
+            _check(_run_forked([script.name], scratch, where), output, where)
         elif block.lang == "pycon":
             script = scratch / f"_block_{block.line}.txt"
             script.write_text(block.body)
@@ -256,7 +256,7 @@ def run_page(page: Path, scratch: Path) -> list[str]:
                 f"r = doctest.testfile({script.name!r}, module_relative=False, optionflags=flags)\n"
                 "sys.exit(1 if r.failed else 0)\n"
             )
-            _check(_run_python(runner, scratch, where), None, where)
+            _check(_run_forked([runner.name], scratch, where), None, where)
         elif block.lang == "bash":
             cmds = commands(block.body)
             for number, command in enumerate(cmds):
