@@ -9,8 +9,9 @@ from ``/dev/null``, stdout and stderr to files, the entry point's exit status, a
 interpreter's exit handlers (a failed sweep writes its summary in one). Commands started
 together run at the same time, each in its own fork, as background processes would.
 
-Only plain commands go this way (``[VAR=value ...] <console script> args``, no shell syntax):
-:func:`plain_command` says which; the others run in ``bash`` as before.
+Only plain commands go this way (``[VAR=value ...] <console script> args``, no operators or
+redirections; bash itself expands ``~`` and ``$HOME`` in their words): :func:`plain_command`
+says which; the others run in ``bash`` as before.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 ASSIGNMENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
-SHELL = re.compile(r"[$`~\\]")  # expansions and escapes: leave these to bash
+SHELL = re.compile(r"[$`~\\]")  # expansions and escapes: bash expands the words
 POLL_S = 0.02  # how often the server looks for ended commands
 #: one torch (OpenMP, MKL) thread in the server and its forks, as in the test processes: two
 #: pytest workers share the machine's cores, and a process of two threads beside a busy one
@@ -52,12 +53,14 @@ def console_scripts() -> dict[str, str]:
     }
 
 
-def plain_command(command: str) -> tuple[dict[str, str], list[str]] | None:
+def plain_command(
+    command: str, env: dict[str, str] | None = None, cwd: Path | None = None
+) -> tuple[dict[str, str], list[str]] | None:
     """``(assignments, argv)`` of a command a fork can run like ``bash -c`` would: optional
-    ``VAR=value`` words, then one of the package's console scripts and its arguments, quoted as
-    the shell quotes but with no operator, redirection or expansion. ``None`` otherwise."""
-    if SHELL.search(command):
-        return None
+    ``VAR=value`` words, then one of the package's console scripts and its arguments, with no
+    operator or redirection. Its words are as the shell quotes them; where it has expansions
+    (``~``, ``$HOME``) or escapes, as bash expands them in ``env`` and ``cwd`` (given ``env``
+    only: ``None`` without it). ``None`` otherwise."""
     lexer = shlex.shlex(command, posix=True, punctuation_chars=True)
     lexer.whitespace_split = True
     try:
@@ -66,6 +69,10 @@ def plain_command(command: str) -> tuple[dict[str, str], list[str]] | None:
         return None
     if any(w and set(w) <= set("();<>|&") for w in words):  # operators and redirections
         return None
+    if SHELL.search(command):
+        words = _expanded(command, env, cwd) if env is not None else None
+        if words is None:
+            return None
     assignments = {}
     while words and ASSIGNMENT.match(words[0]):
         name, value = words.pop(0).split("=", 1)
@@ -73,6 +80,16 @@ def plain_command(command: str) -> tuple[dict[str, str], list[str]] | None:
     if not words or words[0] not in console_scripts():
         return None
     return assignments, words
+
+
+def _expanded(command: str, env: dict[str, str], cwd: Path | None) -> list[str] | None:
+    """The words of ``command`` after bash's expansions, as ``bash -c`` would pass them (a
+    leading ``VAR=value`` word included); ``None`` where bash refuses the command."""
+    script = f"set -- {command}\nprintf '%s\\0' \"$@\""
+    done = subprocess.run(["bash", "-c", script], env=env, cwd=cwd, capture_output=True)
+    if done.returncode != 0 or done.stderr:
+        return None
+    return [w.decode() for w in done.stdout.split(b"\0")[:-1]]
 
 
 class CLIServer:

@@ -153,7 +153,7 @@ def _run_shell(command: str, scratch: Path, where: str) -> subprocess.CompletedP
     """``bash -c command``; a plain console-script command runs in a fork of a process that
     has imported the package instead (``cli_server``: the same argv, directory, environment
     and exit status, without the 4 s import)."""
-    plain = plain_command(command)
+    plain = plain_command(command, _env(scratch), scratch)
     if plain is None:
         return _run(["bash", "-c", command], scratch, where)
     assignments, argv = plain
@@ -384,7 +384,13 @@ def test_plain_commands_run_in_a_fork_the_rest_in_bash():
     for shell in ("stages-train && stages-eval r", "stages-report s | head", "python x.py"):
         assert plain_command(shell) is None, shell
     for expansion in ("stages-store ls ~/stages", "stages-store ls $HOME/s", "stages-eval `pwd`"):
-        assert plain_command(expansion) is None, expansion
+        assert plain_command(expansion) is None, expansion  # without the environment to expand
+    env = {"HOME": "/h", "PATH": os.environ["PATH"]}
+    assert plain_command("X=$HOME stages-store ls ~/s 'a b' '$HOME' \\~ s=~/t", env) == (
+        {"X": "/h"},
+        ["stages-store", "ls", "/h/s", "a b", "$HOME", "~", "s=/h/t"],
+    )
+    assert plain_command("stages-eval $(pwd)", env) is None  # a subshell: bash runs it
 
 
 def test_a_forked_command_is_the_console_script(tmp_path):
