@@ -321,7 +321,8 @@ def test_the_task_has_three_stages_from_its_template(compose_cfg):
         ("MiniGrid-KeyCorridorS3R3-v0", True, 0.95, 0.9, 64),
         ("MiniGrid-KeyCorridorS3R1-v0", True, 0.95, 0.9, 64),
         ("MiniGrid-UnlockPickup-v0", False, 0.99, 0.9, 64),
-        ("MiniGrid-DoorKey-16x16-v0", False, 0.99, 0.0, 64),
+        ("MiniGrid-DoorKey-16x16-v0", False, 0.99, 0.0, 256),
+        ("MiniGrid-DoorKey-8x8-v0", False, 0.99, 0.0, 64),
     ],
 )
 def test_a_levels_settings_come_with_its_id(
