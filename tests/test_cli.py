@@ -211,6 +211,16 @@ def test_train_prints_the_run_directory(smoke):
     assert "Traceback" not in result.stderr
 
 
+def test_train_logs_every_stage_evaluation_where_no_bar_is_shown(smoke):
+    # the command's stderr is a pipe, not a terminal: one line per stage evaluation, on the
+    # console and in the run's log file, where a progress bar would be
+    result, run_dir = smoke
+    logged = (run_dir / "stages-train.log").read_text()
+    for k in range(NUM_STAGES):
+        line = f"stage {k} (s{k}): {FRAMES} of {FRAMES} frames, success "
+        assert line in result.stdout and line in logged, k
+
+
 def test_train_writes_nothing_outside_the_run_dir(commands, smoke):
     # hydra.run.dir is honoured: no ./outputs (or ./multirun) in the working directory
     assert not (commands.root / "outputs").exists()

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import io
+import logging
+import sys
+
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -118,6 +122,21 @@ def test_joint_schedule_runs_every_phase_and_updates_every_stage():
     # every stage reports the last phase's evaluation (its whole-task episodes)
     assert phases[-1]["discounted_return"] is not None
     assert all(r.discounted_return == phases[-1]["discounted_return"] for r in results)
+
+
+def test_away_from_a_terminal_each_phase_logs_its_evaluations(monkeypatch, caplog):
+    monkeypatch.setattr(sys, "stderr", io.StringIO())  # not a terminal: lines, not a bar
+    caplog.set_level(logging.INFO, logger="torchrl_stages")
+    JointTrainer(grid_task(), progress=True).train()
+    lines = [r.getMessage() for r in caplog.records if r.name == "torchrl_stages"]
+    shown = [line.split(", success")[0] for line in lines]
+    assert shown == [
+        "the joint phase from stage 1 (s1): 256 of 512 frames",
+        "the joint phase from stage 1 (s1): 512 of 512 frames",
+        "the joint phase from stage 0 (s0): 256 of 512 frames",
+        "the joint phase from stage 0 (s0): 512 of 512 frames",
+    ]
+    assert all(", value error " in line and line.endswith("s") for line in lines)
 
 
 class StartlessGrid(GridWorldEnv):

@@ -5,9 +5,12 @@ seed."""
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
+import logging
 import math
 import signal
+import sys
 from pathlib import Path
 
 import pytest
@@ -349,6 +352,10 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
     done = run_cli(argv, tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     assert not (run_dir / "seed_checkpoints").exists()
+    for seed in (0, 3):  # the lines of each seed's stages name it, as its evaluation does
+        for k in (0, 1):
+            assert f"seed {seed}: stage {k} (s{k}, dqn): " in done.stdout
+        assert f"Run directory: {run_dir / f'seed_{seed}'}" in done.stdout
     for seed in (0, 3):
         seed_dir = run_dir / f"seed_{seed}"
         run = load_run(seed_dir)
@@ -365,6 +372,7 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
     again = run_cli([*argv, "resume=true"], tmp_path)
     assert again.returncode == 0, again.stderr[-2000:]
     assert (again.stdout + again.stderr).count("finished earlier, loaded") == 4
+    assert "seed 3: stage 0 (s0): finished earlier, loaded" in again.stdout
     # a learner that does not stack (the user's own): refused before anything is trained or
     # written
     other = tmp_path / "other"
@@ -438,6 +446,38 @@ def test_an_interrupted_stage_of_many_seeds_resumes_bitwise_from_its_checkpoint(
         logged = (interrupted / f"seed_{s}.csv").read_bytes()
         assert logged == (tmp_path / "reference" / f"seed_{s}.csv").read_bytes()
     assert not (interrupted / "stage_0").exists()  # dropped once the stage is kept
+
+
+def _logged(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name.startswith("torchrl_stages")]
+
+
+def test_away_from_a_terminal_each_seed_s_evaluations_log_lines_naming_it(monkeypatch, caplog):
+    monkeypatch.setattr(sys, "stderr", io.StringIO())  # not a terminal: lines, not a bar
+    caplog.set_level(logging.INFO, logger="torchrl_stages")
+    train_backward_seeds(_tiny_task(frames=256), [3, 5], progress=True)
+    shown = [line.split(", success")[0] for line in _logged(caplog)]
+    assert shown == [
+        f"seed {seed}: stage {k} ({name}): {frames} of 256 frames"
+        for k, name in ((1, "b"), (0, "a"))
+        for frames in (128, 256)
+        for seed in (3, 5)
+    ]
+
+
+@pytest.mark.slow
+def test_the_joint_phases_of_stacked_seeds_log_the_seeds_still_training(monkeypatch, caplog):
+    # seed 2 stops the phase from stage 1 at 768 frames (see the test of its resume above):
+    # from then on only seed 1's evaluations are logged, until the next phase
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    caplog.set_level(logging.INFO, logger="torchrl_stages")
+    train_joint_seeds(_tiny_task(frames=1024), [1, 2], progress=True)
+    phase_1 = [line for line in _logged(caplog) if "the joint phase from stage 1 (b)" in line]
+    seeds = [line.split(":")[0] for line in phase_1]
+    assert seeds == ["seed 1", "seed 2"] * 6 + ["seed 1"] * 2
+    assert phase_1[-1].startswith("seed 1: the joint phase from stage 1 (b): 1024 of 1024 frames")
+    phase_0 = [line for line in _logged(caplog) if "the joint phase from stage 0 (a)" in line]
+    assert [line.split(":")[0] for line in phase_0] == ["seed 1", "seed 2"] * 8
 
 
 def _two_seeds_in_one_process(compose_cfg, tmp_path, *overrides: str) -> list[dict]:

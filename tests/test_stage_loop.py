@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import io
+import logging
+import sys
 from types import SimpleNamespace
 
 import pytest
@@ -234,6 +237,57 @@ def test_value_tolerance_is_part_of_the_early_stop(monkeypatch):
     result = trainer.train()
     assert [c["frames"] for c in calls] == [256, 512, 768]
     assert result.frames == 768 and result.early_stopped
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def _evaluation_lines(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name == "torchrl_stages"]
+
+
+def test_away_from_a_terminal_every_evaluation_logs_a_line(monkeypatch, caplog):
+    # nohup, a batch job, CI: no bar, one line per evaluation (Hydra sends it to the console and
+    # to the run's log file)
+    trainer, learner = _trainer(_cfg(frames=512, init_random_frames=128, eval_every=256))
+    trainer.progress = True
+    _script(trainer, learner, [(0.5, 0.25, 0.0), (1.0, 0.125, 0.0)], monkeypatch)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())  # not a terminal
+    caplog.set_level(logging.INFO, logger="torchrl_stages")
+    trainer.train()
+    lines = _evaluation_lines(caplog)
+    assert [line.rsplit(", ", 1)[0] for line in lines] == [
+        "stage 1 (1): 256 of 512 frames, success 0.50, value error 0.250",
+        "stage 1 (1): 512 of 512 frames, success 1.00, value error 0.125",
+    ]
+    assert all(line.endswith("s") for line in lines)  # the seconds since the stage started
+    assert sys.stderr.getvalue() == ""  # and no bar
+
+
+def test_on_a_terminal_the_bar_has_no_estimate_when_an_early_stop_can_end_the_stage(
+    monkeypatch, caplog
+):
+    # the budget is where a stage that stops early seldom gets: no percentage or time left
+    # counting to it, but the frames, their rate and the budget; no log lines beside the bar
+    cfg = _cfg(frames=1024, init_random_frames=128, eval_every=256, success_threshold=1.0)
+    trainer, learner = _trainer(cfg)
+    trainer.progress = True
+    _script(trainer, learner, [(0.5, 0.0, 0.0)] * 4, monkeypatch)
+    monkeypatch.setattr(sys, "stderr", _Terminal())
+    caplog.set_level(logging.INFO, logger="torchrl_stages")
+    trainer.train()
+    shown = sys.stderr.getvalue()
+    assert "stage 1 (1) (budget 1024 frames): 0frame [" in shown
+    assert "%|" not in shown and "/1024" not in shown and "<" not in shown
+    assert _evaluation_lines(caplog) == []
+    # without an early stop the budget is where the stage ends: the bar counts to it
+    trainer, learner = _trainer(_cfg(frames=256, init_random_frames=128, eval_every=256))
+    trainer.progress = True
+    monkeypatch.setattr(sys, "stderr", _Terminal())
+    trainer.train()
+    assert "/256 [" in sys.stderr.getvalue()
 
 
 EVALS = [  # (success, value error, return); the best is the third one

@@ -361,7 +361,8 @@ class Experiment:
             training["reused"] = store.reused
             names = self.task.stage_names
             log.info(
-                "reused stages: %s; trained: %s",
+                "%sreused stages: %s; trained: %s",
+                "" if store.seed is None else f"seed {store.seed}: ",
                 ", ".join(n for n in names if n in store.reused) or "none",
                 ", ".join(n for n in names if n not in store.reused) or "none",
             )

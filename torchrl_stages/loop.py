@@ -9,6 +9,7 @@ what they give :func:`run_loop`."""
 from __future__ import annotations
 
 import copy
+import logging
 import sys
 import time
 from collections import defaultdict
@@ -34,8 +35,10 @@ __all__ = [
     "EarlyStop",
     "MetricsLog",
     "Stopwatch",
+    "can_stop_early",
     "checkpoint_or_stop",
     "first_evaluation",
+    "log_evaluation",
     "loop_state",
     "progress_bar",
     "resume_latest",
@@ -43,15 +46,84 @@ __all__ = [
 ]
 
 
-def progress_bar(initial: int, total: int, desc: str, enabled: bool) -> tqdm:
-    """A stage's (or joint phase's) frame bar, shown only on a terminal."""
+log = logging.getLogger("torchrl_stages")
+
+
+def progress_bar(
+    initial: int, total: int, desc: str, enabled: bool, open_ended: bool = False
+) -> tqdm:
+    """A stage's (or joint phase's) frame bar, shown only on a terminal (:func:`bar_shown`).
+    ``open_ended`` (an early stop may end the loop before ``total``): no total, percentage or
+    time left, which would count to a budget the loop seldom reaches; the frames, their rate
+    and the budget in the description."""
+    if open_ended:
+        desc = f"{desc} (budget {total} frames)"
     return tqdm(
         initial=initial,
-        total=total,
+        total=None if open_ended else total,
         desc=desc,
         unit="frame",
-        disable=not (enabled and sys.stderr.isatty()),
+        disable=not bar_shown(enabled),
         leave=False,
+    )
+
+
+def bar_shown(enabled: bool) -> bool:
+    """Whether a loop with ``progress=enabled`` shows its bar: on a terminal (stderr) only.
+    Elsewhere (a log file, nohup, a batch job, CI) it logs a line per evaluation instead
+    (:func:`log_evaluation`)."""
+    return enabled and sys.stderr.isatty()
+
+
+def can_stop_early(cfg: StageConfig) -> bool:
+    """Whether an early stop can end a loop of ``cfg`` before its frame budget: a success
+    threshold, evaluations, and ``min_frames`` within the budget.
+
+    Examples:
+        >>> from torchrl_stages.config import StageConfig
+        >>> can_stop_early(StageConfig(success_threshold=0.9, eval_every=1000))
+        True
+        >>> can_stop_early(StageConfig(success_threshold=None, eval_every=1000))
+        False
+    """
+    return (
+        cfg.success_threshold is not None
+        and int(cfg.eval_every) > 0
+        and int(cfg.min_frames) <= int(cfg.frames)
+    )
+
+
+def log_evaluation(
+    where: str,
+    frames: int,
+    budget: int,
+    success: float,
+    value_error: float,
+    seconds: float,
+    seed: int | None = None,
+) -> None:
+    """One INFO line of the ``torchrl_stages`` logger for one evaluation of a loop (``where``:
+    the stage or joint phase; ``seed``: which seed of a seed-stacked loop). A run of
+    ``stages-train`` has Hydra send it to the console and to the run's log file.
+
+    Examples:
+        >>> shown = logging.StreamHandler(sys.stdout)
+        >>> log.addHandler(shown), log.setLevel(logging.INFO)
+        (None, None)
+        >>> log_evaluation("stage 1 (s1)", 2048, 8192, 0.75, 0.0312, 12.34, seed=3)
+        seed 3: stage 1 (s1): 2048 of 8192 frames, success 0.75, value error 0.031, 12.3s
+        >>> log.removeHandler(shown), log.setLevel(logging.NOTSET)
+        (None, None)
+    """
+    who = where if seed is None else f"seed {seed}: {where}"
+    log.info(
+        "%s: %d of %d frames, success %.2f, value error %.3f, %.1fs",
+        who,
+        frames,
+        budget,
+        success,
+        value_error,
+        seconds,
     )
 
 
@@ -348,6 +420,9 @@ def run_loop(
     watch: Stopwatch,
     progress: bool = False,
     count: Callable[[TensorDictBase], int] | None = None,
+    open_ended: bool = False,
+    seeds: Sequence[int] | None = None,
+    training: Callable[[], Sequence[int]] | None = None,
 ) -> None:
     """The loop: for every collected batch, ``learn(batch, frames)`` (store it, take the
     gradient steps; returns the losses), ``log_batch(batch, losses)``, every ``eval_every``
@@ -356,13 +431,29 @@ def run_loop(
     stop, then :func:`checkpoint_or_stop`, which first writes the seconds since ``start`` and
     the log's position into ``record`` (``clock = (record, start, log)``). ``count(batch)``
     gives the frames a checkpoint is named by (default: the collector's); ``where`` names the
-    loop in messages and on its progress bar."""
-    record, start, log = clock
+    loop in messages, on its progress bar (``progress``, on a terminal; ``open_ended``: an
+    early stop can end it before its budget, see :func:`progress_bar`) and in the line each
+    evaluation logs where the bar is not shown (:func:`log_evaluation`). A seed-stacked loop
+    gives its ``seeds`` (evaluations return one number per seed) and ``training()``, the rows
+    still training, whose evaluations are logged, each naming its seed."""
+    record, start, metrics = clock
+    copies = 1 if seeds is None else len(seeds)
+    label = where if seeds is None else f"{where}, {copies} seeds"
+    report = progress and not bar_shown(progress)
 
     def before_save() -> None:
-        record.update(seconds=time.perf_counter() - start, log=log.position())
+        record.update(seconds=time.perf_counter() - start, log=metrics.position())
 
-    bar = progress_bar(collector.frames, int(collector.total_frames), where, progress)
+    def log_lines(success, value_error, rows: Sequence[int]) -> None:
+        frames, budget = collector.frames // copies, int(collector.total_frames) // copies
+        seconds = time.perf_counter() - start
+        if seeds is None:
+            log_evaluation(where, frames, budget, success, value_error, seconds)
+            return
+        for i in rows:
+            log_evaluation(where, frames, budget, success[i], value_error[i], seconds, seeds[i])
+
+    bar = progress_bar(collector.frames, int(collector.total_frames), label, progress, open_ended)
     try:
         for batch in watch.timed("collect", collector):
             frames = collector.frames
@@ -375,12 +466,16 @@ def run_loop(
             stop = False
             if eval_every > 0 and frames >= counters["next_eval"]:
                 counters["next_eval"] += eval_every
+                # the seeds training before this evaluation: one that it stops is logged
+                rows = list(training() if training is not None else range(copies))
                 with watch("evaluate"):
                     success, value_error, ret = evaluate()
                 bar.set_postfix(success=_shown(success, 2), value_error=_shown(value_error, 3))
+                if report:
+                    log_lines(success, value_error, rows)
                 stop = early_stop.record(model, success, value_error, frames, ret)
             if stop:
                 break
-            checkpoint_or_stop(checkpoints, total, state, before_save, where, watch)
+            checkpoint_or_stop(checkpoints, total, state, before_save, label, watch)
     finally:
         bar.close()

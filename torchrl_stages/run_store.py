@@ -64,6 +64,13 @@ class RunStore:
         self.run, self.task, self.schedule, self.reuse = run, task, schedule, reuse
         self.log, self.resuming, self.device = MetricsLog(logger), resuming, device
         self.checkpoint_every, self.checkpoint_keep = checkpoint_every, checkpoint_keep
+        # the seed of a many-seed run (SeedRuns) whose directory this is: its log lines say it
+        self.seed: int | None = None
+
+    def _log(self, level: int, message: str, *args: Any) -> None:
+        if self.seed is not None:
+            message = f"seed {self.seed}: {message}"
+        log.log(level, message, *args)
 
     @property
     def reused(self) -> dict[str, str]:
@@ -78,7 +85,7 @@ class RunStore:
             loaded = load_stage(self.run, self.task, stage, self.device, name=name)
             if loaded is not None:
                 learner, result = loaded
-                log.info("stage %d (%s): finished earlier, loaded", stage, name)
+                self._log(logging.INFO, "stage %d (%s): finished earlier, loaded", stage, name)
                 return learner, StageResult(**result)
         if self.reuse is None:
             return None
@@ -90,7 +97,7 @@ class RunStore:
         self.run.save_stage(stage, name, learner, result, log=self.log.position())
         self.run.clear_checkpoints(stage)
         self.run.update_launch()
-        log.info("stage %d (%s): reused from %s", stage, name, where)
+        self._log(logging.INFO, "stage %d (%s): reused from %s", stage, name, where)
         return learner, result
 
     def begin(self, scope: int | str) -> StageCheckpoints:
@@ -106,7 +113,7 @@ class RunStore:
             self.log.rewind({} if later is None else later.get("log", {}))
         elif self.resuming:
             where = f"stage {scope}" if isinstance(scope, int) else scope
-            log.info("%s: resuming from %s", where, checkpoints.latest())
+            self._log(logging.INFO, "%s: resuming from %s", where, checkpoints.latest())
         return checkpoints
 
     def save(self, stage: int, learner: Learner, result: StageResult) -> None:
@@ -125,7 +132,8 @@ class RunStore:
         note = " (early stop)" if result.early_stopped else ""
         if result.restored_best:
             note = " (best evaluation restored)"
-        log.info(
+        self._log(
+            logging.INFO,
             "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s",
             stage,
             name,
@@ -139,7 +147,8 @@ class RunStore:
         threshold = self.task.stage_cfg(stage).success_threshold
         if self.schedule.stage_early_stop and threshold is not None and not result.early_stopped:
             stage_name = self.task.stage_names[stage]
-            log.warning(
+            self._log(
+                logging.WARNING,
                 "stage %d (%s) did not meet its early-stop criterion within its budget of %d "
                 "frames; the run goes on with its best evaluation. Fix: raise "
                 "task.stages.%s.frames",

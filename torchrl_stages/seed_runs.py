@@ -187,8 +187,9 @@ class SeedRuns:
             with handle_signals(), hold_threads(int(cfg.threads)):
                 try:
                     stores = []
-                    for experiment in experiments:
+                    for seed, experiment in zip(self.seeds, experiments, strict=True):
                         stores.append(experiment.start())
+                        stores[-1].seed = seed  # its log lines name it
                     trained = stores[0].schedule.train_seeds(
                         experiments[0].task,
                         self.seeds,

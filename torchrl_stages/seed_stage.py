@@ -41,6 +41,7 @@ from torchrl_stages.loop import (
     EarlyStop,
     MetricsLog,
     Stopwatch,
+    can_stop_early,
     first_evaluation,
     loop_state,
     resume_latest,
@@ -345,10 +346,13 @@ class SeedsStageTrainer:
                 checkpoints=self.checkpoints,
                 state=state,
                 clock=(counters, start, logs),
-                where=f"stage {self.stage} ({self.name}), {n} seeds",
+                where=f"stage {self.stage} ({self.name})",
                 watch=watch,
                 progress=self.progress,
                 count=lambda batch: collector.frames // n,
+                open_ended=can_stop_early(cfg),
+                seeds=self.seeds,
+                training=monitor.active,
             )
         except (NonFiniteError, NonFiniteValueError) as err:
             bad = [

@@ -26,6 +26,7 @@ from torchrl_stages.loop import (
     EarlyStop,
     MetricsLog,
     Stopwatch,
+    can_stop_early,
     first_evaluation,
     loop_state,
     resume_latest,
@@ -255,6 +256,7 @@ class StageTrainer:
                 where=f"stage {self.stage} ({self.name})",
                 watch=watch,
                 progress=self.progress,
+                open_ended=can_stop_early(cfg),
             )
         except (NonFiniteError, NonFiniteValueError) as err:
             raise stage_failure(err, self.stage, self.name, learner, buffer) from err

@@ -59,6 +59,7 @@ from torchrl_stages.loop import (
     EarlyStop,
     MetricsLog,
     Stopwatch,
+    can_stop_early,
     first_evaluation,
     run_loop,
 )
@@ -283,6 +284,13 @@ class JointTrainer:
         counters["in_phase"] = True
         return k, cfg, collector, eval_env, monitor, phase, state
 
+    def _where(self, start_stage: int | None) -> str:
+        """The phase from ``start_stage`` in messages, on its progress bar and in its log
+        lines."""
+        if start_stage is None:
+            return "the joint phase from the task's own starts"
+        return f"the joint phase from stage {start_stage} ({self.task.stage_names[start_stage]})"
+
     def _phase(self, start_stage, counters, stateful, latest, watch, t0) -> None:
         """One phase: collect from ``start_stage``'s starts, route, update every stage, evaluate."""
         k, cfg, collector, eval_env, monitor, phase, state = self._begin_phase(
@@ -321,10 +329,11 @@ class JointTrainer:
             checkpoints=self.checkpoints,
             state=state,
             clock=(counters, t0, self.log),
-            where=f"the joint phase from stage {k}",
+            where=self._where(start_stage),
             watch=watch,
             progress=self.progress,
             count=count,
+            open_ended=can_stop_early(cfg),
         )
         restored = monitor.restore_best(team)
         success, value_error = monitor.final
@@ -583,10 +592,13 @@ class SeedsJointTrainer(JointTrainer):
             checkpoints=self.checkpoints,
             state=state,
             clock=(counters, t0, self.log),
-            where=f"the joint phase from stage {k}, {n} seeds",
+            where=self._where(start_stage),
             watch=watch,
             progress=self.progress,
             count=count,
+            open_ended=can_stop_early(cfg),
+            seeds=self.seeds,
+            training=monitor.active,
         )
         for i, (row, early) in enumerate(zip(rows, monitor.monitors, strict=True)):
             at, restored = monitor.stopped_at[i], False
