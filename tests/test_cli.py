@@ -209,6 +209,12 @@ def test_train_prints_the_run_directory(smoke):
     assert f"Run directory: {run_dir}" in result.stdout
     assert "task gridworld: success" in result.stdout
     assert "Traceback" not in result.stderr
+    # and what in it a user wants: eval.json and the figures
+    end = result.stdout[result.stdout.index(f"Run directory: {run_dir}") :].splitlines()
+    assert end[1] == f"  eval.json: {run_dir / 'eval.json'}"
+    figures = [line.removeprefix("  figure: ") for line in end[2:]]
+    assert figures == [str(path) for path in sorted(run_dir.glob("*.png"))]
+    assert str(run_dir / "value_map.png") in figures
 
 
 def test_train_logs_every_stage_evaluation_where_no_bar_is_shown(smoke):

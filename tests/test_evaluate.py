@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
+from torchrl_stages import evaluate as evaluate_module
 from torchrl_stages.evaluate import EpisodeStats, discounted_return, episode_stats, evaluate_task
 from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.task import StagedTask
+from torchrl_stages.tasks import format_summary
 
 T = 5
 
@@ -175,6 +179,26 @@ def test_evaluate_task_with_a_scripted_policy():
     assert summary["median_steps_success"] == pytest.approx(13.5)  # lengths 9..18
     assert summary["mean_steps_per_stage"] == pytest.approx([5.0, 8.5])
     assert sum(summary["mean_steps_per_stage"]) == pytest.approx(summary["mean_steps"])
+
+
+@pytest.mark.parametrize(("start_cell", "starts"), [([0, 0], "fixed"), (None, "random")])
+def test_whole_task_starts_are_called_random_only_where_they_differ(
+    monkeypatch, start_cell, starts
+):
+    # an env that does not enumerate its starts: "fixed" when every episode started from the
+    # same observation (a reset that draws nothing), "random" else
+    task = _grid_task()
+    task.cfg.env.start_cell = start_cell
+    monkeypatch.setattr(task, "start_states", lambda stage: None)
+    monkeypatch.setattr(evaluate_module, "CHUNK", 4)  # two chunks, each its own env
+    evaluation = evaluate_task(task, _right_then_down(), episodes=6, seed=0)
+    assert evaluation.summary()["starts"] == starts
+    assert evaluation.summary()["episodes"] == 6
+    if starts == "fixed":
+        assert evaluation.stats.length.unique().tolist() == [18]
+    shown = format_summary({"task": "grid", **evaluation.summary()}, Path("run"))
+    wording = {"fixed": "(one fixed start)", "random": "(random starts)"}[starts]
+    assert f"over 6 whole-task episodes {wording}" in shown
 
 
 def test_evaluate_task_counts_failures_at_the_time_limit():

@@ -356,6 +356,7 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
         for k in (0, 1):
             assert f"seed {seed}: stage {k} (s{k}, dqn): " in done.stdout
         assert f"Run directory: {run_dir / f'seed_{seed}'}" in done.stdout
+    assert f"  summary.md: {run_dir / 'summary.md'}" in done.stdout
     for seed in (0, 3):
         seed_dir = run_dir / f"seed_{seed}"
         run = load_run(seed_dir)

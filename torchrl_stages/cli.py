@@ -117,6 +117,9 @@ def _train_app(cfg: DictConfig) -> float:
     if isinstance(experiment, SeedRuns):
         for seed, seed_result in zip(experiment.seeds, result, strict=True):
             print(format_summary(seed_result, seed_dir(run_dir, seed)))
+        print(f"Seeds' summary: {run_dir}")  # what summarize_sweep wrote over them
+        for path in sorted(run_dir.glob("summary*")):
+            print(f"  {path.name}: {path}")
         values = [objective_value(r, cfg) for r in result]
         return sum(values) / len(values)  # what a sweep over many-seed runs optimizes
     print(format_summary(result, run_dir))

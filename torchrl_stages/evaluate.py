@@ -241,6 +241,8 @@ class TaskEvaluation:
         final: the ``"next"`` TensorDict of every episode's last step ``[E]`` (where it ended).
         rollout: the first chunk's rollout ``[min(E, CHUNK), T]``, for figures.
         all_starts: every whole-task start state was evaluated once (else random starts).
+        one_start: not ``all_starts``, and every episode (more than one) started from the same
+            observation: the env has one fixed start.
         handoffs: per boundary k -> k+1, the states where episodes entered stage k+1 and the
             returns obtained after them (:mod:`torchrl_stages.handoff`).
     """
@@ -251,15 +253,31 @@ class TaskEvaluation:
     rollout: TensorDictBase
     all_starts: bool
     handoffs: list[Handoffs] = field(default_factory=list)
+    one_start: bool = False
 
     def summary(self) -> dict[str, Any]:
-        """The numbers ``eval.json`` reports for every task."""
+        """The numbers ``eval.json`` reports for every task (``starts``: ``"all"``,
+        ``"fixed"`` or ``"random"``)."""
+        starts = "all" if self.all_starts else "fixed" if self.one_start else "random"
         return {
             "episodes": len(self.stats.length),
-            "starts": "all" if self.all_starts else "random",
+            "starts": starts,
             **self.stats.summary(),
             "mean_steps_per_stage": self.steps_per_stage.float().mean(0).tolist(),
         }
+
+
+def _same_starts(env: EnvBase, rollout: TensorDictBase, first: TensorDictBase | None) -> bool:
+    """Whether every episode of ``rollout`` starts from the observation ``first`` starts
+    from (``None``: the rollout's first episode)."""
+    starts = rollout[:, 0].select(*env.observation_spec.keys(True, True), strict=False)
+    first = starts[0] if first is None else first
+    for key, value in starts.items(True, True):
+        if isinstance(value, torch.Tensor) and not torch.equal(
+            value, first.get(key).expand_as(value)
+        ):
+            return False
+    return True
 
 
 def _last_steps(rollout: TensorDictBase, length: torch.Tensor) -> TensorDictBase:
@@ -283,6 +301,7 @@ def evaluate_task(
     all_starts = task.start_states(None) is not None
     sizes = [None] if all_starts else [min(CHUNK, episodes - i) for i in range(0, episodes, CHUNK)]
     stats, per_stage, final, first = [], [], [], None
+    one_start = True  # so far, every episode from the first one's start observation
     gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
     handoffs: list[list[Handoffs]] = []
     for i, size in enumerate(sizes):
@@ -301,6 +320,8 @@ def evaluate_task(
         stats.append(chunk)
         final.append(_last_steps(rollout, chunk.length))
         handoffs.append(collect_handoffs(rollout, chunk.length, gammas))
+        start = None if first is None else first[0, 0]
+        one_start = not all_starts and one_start and _same_starts(env, rollout, start)
         first = rollout if first is None else first
     return TaskEvaluation(
         EpisodeStats.cat(stats),
@@ -309,4 +330,5 @@ def evaluate_task(
         first,
         all_starts,
         [Handoffs.cat(parts) for parts in zip(*handoffs, strict=True)],
+        one_start=one_start and sum(len(s.length) for s in stats) > 1,
     )

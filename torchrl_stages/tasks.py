@@ -175,9 +175,28 @@ def evaluate_run(
     return result
 
 
+STARTS = {"all": "every whole-task start", "fixed": "one fixed start", "random": "random starts"}
+
+
 def format_summary(result: dict[str, Any], run_dir: Path) -> str:
-    """A few human-readable lines for the end of a run."""
-    starts = "every whole-task start" if result.get("starts") == "all" else "random starts"
+    """A few human-readable lines for the end of a run: its whole-task evaluation (``result``,
+    its ``eval.json``), then the run directory with the paths of ``eval.json`` and of the
+    figures in it.
+
+    Examples:
+        >>> import tempfile
+        >>> run_dir = Path(tempfile.mkdtemp())
+        >>> _ = (run_dir / "learning_curves.png").write_bytes(b"")
+        >>> result = {"task": "grid", "success_rate": 0.5, "episodes": 8, "starts": "fixed",
+        ...           "mean_return": 0.25, "mean_steps": 12.0}
+        >>> lines = format_summary(result, run_dir).replace(str(run_dir), "RUN")
+        >>> print(lines)  # doctest: +ELLIPSIS
+        task grid: success 50.0% over 8 whole-task episodes (one fixed start), mean return 0.250...
+        Run directory: RUN
+          eval.json: RUN/eval.json
+          figure: RUN/learning_curves.png
+    """
+    starts = STARTS.get(str(result.get("starts")), "random starts")
     lines = [
         f"task {result['task']}: success {result['success_rate']:.1%} over "
         f"{result['episodes']} whole-task episodes ({starts}), mean return "
@@ -187,4 +206,6 @@ def format_summary(result: dict[str, Any], run_dir: Path) -> str:
         if key != "path_from_origin":
             lines.append(f"  {key}: {value}")
     lines.append(f"Run directory: {run_dir}")
+    lines.append(f"  {EVAL_FILE}: {Path(run_dir) / EVAL_FILE}")
+    lines += [f"  figure: {path}" for path in sorted(Path(run_dir).glob("*.png"))]
     return "\n".join(lines)
