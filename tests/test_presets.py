@@ -5,6 +5,7 @@ a smoke run with a stage added on the command line are subprocesses."""
 from __future__ import annotations
 
 import importlib.resources
+import logging
 import re
 
 import pytest
@@ -12,7 +13,7 @@ from helpers import run_cli
 from omegaconf import OmegaConf
 
 from torchrl_stages.config import apply_all_stages, stage_keys_set
-from torchrl_stages.experiment import with_env_stages
+from torchrl_stages.experiment import Experiment, with_env_stages
 from torchrl_stages.validate import ConfigError, validate_config, validate_sweeper
 
 CONF = importlib.resources.files("torchrl_stages.conf")
@@ -66,7 +67,7 @@ def test_stages_come_from_the_env_each_with_the_template_and_smoke(hydra_compose
     template = hydra_compose("task=gym").task.stage_template
     for name, stage in cfg.task.stages.items():
         assert stage.updates_per_batch == SMOKE.updates_per_batch  # smoke reaches every stage
-        assert stage.success_threshold == template.success_threshold  # the template's keys
+        assert stage.value_tolerance == template.value_tolerance  # the template's keys
         assert stage.frames == (512 if name == "s2" else SMOKE.frames)  # a stage's own wins
         assert stage.lr == (1e-4 if name == "s1" else template.lr)
     assert with_env_stages(cfg) == cfg  # expanding again changes nothing
@@ -96,6 +97,17 @@ def test_smoke_composes_with_other_overrides(hydra_compose):
     assert cfg.task.stages.s1.frames == 512  # the command line wins over the preset
     assert [cfg.task.stages[s].gamma for s in SHIPPED["gridworld"]] == [0.9, 0.9, 0.9, 0.99, 0.9]
     assert cfg.eval.episodes == 3
+
+
+def test_a_smoke_run_warns_of_nothing(hydra_compose, tmp_path, caplog):
+    # its budget is short on purpose: no stage is told to raise its frames
+    two_stages = ["task.env.size=10", "task.env.num_stages=2", "~task.stages.s2"]
+    two_stages += ["~task.stages.s3", "~task.stages.s4", "eval.plots=false"]
+    cfg = compose_run(hydra_compose, "experiment=smoke", *two_stages)
+    with caplog.at_level(logging.INFO, logger="torchrl_stages"):
+        Experiment(cfg, tmp_path / "run").run()
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
+    assert sum("dqn): 1024 frames" in r.getMessage() for r in caplog.records) == 2
 
 
 def test_without_an_experiment_no_preset_applies(hydra_compose):
