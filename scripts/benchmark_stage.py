@@ -119,7 +119,9 @@ def main() -> None:
         cfg = compose_config(args.task, f"seed={seed}", *args.overrides, *overrides[variant])
         torch.set_num_threads(int(cfg.threads))
         task = build_task(cfg)
-        _, result = train_stage(task, args.stage, next_value, seed=seed, compile=compile_mode(cfg))
+        [(_, result)] = train_stage(
+            task, args.stage, next_value, seeds=[seed], compile=compile_mode(cfg)
+        )
         return {"variant": variant, "seed": seed, **vars(result)}
 
     def cells(row: dict) -> list[str]:

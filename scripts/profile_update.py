@@ -52,7 +52,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.experiment import build_task, compile_mode
 from torchrl_stages.learners import Learner, make_learner
-from torchrl_stages.replay import stage_replay_buffer
+from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.store import register_configs
 from torchrl_stages.task import StagedTask
 
@@ -84,9 +84,9 @@ def replay_batch(
         init_random_frames=cfg.init_random_frames,
     )
     batch = next(iter(collector))
-    buffer = stage_replay_buffer(cfg.buffer_size, learner.device)
-    buffer.extend(batch.reshape(-1).select(*learner.loss.in_keys, strict=False))
-    return buffer.sample(cfg.batch_size * samples)
+    buffer = SeedReplayBuffer(cfg.buffer_size, num_seeds=1, device=learner.device)
+    buffer.extend(batch.select(*learner.loss.in_keys, strict=False))
+    return buffer.sample(cfg.batch_size * samples)[0]
 
 
 def update_flops(learner: Learner, batch: TensorDictBase) -> int:

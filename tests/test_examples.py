@@ -16,7 +16,6 @@ TRAINING_EXAMPLES = [
     backward.train_stage,
     flat.train_flat,
     joint.JointTrainer,
-    joint.SeedsJointTrainer,
     stage.StageTrainer,
 ]
 

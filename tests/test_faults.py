@@ -25,9 +25,9 @@ from torchrl_stages import threads
 from torchrl_stages.checkpoint import CheckpointDamagedError, StageCheckpoints
 from torchrl_stages.cli import evaluate
 from torchrl_stages.experiment import Experiment
+from torchrl_stages.failures import DivergenceError, EnvError
 from torchrl_stages.integrity import atomic_write
 from torchrl_stages.rundir import RunDir, RunDirError, load_run, shippedtargets
-from torchrl_stages.stage import DivergenceError, EnvError
 from torchrl_stages.store import register_configs
 from torchrl_stages.sweeps import read_job
 from torchrl_stages.validate import ConfigError

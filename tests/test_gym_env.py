@@ -26,7 +26,7 @@ from torchrl_stages.evaluate import evaluate_policy
 from torchrl_stages.experiment import build_task
 from torchrl_stages.gym_env import SuccessKeyError, SuccessReader
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
-from torchrl_stages.loop import MetricsLog
+from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.transforms import StageTransform
 from torchrl_stages.validate import ConfigError
 

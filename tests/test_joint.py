@@ -15,6 +15,7 @@ from torchrl_stages.envs import GridWorldEnv
 from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.loop import Stopwatch
 from torchrl_stages.schedules import JointTrainer, train_flat
+from torchrl_stages.schedules.joint import JointCounters
 from torchrl_stages.task import StagedTask
 
 TINY = dict(
@@ -72,50 +73,60 @@ def transitions(stages: list[int], next_stages: list[int]) -> TensorDict:
     )
 
 
+def _counters(trainer: JointTrainer) -> JointCounters:
+    return JointCounters(trainer.task.num_stages, trainer.n)
+
+
 def test_each_transition_goes_to_the_buffer_of_the_stage_of_s_t():
     trainer = JointTrainer(grid_task())
-    stored = [0, 0]
-    trainer._route(transitions([0, 0, 1, 0, 1], [0, 1, 1, 1, 1]).unsqueeze(0), stored)
-    assert stored == [3, 2]
-    assert trainer.buffers[0].storage[torch.arange(3)]["stage"].flatten().tolist() == [0, 0, 0]
-    assert trainer.buffers[1].storage[torch.arange(2)]["stage"].flatten().tolist() == [1, 1]
+    counters = _counters(trainer)
+    trainer._route(transitions([0, 0, 1, 0, 1], [0, 1, 1, 1, 1]).unsqueeze(0), [0], counters)
+    assert counters.stored == [[3, 2]]
+    assert trainer.buffers[0].held()["stage"].flatten().tolist() == [0, 0, 0]
+    assert trainer.buffers[1].held()["stage"].flatten().tolist() == [1, 1]
 
 
 def test_sampled_transition_reward_follows_the_next_learner_after_storage():
     trainer = JointTrainer(grid_task())
-    trainer._route(transitions([0, 0], [1, 0]).unsqueeze(0), [0, 0])
-    buffer, next_learner = trainer.buffers[0], trainer.learners[1]
-    first = buffer[:]
+    trainer._route(transitions([0, 0], [1, 0]).unsqueeze(0), [0], _counters(trainer))
+    transform, next_learner = trainer.transforms[0], trainer.learners[1]
+    stored = trainer.buffers[0].held()[0]
+
+    def buffer_all():  # the stored transitions as a sample reads them
+        return transform(stored.clone())
+
+    first = buffer_all()
     v1 = next_learner.value()(first["next"].select("observation").clone())["state_value"]
     assert first["next", "reward"][0].item() == pytest.approx(0.9 * v1[0].item(), rel=1e-5)
     assert first["next", "terminated"].flatten().tolist() == [True, False]
     with torch.no_grad():  # stage 1 keeps learning after the data was stored
         for p in next_learner.loss.target_value_network_params.values(True, True):
             p.add_(0.5)
-    second = buffer[:]
+    second = buffer_all()
     v1_new = next_learner.value()(first["next"].select("observation").clone())["state_value"]
     assert second["next", "reward"][0].item() == pytest.approx(0.9 * v1_new[0].item(), rel=1e-5)
     assert second["next", "reward"][0] != first["next", "reward"][0]
     assert second["next", "reward"][1].item() == 0.0  # no transition: the raw reward
-    assert buffer.storage[torch.arange(2)]["next", "reward"].flatten().tolist() == [0.0, 0.0]
+    assert stored["next", "reward"].flatten().tolist() == [0.0, 0.0]
 
 
 def test_every_stage_updates_in_one_iteration_last_stage_first(monkeypatch):
     task = grid_task(stages=3)
     trainer = JointTrainer(task)
-    stored = [0, 0, 0]
+    counters = _counters(trainer)
     for _ in range(7):  # past init_random_frames (128) in every buffer
-        trainer._route(transitions([0, 1, 2] * 20, [0, 1, 2] * 20).unsqueeze(0), stored)
+        trainer._route(transitions([0, 1, 2] * 20, [0, 1, 2] * 20).unsqueeze(0), [0], counters)
     calls = []
     for m, learner in enumerate(trainer.learners):
         monkeypatch.setattr(learner, "update", lambda batch, m=m: calls.append(m) or {})
-    trainer._update(stored, Stopwatch())
+    trainer._update([0], counters, Stopwatch())
     per_batch = int(task.stage_cfg(0).updates_per_batch)
     assert calls == [2] * per_batch + [1] * per_batch + [0] * per_batch
 
 
 def test_joint_schedule_runs_every_phase_and_updates_every_stage():
-    learners, results, phases = JointTrainer(grid_task()).train()
+    [run] = JointTrainer(grid_task()).train()
+    results, phases = run.results, run.extra["phases"]
     assert [p["start_stage"] for p in phases] == [1, 0]
     assert all(r.updates > 0 for r in results)
     assert results[1].frames > results[0].frames  # stage 1 also gets phase 0's episodes
@@ -155,7 +166,8 @@ def test_joint_schedule_trains_an_env_without_stage_starts():
     task = StagedTask(task.cfg)
     trainer = JointTrainer(task)
     assert trainer.starts == [None]  # one phase from the whole-task starts
-    learners, results, phases = trainer.train()
+    [run] = trainer.train()
+    results, phases = run.results, run.extra["phases"]
     assert len(phases) == 1 and phases[0]["start_stage"] is None
     assert all(r.updates > 0 for r in results)
     with pytest.raises(ValueError, match="stage_starts=false"):
@@ -165,7 +177,8 @@ def test_joint_schedule_trains_an_env_without_stage_starts():
 def test_flat_learner_discounts_each_transition_with_its_stage_gamma():
     task = grid_task()
     task.cfg.stages.s1.gamma = 0.99
-    learners, results = train_flat(task)
+    [run] = train_flat(task)
+    learners, results = run.learners, run.results
     assert learners[0] is learners[1] and len(results) == 1
     batch = transitions([0, 1], [0, 1])
     batch.set("steps_to_next_obs", torch.ones(2, 1))

@@ -567,7 +567,8 @@ def toy_task(overrides=None):
 
 def test_backward_schedule_learns_optimal_paths():
     task = toy_task()
-    learners, results = train_backward(task, seed=0)
+    [run] = train_backward(task, [0])
+    learners, results = run.learners, run.results
     assert [r.stage for r in results] == [0, 1]
     assert all(r.frames == 1536 for r in results)
     policy = StackedPolicy([learner.policy for learner in learners])

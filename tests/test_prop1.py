@@ -56,7 +56,8 @@ def test_merged_values_match_dynamic_programming():
             }
         )
     )
-    learners, results = train_backward(task, seed=0)
+    [run] = train_backward(task, [0])
+    learners, results = run.learners, run.results
     assert all(r.early_stopped and r.success_rate == 1.0 for r in results), results
     values = merged_value_map(task, learners)
     optimal = gridworld_optimal_values(GAMMAS, size=SIZE, num_stages=n)

@@ -1,15 +1,11 @@
-"""GatherStorage: the same samples, checkpoints and stage runs as torchrl's LazyTensorStorage."""
+"""SeedReplayBuffer: one seed's ring samples what torchrl's replay buffer samples, with wraps,
+partial fills and image entries, and a checkpoint restores it."""
 
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_stages import replay as replay_module
-from torchrl_stages import stage as stage_module
-from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
-from torchrl_stages.replay import GatherStorage
-from torchrl_stages.task import StagedTask
+from torchrl_stages.replay import SeedReplayBuffer
 
 
 def transitions(n: int) -> TensorDict:
@@ -25,83 +21,34 @@ def transitions(n: int) -> TensorDict:
     return TensorDict(data, batch_size=[n])
 
 
-def buffers(size: int) -> tuple[TensorDictReplayBuffer, TensorDictReplayBuffer]:
-    plain = TensorDictReplayBuffer(storage=LazyTensorStorage(size))
-    return plain, TensorDictReplayBuffer(storage=GatherStorage(size))
+def test_one_seed_samples_what_torchrl_samples():
+    for size, added in ((64, [40]), (16, [12, 12])):  # partly filled; wrapped around
+        reference = TensorDictReplayBuffer(storage=LazyTensorStorage(size))
+        ours = SeedReplayBuffer(size, num_seeds=1)
+        for n in added:
+            data = transitions(n)
+            reference.extend(data)
+            ours.extend(data)
+        for seed in range(3):
+            torch.manual_seed(seed)
+            expected = reference.sample(32)
+            torch.manual_seed(seed)
+            got = ours.sample(32)[0]
+            assert got.batch_size == expected.batch_size == torch.Size([32])
+            for key in got.keys(True, True):
+                assert got[key].dtype == expected[key].dtype
+                assert torch.equal(got[key], expected[key]), key
 
 
-def test_samples_equal_lazy_tensor_storage():
-    plain, gather = buffers(64)
-    for rb in (plain, gather):
-        rb.extend(transitions(40))  # partly filled: samples come from the first 40 only
-    for seed in range(3):
-        torch.manual_seed(seed)
-        expected = plain.sample(32)
-        torch.manual_seed(seed)
-        got = gather.sample(32)
-        assert got.batch_size == expected.batch_size == torch.Size([32])
-        assert got["next"].batch_size == torch.Size([32])
-        assert set(got.keys(True, True)) == set(expected.keys(True, True))
-        for key in expected.keys(True, True):
-            assert got[key].dtype == expected[key].dtype
-            assert torch.equal(got[key], expected[key]), key
-        assert int(got["index"].max()) < 40
-
-
-def test_other_indices_and_checkpoints_as_parent():
-    plain, gather = buffers(16)
-    data = transitions(20)  # wraps around
-    plain.extend(data)
-    gather.extend(data)
-    for index in (3, slice(2, 5), torch.arange(16) % 2 == 0):
-        assert (gather.storage.get(index) == plain.storage.get(index)).all()
-    restored = TensorDictReplayBuffer(storage=GatherStorage(16))
-    restored.load_state_dict(plain.state_dict())  # a checkpoint of the parent's storage
-    assert (restored.storage.get(torch.arange(16)) == plain.storage.get(torch.arange(16))).all()
-    assert len(restored) == len(plain) == 16
-
-
-def test_stage_runs_equal_with_lazy_tensor_storage(monkeypatch):
-    """A DQN stage trained on GatherStorage ends with the weights it has on torchrl's storage."""
-    stage_cfg = DQNConfig(gamma=0.9)
-    task = StagedTask(
-        OmegaConf.create(
-            {
-                "name": "grid",
-                "stages": {"a": stage_cfg, "b": stage_cfg},
-                "env": {
-                    "_target_": "torchrl_stages.envs.GridWorldEnv",
-                    "size": 10,
-                    "num_stages": 2,
-                },
-            }
-        )
-    )
-    cfg = OmegaConf.structured(
-        DQNConfig(
-            gamma=0.9,
-            frames=1024,
-            frames_per_batch=128,
-            num_envs=16,
-            batch_size=32,
-            init_random_frames=128,
-            updates_per_batch=4,
-            eval_every=256,
-        )
-    )
-
-    def train() -> dict[str, torch.Tensor]:
-        torch.manual_seed(0)
-        learner = DQNLearner(cfg, task.specs(1))
-        env = task.stage_env(1, cfg.num_envs)
-        env.set_seed(0)
-        stage_module.StageTrainer(1, learner, env, task.stage_eval_env(1), cfg).train()
-        return learner.state_dict()
-
-    gathered = train()
-    # the stage loop's buffers are built by replay.stage_replay_buffer
-    monkeypatch.setattr(replay_module, "GatherStorage", LazyTensorStorage)
-    plain = train()
-    assert gathered.keys() == plain.keys()
-    for key in plain:
-        assert torch.equal(gathered[key], plain[key]), key
+def test_a_checkpoint_restores_the_rings():
+    ours = SeedReplayBuffer(16, num_seeds=2)
+    ours.extend(transitions(20))  # each seed's ring: 10 transitions
+    ours.extend(transitions(5), seeds=torch.tensor([1, 1, 1, 1, 1]))
+    restored = SeedReplayBuffer(16, num_seeds=2)
+    restored.load_state_dict(ours.state_dict())
+    assert restored.counts.tolist() == ours.counts.tolist() == [10, 15]
+    assert (restored.held() == ours.held()).all()
+    torch.manual_seed(0)
+    expected = ours.sample(8)
+    torch.manual_seed(0)
+    assert (restored.sample(8) == expected).all()

@@ -23,6 +23,7 @@ from torchrl.data import Bounded, Categorical
 from torchrl_stages import loop as loop_module
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError
+from torchrl_stages.early_stop import SeedRow
 from torchrl_stages.learners import StageSpecs, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
 from torchrl_stages.learners.discrete_sac import DiscreteSACConfig
@@ -40,21 +41,19 @@ from torchrl_stages.learners.stacking import (
 )
 from torchrl_stages.learners.td3 import TD3Config
 from torchrl_stages.loggers import RunLogger
-from torchrl_stages.loop import MetricsLog
+from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.rundir import load_run
 from torchrl_stages.schedules import flat as flat_module
-from torchrl_stages.schedules.backward import train_backward_seeds
+from torchrl_stages.schedules.backward import train_backward
 from torchrl_stages.schedules.joint import (
     JointSchedule,
     JointTrainer,
-    SeedsJointTrainer,
     seed_moments,
-    train_joint_seeds,
+    train_joint,
 )
 from torchrl_stages.seed_runs import SeedRuns, validate_seeds
-from torchrl_stages.seed_stage import SeedRow
 from torchrl_stages.task import StagedTask, tile_starts
 
 # a 1 x 6 x 6 occupancy image and a 2-vector, like the cargo stages' window and target
@@ -417,7 +416,7 @@ def test_an_interrupted_stage_of_many_seeds_resumes_bitwise_from_its_checkpoint(
         def checkpoints(scope):
             return StageCheckpoints(root / f"stage_{scope}", every=256, keep=2)
 
-        return train_backward_seeds(_tiny_task(), seeds, logs=logs, checkpoints=checkpoints)
+        return train_backward(_tiny_task(), seeds, logs=logs, checkpoints=checkpoints)
 
     reference = launch(tmp_path / "reference")
     stages = [[(r.frames, r.early_stopped) for r in run.results] for run in reference]
@@ -456,7 +455,7 @@ def _logged(caplog) -> list[str]:
 def test_away_from_a_terminal_each_seed_s_evaluations_log_lines_naming_it(monkeypatch, caplog):
     monkeypatch.setattr(sys, "stderr", io.StringIO())  # not a terminal: lines, not a bar
     caplog.set_level(logging.INFO, logger="torchrl_stages")
-    train_backward_seeds(_tiny_task(frames=256), [3, 5], progress=True)
+    train_backward(_tiny_task(frames=256), [3, 5], progress=True)
     shown = [line.split(", success")[0] for line in _logged(caplog)]
     assert shown == [
         f"seed {seed}: stage {k} ({name}): {frames} of 256 frames"
@@ -472,7 +471,7 @@ def test_the_joint_phases_of_stacked_seeds_log_the_seeds_still_training(monkeypa
     # from then on only seed 1's evaluations are logged, until the next phase
     monkeypatch.setattr(sys, "stderr", io.StringIO())
     caplog.set_level(logging.INFO, logger="torchrl_stages")
-    train_joint_seeds(_tiny_task(frames=1024), [1, 2], progress=True)
+    train_joint(_tiny_task(frames=1024), [1, 2], progress=True)
     phase_1 = [line for line in _logged(caplog) if "the joint phase from stage 1 (b)" in line]
     seeds = [line.split(":")[0] for line in phase_1]
     assert seeds == ["seed 1", "seed 2"] * 6 + ["seed 1"] * 2
@@ -542,19 +541,18 @@ def test_each_flat_seed_starts_from_the_weights_of_its_own_flat_run(monkeypatch)
 
         return trainer
 
-    monkeypatch.setattr(flat_module, "SeedsStageTrainer", capture("stacked"))
-    monkeypatch.setattr(flat_module, "StageTrainer", capture("single"))
+    monkeypatch.setattr(flat_module, "StageTrainer", capture("trainer"))
     with pytest.raises(_Captured):
-        flat_module.train_flat_seeds(task, [4, 1])
-    stacked, env, eval_env, kwargs = seen["stacked"]
+        flat_module.train_flat(task, [4, 1])
+    stacked, env, eval_env, kwargs = seen["trainer"]
     assert kwargs["gammas"] == [0.9, 0.5] and kwargs["extra_keys"] == ["steps_to_next_obs"]
     single_env = flat_module.flat_envs(task, flat_module.flat_config(task), 4)[0]
     assert env.batch_size[0] == 2 * single_env.batch_size[0]
     assert eval_env.batch_size[0] == 2 * task.task_env(None).batch_size[0]
     for i, seed in enumerate([4, 1]):
         with pytest.raises(_Captured):
-            flat_module.train_flat(task, seed=seed)
-        single = seen["single"][0].state_dict()
+            flat_module.train_flat(task, [seed])
+        single = seen["trainer"][0].state_dict()
         row = unstack_learner(
             stacked, i, make_learner(flat_module.flat_config(task), task.specs(0))
         )
@@ -613,7 +611,7 @@ def test_an_interrupted_flat_run_of_many_seeds_resumes_bitwise_from_its_checkpoi
         def checkpoints(scope):
             return StageCheckpoints(root / f"stage_{scope}", every=256, keep=2)
 
-        return flat_module.train_flat_seeds(task, seeds, logs=logs, checkpoints=checkpoints)
+        return flat_module.train_flat(task, seeds, logs=logs, checkpoints=checkpoints)
 
     reference = launch(tmp_path / "reference")
     interrupted = tmp_path / "interrupted"
@@ -642,13 +640,13 @@ def test_image_inputs_train_in_one_process(compose_cfg, tmp_path):
 
 def test_each_joint_seed_starts_from_the_weights_of_its_own_joint_run():
     task = _tiny_task()
-    trainer = SeedsJointTrainer(task, [4, 1])
+    trainer = JointTrainer(task, [4, 1])
     assert trainer.buffers[0].num_seeds == 2
     assert trainer._env(1, 16).batch_size == (32,)  # one copy of each batch per seed
     starts = JointTrainer(task)._env(1, 8, eval_env=True).batch_size[0]  # every stage-1 start
     assert trainer._env(1, 8, eval_env=True).batch_size[0] == 2 * starts
     for i, seed in enumerate([4, 1]):
-        single = JointTrainer(task, seed=seed).learners
+        single = JointTrainer(task, [seed]).learners
         for m, learner in enumerate(single):
             row = unstack_learner(
                 trainer.learners[m], i, make_learner(task.stage_cfg(m), task.specs(m))
@@ -689,7 +687,7 @@ def test_an_interrupted_joint_run_of_many_seeds_resumes_bitwise_from_its_checkpo
         def checkpoints(scope):
             return StageCheckpoints(root / scope, every=256, keep=2)
 
-        return train_joint_seeds(task, seeds, logs=logs, checkpoints=checkpoints)
+        return train_joint(task, seeds, logs=logs, checkpoints=checkpoints)
 
     reference = launch(tmp_path / "reference")
     stops = [[(p["frames"], p["early_stopped"]) for p in run.extra["phases"]] for run in reference]

@@ -4,8 +4,8 @@ import torch
 from omegaconf import OmegaConf
 from torch import nn
 
+from torchrl_stages.early_stop import EarlyStop
 from torchrl_stages.learners.dqn import DQNConfig
-from torchrl_stages.loop import EarlyStop
 
 
 def _cfg(**kw):

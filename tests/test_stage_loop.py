@@ -16,6 +16,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from torchrl_stages.early_stop import Evaluation
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.ddpg import DDPGLearner
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
@@ -102,9 +103,10 @@ def _script(trainer: StageTrainer, learner: FakeLearner, evals, monkeypatch) -> 
     calls: list[dict] = []
     it = iter(evals)
 
-    def evaluate(frames: int):
+    def evaluate(frames: int, active=None) -> Evaluation:
         calls.append({"frames": frames, "weight": learner.weight.item()})
-        return next(it)
+        success, value_error, ret = next(it)
+        return Evaluation([success], [value_error], [ret], [frames], [learner.num_updates])
 
     monkeypatch.setattr(trainer, "evaluate", evaluate)
     return calls
@@ -113,7 +115,7 @@ def _script(trainer: StageTrainer, learner: FakeLearner, evals, monkeypatch) -> 
 def test_no_update_before_init_random_frames():
     cfg = _cfg(frames=1024, init_random_frames=256, updates_per_batch=3)
     trainer, learner = _trainer(cfg)
-    result = trainer.train()
+    [(_, result)] = trainer.train()
     batches = list(range(128, 1024 + 1, 128))
     assert learner.annealed == batches
     assert result.frames == 1024
@@ -161,7 +163,7 @@ def _minibatches(cls, cfg, per_update: bool) -> list:
 
 def _same(a: list, b: list) -> bool:
     pairs = zip(a, b, strict=False)
-    return len(a) == len(b) and all(torch.equal(x["index"], y["index"]) for x, y in pairs)
+    return len(a) == len(b) and all(bool((x == y).all()) for x, y in pairs)
 
 
 def test_one_draw_per_batch_gives_the_minibatches_of_a_draw_per_update():
@@ -175,7 +177,7 @@ def test_one_draw_per_batch_gives_the_minibatches_of_a_draw_per_update():
     assert _same(one_draw, reference)
     for a, b in zip(one_draw, reference, strict=True):
         assert torch.equal(a["next", "observation"], b["next", "observation"])
-    assert len({tuple(b["index"].tolist()) for b in one_draw}) == len(one_draw)
+    assert len({tuple(b["observation"].flatten().tolist()) for b in one_draw}) == len(one_draw)
 
 
 def test_one_draw_per_batch_would_change_the_minibatches_of_an_update_that_draws():
@@ -211,7 +213,7 @@ def test_early_stop_breaks_at_the_evaluation_that_meets_the_criterion(monkeypatc
         (1.0, 0.1, 0.5),  # 640: a streak of 2 after min_frames: stop here
     ] + [(0.0, 1.0, 0.0)] * 20
     calls = _script(trainer, learner, evals, monkeypatch)
-    result = trainer.train()
+    [(_, result)] = trainer.train()
     assert [c["frames"] for c in calls] == [384, 512, 640]
     assert result.frames == 640 and result.early_stopped
     assert not result.restored_best
@@ -234,7 +236,7 @@ def test_value_tolerance_is_part_of_the_early_stop(monkeypatch):
     trainer, learner = _trainer(cfg)
     evals = [(1.0, 0.2, 0.0), (1.0, 0.06, 0.0), (1.0, 0.04, 0.0), (1.0, 0.0, 0.0)]
     calls = _script(trainer, learner, evals, monkeypatch)
-    result = trainer.train()
+    [(_, result)] = trainer.train()
     assert [c["frames"] for c in calls] == [256, 512, 768]
     assert result.frames == 768 and result.early_stopped
 
@@ -315,7 +317,7 @@ def _budget_cfg(**kw):
 def test_budget_exhausted_restores_the_best_evaluated_weights(monkeypatch):
     trainer, learner = _trainer(_budget_cfg())
     calls = _script(trainer, learner, EVALS, monkeypatch)
-    result = trainer.train()
+    [(_, result)] = trainer.train()
     assert len(calls) == len(EVALS) and result.frames == 768
     assert not result.early_stopped and result.restored_best
     assert learner.weight.item() == calls[2]["weight"] == 6.0
@@ -327,7 +329,7 @@ def test_budget_exhausted_restores_the_best_evaluated_weights(monkeypatch):
 def test_keep_best_off_keeps_the_last_weights(monkeypatch):
     trainer, learner = _trainer(_budget_cfg(keep_best=False))
     calls = _script(trainer, learner, EVALS, monkeypatch)
-    result = trainer.train()
+    [(_, result)] = trainer.train()
     assert not result.restored_best and not result.early_stopped
     assert learner.weight.item() == calls[-1]["weight"] == 12.0
     assert (result.success_rate, result.value_error) == (0.9, 0.0)
@@ -344,7 +346,7 @@ def test_updates_after_the_best_last_evaluation_are_undone(monkeypatch):
     )
     trainer, learner = _trainer(cfg)
     calls = _script(trainer, learner, [(0.5, 0.1, 0.0), (1.0, 0.0, 0.0)], monkeypatch)
-    result = trainer.train()
+    [(_, result)] = trainer.train()
     assert [c["frames"] for c in calls] == [256, 512]  # 128 frames of updates after the best
     assert (result.success_rate, result.value_error) == (1.0, 0.0)
     assert learner.weight.item() == calls[-1]["weight"]  # the weights that were evaluated
@@ -359,7 +361,12 @@ def test_evaluate_runs_the_greedy_policy_from_every_start():
     with torch.no_grad():
         learner.weight.fill_(2.0)  # V(s) = 2 everywhere
     trainer = StageTrainer(1, learner, task.stage_env(1, NUM_ENVS), task.stage_eval_env(1), cfg)
-    success, value_error, ret = trainer.evaluate(0)
+    evaluation = trainer.evaluate(0)
+    [success], [value_error], [ret] = (
+        evaluation.success,
+        evaluation.value_error,
+        evaluation.discounted_return,
+    )
     rows, cols = torch.meshgrid(torch.arange(SIZE), torch.arange(5, SIZE), indexing="ij")
     steps = (SIZE - 1 - rows) + (SIZE - 1 - cols)  # right, then down
     returns = 0.9 ** (steps[steps > 0] - 1.0)  # reward 1 on entering the target
@@ -400,7 +407,8 @@ def test_train_backward_hands_a_frozen_target_value_to_the_previous_stage(monkey
     monkeypatch.setattr(StagedTask, "stage_env", spy_env)
     monkeypatch.setattr(StagedTask, "stage_eval_env", spy_eval_env)
     task = _task(_tiny_dqn())
-    learners, results = train_backward(task, seed=0)
+    [run] = train_backward(task, [0])
+    learners, results = run.learners, run.results
     assert [r.frames for r in results] == [256, 256]
     assert [(kind, stage) for kind, stage, _, _ in calls if kind != "inner"] == [
         ("train", 1),
@@ -442,9 +450,10 @@ def test_train_stage_is_the_stage_of_a_backward_run():
     # a stage trained alone, given the next stage's value, is that stage of a whole run with the
     # same seed (what scripts/benchmark_stage.py relies on): the same weights and result
     task = _task(dataclasses.replace(_tiny_dqn(), eval_every=128))
-    learners, results = train_backward(task, seed=5)
-    last, last_result = train_stage(task, 1, seed=5)
-    first, first_result = train_stage(task, 0, learners[1].value(), seed=5)
+    [run] = train_backward(task, [5])
+    learners, results = run.learners, run.results
+    [(last, last_result)] = train_stage(task, 1, seeds=[5])
+    [(first, first_result)] = train_stage(task, 0, learners[1].value(), seeds=[5])
     for alone, result, k in ((first, first_result, 0), (last, last_result, 1)):
         assert result.success_rate is not None  # evaluated: its eval env's seed matters too
         assert (result.frames, result.updates, result.success_rate, result.value_error) == (
@@ -455,10 +464,10 @@ def test_train_stage_is_the_stage_of_a_backward_run():
         )
         whole = learners[k].state_dict()
         assert all(torch.equal(v, whole[key]) for key, v in alone.state_dict().items())
-    other, _ = train_stage(task, 1, seed=6)
+    [(other, _)] = train_stage(task, 1, seeds=[6])
     assert not all(torch.equal(v, last.state_dict()[key]) for key, v in other.state_dict().items())
     with pytest.raises(ValueError, match="pass next_value"):
-        train_stage(task, 0, seed=5)
+        train_stage(task, 0, seeds=[5])
 
 
 @pytest.mark.parametrize("gammas", ["homo", "hetero"])

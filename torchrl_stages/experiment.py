@@ -20,6 +20,7 @@ from hydra.errors import InstantiationException
 from omegaconf import DictConfig, open_dict
 
 from torchrl_stages.config import apply_all_stages, expand_stage_template
+from torchrl_stages.failures import DivergenceError
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import Observer, StopRun, make_logger
 from torchrl_stages.preemption import Interrupted, check, handle_signals
@@ -33,7 +34,6 @@ from torchrl_stages.rundir import (
     config_differences,
 )
 from torchrl_stages.schedules import Trained, get_schedule
-from torchrl_stages.stage import DivergenceError
 from torchrl_stages.stage_store import StageReuse
 from torchrl_stages.task import StagedTask
 from torchrl_stages.tasks import EVAL_SEED_OFFSET, evaluate_run, probe_task
@@ -293,8 +293,14 @@ class Experiment:
 
     def _run(self) -> dict[str, Any]:
         store = self.start()
-        schedule = store.schedule
-        trained = schedule.train(self.task, store, **self._train_kwargs())
+        [trained] = store.schedule.train(
+            self.task,
+            [int(self.cfg.seed)],
+            stores=[store],
+            logs=[store.log],
+            checkpoints=store.checkpoints,
+            **self._train_kwargs(),
+        )
         return self.finish(trained, store)
 
     def start(self) -> RunStore:
@@ -324,12 +330,7 @@ class Experiment:
 
     def _train_kwargs(self) -> dict[str, Any]:
         cfg, start = self.cfg, self._start
-        kwargs = {
-            "seed": int(cfg.seed),
-            "logger": self.logger,
-            "progress": cfg.progress,
-            "compile": compile_mode(cfg),
-        }
+        kwargs = {"progress": bool(cfg.progress), "compile": compile_mode(cfg)}
         if kwargs["compile"] != "off":
             # compiled code starts fresh in every run: the jobs of a sweep run one after another
             # in one process, and their learners' recompiles would add up to Dynamo's limit

@@ -11,7 +11,7 @@ from torchrl.record.loggers import Logger
 
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.learners import Learner
-from torchrl_stages.loop import MetricsLog
+from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.rundir import RunDir, load_stage
 from torchrl_stages.schedules import Schedule
 from torchrl_stages.stage import StageResult
@@ -100,21 +100,20 @@ class RunStore:
         self._log(logging.INFO, "stage %d (%s): reused from %s", stage, name, where)
         return learner, result
 
-    def begin(self, scope: int | str) -> StageCheckpoints:
-        """The checkpoints of ``scope`` (a stage, or ``"joint"``). Without one to resume from,
-        the logs are rewound to where the loop started: the position stage ``scope + 1``'s
-        file recorded (a backward stage starts where the stage after it ended), else the
-        start."""
-        checkpoints = self.run.checkpoints(scope, self.checkpoint_every, self.checkpoint_keep)
-        if self.resuming and checkpoints.latest() is None:
-            later = None
-            if isinstance(scope, int) and scope + 1 < self.task.num_stages:
-                later = self.run.read_stage(scope + 1)
-            self.log.rewind({} if later is None else later.get("log", {}))
-        elif self.resuming:
-            where = f"stage {scope}" if isinstance(scope, int) else scope
-            self._log(logging.INFO, "%s: resuming from %s", where, checkpoints.latest())
-        return checkpoints
+    def checkpoints(self, scope: int | str) -> StageCheckpoints:
+        """The checkpoints of ``scope`` (a stage, or ``"joint"``) in the run directory."""
+        return self.run.checkpoints(scope, self.checkpoint_every, self.checkpoint_keep)
+
+    def begin(self, scope: int | str) -> None:
+        """The loop ``scope`` starts afresh: a resumed run's logs are rewound to where it
+        starts, the position stage ``scope + 1``'s file recorded (a backward stage starts
+        where the stage after it ended), else the start."""
+        if not self.resuming:
+            return
+        later = None
+        if isinstance(scope, int) and scope + 1 < self.task.num_stages:
+            later = self.run.read_stage(scope + 1)
+        self.log.rewind({} if later is None else later.get("log", {}))
 
     def save(self, stage: int, learner: Learner, result: StageResult) -> None:
         """Writes ``stage_<k>.pt`` (with the log position) and drops the stage's checkpoints."""

@@ -21,13 +21,19 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError, apply_all_stages, check
-from torchrl_stages.experiment import Experiment, build_task, one_line, with_env_stages
+from torchrl_stages.experiment import (
+    Experiment,
+    build_task,
+    compile_mode,
+    one_line,
+    with_env_stages,
+)
+from torchrl_stages.failures import DivergenceError
 from torchrl_stages.learners import make_learner
 from torchrl_stages.loggers import StopRun
 from torchrl_stages.preemption import Interrupted, handle_signals
 from torchrl_stages.rundir import refuse_links
 from torchrl_stages.schedules import SCHEDULES, get_schedule
-from torchrl_stages.stage import DivergenceError
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import hold_threads
 
@@ -190,13 +196,14 @@ class SeedRuns:
                     for seed, experiment in zip(self.seeds, experiments, strict=True):
                         stores.append(experiment.start())
                         stores[-1].seed = seed  # its log lines name it
-                    trained = stores[0].schedule.train_seeds(
+                    trained = stores[0].schedule.train(
                         experiments[0].task,
                         self.seeds,
                         stores=stores,
                         logs=[store.log for store in stores],
-                        progress=bool(cfg.progress),
                         checkpoints=self._checkpoints(),
+                        progress=bool(cfg.progress),
+                        compile=compile_mode(cfg),
                     )
                     self._drop_checkpoints(every=False)
                     for run in trained:  # eval.json: its wall-clock is that of all of them

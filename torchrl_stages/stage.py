@@ -1,9 +1,22 @@
-"""One stage's training (:class:`StageTrainer`: the loop of :mod:`torchrl_stages.loop` over a
-stage's collector, replay buffer and learner), what it returns and how it fails."""
+"""One stage's training for any number of seeds (:class:`StageTrainer`: the
+:class:`~torchrl_stages.loop.Trainer` over a stage's collector, replay buffer and learner) and
+what it returns (:class:`StageResult`).
+
+One seed is the ordinary case: an ordinary learner is one row. Several seeds train at once as
+one seed-stacked learner (:mod:`~torchrl_stages.learners.stacking`), one env holding
+``num_envs`` copies per seed and one replay storage with a ring per seed
+(:class:`~torchrl_stages.replay.SeedReplayBuffer`). Every seed keeps what a run of its own
+keeps: its initial weights, its replay contents, its evaluations, its early stop (a seed that
+stops keeps the weights it stopped with while the others train on, and is left out of their
+updates: :func:`~torchrl_stages.learners.stacking.update_rows`), its best weights and its
+metrics. The env's random streams are shared by the seeds, so a seed's run among others is a
+draw from the same distribution as its run alone, not the same bits.
+"""
 
 from __future__ import annotations
 
 import functools
+import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -12,102 +25,26 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
-from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase
-from torchrl.record.loggers import Logger
 
-from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.checkpoint import StageCheckpoints, StateOf
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
-from torchrl_stages.evaluate import evaluate_greedy
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, first_evaluation, seed_rows
+from torchrl_stages.evaluate import evaluate_greedy_groups
+from torchrl_stages.failures import stage_failure
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
-from torchrl_stages.loop import (
-    EarlyStop,
-    MetricsLog,
-    Stopwatch,
-    can_stop_early,
-    first_evaluation,
-    loop_state,
-    resume_latest,
-    run_loop,
-)
-from torchrl_stages.replay import stage_replay_buffer
+from torchrl_stages.learners.stacking import unstack_learner, update_rows
+from torchrl_stages.loop import LoopCounters, Stopwatch, Trainer, can_stop_early
+from torchrl_stages.metrics import MetricsLog, SeedLogs
+from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.threads import keep_threads
-from torchrl_stages.transforms import NonFiniteInputError, NonFiniteValueError
+from torchrl_stages.transforms import NonFiniteValueError
 
+__all__ = ["StageResult", "StageTrainer", "per_seed_metrics"]
 
-class EnvError(RuntimeError):
-    """The env returned a NaN or infinite observation or reward: the env's fault, not the
-    learner's. The message names the entry and the stage.
-
-    Attributes:
-        stage: the stage whose training found it.
-        key: the env's entry that is not finite.
-    """
-
-    def __init__(self, stage: int, name: str, key: NestedKey, cause: str = "") -> None:
-        where = f" ({cause})" if cause else ""
-        super().__init__(
-            f"stage {stage} ({name}): the env returned a non-finite {key!r}{where}. Nothing "
-            f"of stage {stage} was saved. Fix: the env's step/reset must return finite "
-            "observations and rewards (check it with torchrl's check_env_specs and a rollout)"
-        )
-        self.stage, self.key = stage, key
-
-
-def non_finite_entries(td: TensorDictBase, skip: Sequence[NestedKey] = ()) -> list[NestedKey]:
-    """The floating-point entries of ``td`` holding a NaN or an infinity (``skip`` aside).
-
-    Examples:
-        >>> from tensordict import TensorDict
-        >>> td = TensorDict(obs=torch.tensor([[0.0, float("nan")]]), action=torch.ones(1, 1),
-        ...                 batch_size=[1])
-        >>> non_finite_entries(td)
-        ['obs']
-    """
-    skip_keys = {(k,) if isinstance(k, str) else tuple(k) for k in skip}
-    found = []
-    for key, value in td.items(True, True):
-        tup = (key,) if isinstance(key, str) else tuple(key)
-        if tup in skip_keys or tup[-1:] in skip_keys or not value.is_floating_point():
-            continue
-        if not bool(torch.isfinite(value).all()):
-            found.append(key)
-    return found
-
-
-def stage_failure(
-    err: FloatingPointError, stage: int, name: str, learner: Learner, buffer: ReplayBuffer
-) -> RuntimeError:
-    """The error a non-finite loss, gradient or value becomes: :class:`EnvError` when the
-    env's own data (the transitions in the stage's ``buffer``, its actions aside) holds the NaN
-    or infinity, else :class:`DivergenceError`."""
-    if isinstance(err, NonFiniteInputError):
-        return EnvError(stage, name, err.key, "the next stage's value of it is not finite")
-    stored = buffer.storage[: len(buffer)] if len(buffer) else None
-    bad = non_finite_entries(stored, skip=[learner.specs.action_key]) if stored is not None else []
-    if bad:
-        return EnvError(stage, name, bad[0], f"found in the replay buffer after: {err}")
-    return DivergenceError(stage, name, learner, err)
-
-
-class DivergenceError(RuntimeError):
-    """A stage's training produced a NaN or infinite loss, gradient or parameter, or got a
-    non-finite transition value from the next stage.
-
-    The message names the stage, its algorithm, what was not finite and where; nothing of the
-    stage has been saved.
-    """
-
-    def __init__(self, stage: int, name: str, learner: Learner, cause: FloatingPointError) -> None:
-        key = f"task.stages.{name}"
-        rates = " or ".join(f"{key}.{k}" for k in learner.lr_keys)
-        super().__init__(
-            f"stage {stage} ({name}, {learner.algo}) diverged: {cause}. Nothing of stage "
-            f"{stage} was saved. Fix: lower {rates}, or set {key}.max_grad_norm"
-        )
-        self.stage = stage
+log = logging.getLogger("torchrl_stages")
 
 
 @dataclass
@@ -129,19 +66,54 @@ class StageResult:
     discounted_return: float | None = None
 
 
+def per_seed_metrics(
+    metrics: dict[str, torch.Tensor], rows: torch.Tensor | None, n: int
+) -> dict[str, torch.Tensor]:
+    """An update's metrics with one entry per seed (``[n]``): an ordinary learner's scalars
+    as one, and those computed for ``rows`` alone placed in their rows (NaN in the others).
+
+    Examples:
+        >>> per_seed_metrics({"loss": torch.tensor(0.5)}, None, 1)["loss"]
+        tensor([0.5000])
+        >>> per_seed_metrics({"loss": torch.tensor([0.5])}, torch.tensor([1]), 2)["loss"]
+        tensor([   nan, 0.5000])
+    """
+    out = {}
+    for key, value in metrics.items():
+        if value.ndim == 0:
+            value = value.reshape(1)
+        elif rows is not None and value.shape[0] == rows.numel() != n:
+            value = value.new_full((n,), float("nan")).index_copy_(0, rows, value)
+        out[key] = value
+    return out
+
+
+def loss_means(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, list[float]]:
+    """Each loss entry's mean over a batch's updates, per seed (an entry some updates leave
+    out, such as TD3's delayed actor loss: over the others)."""
+    keys = dict.fromkeys(k for loss in losses for k in loss)
+    return {
+        k: torch.stack([loss[k] for loss in losses if k in loss]).mean(0).tolist() for k in keys
+    }
+
+
 class StageTrainer:
-    """Trains stage ``stage``: collector -> replay buffer -> learner updates -> evaluation.
+    """Trains stage ``stage`` for every seed of ``learner`` (an ordinary learner: one seed).
 
     ``env`` is the stage's training env (starts inside the stage, transitions terminal, rewards
-    rewritten by :class:`~torchrl_stages.transforms.StageTransform`); ``eval_env`` is the same
-    kind of env used for greedy evaluations and the early stop on ``cfg.success_threshold``.
-    With ``checkpoints`` the loop saves a checkpoint every ``checkpoints.every`` frames and
-    starts from the newest one on disk, so that an interrupted stage goes on exactly where it
-    stopped (the logger's files are rewound with it when it has ``position``/``rewind``).
-    ``gammas`` (one per stage) makes evaluations compare values with the stage-discounted
-    return; ``postproc`` transforms each collected batch and ``extra_keys`` are stored with
-    what the loss reads (the flat schedule's per-transition discounts); ``on_evaluate(frames)``
-    runs after every evaluation.
+    rewritten by :class:`~torchrl_stages.transforms.StageTransform`) and ``eval_env`` the same
+    kind of env for greedy evaluations and the early stop on ``cfg.success_threshold``; each
+    holds one copy of its batch per seed, seed-major (:meth:`~torchrl_stages.task.StagedTask.
+    stage_env` with ``copies``). ``cfg``'s frames, batches and evaluation periods are per seed.
+    ``logs`` (one :class:`~torchrl_stages.metrics.MetricsLog` per seed) receive each seed's
+    metrics; ``seeds`` name the seeds in messages. With ``checkpoints`` the loop saves every
+    ``checkpoints.every`` frames and goes on from the newest checkpoint on disk, the logs
+    rewound with it, so an interrupted stage goes on exactly where it stopped. ``gammas`` (one
+    per stage) makes evaluations compare values with the stage-discounted return; ``postproc``
+    transforms each collected batch and ``extra_keys`` are stored with what the loss reads
+    (the flat schedule's per-transition discounts); ``on_evaluate(frames)`` runs after every
+    evaluation. :meth:`train` returns each seed's ordinary learner (``make_learner()`` builds
+    an empty one to take a seed's row out of a stacked learner) and result.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -156,8 +128,8 @@ class StageTrainer:
         ...                                      init_random_frames=64, eval_every=0))
         >>> learner = DQNLearner(cfg, task.specs(1))
         >>> trainer = StageTrainer(1, learner, task.stage_env(1, 8), task.stage_env(1, 8), cfg)
-        >>> trainer.train().frames  # doctest: +SKIP
-        512
+        >>> [result.frames for _, result in trainer.train()]  # doctest: +SKIP
+        [512]
     """
 
     def __init__(
@@ -168,112 +140,36 @@ class StageTrainer:
         eval_env: EnvBase,
         cfg: StageConfig,
         *,
-        logger: Logger | None = None,
-        progress: bool = False,
+        logs: Sequence[MetricsLog] | None = None,
+        make_learner: Callable[[], Learner] | None = None,
         name: str | None = None,
+        progress: bool = False,
+        seeds: Sequence[int] | None = None,
         checkpoints: StageCheckpoints | None = None,
         gammas: Sequence[float] | None = None,
         postproc: Callable[[TensorDictBase], TensorDictBase] | None = None,
         extra_keys: Sequence[NestedKey] = (),
         on_evaluate: Callable[[int], None] | None = None,
     ) -> None:
-        self.on_evaluate = on_evaluate
-        self.gammas = gammas
-        self.postproc = postproc
-        self.keys = list(dict.fromkeys([*learner.replay_keys, *extra_keys]))
-        self.stage = stage
-        self.learner = learner
-        self.env = env
-        self.eval_env = eval_env
-        self.cfg = cfg
-        self.log = MetricsLog(logger)
-        self.progress = progress
+        self.stage, self.learner, self.env, self.eval_env, self.cfg = (
+            stage,
+            learner,
+            env,
+            eval_env,
+            cfg,
+        )
+        self.n = int(learner.seeds or 1)
+        logs = list(logs) if logs is not None else [MetricsLog(None) for _ in range(self.n)]
+        if len(logs) != self.n:
+            raise ValueError(f"{len(logs)} logs for {self.n} seeds")
+        self.logs = SeedLogs(logs)
+        self.make_learner = make_learner
+        self.seeds = list(seeds) if seeds is not None else list(range(self.n))
         self.name = name or str(stage)
+        self.progress, self.checkpoints = progress, checkpoints
+        self.gammas, self.postproc, self.on_evaluate = gammas, postproc, on_evaluate
+        self.keys = list(dict.fromkeys([*learner.replay_keys, *extra_keys]))
         self.prefix = f"train/stage_{stage}"
-        self.checkpoints = checkpoints
-
-    def train(self) -> StageResult:
-        cfg, learner = self.cfg, self.learner
-        collector = StageCollector(
-            self.env,
-            learner.exploration_policy,
-            frames_per_batch=cfg.frames_per_batch,
-            total_frames=cfg.frames,
-            init_random_frames=cfg.init_random_frames,
-        )
-        # one draw for all of a batch's gradient steps, split per step: on CPU the same indices
-        # as a draw per step (the sampler's randint stream is the same) unless the update itself
-        # draws random numbers in between (TD3's target smoothing); one storage read, not n
-        steps = int(cfg.updates_per_batch)
-        draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
-        buffer = stage_replay_buffer(cfg.buffer_size, learner.device)
-        monitor = EarlyStop(cfg)
-        counters = {"next_eval": first_evaluation(cfg), "seconds": 0.0, "log": {}}
-        state = loop_state(learner, buffer, collector, self.eval_env, monitor, counters)
-        resume_latest(self.checkpoints, state, self.log)
-        start = time.perf_counter() - counters["seconds"]
-        watch = Stopwatch()
-
-        def learn(batch: TensorDictBase, frames: int) -> list[dict[str, torch.Tensor]]:
-            with watch("collect"):
-                if self.postproc is not None:
-                    batch = self.postproc(batch)
-                buffer.extend(batch.reshape(-1).select(*self.keys, strict=False))
-            learner.anneal(frames)
-            losses = []
-            if frames >= cfg.init_random_frames:
-                for _ in range(draws):
-                    with watch("sample"):
-                        drawn = buffer.sample(cfg.batch_size * per_draw)
-                        samples = drawn.split(cfg.batch_size)
-                    for sample in samples:
-                        with watch("update"):
-                            keep_threads()
-                            losses.append(learner.update(sample))
-                learner.check_finite()
-            return losses
-
-        def evaluate() -> tuple[float, float, float]:
-            frames = collector.frames
-            result = self.evaluate(frames)
-            if self.on_evaluate is not None:
-                self.on_evaluate(frames)
-            return result
-
-        try:
-            run_loop(
-                collector,
-                learn=learn,
-                log_batch=lambda batch, losses: self._log_batch(batch, losses, collector.frames),
-                evaluate=evaluate,
-                early_stop=monitor,
-                model=learner,
-                eval_every=int(cfg.eval_every),
-                counters=counters,
-                checkpoints=self.checkpoints,
-                state=state,
-                clock=(counters, start, self.log),
-                where=f"stage {self.stage} ({self.name})",
-                watch=watch,
-                progress=self.progress,
-                open_ended=can_stop_early(cfg),
-            )
-        except (NonFiniteError, NonFiniteValueError) as err:
-            raise stage_failure(err, self.stage, self.name, learner, buffer) from err
-        restored = monitor.restore_best(learner)
-        success, value_error = monitor.final
-        return StageResult(
-            self.stage,
-            collector.frames,
-            learner.num_updates,
-            time.perf_counter() - start,
-            success,
-            value_error,
-            monitor.stopped,
-            restored,
-            dict(watch.seconds),
-            monitor.final_return,
-        )
 
     @functools.cached_property
     def _value(self) -> TensorDictModuleBase:
@@ -281,8 +177,107 @@ class StageTrainer:
         once instead of copied at every evaluation."""
         return self.learner.value(live=True)
 
-    def evaluate(self, frames: int) -> tuple[float, float, float]:
-        """Greedy episodes from the evaluation env's starts; logs and returns three numbers.
+    def train(self) -> list[tuple[Learner, StageResult]]:
+        cfg, learner, n = self.cfg, self.learner, self.n
+        collector = StageCollector(
+            self.env,
+            learner.exploration_policy,
+            frames_per_batch=int(cfg.frames_per_batch) * n,
+            total_frames=int(cfg.frames) * n,
+            init_random_frames=int(cfg.init_random_frames) * n,
+        )
+        buffer = SeedReplayBuffer(int(cfg.buffer_size), num_seeds=n, device=learner.device)
+        stops = SeedEarlyStops(cfg, seed_rows(learner))
+        counters = LoopCounters(next_eval=first_evaluation(cfg))
+        state = {
+            "learner": StateOf(learner.checkpoint, learner.load_checkpoint),
+            "replay_buffer": buffer,
+            "collector": collector,
+            "eval_env": getattr(self.eval_env, "base_env", self.eval_env),
+            "monitor": stops,
+            "counters": counters,
+        }
+        latest = self.checkpoints.latest() if self.checkpoints is not None else None
+        if latest is not None:
+            self.checkpoints.load(latest, state)
+            self.logs.rewind(counters.log)
+            log.info("stage %d (%s): resuming from %s", self.stage, self.name, latest)
+        start = stops.start = time.perf_counter() - counters.seconds
+        watch = Stopwatch()
+        loop = Trainer(
+            collector,
+            stops,
+            counters,
+            eval_every=int(cfg.eval_every),
+            checkpoints=self.checkpoints,
+            state=state,
+            seeds=n,
+            where=f"stage {self.stage} ({self.name})",
+            watch=watch,
+            progress=self.progress,
+            open_ended=can_stop_early(cfg),
+            seed_names=self.seeds,
+        )
+        loop.register_op("batch", functools.partial(self._store, buffer, watch))
+        loop.register_op("update", functools.partial(self._update, buffer, stops, watch))
+        loop.register_op(
+            "log", lambda batch, losses: self._log_batch(batch, losses, collector, stops.active())
+        )
+        loop.register_op("evaluate", functools.partial(self.evaluate, active=stops.active))
+        if self.on_evaluate is not None:
+            loop.register_op("evaluated", lambda ev: self.on_evaluate(collector.frames // n))
+        loop.register_op("checkpoint", lambda: self._record(counters, start))
+        try:
+            loop.train()
+        except (NonFiniteError, NonFiniteValueError) as err:
+            raise stage_failure(
+                err, self.stage, self.name, learner, buffer.held(), stops.rows, self.seeds
+            ) from err
+        return [self._result(i, stops, collector, start, watch) for i in range(n)]
+
+    def _record(self, counters: LoopCounters, start: float) -> None:
+        counters.seconds = time.perf_counter() - start
+        counters.log = self.logs.position()
+
+    def _store(self, buffer: SeedReplayBuffer, watch: Stopwatch, batch: TensorDictBase) -> None:
+        with watch("collect"):
+            if self.postproc is not None:
+                batch = self.postproc(batch)
+            buffer.extend(batch.select(*self.keys, strict=False))
+
+    def _update(
+        self, buffer: SeedReplayBuffer, stops: SeedEarlyStops, watch: Stopwatch, frames: int
+    ) -> list[dict[str, torch.Tensor]]:
+        """The gradient steps of a batch, for the seeds that have not stopped (a stopped seed's
+        row gets no gradient; its stopped weights are restored at the end). One draw for all
+        of a batch's steps, split per step: on CPU the same indices as a draw per step (the
+        randint stream is the same) unless the update itself draws random numbers in between
+        (TD3's target smoothing); one storage read, not one per step."""
+        cfg, learner, n = self.cfg, self.learner, self.n
+        learner.anneal(frames)
+        losses: list[dict[str, torch.Tensor]] = []
+        if frames < cfg.init_random_frames:
+            return losses
+        steps = int(cfg.updates_per_batch)
+        draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
+        active = stops.active()
+        rows = None if len(active) == n else torch.tensor(active, device=learner.device)
+        for _ in range(draws):
+            with watch("sample"):
+                drawn = buffer.sample(int(cfg.batch_size) * per_draw, rows)
+                if learner.seeds is None:  # an ordinary learner reads [batch] samples
+                    drawn = drawn[0]
+                samples = drawn.split(int(cfg.batch_size), dim=-1)
+            for sample in samples:
+                with watch("update"), update_rows(rows):
+                    keep_threads()
+                    losses.append(per_seed_metrics(learner.update(sample), rows, n))
+        learner.check_finite()
+        return losses
+
+    def evaluate(self, frames: int, active: Callable[[], list[int]] | None = None) -> Evaluation:
+        """Greedy episodes from the evaluation env's starts, for each seed (the ``active`` ones
+        log theirs under ``eval/stage_<k>/``).
 
         ``success_rate``: episodes that leave the stage or end the task solved
         (:func:`~torchrl_stages.evaluate.ended_well`: terminated, or the env's success flag)
@@ -292,22 +287,64 @@ class StageTrainer:
         handed to the previous stage have converged. ``discounted_return``: the mean of those
         returns, the stage's objective.
         """
-        cfg = self.cfg
+        cfg, n = self.cfg, self.n
         max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
-        summary = evaluate_greedy(
+        summaries = evaluate_greedy_groups(
             self.eval_env,
             self.learner.policy,
             self._value,
             max_steps,
             self.gammas or float(cfg.gamma),
             cfg.value_error_reduce,
+            groups=n,
         )
-        self.log({f"eval/stage_{self.stage}/{k}": v for k, v in summary.items()}, frames)
-        return summary["success_rate"], summary["value_error"], summary["discounted_return"]
+        for i in active() if active is not None else range(n):
+            self.logs[i](
+                {f"eval/stage_{self.stage}/{k}": v for k, v in summaries[i].items()}, frames
+            )
+        return Evaluation(
+            [s["success_rate"] for s in summaries],
+            [s["value_error"] for s in summaries],
+            [s["discounted_return"] for s in summaries],
+            [frames] * n,
+            [self.learner.num_updates] * n,
+        )
 
-    def _log_batch(self, batch, losses: list[dict[str, torch.Tensor]], frames: int) -> None:
-        if self.log.logger is None:
+    def _log_batch(
+        self, batch: TensorDictBase, losses: list[dict], collector, active: list[int]
+    ) -> None:
+        if self.logs.silent:
             return
-        metrics = {**MetricsLog.episodes(batch), **MetricsLog.losses(losses)}
-        metrics["updates"] = self.learner.num_updates
-        self.log({f"{self.prefix}/{k}": v for k, v in metrics.items()}, frames)
+        n, frames = self.n, collector.frames // self.n
+        episodes = MetricsLog.episodes_by_row(batch.reshape(n, -1))
+        means = loss_means(losses)
+        for i in active:
+            metrics = {**episodes[i], **{k: v[i] for k, v in means.items()}}
+            metrics["updates"] = self.learner.num_updates
+            self.logs[i]({f"{self.prefix}/{k}": v for k, v in metrics.items()}, frames)
+
+    def _result(
+        self, i: int, stops: SeedEarlyStops, collector, start: float, watch: Stopwatch
+    ) -> tuple[Learner, StageResult]:
+        """Seed ``i``'s learner (its weights put back: those it stopped with, or its best) and
+        result."""
+        at, early = stops.stopped_at[i], stops.monitors[i]
+        restored = stops.finish(i)
+        success, value_error = early.final
+        result = StageResult(
+            self.stage,
+            collector.frames // self.n if at is None else at["frames"],
+            self.learner.num_updates if at is None else at["updates"],
+            time.perf_counter() - start if at is None else at["seconds"],
+            success,
+            value_error,
+            early.stopped,
+            restored,
+            dict(watch.seconds),
+            early.final_return,
+        )
+        if self.learner.seeds is None:
+            return self.learner, result
+        plain = unstack_learner(self.learner, i, self.make_learner())
+        plain.num_updates = result.updates
+        return plain, result

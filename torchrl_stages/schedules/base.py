@@ -24,6 +24,8 @@ from torchrl_stages.task import StagedTask
 
 __all__ = [
     "SCHEDULES",
+    "begin_loop",
+    "finished_for_every_seed",
     "Probe",
     "Schedule",
     "StageStore",
@@ -46,9 +48,10 @@ class StageStore(Protocol):
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
         """The stage if it was already trained (a resumed run), else ``None``."""
 
-    def begin(self, scope: int | str) -> StageCheckpoints | None:
-        """The checkpoints a stage's loop (``scope``: its index, or a name such as
-        ``"joint"`` for a loop over every stage) saves to and resumes from."""
+    def begin(self, scope: int | str) -> None:
+        """A loop (``scope``: a stage's index, or a name such as ``"joint"`` for a loop over
+        every stage) starts afresh: the logs are rewound to where it starts (a resumed run
+        drops the rows of an attempt that was interrupted)."""
 
     def save(self, stage: int, learner: Learner, result: StageResult) -> None:
         """Keeps a stage that just finished."""
@@ -91,21 +94,18 @@ class Schedule:
     #: whether a stage is determined by its own config and the stages after it alone, so that
     #: a finished one can be reused by another run (``stage_store``, ``init_from``)
     reuses_stages: ClassVar[bool] = False
-    #: whether :meth:`train_seeds` trains several seeds in one process (``seeds=[...]``)
+    #: whether :meth:`train` trains several seeds in one process (``seeds=[...]``)
     stacks_seeds: ClassVar[bool] = False
 
-    def train(self, task: StagedTask, store: StageStore | None = None, **kwargs: Any) -> Trained:
-        """Trains (what is left of) ``task``'s stages. ``kwargs``: ``seed``, ``logger``,
-        ``progress``, ``probe``, ``compile``."""
+    def train(self, task: StagedTask, seeds: Sequence[int] = (0,), **kwargs: Any) -> list[Trained]:
+        """Trains (what is left of) ``task``'s stages for every seed of ``seeds`` at once
+        (several: their networks stacked, see :mod:`torchrl_stages.stage`); one
+        :class:`Trained` per seed. ``kwargs``: ``stores`` and ``logs`` (one per seed: where
+        each seed's stages are kept and its metrics logged), ``checkpoints`` (a checkpoint
+        scope (:meth:`checkpoint_scope`) -> its
+        :class:`~torchrl_stages.checkpoint.StageCheckpoints`, one state for all the seeds),
+        ``progress``, ``probe`` (one seed) and ``compile``."""
         raise NotImplementedError
-
-    def train_seeds(self, task: StagedTask, seeds: Sequence[int], **kwargs: Any) -> list[Trained]:
-        """Trains ``task`` for every seed of ``seeds`` at once, their networks stacked (see
-        :mod:`torchrl_stages.seed_stage`); one :class:`Trained` per seed. ``kwargs``:
-        ``stores`` and ``logs`` (one per seed), ``progress``, and ``checkpoints``: the
-        :class:`~torchrl_stages.checkpoint.StageCheckpoints` of a checkpoint scope
-        (:meth:`checkpoint_scope`), one state for all the seeds."""
-        raise NotImplementedError(f"schedule {self.name} does not train seeds in one process")
 
     def frozen_stages(self, finished: set[int], num_stages: int) -> set[int]:
         """The stages whose config a resumed run may not change, given the ``finished`` ones:
@@ -129,6 +129,39 @@ class Schedule:
 
     def validate_task(self, cfg: DictConfig, task: StagedTask) -> None:
         """Checks the built task (:class:`ConfigError`)."""
+
+
+def finished_for_every_seed(
+    stores: Sequence[StageStore | None], seeds: Sequence[int], stage: int, resume: str
+) -> list[tuple[Learner, StageResult]] | None:
+    """Each seed's finished ``stage`` (``store.finished(stage)``) when every seed's store has
+    it, ``None`` when none has; a ``RuntimeError`` naming the seeds and the fix (``resume``: the
+    command that resumes one seed's run directory) when only some have."""
+    done = [store.finished(stage) if store is not None else None for store in stores]
+    if all(d is None for d in done):
+        return None
+    missing = [s for s, d in zip(seeds, done, strict=True) if d is None]
+    if missing:
+        raise RuntimeError(
+            f"stage {stage}: finished for some seeds but not for seeds {missing}; Fix: resume "
+            f"those seeds' run directories one by one ({resume})"
+        )
+    return done
+
+
+def begin_loop(
+    stores: Sequence[StageStore | None],
+    checkpoints: Callable[[int | str], StageCheckpoints] | None,
+    scope: int | str,
+) -> StageCheckpoints | None:
+    """The checkpoints of the loop ``scope`` (none without ``checkpoints``); without one to go
+    on from, each seed's store starts the loop afresh (:meth:`StageStore.begin`)."""
+    scoped = checkpoints(scope) if checkpoints is not None else None
+    if scoped is None or scoped.latest() is None:
+        for store in stores:
+            if store is not None:
+                store.begin(scope)
+    return scoped
 
 
 #: registered schedules by name

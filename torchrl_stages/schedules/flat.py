@@ -6,24 +6,25 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import torch
 from omegaconf import DictConfig
 from torchrl.envs import EnvBase
-from torchrl.record.loggers import Logger
 
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import check
 from torchrl_stages.learners import Learner, make_learner
-from torchrl_stages.loop import MetricsLog
-from torchrl_stages.schedules.base import Probe, Schedule, StageStore, Trained, register_schedule
-from torchrl_stages.seed_stage import (
-    SeedsStageTrainer,
+from torchrl_stages.metrics import MetricsLog
+from torchrl_stages.schedules.backward import keep_stage
+from torchrl_stages.schedules.base import (
+    Probe,
+    Schedule,
+    StageStore,
+    Trained,
+    begin_loop,
     finished_for_every_seed,
-    seed_stacked_learner,
-    start_stage_logs,
-    train_and_keep,
+    register_schedule,
 )
-from torchrl_stages.stage import StageResult, StageTrainer
+from torchrl_stages.seeding import EVAL_OFFSET, seeded, stage_seed
+from torchrl_stages.stage import StageTrainer
 from torchrl_stages.task import StagedTask
 from torchrl_stages.transforms import StageDiscount
 
@@ -37,21 +38,25 @@ def flat_config(task: StagedTask) -> DictConfig:
 
 def train_flat(
     task: StagedTask,
+    seeds: Sequence[int] = (0,),
     *,
-    seed: int = 0,
-    logger: Logger | None = None,
+    stores: Sequence[StageStore | None] | None = None,
+    logs: Sequence[MetricsLog] | None = None,
+    checkpoints: Callable[[int | str], StageCheckpoints] | None = None,
     progress: bool = False,
-    store: StageStore | None = None,
     probe: Probe | None = None,
     compile: str = "off",
-) -> tuple[list[Learner], list[StageResult]]:
-    """One learner over the whole task, no stages (the paper's end-to-end baseline).
+) -> list[Trained]:
+    """One learner over the whole task, no stages (the paper's end-to-end baseline), for every
+    seed of ``seeds`` at once.
 
     It has stage 0's algorithm and hyper-parameters and the sum of the stages' budgets, starts
     from the task's own starts, and discounts every transition with the gamma of its stage
     (:class:`~torchrl_stages.transforms.StageDiscount`), so it optimizes the objective the
-    stacked learners do. Its evaluations are whole-task episodes. Returns the learner once per
-    stage (it acts everywhere) and its one result.
+    stacked learners do. Its evaluations are whole-task episodes. Each seed's
+    :class:`~torchrl_stages.schedules.Trained` holds its learner once per stage (it acts
+    everywhere) and its one result; ``stores``, ``logs``, ``checkpoints`` and ``probe`` as in
+    :func:`~torchrl_stages.schedules.backward.train_backward`.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -64,33 +69,46 @@ def train_flat(
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
         ...             "num_stages": 2},
         ... }))
-        >>> learners, results = train_flat(task)  # doctest: +SKIP
-        >>> learners[0] is learners[1], results[0].frames  # doctest: +SKIP
+        >>> [run] = train_flat(task)  # doctest: +SKIP
+        >>> run.learners[0] is run.learners[1], run.results[0].frames  # doctest: +SKIP
         (True, 512)
     """
-    done = store.finished(0) if store is not None else None
-    if done is not None:
-        return [done[0]] * task.num_stages, [done[1]]
-    cfg = flat_config(task)
-    env, eval_env = flat_envs(task, cfg, seed)
-    learner = make_learner(cfg, task.specs(0), compile, task.device)
-    trainer = StageTrainer(
-        0,
-        learner,
-        env,
-        eval_env,
-        cfg,
-        logger=logger,
-        progress=progress,
-        name="flat",
-        checkpoints=store.begin(0) if store is not None else None,
-        on_evaluate=None if probe is None else lambda f: probe([learner] * task.num_stages, f),
-        **stage_discounts(task, cfg),
-    )
-    result = trainer.train()
-    if store is not None:
-        store.save(0, learner, result)
-    return [learner] * task.num_stages, [result]
+    n = len(seeds)
+    stores = list(stores) if stores is not None else [None] * n
+    resume = "stages-train schedule=flat seed=<s> resume=true hydra.run.dir=<its directory>"
+    done = finished_for_every_seed(stores, seeds, 0, resume)
+    if done is None:
+        cfg, specs = flat_config(task), task.specs(0)
+
+        def make(seeds: int | None = None) -> Learner:
+            return make_learner(cfg, specs, compile, task.device, seeds=seeds)
+
+        learner, (env, eval_env) = seeded(
+            make, seeds, 0, lambda: flat_envs(task, cfg, seeds[0], copies=n)
+        )
+        on_evaluate = None
+        if probe is not None:
+
+            def on_evaluate(frames: int) -> None:
+                probe([learner] * task.num_stages, frames)
+
+        trainer = StageTrainer(
+            0,
+            learner,
+            env,
+            eval_env,
+            cfg,
+            logs=logs,
+            make_learner=make,
+            name="flat",
+            progress=progress,
+            seeds=seeds,
+            checkpoints=begin_loop(stores, checkpoints, 0),
+            on_evaluate=on_evaluate,
+            **stage_discounts(task, cfg),
+        )
+        done = keep_stage(trainer, stores)
+    return [Trained([learner] * task.num_stages, [result]) for learner, result in done]
 
 
 def flat_envs(
@@ -98,14 +116,12 @@ def flat_envs(
 ) -> tuple[EnvBase, EnvBase]:
     """The flat learner's training env (the task's own starts) and evaluation env (every
     whole-task start, else ``eval_episodes``), ``copies`` of each (one per seed of a stacked
-    learner), seeded as a flat run is: the global generator and the training env with
-    ``seed``, the evaluation env with ``seed + 10_000``."""
-    torch.manual_seed(seed)
+    learner), seeded as a flat run's are (:mod:`~torchrl_stages.seeding`, stage 0)."""
     env = task.task_env(int(cfg.num_envs), start_stage=None, train=True, copies=copies)
-    env.set_seed(seed)
+    env.set_seed(stage_seed(seed, 0))
     episodes = None if task.start_states(None) is not None else int(cfg.eval_episodes)
     eval_env = task.task_env(episodes, copies=copies)
-    eval_env.set_seed(seed + 10_000)
+    eval_env.set_seed(stage_seed(seed, 0) + EVAL_OFFSET)
     return env, eval_env
 
 
@@ -120,55 +136,6 @@ def stage_discounts(task: StagedTask, cfg: DictConfig) -> dict[str, Any]:
     }
 
 
-def train_flat_seeds(
-    task: StagedTask,
-    seeds: Sequence[int],
-    *,
-    stores: Sequence[StageStore | None] | None = None,
-    logs: Sequence[MetricsLog] | None = None,
-    progress: bool = False,
-    checkpoints: Callable[[int], StageCheckpoints] | None = None,
-) -> list[Trained]:
-    """:func:`train_flat` for every seed of ``seeds`` at once, their learners stacked
-    (:class:`~torchrl_stages.seed_stage.SeedsStageTrainer`); ``stores``, ``logs`` and
-    ``checkpoints`` as in :func:`~torchrl_stages.schedules.backward.train_backward_seeds`.
-    Seed ``s`` starts from the weights of a flat run with seed ``s``."""
-    n = len(seeds)
-    stores = list(stores) if stores is not None else [None] * n
-    logs = list(logs) if logs is not None else [MetricsLog(None) for _ in range(n)]
-    resume = "stages-train schedule=flat seed=<s> resume=true hydra.run.dir=<its directory>"
-    if (done := finished_for_every_seed(stores, seeds, 0, resume)) is not None:
-        return [Trained([learner] * task.num_stages, [result]) for learner, result in done]
-    cfg, specs = flat_config(task), task.specs(0)
-
-    def plain(seeds: int | None = None) -> Learner:
-        return make_learner(cfg, specs, device=task.device, seeds=seeds)
-
-    joint = checkpoints(0) if checkpoints is not None else None
-    start_stage_logs(stores, joint, 0)
-    # flat_envs seeds the generator with the seed before a flat run builds its learner
-    stacked = seed_stacked_learner(plain, seeds)
-    env, eval_env = flat_envs(task, cfg, seeds[0], copies=n)
-    trainer = SeedsStageTrainer(
-        0,
-        stacked,
-        env,
-        eval_env,
-        cfg,
-        logs=logs,
-        make_learner=plain,
-        name="flat",
-        progress=progress,
-        seeds=seeds,
-        checkpoints=joint,
-        **stage_discounts(task, cfg),
-    )
-    return [
-        Trained([learner] * task.num_stages, [result])
-        for learner, result in train_and_keep(trainer, stores)
-    ]
-
-
 @register_schedule
 class FlatSchedule(Schedule):
     """``schedule=flat`` (:func:`train_flat`): one learner, stage 0's file and checkpoints,
@@ -177,11 +144,8 @@ class FlatSchedule(Schedule):
     name = "flat"
     stacks_seeds = True
 
-    def train(self, task: StagedTask, store: StageStore | None = None, **kwargs) -> Trained:
-        return Trained(*train_flat(task, store=store, **kwargs))
-
-    def train_seeds(self, task: StagedTask, seeds: Sequence[int], **kwargs) -> list[Trained]:
-        return train_flat_seeds(task, seeds, **kwargs)
+    def train(self, task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
+        return train_flat(task, seeds, **kwargs)
 
     def checkpoint_scope(self, stage: int) -> int:
         return 0

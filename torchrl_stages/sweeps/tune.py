@@ -42,10 +42,10 @@ from torchrl_stages.config import (
     stage_keys_set,
 )
 from torchrl_stages.experiment import Experiment, one_line, with_env_stages
+from torchrl_stages.failures import DivergenceError, EnvError
 from torchrl_stages.loggers import StopRun
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.rundir import RunDir, RunDirError
-from torchrl_stages.stage import DivergenceError, EnvError
 from torchrl_stages.store import config_group_options
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.tasks import format_summary

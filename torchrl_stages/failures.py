@@ -1,0 +1,101 @@
+"""How a stage's training fails: the env's data is not finite (:class:`EnvError`), or the
+learner diverged (:class:`DivergenceError`); :func:`stage_failure` tells one from the other."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+
+from torchrl_stages.early_stop import finite
+from torchrl_stages.learners import Learner
+from torchrl_stages.transforms import NonFiniteInputError
+
+__all__ = ["DivergenceError", "EnvError", "non_finite_entries", "stage_failure"]
+
+
+class EnvError(RuntimeError):
+    """The env returned a NaN or infinite observation or reward: the env's fault, not the
+    learner's. The message names the entry and the stage.
+
+    Attributes:
+        stage: the stage whose training found it.
+        key: the env's entry that is not finite.
+    """
+
+    def __init__(self, stage: int, name: str, key: NestedKey, cause: str = "") -> None:
+        where = f" ({cause})" if cause else ""
+        super().__init__(
+            f"stage {stage} ({name}): the env returned a non-finite {key!r}{where}. Nothing "
+            f"of stage {stage} was saved. Fix: the env's step/reset must return finite "
+            "observations and rewards (check it with torchrl's check_env_specs and a rollout)"
+        )
+        self.stage, self.key = stage, key
+
+
+def non_finite_entries(td: TensorDictBase, skip: Sequence[NestedKey] = ()) -> list[NestedKey]:
+    """The floating-point entries of ``td`` holding a NaN or an infinity (``skip`` aside).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict(obs=torch.tensor([[0.0, float("nan")]]), action=torch.ones(1, 1),
+        ...                 batch_size=[1])
+        >>> non_finite_entries(td)
+        ['obs']
+    """
+    skip_keys = {(k,) if isinstance(k, str) else tuple(k) for k in skip}
+    found = []
+    for key, value in td.items(True, True):
+        tup = (key,) if isinstance(key, str) else tuple(key)
+        if tup in skip_keys or tup[-1:] in skip_keys or not value.is_floating_point():
+            continue
+        if not bool(torch.isfinite(value).all()):
+            found.append(key)
+    return found
+
+
+def stage_failure(
+    err: FloatingPointError,
+    stage: int,
+    name: str,
+    learner: Learner,
+    held: TensorDictBase | None,
+    rows: Sequence[Any] = (),
+    seeds: Sequence[int] = (),
+) -> RuntimeError:
+    """The error a non-finite loss, gradient or value becomes: :class:`EnvError` when the
+    env's own data (``held``: the transitions in the stage's replay buffer, its actions aside)
+    holds the NaN or infinity, else :class:`DivergenceError`, naming the ``seeds`` whose
+    ``rows`` (:class:`~torchrl_stages.early_stop.SeedRow`) are no longer finite when there
+    are several."""
+    if isinstance(err, NonFiniteInputError):
+        return EnvError(stage, name, err.key, "the next stage's value of it is not finite")
+    bad = non_finite_entries(held, skip=[learner.specs.action_key]) if held is not None else []
+    if bad:
+        return EnvError(stage, name, bad[0], f"found in the replay buffer after: {err}")
+    if len(seeds) > 1:
+        broken = [s for s, row in zip(seeds, rows, strict=True) if not finite(row.state_dict())]
+        if broken:
+            err = FloatingPointError(f"{err} (seeds {broken}: their weights are not finite)")
+    return DivergenceError(stage, name, learner, err)
+
+
+class DivergenceError(RuntimeError):
+    """A stage's training produced a NaN or infinite loss, gradient or parameter, or got a
+    non-finite transition value from the next stage.
+
+    The message names the stage, its algorithm, what was not finite and where; nothing of the
+    stage has been saved.
+    """
+
+    def __init__(self, stage: int, name: str, learner: Learner, cause: FloatingPointError) -> None:
+        key = f"task.stages.{name}"
+        rates = " or ".join(f"{key}.{k}" for k in learner.lr_keys)
+        super().__init__(
+            f"stage {stage} ({name}, {learner.algo}) diverged: {cause}. Nothing of stage "
+            f"{stage} was saved. Fix: lower {rates}, or set {key}.max_grad_norm"
+        )
+        self.stage = stage

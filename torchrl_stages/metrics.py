@@ -1,0 +1,121 @@
+"""A run's metrics as its loops log them: :class:`MetricsLog` (one seed's scalars, to a torchrl
+logger, with the position and rewind a resumed loop needs) and :class:`SeedLogs` (one per seed
+of a loop, as one)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.record.loggers import Logger
+
+from torchrl_stages.evaluate import ended_well
+
+__all__ = ["MetricsLog", "SeedLogs"]
+
+
+class MetricsLog:
+    """A loop's metrics: scalars to a torchrl ``logger`` (none: dropped), and the logger's
+    position and rewind where it has them (:class:`~torchrl_stages.loggers.CSVMetricsLogger`),
+    so that a resumed loop drops the rows of an interrupted attempt. Each call's scalars are
+    then shown together to the logger's observers, where it has them
+    (:data:`~torchrl_stages.loggers.Observer`: an observer may end the run).
+
+    Examples:
+        >>> log = MetricsLog(None)
+        >>> log({"train/stage_0/loss": 0.5}, step=128)
+        >>> log.position()
+        {}
+    """
+
+    def __init__(self, logger: Logger | None) -> None:
+        self.logger = logger
+
+    def __call__(self, metrics: dict[str, float | None], step: int) -> None:
+        if self.logger is None:
+            return
+        logged = {key: value for key, value in metrics.items() if value is not None}
+        for key, value in logged.items():
+            self.logger.log_scalar(key, value, step=step)
+        notify = getattr(self.logger, "notify", None)
+        if notify is not None:
+            notify(logged, step)
+
+    def position(self) -> dict[str, int]:
+        position = getattr(self.logger, "position", None)
+        return position() if position is not None else {}
+
+    def rewind(self, position: dict[str, int]) -> None:
+        rewind = getattr(self.logger, "rewind", None)
+        if rewind is not None:
+            rewind(position)
+
+    @staticmethod
+    def episodes(batch: TensorDictBase) -> dict[str, float]:
+        """``episode_return`` and ``episode_success`` of the episodes a batch ended."""
+        return MetricsLog.episodes_by_row(batch.reshape(1, -1))[0]
+
+    @staticmethod
+    def episodes_by_row(batch: TensorDictBase) -> list[dict[str, float]]:
+        """:meth:`episodes` of each row of a ``[rows, ...]`` batch (one row per seed), read
+        back from the device at once.
+
+        Examples:
+            >>> from tensordict import TensorDict
+            >>> done = torch.tensor([[True, False], [False, False]]).unsqueeze(-1)
+            >>> batch = TensorDict({"next": {"done": done, "terminated": done,
+            ...     "episode_reward": torch.tensor([[[2.0], [5.0]], [[1.0], [1.0]]])}}, [2, 2])
+            >>> MetricsLog.episodes_by_row(batch)
+            [{'episode_return': 2.0, 'episode_success': 1.0}, {}]
+        """
+        rows = batch.shape[0]
+        done = batch["next", "done"].reshape(rows, -1)
+        ended = done.to(torch.float64)
+        returns = batch["next", "episode_reward"].reshape(rows, -1).to(torch.float64) * ended
+        success = (ended_well(batch).reshape(rows, -1) & done).to(torch.float64)
+        counts, totals, wins = torch.stack([ended.sum(1), returns.sum(1), success.sum(1)]).tolist()
+        return [
+            {"episode_return": total / count, "episode_success": win / count} if count else {}
+            for count, total, win in zip(counts, totals, wins, strict=True)
+        ]
+
+    @staticmethod
+    def losses(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, float]:
+        """Each loss entry's mean over a batch's updates."""
+        keys = dict.fromkeys(k for loss in losses for k in loss)
+        return {
+            k: torch.stack([loss[k] for loss in losses if k in loss]).mean().item() for k in keys
+        }
+
+
+class SeedLogs:
+    """The logs of a loop's seeds (one :class:`MetricsLog` each) as one, for a checkpoint:
+    their positions, and their rewind.
+
+    Examples:
+        >>> logs = SeedLogs([MetricsLog(None), MetricsLog(None)])
+        >>> logs.position()
+        {'0': {}, '1': {}}
+    """
+
+    def __init__(self, logs: Sequence[MetricsLog]) -> None:
+        self.logs = list(logs)
+
+    def __getitem__(self, seed: int) -> MetricsLog:
+        return self.logs[seed]
+
+    def __len__(self) -> int:
+        return len(self.logs)
+
+    @property
+    def silent(self) -> bool:
+        """Whether no seed's log has a logger (nothing logged is kept)."""
+        return all(log.logger is None for log in self.logs)
+
+    def position(self) -> dict[str, dict[str, int]]:
+        return {str(i): log.position() for i, log in enumerate(self.logs)}
+
+    def rewind(self, position: dict[str, dict[str, int]]) -> None:
+        for i, log in enumerate(self.logs):
+            log.rewind(position.get(str(i), {}))
