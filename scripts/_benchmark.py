@@ -106,7 +106,8 @@ def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespac
 def train(task: str, run_dir: Path, *overrides: str) -> dict[str, Any]:
     """Trains and evaluates one run in ``run_dir`` (CSV logger); returns its ``eval.json``."""
     cfg = compose_config(task, "logger=csv", *overrides)
-    return Experiment(cfg, run_dir).run()
+    [result] = Experiment(cfg, run_dir).run()
+    return result
 
 
 def checkpoint_share(result: dict[str, Any]) -> str:

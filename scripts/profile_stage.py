@@ -66,7 +66,7 @@ def profile(task: str, compile: str, threads: int | None, overrides: list[str], 
 
         RunStore.begin = begin_hook
         start = time.perf_counter()
-        result = experiment.run()
+        [result] = experiment.run()
         total = time.perf_counter() - start
     finally:
         FusedSoftUpdate.step = step

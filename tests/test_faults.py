@@ -43,7 +43,7 @@ def compose(*overrides: str):
 
 def train(run_dir: Path, *overrides: str, **kwargs) -> dict:
     cfg = compose(*overrides)  # .hydra/config.yaml as stages-train writes it
-    return Experiment(cfg, run_dir, hydra_files={"config.yaml": cfg}, **kwargs).run()
+    return Experiment(cfg, run_dir, hydra_files={"config.yaml": cfg}, **kwargs).run()[0]
 
 
 @pytest.fixture(scope="module")

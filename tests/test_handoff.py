@@ -121,9 +121,9 @@ def test_a_run_reports_its_handoffs_and_warns_where_the_value_is_extrapolated(tm
         "progress=false",
     ]
     with hydra_config(*base) as compose:
-        covered = Experiment(compose(), tmp_path / "covered").run()
+        [covered] = Experiment(compose(), tmp_path / "covered").run()
         with caplog.at_level(logging.WARNING):
-            missed = Experiment(
+            [missed] = Experiment(
                 compose("+task.env.stage_start_rows=[6,10]"), tmp_path / "missed"
             ).run()
     (ok,), (bad,) = covered["handoff"], missed["handoff"]

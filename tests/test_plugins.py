@@ -145,7 +145,7 @@ def test_target_value_dispatches_through_the_registry():
 def test_your_own_learner_trains_a_stage_and_loads_with_trust(tmp_path, monkeypatch):
     own = ["+task.stages.s0.learner._target_=my_learner.TinyQLearner"]
     cfg = compose(*own, "+task.stages.s0.learner.hidden=16", "task.stages.s0.frames=512")
-    result = Experiment(cfg, tmp_path / "run").run()
+    [result] = Experiment(cfg, tmp_path / "run").run()
     assert result["training"]["stages"][0]["frames"] == 512
     assert result["training"]["stages"][0]["updates"] > 0
     with pytest.raises(RunDirError, match=r"task\.stages\.s0\.learner\._target_"):
@@ -186,7 +186,7 @@ def test_sac_and_discrete_sac_train_cargos_stages_from_one_override_each(tmp_pat
             "eval.plots=false",
             "progress=false",
         )
-    result = Experiment(cfg, tmp_path / "run").run()
+    [result] = Experiment(cfg, tmp_path / "run").run()
     assert [s["updates"] > 0 for s in result["training"]["stages"]] == [True, True]
     run = load_run(tmp_path / "run")
     assert [learner.algo for learner in run.learners] == ["sac", "discrete_sac"]

@@ -75,7 +75,7 @@ def test_a_schedule_of_your_own_trains_through_the_registry(tmp_path):
     try:
         with hydra_config() as compose:
             cfg = compose(*tiny_grid(), "schedule.name=counting")
-        result = Experiment(cfg, tmp_path / "run").run()
+        [result] = Experiment(cfg, tmp_path / "run").run()
     finally:
         SCHEDULES.pop("counting")
     assert calls == [2] and result["training"]["schedule"] == "counting"
@@ -89,7 +89,7 @@ def test_a_task_report_of_your_own_reaches_eval_json(tmp_path):
     try:
         with hydra_config() as compose:
             cfg = compose(*tiny_grid(), "task.name=grid_mine")
-        result = Experiment(cfg, tmp_path / "run").run()
+        [result] = Experiment(cfg, tmp_path / "run").run()
     finally:
         TASKS.pop("grid_mine")
     assert result["task_metrics"] == {"stages": 2, "note": "mine"}

@@ -24,6 +24,7 @@ from torchrl_stages import loop as loop_module
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError
 from torchrl_stages.early_stop import SeedRow
+from torchrl_stages.experiment import Experiment, validate_seeds
 from torchrl_stages.learners import StageSpecs, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
 from torchrl_stages.learners.discrete_sac import DiscreteSACConfig
@@ -53,7 +54,6 @@ from torchrl_stages.schedules.joint import (
     seed_moments,
     train_joint,
 )
-from torchrl_stages.seed_runs import SeedRuns, validate_seeds
 from torchrl_stages.task import StagedTask, tile_starts
 
 # a 1 x 6 x 6 occupancy image and a 2-vector, like the cargo stages' window and target
@@ -481,10 +481,10 @@ def test_the_joint_phases_of_stacked_seeds_log_the_seeds_still_training(monkeypa
 
 
 def _two_seeds_in_one_process(compose_cfg, tmp_path, *overrides: str) -> list[dict]:
-    """``SeedRuns`` of seeds 0 and 1 in ``tmp_path / "run"``, smoke budget: each seed's
+    """An ``Experiment`` of seeds 0 and 1 in ``tmp_path / "run"``, smoke budget: each seed's
     ``eval.json``."""
     quiet = ["experiment=smoke", "seeds=[0,1]", "eval.plots=false", "progress=false"]
-    return SeedRuns(compose_cfg(*overrides, *quiet), tmp_path / "run").run()
+    return Experiment(compose_cfg(*overrides, *quiet), tmp_path / "run").run()
 
 
 def test_td3_seeds_train_in_one_process(compose_cfg, tmp_path):

@@ -40,7 +40,7 @@ def compose(*overrides: str):
 
 
 def train(run_dir: Path, *overrides: str) -> dict:
-    return Experiment(compose(*overrides), run_dir).run()
+    return Experiment(compose(*overrides), run_dir).run()[0]
 
 
 def weights(run_dir: Path, stage: int) -> dict[str, torch.Tensor]:

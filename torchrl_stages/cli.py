@@ -30,12 +30,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import apply_all_stages, objective_value, stage_keys_set
-from torchrl_stages.experiment import Experiment, one_line
-from torchrl_stages.failures import DivergenceError, EnvError
+from torchrl_stages.experiment import Experiment, seed_dir
+from torchrl_stages.failures import DivergenceError, EnvError, one_line
 from torchrl_stages.gym_env import SuccessKeyError
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
-from torchrl_stages.seed_runs import SeedRuns, seed_dir
 from torchrl_stages.stage_store import SharedStageStore, StageEntry, StoreError
 from torchrl_stages.store import register_configs
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
@@ -82,10 +81,8 @@ def _train_app(cfg: DictConfig) -> float:
             validate_sweeper(HydraConfig.get().sweeper, cfg)
         # all_stages (experiment=smoke) in every stage, but not over a stage's own override
         cfg = apply_all_stages(cfg, keep=stage_keys_set(HydraConfig.get().overrides.task))
-        if cfg.get("seeds") is not None:  # several seeds in one process, one directory each
-            experiment = SeedRuns(cfg, run_dir, hydra_files=_hydra_files(cfg))
-        else:
-            experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
+        # seeds=[...]: several seeds in one process, one directory each
+        experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
     except RunDirError as err:  # the directory holds another run (or process): touch nothing
         _fail(run_dir, "refused", str(err), EXIT_INVALID, write_status=False)
     except ConfigError as err:
@@ -95,7 +92,7 @@ def _train_app(cfg: DictConfig) -> float:
     except OSError as err:
         _fail(run_dir, "refused", _cannot_write(err, run_dir), EXIT_INVALID, write_status=False)
     try:  # how a run that does not finish ended is in its status.json (Experiment.run)
-        result = experiment.run()
+        results = experiment.run()
     except Interrupted as err:
         print(
             f"stages-train: {err}; what it needs to continue is written. Fix: continue it with "
@@ -114,16 +111,14 @@ def _train_app(cfg: DictConfig) -> float:
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
         _fail(run_dir, "failed", one_line(err), EXIT_FAILED, write_status=False)
-    if isinstance(experiment, SeedRuns):
-        for seed, seed_result in zip(experiment.seeds, result, strict=True):
-            print(format_summary(seed_result, seed_dir(run_dir, seed)))
+    for seed, result in zip(experiment.seeds, results, strict=True):
+        print(format_summary(result, seed_dir(run_dir, seed) if experiment.stacked else run_dir))
+    if experiment.stacked:
         print(f"Seeds' summary: {run_dir}")  # what summarize_sweep wrote over them
         for path in sorted(run_dir.glob("summary*")):
             print(f"  {path.name}: {path}")
-        values = [objective_value(r, cfg) for r in result]
-        return sum(values) / len(values)  # what a sweep over many-seed runs optimizes
-    print(format_summary(result, run_dir))
-    return objective_value(result, cfg)
+    values = [objective_value(result, cfg) for result in results]
+    return sum(values) / len(values)  # several seeds: what a sweep over them optimizes
 
 
 def _cannot_write(err: OSError, run_dir: Path) -> str:

@@ -1,140 +1,166 @@
-"""One training run, start to end: the library API behind ``stages-train``.
+"""A training launch, start to end: the library API behind ``stages-train``.
 
-:class:`Experiment` validates a config, takes and checks its run directory, builds the task,
-trains every stage with periodic checkpoints, resumes an interrupted run, and evaluates. The
-CLI, ``stages-eval``, the benchmark scripts and Python users all go through it.
+:class:`Experiment` trains and evaluates a config for one seed (``seed=s``: one run directory)
+or several at once (``seeds=[...]``: one run directory per seed, ``<run_dir>/seed_<s>/``, and a
+summary over them), with one code path: each seed's directory is a
+:class:`~torchrl_stages.seed_run.SeedRun` (checked, locked, resumed and evaluated alike), and
+the schedule trains every seed's stages in one call, their networks stacked when there are
+several. The CLI, ``stages-tune``, the benchmark scripts and Python users all go through it.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
-import time
-from collections.abc import Sequence
-from dataclasses import asdict
+import re
+import shutil
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
-from hydra.errors import InstantiationException
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from torchrl_stages.config import apply_all_stages, expand_stage_template
-from torchrl_stages.failures import DivergenceError
-from torchrl_stages.learners import Learner
-from torchrl_stages.loggers import Observer, StopRun, make_logger
-from torchrl_stages.preemption import Interrupted, check, handle_signals
-from torchrl_stages.run_store import RunStore
-from torchrl_stages.rundir import (
-    METRICS_FILE,
-    RESUMABLE_CHANGES,
-    STATUS_FILE,
-    RunDir,
-    RunDirError,
-    config_differences,
-)
-from torchrl_stages.schedules import Trained, get_schedule
-from torchrl_stages.stage_store import StageReuse
+from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.config import ConfigError, apply_all_stages, check
+from torchrl_stages.failures import DivergenceError, one_line
+from torchrl_stages.learners import make_learner
+from torchrl_stages.loggers import Observer, StopRun
+from torchrl_stages.preemption import Interrupted, handle_signals
+from torchrl_stages.rundir import refuse_links
+from torchrl_stages.schedules import SCHEDULES, get_schedule
+from torchrl_stages.seed_run import SeedRun, build_task, compile_mode, with_env_stages
 from torchrl_stages.task import StagedTask
-from torchrl_stages.tasks import EVAL_SEED_OFFSET, evaluate_run, probe_task
 from torchrl_stages.threads import hold_threads
-from torchrl_stages.validate import ConfigError, check_env_keys, validate_config, validate_task
 
 log = logging.getLogger("torchrl_stages")
 
+#: where the checkpoints of a launch of several seeds live, beside the seeds' directories
+CHECKPOINTS = "seed_checkpoints"
 
-def one_line(err: BaseException) -> str:
-    """An exception as one line: its type and the last line of its message (what
-    ``status.json`` keeps of a failure).
+__all__ = ["Experiment", "seed_dir", "validate_seeds"]
+
+
+def seed_dir(run_dir: str | Path, seed: int) -> Path:
+    """Where seed ``seed`` of a many-seed run in ``run_dir`` lives."""
+    return Path(run_dir) / f"seed_{seed}"
+
+
+def validate_seeds(cfg: DictConfig) -> list[int]:
+    """``cfg.seeds`` as a list of ints; :class:`ConfigError` naming the fix when it cannot be
+    trained in one process.
 
     Examples:
-        >>> one_line(RuntimeError("loading the map" + chr(10) + "file not found: a.txt"))
-        'RuntimeError: file not found: a.txt'
+        >>> validate_seeds(OmegaConf.create({"seeds": [0, 2], "schedule": {"name": "backward"},
+        ...                                  "eval": {}}))
+        [0, 2]
+        >>> validate_seeds(OmegaConf.create({"seeds": [1, 1], "schedule": {"name": "backward"},
+        ...                                  "eval": {}}))
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.config.ConfigError: seeds=[1, 1]: ...
     """
-    lines = str(err).strip().splitlines()
-    return f"{type(err).__name__}: {lines[-1] if lines else ''}"
-
-
-def compile_mode(cfg: DictConfig) -> str:
-    """``cfg.compile`` with ``auto`` resolved for the run's device: ``off`` on CPU (compiling
-    the small update costs more than it saves, see docs/speed.md),
-    ``reduce-overhead`` (CUDA graphs) on a GPU."""
-    mode = str(cfg.get("compile", "auto"))
-    if mode != "auto":
-        return mode
-    return "reduce-overhead" if torch.device(cfg.device).type == "cuda" else "off"
-
-
-def with_env_stages(cfg: DictConfig) -> DictConfig:
-    """``cfg`` with its stages from ``task.stage_template`` when it has one: as many as the
-    env's ``num_stages`` (the env is built once to ask), each the template with the stage's
-    own keys over it (:func:`~torchrl_stages.config.expand_stage_template`); ``cfg`` itself
-    otherwise. Raises :class:`ConfigError` before any training."""
-    if not cfg.task.get("stage_template"):
-        return cfg
-    check_env_keys(cfg)
-    try:
-        num_stages = StagedTask.env_num_stages(cfg.task)
-    except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
-        raise _env_error(cfg, err) from err
-    cfg = copy.deepcopy(cfg)
-    with open_dict(cfg):
-        cfg.task = expand_stage_template(cfg.task, num_stages)
-    return cfg
-
-
-def _env_error(cfg: DictConfig, err: BaseException) -> ConfigError:
-    return ConfigError(
-        f"task.env: cannot build the env of task '{cfg.task.name}': {err}. "
-        "Fix: check the task.env.* values (or task.env._target_)."
+    raw = cfg.get("seeds")
+    shown = OmegaConf.to_container(raw) if isinstance(raw, ListConfig) else raw
+    check(
+        isinstance(raw, ListConfig | list) and len(raw) > 0,
+        "seeds",
+        shown,
+        "must be a non-empty list of seeds",
+        "seeds=[0,1,2]",
     )
+    ok = all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in raw)
+    check(ok, "seeds", shown, "every seed must be an int >= 0", "seeds=[0,1,2]")
+    seeds = [int(s) for s in raw]
+    check(
+        len(set(seeds)) == len(seeds),
+        "seeds",
+        shown,
+        "a seed is listed twice",
+        f"seeds=[{','.join(str(s) for s in dict.fromkeys(seeds))}]",
+    )
+    name = str(cfg.schedule.name)
+    able = [n for n, schedule in SCHEDULES.items() if schedule.stacks_seeds]
+    check(
+        get_schedule(name).stacks_seeds,
+        "seeds",
+        shown,
+        f"schedule={name} cannot train several seeds in one process yet ({', '.join(able)} can)",
+        f"schedule={'|'.join(able)}, or train the seeds apart: stages-train -m "
+        f"schedule={name} seed={','.join(str(s) for s in seeds)}",
+    )
+    check(
+        not cfg.eval.get("probe", False),
+        "eval.probe",
+        True,
+        "the whole-task probe is not run for several seeds in one process",
+        "eval.probe=false",
+    )
+    return seeds
 
 
-def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
-    """Validates ``cfg`` (unless already ``validated``) and builds its task; raises
-    :class:`ConfigError` before any training. A task with a stage template gets its stages
-    from the env here (:func:`with_env_stages`; the task's ``cfg`` holds them)."""
-    if not validated:
-        cfg = with_env_stages(cfg)
-        validate_config(cfg)
-    try:
-        task = StagedTask(cfg.task, device=cfg.device)
-    except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
-        raise _env_error(cfg, err) from err
-    validate_task(cfg, task)
-    return task
+def check_stackable(task: StagedTask, num_seeds: int) -> None:
+    """Builds each stage's learner stacked for ``num_seeds`` seeds (small, on the CPU, thrown
+    away): :class:`ConfigError` naming the stage and the fix when one cannot be, before any
+    training."""
+    for k, name in enumerate(task.stage_names):
+        try:
+            make_learner(task.stage_cfg(k), task.specs(k), seeds=num_seeds)
+        except ConfigError as err:
+            raise ConfigError(f"task.stages.{name}: {err}") from None
+        except TypeError as err:
+            raise ConfigError(
+                f"task.stages.{name}: its networks cannot be stacked for seeds: {err}. Fix: "
+                "train its seeds apart (stages-train -m seed=0,1,2)"
+            ) from None
+
+
+def _for_seed(cfg: DictConfig, seed: int) -> DictConfig:
+    out = copy.deepcopy(cfg)
+    with open_dict(out):
+        out.seed, out.seeds = seed, None
+    return out
+
+
+def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[str, Any]:
+    """``.hydra/`` of seed ``seed``'s directory: its config, and the command's overrides with
+    ``seed=<seed>`` for ``seeds=...`` (how the sweep summary groups the seeds)."""
+    out = dict(files)
+    out["config.yaml"] = cfg
+    overrides = [str(o) for o in files.get("overrides.yaml", [])]
+    kept = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in ("seeds", "seed")]
+    out["overrides.yaml"] = [*kept, f"seed={seed}"]
+    return out
 
 
 class Experiment:
-    """Trains and evaluates one run of ``cfg`` in ``run_dir``.
+    """Trains and evaluates ``cfg`` in ``run_dir``: seed ``cfg.seed`` in ``run_dir`` itself, or,
+    with ``cfg.seeds``, every seed at once, seed ``s`` in ``<run_dir>/seed_<s>/``;
+    :meth:`run` returns each seed's ``eval.json``.
 
-    Everything is checked when the experiment is built, before anything is written: the config
-    (:class:`~torchrl_stages.validate.ConfigError`) and the run directory
-    (:class:`~torchrl_stages.rundir.RunDirError`), which it locks until the run ends (one
-    process per directory). A directory that already holds a run is refused unless ``resume``
-    (continue it: finished stages are loaded, the stage in progress goes on from its last
-    checkpoint; keys of stages that no finished stage depends on may change, and those stages
-    restart) or ``overwrite`` (replace it: exactly the files its record lists are deleted).
-    Both default to ``cfg.resume`` / ``cfg.overwrite``. With ``resume`` and no run in the
-    directory, a new run starts (the same command can be relaunched after any interruption).
-    ``hydra_files`` (``{name: config}``) are written to ``.hydra/`` when the run starts or its
-    config changes (what ``stages-train`` records of Hydra). ``observers``
-    (:data:`~torchrl_stages.loggers.Observer`) see the metrics as the run logs them; one may
-    end the run early by raising :class:`~torchrl_stages.loggers.StopRun` (``stages-tune``
-    prunes a trial so).
+    Each seed's directory is a :class:`~torchrl_stages.seed_run.SeedRun` (checked, locked and
+    written alike: ``resume`` and ``overwrite`` act on each; ``load_run``, ``stages-eval`` and
+    ``stages-report`` read it as any other), built before anything is written. The schedule
+    trains every seed's stages in one call; several seeds' networks are stacked (schedules and
+    algorithms that declare ``stacks_seeds``), their checkpoints one state for all of them
+    (``<run_dir>/seed_checkpoints/``), and a summary over them is written in ``run_dir``
+    (:func:`~torchrl_stages.sweeps.summarize_sweep`). ``hydra_files`` and ``observers`` go to
+    each seed's run (an observer may end it by raising
+    :class:`~torchrl_stages.loggers.StopRun`: ``stages-tune`` prunes a trial so).
 
     While it runs, SIGTERM, SIGINT and SIGUSR1 stop it at the next batch with a checkpoint
-    (:mod:`torchrl_stages.preemption`), and the torch thread count is held at ``cfg.threads``.
+    (:mod:`torchrl_stages.preemption`), and the torch thread count is held at ``cfg.threads``;
+    how a launch that did not finish ended is in each seed's ``status.json``.
 
     Examples:
         >>> from hydra import compose, initialize_config_module
         >>> from torchrl_stages.store import register_configs
         >>> register_configs()
         >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
-        ...     cfg = compose("config", overrides=["experiment=smoke"])  # doctest: +SKIP
-        >>> result = Experiment(cfg, "runs/grid").run()  # doctest: +SKIP
-        >>> result["success_rate"]  # doctest: +SKIP
-        1.0
+        ...     cfg = compose("config", overrides=["experiment=smoke", "seeds=[0,1]"])
+        >>> results = Experiment(cfg, "runs/grid_seeds").run()  # doctest: +SKIP
+        >>> [r["success_rate"] for r in results]  # doctest: +SKIP
+        [1.0, 1.0]
     """
 
     def __init__(
@@ -147,234 +173,155 @@ class Experiment:
         hydra_files: dict[str, Any] | None = None,
         observers: Sequence[Observer] = (),
     ) -> None:
-        if cfg.get("seeds") is not None:
-            raise ConfigError(
-                f"seeds={list(cfg.seeds)}: an Experiment trains one seed. Fix: train several "
-                "with torchrl_stages.seed_runs.SeedRuns (what stages-train seeds=[...] runs), "
-                "or set seed=<s>"
-            )
-        self.cfg = cfg = with_env_stages(apply_all_stages(cfg))
-        self.hydra_files = dict(hydra_files or {})
-        self.observers = tuple(observers)
-        self.run_dir = RunDir(run_dir)
-        self.resume = bool(cfg.get("resume", False) if resume is None else resume)
-        self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
-        validate_config(cfg)
-        if self.resume and self.overwrite:
-            raise ConfigError(
-                "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "
-                "overwrite=true replaces it"
-            )
-        self.restarted: dict[int, list[str]] = {}  # resumed stages whose config changed
-        self.reuse: StageReuse | None = None
-        self._lock = self.run_dir.lock()
+        self.stacked = cfg.get("seeds") is not None
+        self.seeds = validate_seeds(cfg) if self.stacked else [int(cfg.seed)]
+        self.cfg, self.run_dir = cfg, Path(run_dir)
+        self.runs: list[SeedRun] = []
+        if self.stacked:  # before any directory is made: the config, and whether it stacks
+            first = with_env_stages(apply_all_stages(_for_seed(cfg, self.seeds[0])))
+            check_stackable(build_task(first), len(self.seeds))
         try:
-            self.resuming = self._check_run_dir()
-            self.task = build_task(cfg, validated=True)  # validated above
-            # stage_store / init_from: checked (and the store created) before any training
-            self.reuse = StageReuse.from_config(cfg, self.run_dir.path)
+            for seed in self.seeds:
+                seed_cfg = _for_seed(cfg, seed) if self.stacked else cfg
+                files = hydra_files
+                if self.stacked and hydra_files:
+                    files = _hydra_files_for(hydra_files, seed_cfg, seed)
+                where = seed_dir(self.run_dir, seed) if self.stacked else self.run_dir
+                run = SeedRun(
+                    seed_cfg,
+                    where,
+                    resume=resume,
+                    overwrite=overwrite,
+                    hydra_files=files,
+                    observers=observers,
+                )
+                self.runs.append(run)
         except BaseException:
-            self._lock.release(remove=self._lock.created_dir)
+            self.close()
             raise
-        self.logger = None
+
+    @property
+    def task(self) -> StagedTask:
+        """The task every seed trains."""
+        return self.runs[0].task
 
     def close(self) -> None:
-        """Releases the run directory, and the stage store's locks it holds (:meth:`run` does
-        it when it ends)."""
-        if self.reuse is not None:
-            self.reuse.close()
-        self._lock.release()
+        """Releases every seed's run directory (:meth:`run` does it when it ends)."""
+        for run in self.runs:
+            run.close()
 
-    def _check_run_dir(self) -> bool:
-        """Whether this continues a run; raises :class:`RunDirError` if it must not proceed."""
-        run = self.run_dir
-        if not run.holds_run():
-            return False
-        if self.overwrite:
-            run.check_clearable()
-            return False
-        if not self.resume:
-            raise RunDirError(
-                f"{run.path} already holds a run. Fix: add resume=true to continue it, "
-                "overwrite=true to replace it, or pick another hydra.run.dir"
-            )
-        saved = run.read_config()
-        changed = config_differences(saved, self.cfg, ignore=RESUMABLE_CHANGES)
-        names = list(self.cfg.task.stages)
-        if names != list(saved.task.stages):  # the same keys in another order
-            changed = ["task.stages (their order)", *changed]
-        finished = {k for k in range(len(names)) if run.stage_file(k).is_file()}
-        frozen = get_schedule(str(self.cfg.schedule.name)).frozen_stages(finished, len(names))
-        refused = []
-        for key in changed:
-            parts = key.split(".")
-            is_stage = parts[:2] == ["task", "stages"] and len(parts) > 3
-            stage = names.index(parts[2]) if is_stage and parts[2] in names else None
-            if stage is None or stage in frozen or parts[2] not in saved.task.stages:
-                refused.append(key)
-            else:
-                self.restarted.setdefault(stage, []).append(key)
-        if refused:
-            raise RunDirError(
-                f"resume=true: the config differs from {run.config_file} in "
-                f"{', '.join(refused)}; a resumed run keeps what its finished stages were "
-                "trained with (stages that have not finished, and that no finished stage "
-                "depends on, may change). Fix: rerun with the overrides the run was started "
-                "with, or train into a new directory"
-            )
-        return True
+    def run(self) -> list[dict[str, Any]]:
+        """Trains every stage of every seed (or what is left of them) and evaluates; returns
+        each seed's ``eval.json``.
 
-    # ------------------------------------------------------------------ the run
-    def run(self) -> dict[str, Any]:
-        """Trains every stage (or what is left of them) and evaluates; returns ``eval.json``.
-
-        How it ended is in the run's record (its launches) and, when it did not finish, in
+        How a launch that did not finish ended is in each seed's record (its launches) and
         ``status.json``: ``interrupted`` (:class:`~torchrl_stages.preemption.Interrupted`),
-        ``diverged`` (:class:`~torchrl_stages.stage.DivergenceError`), ``failed``, or the
+        ``diverged`` (:class:`~torchrl_stages.failures.DivergenceError`), ``failed``, or the
         status of an observer's :class:`~torchrl_stages.loggers.StopRun` (e.g. ``pruned``)."""
+        cfg = self.runs[0].cfg
         try:
-            with handle_signals(), hold_threads(int(self.cfg.threads)):
+            with handle_signals(), hold_threads(int(cfg.threads)):
                 try:
-                    return self._run()
+                    results = self._run()
                 except Interrupted as err:  # recorded before a launcher's handler runs
-                    self.ended("interrupted", str(err), signal=err.signal_name)
+                    self._ended("interrupted", str(err), signal=err.signal_name)
                     raise
         except Interrupted:
             raise
         except StopRun as err:  # an observer ended it (stages-tune: a pruned trial)
-            self.ended(err.status, str(err))
+            self._ended(err.status, str(err))
             raise
         except DivergenceError as err:
-            self.ended("diverged", str(err))
+            self._ended("diverged", str(err))
             raise
         except Exception as err:
-            self.ended("failed", one_line(err))
+            self._ended("failed", one_line(err))
             raise
         finally:
             self.close()
+        if self.stacked:
+            self.summarize(plots=bool(cfg.eval.get("plots", True)))
+        return results
 
-    def ended(self, outcome: str, reason: str, **extra: Any) -> None:
-        """Records how a launch that did not finish ended (best effort: the disk may be the
-        cause)."""
-        try:
-            self.run_dir.update_launch(outcome)
-            self.run_dir.write_status(outcome, reason, **extra)
-        except OSError:
-            pass
-
-    def _prepare(self) -> None:
-        """Writes what a run starts with: a fresh record and config, or the changes a resumed
-        run may make."""
-        cfg, run = self.cfg, self.run_dir
-        self._lock.announce()
-        if self.overwrite and run.holds_run():
-            removed = run.clear()
-            log.info("overwrite=true: removed %s", ", ".join(removed) or "nothing")
-        if self.resuming and not run.has_record():
-            run.adopt_legacy()  # a run of a version without a record
-        if self.hydra_files and (not self.resuming or self.restarted):
-            run.write_hydra_files(self.hydra_files)
-        if not self.resuming:
-            run.write_config(cfg)
-        elif not run.config_file.is_file():  # checked against .hydra/config.yaml: the same
-            log.warning("%s was missing: restored from .hydra/config.yaml", run.config_file)
-            run.write_config(cfg)
-        if self.restarted:
-            schedule = get_schedule(str(cfg.schedule.name))
-            for stage, keys in sorted(self.restarted.items()):
-                log.info(
-                    "resume=true: %s changed; stage %d had not finished and restarts",
-                    ", ".join(keys),
-                    stage,
-                )
-                run.clear_checkpoints(schedule.checkpoint_scope(stage))
-            run.write_config(cfg)
-        run.begin_launch()
-
-    def _run(self) -> dict[str, Any]:
-        store = self.start()
-        [trained] = store.schedule.train(
-            self.task,
-            [int(self.cfg.seed)],
-            stores=[store],
-            logs=[store.log],
-            checkpoints=store.checkpoints,
-            **self._train_kwargs(),
-        )
-        return self.finish(trained, store)
-
-    def start(self) -> RunStore:
-        """The start of a launch (:meth:`run` runs it, a many-seed run runs it for each seed,
-        see :mod:`torchrl_stages.seed_runs`): what the run starts with is written
-        (:meth:`_prepare`), then the logger and the store of the run's stages that the schedule
-        trains into are made."""
-        self._prepare()
-        cfg, run = self.cfg, self.run_dir
-        logging.getLogger("torchrl").setLevel(logging.WARNING)
-        run.claim(METRICS_FILE, *(["csv"] if cfg.logger.backend == "csv" else []))
-        before = run.listing()
-        self.logger = make_logger(cfg, run.path, observers=self.observers)
-        run.claim_new(before)  # a backend's own files
-        self._start = time.perf_counter()
-        return RunStore(
-            run,
-            self.task,
-            get_schedule(str(cfg.schedule.name)),
-            logger=self.logger,
-            resuming=self.resuming,
-            device=str(cfg.device),
-            checkpoint_every=int(cfg.checkpoint_every),
-            checkpoint_keep=int(cfg.checkpoint_keep),
-            reuse=self.reuse,
-        )
-
-    def _train_kwargs(self) -> dict[str, Any]:
-        cfg, start = self.cfg, self._start
-        kwargs = {"progress": bool(cfg.progress), "compile": compile_mode(cfg)}
-        if kwargs["compile"] != "off":
+    def _run(self) -> list[dict[str, Any]]:
+        runs, cfg = self.runs, self.runs[0].cfg
+        stores = []
+        for seed, run in zip(self.seeds, runs, strict=True):
+            stores.append(run.start())
+            if self.stacked:
+                stores[-1].seed = seed  # its log lines name it
+        compile = compile_mode(cfg)
+        if compile != "off":
             # compiled code starts fresh in every run: the jobs of a sweep run one after another
             # in one process, and their learners' recompiles would add up to Dynamo's limit
             torch._dynamo.reset()
-        if cfg.eval.get("probe", False):
+        trained = stores[0].schedule.train(
+            self.task,
+            self.seeds,
+            stores=stores,
+            logs=[store.log for store in stores],
+            checkpoints=self._checkpoints() if self.stacked else stores[0].checkpoints,
+            progress=bool(cfg.progress),
+            probe=runs[0].probe() if len(runs) == 1 else None,
+            compile=compile,
+        )
+        if self.stacked:
+            self._drop_checkpoints(every=False)
+            for one in trained:  # eval.json: its wall-clock is that of all of them
+                one.extra["trained_with_seeds"] = list(self.seeds)
+        return [
+            run.finish(one, store) for run, store, one in zip(runs, stores, trained, strict=True)
+        ]
 
-            def probe(learners: list[Learner], frames: int) -> None:
-                seed = int(cfg.seed) + EVAL_SEED_OFFSET
-                metrics = {**probe_task(self.task, learners, seed)}
-                metrics["seconds"] = time.perf_counter() - start
-                if self.logger is not None:
-                    for key, value in metrics.items():
-                        self.logger.log_scalar(f"eval/task/{key}", value, step=frames)
+    @property
+    def checkpoint_root(self) -> Path:
+        """Where the checkpoints of a loop of several seeds live: one state for all of them,
+        beside their directories (``<run_dir>/seed_checkpoints/stage_<k>/``)."""
+        return self.run_dir / CHECKPOINTS
 
-            kwargs["probe"] = probe
-        return kwargs
+    def _checkpoints(self) -> Callable[[int | str], StageCheckpoints]:
+        """The checkpoints of each scope (a stage) of several seeds for this launch. A launch
+        that does not resume every seed drops those of an earlier launch; a resumed one drops
+        those of the stages whose config changed (:attr:`SeedRun.restarted`)."""
+        cfg, root = self.runs[0].cfg, self.checkpoint_root
+        refuse_links([root, *(root.rglob("*") if root.is_dir() else [])])
+        if not all(run.resuming for run in self.runs):
+            self._drop_checkpoints(every=True)
+        else:
+            schedule = get_schedule(str(cfg.schedule.name))
+            for stage in self.runs[0].restarted:
+                self._at(schedule.checkpoint_scope(stage)).clear()
+        return self._at
 
-    def finish(self, trained: Trained, store: RunStore) -> dict[str, Any]:
-        """The end of a launch: records it done, evaluates the trained stages and writes
-        ``eval.json``; returns it."""
-        cfg, run, schedule = self.cfg, self.run_dir, store.schedule
-        learners, results = trained.learners, trained.results
-        check("the whole-task evaluation")  # a stop asked for during the last stage's save
-        run.update_launch("done")
-        training = {"schedule": schedule.name, **run.training_time()}
-        training["stages"] = [asdict(r) for r in results]
-        training.update(trained.extra)
-        if self.reuse is not None:
-            training["reused"] = store.reused
-            names = self.task.stage_names
-            log.info(
-                "%sreused stages: %s; trained: %s",
-                "" if store.seed is None else f"seed {store.seed}: ",
-                ", ".join(n for n in names if n in store.reused) or "none",
-                ", ".join(n for n in names if n not in store.reused) or "none",
-            )
-        before = run.listing()
-        run.claim("eval.json")
-        result = evaluate_run(cfg, self.task, learners, run.path, training=training)
-        run.claim_new(before)  # the task's figures
-        if self.resuming and store.log.logger is not None:  # an earlier final evaluation's rows
-            store.log.rewind(run.read_stage(0)["log"])
-        frames = sum(r.frames for r in results)  # the whole-task evaluation, after all frames
-        keys = ("success_rate", "mean_return", "mean_steps")
-        store.log({f"eval/final/{key}": result[key] for key in keys}, frames)
-        (run.path / STATUS_FILE).unlink(missing_ok=True)  # an earlier launch's outcome
-        return result
+    def _at(self, scope: int | str) -> StageCheckpoints:
+        cfg = self.runs[0].cfg
+        name = scope if isinstance(scope, str) else f"stage_{scope}"
+        every, keep = int(cfg.checkpoint_every), int(cfg.checkpoint_keep)
+        return StageCheckpoints(self.checkpoint_root / name, every, keep)
+
+    def _drop_checkpoints(self, every: bool) -> None:
+        """Removes the checkpoint directory when it is empty, or (``every``) with what it holds:
+        the scopes' directories alone (anything else in it is left, and so is the directory)."""
+        root = self.checkpoint_root
+        if not root.is_dir():
+            return
+        if every:
+            for child in root.iterdir():
+                if child.is_dir() and re.fullmatch(r"\w+", child.name):
+                    shutil.rmtree(child)
+        if not any(root.iterdir()):
+            root.rmdir()
+
+    def summarize(self, plots: bool = True) -> None:
+        """The sweep summary over the seeds' directories, in the run directory (best effort:
+        the runs themselves are written)."""
+        from torchrl_stages.sweeps import summarize_sweep
+
+        try:
+            summarize_sweep(self.run_dir, plots=plots)
+        except Exception as err:  # noqa: BLE001 - the runs are written; say why, go on
+            log.warning("the summary of %s was not written: %s", self.run_dir, one_line(err))
+
+    def _ended(self, outcome: str, reason: str, **extra: Any) -> None:
+        for run in self.runs:
+            run.ended(outcome, reason, **extra)

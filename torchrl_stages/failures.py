@@ -14,7 +14,7 @@ from torchrl_stages.early_stop import finite
 from torchrl_stages.learners import Learner
 from torchrl_stages.transforms import NonFiniteInputError
 
-__all__ = ["DivergenceError", "EnvError", "non_finite_entries", "stage_failure"]
+__all__ = ["DivergenceError", "EnvError", "non_finite_entries", "one_line", "stage_failure"]
 
 
 class EnvError(RuntimeError):
@@ -99,3 +99,15 @@ class DivergenceError(RuntimeError):
             f"{stage} was saved. Fix: lower {rates}, or set {key}.max_grad_norm"
         )
         self.stage = stage
+
+
+def one_line(err: BaseException) -> str:
+    """An exception as one line: its type and the last line of its message (what
+    ``status.json`` keeps of a failure).
+
+    Examples:
+        >>> one_line(RuntimeError("loading the map" + chr(10) + "file not found: a.txt"))
+        'RuntimeError: file not found: a.txt'
+    """
+    lines = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {lines[-1] if lines else ''}"

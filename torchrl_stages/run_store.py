@@ -64,7 +64,7 @@ class RunStore:
         self.run, self.task, self.schedule, self.reuse = run, task, schedule, reuse
         self.log, self.resuming, self.device = MetricsLog(logger), resuming, device
         self.checkpoint_every, self.checkpoint_keep = checkpoint_every, checkpoint_keep
-        # the seed of a many-seed run (SeedRuns) whose directory this is: its log lines say it
+        # the seed of a launch of several seeds whose directory this is: its log lines say it
         self.seed: int | None = None
 
     def _log(self, level: int, message: str, *args: Any) -> None:

@@ -41,11 +41,12 @@ from torchrl_stages.config import (
     objective_value,
     stage_keys_set,
 )
-from torchrl_stages.experiment import Experiment, one_line, with_env_stages
-from torchrl_stages.failures import DivergenceError, EnvError
+from torchrl_stages.experiment import Experiment, seed_dir
+from torchrl_stages.failures import DivergenceError, EnvError, one_line
 from torchrl_stages.loggers import StopRun
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.rundir import RunDir, RunDirError
+from torchrl_stages.seed_run import with_env_stages
 from torchrl_stages.store import config_group_options
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.tasks import format_summary
@@ -615,7 +616,7 @@ def _run_trial(
         directory.write_status("invalid", f"invalid config: {invalid}")
         raise TrialFailed(f"invalid config: {invalid}")
     try:  # how a run that does not finish ended is in its status.json (Experiment.run)
-        result = experiment.run()
+        results = experiment.run()
     except StopRun as err:
         print(f"stages-tune: trial {trial.number} {err}", flush=True)
         raise optuna.TrialPruned(str(err)) from None
@@ -626,8 +627,11 @@ def _run_trial(
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
         raise TrialFailed(one_line(err)) from None
-    print(format_summary(result, run_dir), flush=True)
-    return objective_value(result, cfg)
+    for seed, result in zip(experiment.seeds, results, strict=True):
+        where = seed_dir(run_dir, seed) if experiment.stacked else run_dir
+        print(format_summary(result, where), flush=True)
+    values = [objective_value(result, cfg) for result in results]
+    return sum(values) / len(values)  # several seeds: the mean of their objectives
 
 
 def _load_study(cfg: DictConfig, location: str) -> Any:

@@ -1,0 +1,314 @@
+"""One seed's run directory, from its checks to its ``eval.json`` (:class:`SeedRun`), and the
+task a config builds (:func:`build_task`)."""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from hydra.errors import InstantiationException
+from omegaconf import DictConfig, open_dict
+
+from torchrl_stages.config import apply_all_stages, expand_stage_template
+from torchrl_stages.learners import Learner
+from torchrl_stages.loggers import Observer, make_logger
+from torchrl_stages.preemption import check
+from torchrl_stages.run_store import RunStore
+from torchrl_stages.rundir import (
+    METRICS_FILE,
+    RESUMABLE_CHANGES,
+    STATUS_FILE,
+    RunDir,
+    RunDirError,
+    config_differences,
+)
+from torchrl_stages.schedules import Probe, Trained, get_schedule
+from torchrl_stages.seeding import TASK_EVAL_OFFSET
+from torchrl_stages.stage_store import StageReuse
+from torchrl_stages.task import StagedTask
+from torchrl_stages.tasks import evaluate_run, probe_task
+from torchrl_stages.validate import ConfigError, check_env_keys, validate_config, validate_task
+
+log = logging.getLogger("torchrl_stages")
+
+__all__ = ["SeedRun", "build_task", "compile_mode", "with_env_stages"]
+
+
+def compile_mode(cfg: DictConfig) -> str:
+    """``cfg.compile`` with ``auto`` resolved for the run's device: ``off`` on CPU (compiling
+    the small update costs more than it saves, see docs/speed.md),
+    ``reduce-overhead`` (CUDA graphs) on a GPU."""
+    mode = str(cfg.get("compile", "auto"))
+    if mode != "auto":
+        return mode
+    return "reduce-overhead" if torch.device(cfg.device).type == "cuda" else "off"
+
+
+def with_env_stages(cfg: DictConfig) -> DictConfig:
+    """``cfg`` with its stages from ``task.stage_template`` when it has one: as many as the
+    env's ``num_stages`` (the env is built once to ask), each the template with the stage's
+    own keys over it (:func:`~torchrl_stages.config.expand_stage_template`); ``cfg`` itself
+    otherwise. Raises :class:`ConfigError` before any training."""
+    if not cfg.task.get("stage_template"):
+        return cfg
+    check_env_keys(cfg)
+    try:
+        num_stages = StagedTask.env_num_stages(cfg.task)
+    except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
+        raise _env_error(cfg, err) from err
+    cfg = copy.deepcopy(cfg)
+    with open_dict(cfg):
+        cfg.task = expand_stage_template(cfg.task, num_stages)
+    return cfg
+
+
+def _env_error(cfg: DictConfig, err: BaseException) -> ConfigError:
+    return ConfigError(
+        f"task.env: cannot build the env of task '{cfg.task.name}': {err}. "
+        "Fix: check the task.env.* values (or task.env._target_)."
+    )
+
+
+def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
+    """Validates ``cfg`` (unless already ``validated``) and builds its task; raises
+    :class:`ConfigError` before any training. A task with a stage template gets its stages
+    from the env here (:func:`with_env_stages`; the task's ``cfg`` holds them)."""
+    if not validated:
+        cfg = with_env_stages(cfg)
+        validate_config(cfg)
+    try:
+        task = StagedTask(cfg.task, device=cfg.device)
+    except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
+        raise _env_error(cfg, err) from err
+    validate_task(cfg, task)
+    return task
+
+
+class SeedRun:
+    """One seed's run of ``cfg`` in the run directory ``run_dir``, from its checks to its
+    ``eval.json``: what :class:`~torchrl_stages.experiment.Experiment` makes for each seed it
+    trains.
+
+    Everything is checked when it is built, before anything is written: the config
+    (:class:`~torchrl_stages.validate.ConfigError`) and the run directory
+    (:class:`~torchrl_stages.rundir.RunDirError`), which it locks until the run ends (one
+    process per directory). A directory that already holds a run is refused unless ``resume``
+    (continue it: finished stages are loaded, the stage in progress goes on from its last
+    checkpoint; keys of stages that no finished stage depends on may change, and those stages
+    restart) or ``overwrite`` (replace it: exactly the files its record lists are deleted).
+    Both default to ``cfg.resume`` / ``cfg.overwrite``. With ``resume`` and no run in the
+    directory, a new run starts (the same command can be relaunched after any interruption).
+    ``hydra_files`` (``{name: config}``) are written to ``.hydra/`` when the run starts or its
+    config changes (what ``stages-train`` records of Hydra). ``observers``
+    (:data:`~torchrl_stages.loggers.Observer`) see the metrics as the run logs them.
+    :meth:`start` begins a launch (the store its schedule trains into), :meth:`finish` ends it
+    (the whole-task evaluation), :meth:`ended` records one that did not finish.
+
+    Examples:
+        >>> import tempfile
+        >>> from hydra import compose, initialize_config_module
+        >>> from torchrl_stages.store import register_configs
+        >>> register_configs()
+        >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
+        ...     cfg = compose("config", overrides=["experiment=smoke"])
+        >>> run = SeedRun(cfg, tempfile.mkdtemp())
+        >>> run.resuming, run.task.stage_names
+        (False, ['s0', 's1', 's2', 's3', 's4'])
+        >>> run.close()
+    """
+
+    def __init__(
+        self,
+        cfg: DictConfig,
+        run_dir: str | Path,
+        *,
+        resume: bool | None = None,
+        overwrite: bool | None = None,
+        hydra_files: dict[str, Any] | None = None,
+        observers: Sequence[Observer] = (),
+    ) -> None:
+        self.cfg = cfg = with_env_stages(apply_all_stages(cfg))
+        self.hydra_files = dict(hydra_files or {})
+        self.observers = tuple(observers)
+        self.run_dir = RunDir(run_dir)
+        self.resume = bool(cfg.get("resume", False) if resume is None else resume)
+        self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
+        validate_config(cfg)
+        if self.resume and self.overwrite:
+            raise ConfigError(
+                "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "
+                "overwrite=true replaces it"
+            )
+        self.restarted: dict[int, list[str]] = {}  # resumed stages whose config changed
+        self.reuse: StageReuse | None = None
+        self._lock = self.run_dir.lock()
+        try:
+            self.resuming = self._check_run_dir()
+            self.task = build_task(cfg, validated=True)  # validated above
+            # stage_store / init_from: checked (and the store created) before any training
+            self.reuse = StageReuse.from_config(cfg, self.run_dir.path)
+        except BaseException:
+            self._lock.release(remove=self._lock.created_dir)
+            raise
+        self.logger = None
+
+    def close(self) -> None:
+        """Releases the run directory, and the stage store's locks it holds (:meth:`run` does
+        it when it ends)."""
+        if self.reuse is not None:
+            self.reuse.close()
+        self._lock.release()
+
+    def _check_run_dir(self) -> bool:
+        """Whether this continues a run; raises :class:`RunDirError` if it must not proceed."""
+        run = self.run_dir
+        if not run.holds_run():
+            return False
+        if self.overwrite:
+            run.check_clearable()
+            return False
+        if not self.resume:
+            raise RunDirError(
+                f"{run.path} already holds a run. Fix: add resume=true to continue it, "
+                "overwrite=true to replace it, or pick another hydra.run.dir"
+            )
+        saved = run.read_config()
+        changed = config_differences(saved, self.cfg, ignore=RESUMABLE_CHANGES)
+        names = list(self.cfg.task.stages)
+        if names != list(saved.task.stages):  # the same keys in another order
+            changed = ["task.stages (their order)", *changed]
+        finished = {k for k in range(len(names)) if run.stage_file(k).is_file()}
+        frozen = get_schedule(str(self.cfg.schedule.name)).frozen_stages(finished, len(names))
+        refused = []
+        for key in changed:
+            parts = key.split(".")
+            is_stage = parts[:2] == ["task", "stages"] and len(parts) > 3
+            stage = names.index(parts[2]) if is_stage and parts[2] in names else None
+            if stage is None or stage in frozen or parts[2] not in saved.task.stages:
+                refused.append(key)
+            else:
+                self.restarted.setdefault(stage, []).append(key)
+        if refused:
+            raise RunDirError(
+                f"resume=true: the config differs from {run.config_file} in "
+                f"{', '.join(refused)}; a resumed run keeps what its finished stages were "
+                "trained with (stages that have not finished, and that no finished stage "
+                "depends on, may change). Fix: rerun with the overrides the run was started "
+                "with, or train into a new directory"
+            )
+        return True
+
+    # ------------------------------------------------------------------ a launch
+    def ended(self, outcome: str, reason: str, **extra: Any) -> None:
+        """Records how a launch that did not finish ended (best effort: the disk may be the
+        cause)."""
+        try:
+            self.run_dir.update_launch(outcome)
+            self.run_dir.write_status(outcome, reason, **extra)
+        except OSError:
+            pass
+
+    def _prepare(self) -> None:
+        """Writes what a run starts with: a fresh record and config, or the changes a resumed
+        run may make."""
+        cfg, run = self.cfg, self.run_dir
+        self._lock.announce()
+        if self.overwrite and run.holds_run():
+            removed = run.clear()
+            log.info("overwrite=true: removed %s", ", ".join(removed) or "nothing")
+        if self.resuming and not run.has_record():
+            run.adopt_legacy()  # a run of a version without a record
+        if self.hydra_files and (not self.resuming or self.restarted):
+            run.write_hydra_files(self.hydra_files)
+        if not self.resuming:
+            run.write_config(cfg)
+        elif not run.config_file.is_file():  # checked against .hydra/config.yaml: the same
+            log.warning("%s was missing: restored from .hydra/config.yaml", run.config_file)
+            run.write_config(cfg)
+        if self.restarted:
+            schedule = get_schedule(str(cfg.schedule.name))
+            for stage, keys in sorted(self.restarted.items()):
+                log.info(
+                    "resume=true: %s changed; stage %d had not finished and restarts",
+                    ", ".join(keys),
+                    stage,
+                )
+                run.clear_checkpoints(schedule.checkpoint_scope(stage))
+            run.write_config(cfg)
+        run.begin_launch()
+
+    def start(self) -> RunStore:
+        """The start of a launch: what the run starts with is written (:meth:`_prepare`), then
+        the logger and the store of the run's stages that the schedule trains into are made."""
+        self._prepare()
+        cfg, run = self.cfg, self.run_dir
+        logging.getLogger("torchrl").setLevel(logging.WARNING)
+        run.claim(METRICS_FILE, *(["csv"] if cfg.logger.backend == "csv" else []))
+        before = run.listing()
+        self.logger = make_logger(cfg, run.path, observers=self.observers)
+        run.claim_new(before)  # a backend's own files
+        self._start = time.perf_counter()
+        return RunStore(
+            run,
+            self.task,
+            get_schedule(str(cfg.schedule.name)),
+            logger=self.logger,
+            resuming=self.resuming,
+            device=str(cfg.device),
+            checkpoint_every=int(cfg.checkpoint_every),
+            checkpoint_keep=int(cfg.checkpoint_keep),
+            reuse=self.reuse,
+        )
+
+    def probe(self) -> Probe | None:
+        """``eval.probe``: the whole task followed during training (``eval/task/...``)."""
+        cfg, start = self.cfg, self._start
+        if not cfg.eval.get("probe", False):
+            return None
+
+        def probe(learners: list[Learner], frames: int) -> None:
+            seed = int(cfg.seed) + TASK_EVAL_OFFSET
+            metrics = {**probe_task(self.task, learners, seed)}
+            metrics["seconds"] = time.perf_counter() - start
+            if self.logger is not None:
+                for key, value in metrics.items():
+                    self.logger.log_scalar(f"eval/task/{key}", value, step=frames)
+
+        return probe
+
+    def finish(self, trained: Trained, store: RunStore) -> dict[str, Any]:
+        """The end of a launch: records it done, evaluates the trained stages and writes
+        ``eval.json``; returns it."""
+        cfg, run, schedule = self.cfg, self.run_dir, store.schedule
+        learners, results = trained.learners, trained.results
+        check("the whole-task evaluation")  # a stop asked for during the last stage's save
+        run.update_launch("done")
+        training = {"schedule": schedule.name, **run.training_time()}
+        training["stages"] = [asdict(r) for r in results]
+        training.update(trained.extra)
+        if self.reuse is not None:
+            training["reused"] = store.reused
+            names = self.task.stage_names
+            log.info(
+                "%sreused stages: %s; trained: %s",
+                "" if store.seed is None else f"seed {store.seed}: ",
+                ", ".join(n for n in names if n in store.reused) or "none",
+                ", ".join(n for n in names if n not in store.reused) or "none",
+            )
+        before = run.listing()
+        run.claim("eval.json")
+        result = evaluate_run(cfg, self.task, learners, run.path, training=training)
+        run.claim_new(before)  # the task's figures
+        if self.resuming and store.log.logger is not None:  # an earlier final evaluation's rows
+            store.log.rewind(run.read_stage(0)["log"])
+        frames = sum(r.frames for r in results)  # the whole-task evaluation, after all frames
+        keys = ("success_rate", "mean_return", "mean_steps")
+        store.log({f"eval/final/{key}": result[key] for key in keys}, frames)
+        (run.path / STATUS_FILE).unlink(missing_ok=True)  # an earlier launch's outcome
+        return result
