@@ -105,11 +105,20 @@ class Commands:
             override, _ = BAD_OVERRIDES[name.removeprefix("bad:")]
             run_dir = root / "bad" / name.removeprefix("bad:")
             return [train, *tiny_overrides(), override, f"hydra.run.dir={run_dir}"]
+        if name.startswith("refused:"):  # an invalid config into the directory it names
+            run_dir = root / REFUSED_DIRS[name.removeprefix("refused:")]
+            if run_dir.name == "existing":  # one of the user's
+                run_dir.mkdir()
+                (run_dir / "notes.txt").write_text("mine\n")
+            return [train, "task.stages.s0.gamma=1.5", f"hydra.run.dir={run_dir}"]
+        if name.startswith("cfg:"):
+            return [train, *SHOW_CFG[name.removeprefix("cfg:")], "--cfg", "job"]
         raise KeyError(name)
 
     def start(self, name: str) -> Launched:
         if name not in self.launched:
-            self.launched[name] = Launched(self.argv(name), self.root, TIMEOUT_S)
+            tests = str(Path(__file__).resolve().parent)  # line_env, the gymnasium env
+            self.launched[name] = Launched(self.argv(name), self.root, TIMEOUT_S, PYTHONPATH=tests)
         return self.launched[name]
 
     def result(self, name: str) -> Result:
@@ -125,7 +134,17 @@ class Commands:
 BAD_OVERRIDES = {
     "gamma": ("task.stages.s0.gamma=1.5", "task.stages.s0.gamma"),
     "algo": ("algo@task.stages.s1=td3", "task.stages.s1.algo"),
-    "unknown_key": ("task.stages.s0.lrr=1", "lrr"),  # Hydra's own composition error
+    "unknown_key": ("task.stages.s0.lrr=1", "Fix: did you mean task.stages.s0.lr?"),
+    "added_unknown_key": ("+task.stages.s0.lrr=1", "Fix: did you mean task.stages.s0.lr?"),
+    "env_id": ("task.env.env_id=CartPole-v1", "Fix: did you mean task=gym?"),
+    "added_env_id": ("+task.env.env_id=CartPole-v1", "Fix: did you mean task=gym?"),
+}
+# a refused run's directory: one it makes (with its parents), one of the user's
+REFUSED_DIRS = {"new": "new/date/time", "existing": "existing"}
+LINE = ["task.env.env_id=line_env:LineWorld-v0", "task.env.stage_fn._target_=line_env.line_stage"]
+SHOW_CFG = {  # stages-train ... --cfg job
+    "gym": ["task=gym", *LINE, "task.stages.s1.frames=4096"],
+    "gym_bare": ["task=gym"],
 }
 
 # which fixture needs which independent commands (started together, up front)
@@ -133,6 +152,8 @@ NEEDS = {
     "smoke": ["smoke"],
     "multirun": ["multirun"],
     "bad_runs": [f"bad:{name}" for name in BAD_OVERRIDES],
+    "refused": [f"refused:{name}" for name in REFUSED_DIRS],
+    "shown": [f"cfg:{name}" for name in SHOW_CFG],
 }
 
 
@@ -191,6 +212,16 @@ def bad_runs(commands) -> dict[str, tuple[Result, Path]]:
         name: (commands.result(f"bad:{name}"), commands.root / "bad" / name)
         for name in BAD_OVERRIDES
     }
+
+
+@pytest.fixture(scope="module")
+def refused(commands) -> dict[str, Result]:
+    return {name: commands.result(f"refused:{name}") for name in REFUSED_DIRS}
+
+
+@pytest.fixture(scope="module")
+def shown(commands) -> dict[str, Result]:
+    return {name: commands.result(f"cfg:{name}") for name in SHOW_CFG}
 
 
 def _read_metrics(path: Path) -> list[list[str]]:
@@ -415,16 +446,40 @@ def test_eval_rejects_zero_episodes(run_dir, tmp_path, capsys):
 @pytest.mark.parametrize("name", list(BAD_OVERRIDES))
 def test_invalid_config_fails_before_training(bad_runs, name):
     result, run_dir = bad_runs[name]
-    assert result.returncode != 0
-    if run_dir.exists():  # Hydra creates it (with its log) once composition succeeded
-        assert not list(run_dir.rglob("stage_*.pt"))
-        assert not (run_dir / "metrics.csv").exists()
-        assert not (run_dir / "config.yaml").exists()
-    assert "Traceback" not in result.stderr
+    assert result.returncode == 2, result.output[-2000:]
+    assert not run_dir.exists()  # nothing written: not even the directory Hydra made
+    assert "Traceback" not in result.stderr and "HYDRA_FULL_ERROR" not in result.stderr
     _, key = BAD_OVERRIDES[name]
-    assert key in result.stderr
-    if name != "unknown_key":  # torchrl_stages' ConfigError
-        assert "invalid config" in result.stderr and "Fix:" in result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.startswith("stages-train:")]
+    assert len(lines) == 1 and key in lines[0], result.stderr[-2000:]
+    assert "invalid config" in lines[0] and "Fix:" in lines[0]
+
+
+def test_a_refused_run_leaves_the_directories_it_made_and_keeps_the_users(commands, refused):
+    for result in refused.values():
+        assert result.returncode == 2, result.output[-2000:]
+        assert "task.stages.s0.gamma=1.5" in result.stderr
+    assert not (commands.root / "new").exists()  # made with its parents: all gone
+    existing = commands.root / REFUSED_DIRS["existing"]
+    assert [p.name for p in existing.iterdir()] == ["notes.txt"]  # the user's: kept as it was
+    assert (existing / "notes.txt").read_text() == "mine\n"
+
+
+def test_cfg_job_shows_the_stages_of_a_template_task(shown):
+    result = shown["gym"]
+    assert result.returncode == 0, result.output[-2000:]
+    stages = yaml.safe_load(result.stdout)["task"]["stages"]
+    assert list(stages) == ["s0", "s1"]  # LineWorld's num_stages
+    assert stages["s1"]["frames"] == 4096 and stages["s1"]["algo"] == "dqn"
+    assert (
+        stages["s0"]["frames"] == yaml.safe_load(result.stdout)["task"]["stage_template"]["frames"]
+    )
+    # without the env, it says where the stages come from (the output stays YAML)
+    bare = shown["gym_bare"]
+    assert bare.returncode == 0, bare.output[-2000:]
+    assert yaml.safe_load(bare.stdout)["task"]["stages"] == {}
+    line = next(line for line in bare.stdout.splitlines() if line.strip().startswith("stages:"))
+    assert "num_stages" in line and "task.env.env_id" in line, line
 
 
 # ------------------------------------------------------------------ multirun sweep

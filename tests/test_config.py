@@ -15,8 +15,8 @@ from helpers import run_cli
 from hydra.errors import ConfigCompositionException
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_stages.config import LoggerConfig, as_dataclass
-from torchrl_stages.experiment import Experiment, build_task
+from torchrl_stages.config import LoggerConfig, apply_all_stages, as_dataclass
+from torchrl_stages.experiment import Experiment, build_task, with_env_stages
 from torchrl_stages.learners import ALGORITHMS, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
 from torchrl_stages.learners.dqn import DQNConfig
@@ -193,10 +193,83 @@ def test_learners_read_their_composed_stage_config_as_a_dataclass(hydra_compose)
     assert as_dataclass(instance) is instance
 
 
-def test_unknown_stage_key_fails_at_composition(hydra_compose):
-    with pytest.raises(ConfigCompositionException) as info:
-        hydra_compose("task.stages.s0.lrr=1")
-    assert "lrr" in _error_text(info.value)
+# ------------------------------------------------------------------ keys as messages write them
+LINE = TEMPLATE_KEYS["gym"][1:]  # a gymnasium env of two stages (tests/line_env.py)
+
+
+@pytest.mark.parametrize(
+    ("template", "override"),
+    [
+        (("task=gym", *LINE), "task.stages.s1.frames=4096"),
+        (("task=gym", *LINE), "+task.stages.s1.frames=4096"),
+        (("task=custom", *TEMPLATE_KEYS["custom"]), "task.stages.s1.frames=4096"),
+    ],
+)
+def test_a_template_tasks_stage_key_is_set_as_on_any_task(hydra_compose, template, override):
+    # the form every message prints (Fix: raise task.stages.s1.frames) works without `+`
+    cfg = with_env_stages(hydra_compose(*template, override))
+    assert list(cfg.task.stages) == ["s0", "s1"]
+    assert cfg.task.stages.s1.frames == 4096
+    assert cfg.task.stages.s0.frames == cfg.task.stage_template.frames != 4096
+    validate_config(cfg)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        # written without `+` or with it, on a task of its own stages or a template task
+        (["task.stages.s0.lrr=1e-3"], "task.stages.s0.lrr=0.001: not a key of dqn. "),
+        (["+task.stages.s0.lrr=1e-3"], "task.stages.s0.lrr=0.001: not a key of dqn. "),
+        (["task=gym", *LINE, "+task.stage_template.lrr=1e-3"], "task.stage_template.lrr="),
+        (["task=gym", *LINE, "task.stage_template.lrr=1e-3"], "task.stage_template.lrr="),
+        (["task=gym", *LINE, "task.stages.s1.lrr=1e-3"], "task.stages.s1.lrr="),
+        (["task=manipulator", "+task.stages.fine.sigma_ini=0.3"], "of ddpg. "),
+    ],
+)
+def test_an_unknown_stage_key_is_one_line_naming_the_nearest(
+    hydra_compose, tmp_path, overrides, message
+):
+    cfg = hydra_compose(*overrides)
+    with pytest.raises(ConfigError) as info:
+        Experiment(cfg, tmp_path / "run")  # refused before the run directory is made
+    text = str(info.value)
+    assert message in text and "\n" not in text, text
+    key = overrides[-1].lstrip("+").split("=")[0]
+    nearest = key.replace("lrr", "lr").replace("sigma_ini", "sigma_init")
+    assert f"Fix: did you mean {nearest}?" in text, text
+    assert not (tmp_path / "run").exists()
+
+
+def test_an_all_stages_typo_names_the_nearest_key(hydra_compose):
+    expected = r"^all_stages\.lrr=0\.001: task\.stages\.s0 .*Fix: did you mean all_stages\.lr\?$"
+    with pytest.raises(ConfigError, match=expected):
+        apply_all_stages(hydra_compose("+all_stages.lrr=1e-3"))
+
+
+def test_a_stage_the_task_does_not_have_is_named_with_its_stages(hydra_compose):
+    with pytest.raises(ConfigError) as info:
+        validate_config(hydra_compose("task=manipulator", "task.stages.fin.lr=1e-3"))
+    text = str(info.value)
+    assert text.startswith("task.stages.fin=") and "task 'manipulator'" in text, text
+    assert "coarse, fine" in text and "did you mean task.stages.fine?" in text, text
+
+
+@pytest.mark.parametrize("plus", ["", "+"])
+def test_an_env_id_without_task_gym_suggests_it(hydra_compose, plus):
+    cfg = hydra_compose(f"{plus}task.env.env_id=CartPole-v1")
+    with pytest.raises(ConfigError) as info:
+        validate_config(cfg)
+    text = str(info.value)
+    assert text.startswith("task.env.env_id='CartPole-v1': task 'gridworld'"), text
+    assert "Fix: did you mean task=gym?" in text and "\n" not in text, text
+
+
+def test_an_env_argument_the_env_lacks_names_the_nearest(hydra_compose):
+    with pytest.raises(ConfigError) as info:
+        validate_config(hydra_compose("task.env.max_step=30"))
+    text = str(info.value)
+    assert text.startswith("task.env.max_step=30: not an argument of torchrl_stages.envs."), text
+    assert "did you mean task.env.max_steps?" in text, text
 
 
 def test_unknown_root_key_fails_at_composition(hydra_compose):

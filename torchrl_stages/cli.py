@@ -15,6 +15,11 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
+import io
+import logging
+import os
+import re
 import sys
 import time
 import traceback
@@ -31,6 +36,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import apply_all_stages, objective_value, stage_keys_set
 from torchrl_stages.experiment import Experiment, seed_dir
+from torchrl_stages.seed_run import with_env_stages
 from torchrl_stages.failures import DivergenceError, EnvError, one_line
 from torchrl_stages.gym_env import SuccessKeyError
 from torchrl_stages.preemption import Interrupted
@@ -62,14 +68,75 @@ def _hydra_files(cfg: DictConfig) -> dict[str, Any]:
 
 def _fail(run_dir: Path, status: str, message: str, code: int, write_status: bool) -> None:
     """Reports a failed job: one line on stderr (``write_status``: also ``status.json``); in a
-    multirun an exception, so the sweep goes on with the other jobs and exits non-zero."""
+    multirun an exception, so the sweep goes on with the other jobs and exits non-zero. A
+    refused run (exit 2) takes away the directories Hydra made for it (:class:`RunDirCallback`).
+    """
     print(f"stages-train: {message}", file=sys.stderr)
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     if write_status:
         RunDir(run_dir).write_status(status, message)
     if multirun:
         raise JobFailed(f"{run_dir}: {message}")
+    if code == EXIT_INVALID:
+        RunDirCallback.remove_made(run_dir)
     sys.exit(code)
+
+
+class RunDirCallback(Callback):
+    """Hydra callback (``hydra.callbacks.run_dir`` in ``conf/config.yaml``): before Hydra makes
+    ``hydra.run.dir`` (and the parents it lacks), notes which of them do not exist yet and what
+    the run directory holds, so that a refused run takes away what Hydra made for it and
+    nothing else (:meth:`remove_made`).
+
+    Examples:
+        >>> import tempfile
+        >>> from omegaconf import OmegaConf
+        >>> root = Path(tempfile.mkdtemp())
+        >>> run_dir = root / "outputs" / "run"
+        >>> RunDirCallback().on_run_start(OmegaConf.create({"hydra": {"run": {"dir": run_dir}}}))
+        >>> run_dir.mkdir(parents=True)  # what Hydra does next
+        >>> RunDirCallback.remove_made(run_dir)
+        >>> sorted(root.iterdir())  # outputs/ went with it; root/ was there before
+        []
+    """
+
+    run_dir: Path | None = None
+    #: the directories of the run directory's path that did not exist, deepest first
+    made: list[Path] = []
+    #: what the run directory held before the launch (when it existed)
+    held: frozenset[str] = frozenset()
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        cls = RunDirCallback
+        cls.run_dir, cls.made, cls.held = None, [], frozenset()
+        with contextlib.suppress(Exception):  # a path it cannot tell: nothing is removed
+            path = cls.run_dir = Path(os.path.abspath(str(config.hydra.run.dir)))
+            while not path.exists() and path != path.parent:
+                cls.made.append(path)
+                path = path.parent
+            if not cls.made:
+                cls.held = frozenset(os.listdir(cls.run_dir))
+
+    @classmethod
+    def remove_made(cls, run_dir: Path) -> None:
+        """Removes Hydra's log of this launch from ``run_dir`` (``<hydra.job.name>.log``, when
+        the launch made it), then ``run_dir`` and its parents that the launch made while they
+        are empty: a directory of the user's, and anything else in one, is kept as it is."""
+        if cls.run_dir is None or cls.run_dir != Path(os.path.abspath(run_dir)):
+            return
+        root = logging.getLogger()
+        for handler in list(root.handlers):
+            log = Path(getattr(handler, "baseFilename", ""))
+            if log.parent == cls.run_dir and log.name not in cls.held:
+                root.removeHandler(handler)
+                handler.close()
+                log.unlink(missing_ok=True)
+        for path in cls.made:
+            try:
+                path.rmdir()
+            except OSError:  # it holds something else
+                break
+        cls.run_dir, cls.made, cls.held = None, [], frozenset()
 
 
 @hydra.main(config_path="pkg://torchrl_stages.conf", config_name="config", version_base="1.3")
@@ -133,7 +200,62 @@ def _cannot_write(err: OSError, run_dir: Path) -> str:
 def train() -> None:
     """``stages-train [OVERRIDES...]``: train a task with the backward schedule (Hydra CLI)."""
     register_configs()
-    _train_app()
+    if not _shows_config(sys.argv[1:]):
+        _train_app()
+        return
+    shown = io.StringIO()  # --cfg job|all: Hydra's YAML, with the stages of a template task
+    try:
+        with contextlib.redirect_stdout(shown):
+            _train_app()
+    except BaseException:
+        sys.stdout.write(shown.getvalue())
+        raise
+    sys.stdout.write(with_template_stages(shown.getvalue()))
+
+
+def _shows_config(args: list[str]) -> bool:
+    """Whether the command line asks Hydra for the job's config (``--cfg job|all``)."""
+    for index, arg in enumerate(args):
+        value = arg.split("=", 1)[1] if arg.startswith("--cfg=") else None
+        if arg in ("--cfg", "-c") and index + 1 < len(args):
+            value = args[index + 1]
+        if value in ("job", "all"):
+            return True
+    return False
+
+
+def with_template_stages(text: str) -> str:
+    """The YAML of a composed config (``stages-train --cfg job``), its ``task.stages`` made from
+    ``task.stage_template`` as a run makes them, from the env's ``num_stages``
+    (:func:`~torchrl_stages.seed_run.with_env_stages`); where the env cannot be built (its
+    keys not set yet), the text with a comment on ``stages:`` saying so. Other text as given.
+
+    Examples:
+        >>> lines = ["task:", "  name: gym", "  stages: {}", "  stage_template:", "    algo: dqn"]
+        >>> text = chr(10).join(lines) + chr(10)  # no env to build: said where the stages are
+        >>> print(with_template_stages(text).splitlines()[2][:60])
+          stages: {}  # made from the env: s0, s1, ... for its num_s
+    """
+    try:
+        cfg = OmegaConf.create(text)
+    except Exception:  # noqa: BLE001 - not one YAML document (--package, a value): as given
+        return text
+    task = cfg.get("task") if isinstance(cfg, DictConfig) else None
+    if not isinstance(task, DictConfig) or not task.get("stage_template"):
+        return text
+    try:
+        return OmegaConf.to_yaml(with_env_stages(cfg))
+    except Exception as err:  # noqa: BLE001 - the env's own error, said on the stages line
+        reason = str(err) if isinstance(err, ConfigError) else one_line(err)
+    note = (
+        "  # made from the env: s0, s1, ... for its num_stages, each task.stage_template with "
+        f"its own task.stages.s<k> keys over it; listed once the env can be built ({reason})"
+    )
+    block = re.search(r"^task:\n(?:[ \t].*\n|\n)*?(  stages:.*)$", text, re.M)
+    if block is None:
+        return text
+    at = block.end(1)
+    return text[:at] + " ".join(note.splitlines()) + text[at:]
 
 
 def tune() -> None:

@@ -4,19 +4,22 @@ The YAML files in ``conf/`` only pick groups and override these defaults; the da
 single source of truth for what a key means and what it defaults to. Every stage of a task is one
 entry of ``task.stages`` holding an algorithm's schema (a subclass of :class:`StageConfig`
 defined next to its learner in ``torchrl_stages/learners/<algo>.py``), so
-``task.stages.s3.lr=3e-4`` and ``algo@task.stages.s0=<algo>`` work from the command line and a
-typo fails at composition (``torchrl_stages.store.register_configs``).
+``task.stages.s3.lr=3e-4`` and ``algo@task.stages.s0=<algo>`` work from the command line, on a
+template task (``task=gym``, whose stages come from the env) too. A key its algorithm lacks,
+written with Hydra's ``+`` or without, is refused before training naming the nearest one
+(:func:`unknown_key`, ``torchrl_stages.validate``).
 """
 
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field, is_dataclass
+import difflib
+from collections.abc import Collection, Iterable, Iterator
+from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any
 
 from omegaconf import II, MISSING, DictConfig, OmegaConf, open_dict
-from omegaconf.errors import OmegaConfBaseException
+from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
 
 class ConfigError(ValueError):
@@ -35,6 +38,47 @@ def check(ok: bool, key: str, value: object, rule: str, fix: str) -> None:
     """
     if not ok:
         raise ConfigError(f"{key}={value!r}: {rule}. Fix: {fix}")
+
+
+def nearest(name: str, known: Iterable[str]) -> str | None:
+    """The name of ``known`` closest to ``name`` (a typo of it), ``None`` when none is close.
+
+    Examples:
+        >>> nearest("lrr", ["lr", "gamma", "tau"]), nearest("xyz", ["lr", "gamma"])
+        ('lr', None)
+    """
+    found = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return found[0] if found else None
+
+
+def unknown_key(
+    prefix: str,
+    name: str,
+    value: object,
+    known: Collection[str],
+    owner: str,
+    fix: str,
+    what: str = "a key",
+) -> ConfigError | None:
+    """The error of key ``{prefix}.{name}`` unless ``name`` is one of ``known`` (``what`` of
+    ``owner``): one line naming the nearest known key, else ending with ``fix``.
+
+    Examples:
+        >>> print(unknown_key("task.stages.s0", "lrr", 1e-3, ["lr", "gamma"], "dqn", "drop it"))
+        task.stages.s0.lrr=0.001: not a key of dqn. Fix: did you mean task.stages.s0.lr?
+        >>> unknown_key("task.stages.s0", "lr", 1e-3, ["lr", "gamma"], "dqn", "drop it") is None
+        True
+    """
+    if name in known:
+        return None
+    close = nearest(name, known)
+    hint = f"did you mean {prefix}.{close}?" if close else fix
+    return ConfigError(f"{prefix}.{name}={value!r}: not {what} of {owner}. Fix: {hint}")
+
+
+def schema_keys(schema: type) -> list[str]:
+    """The keys of a config dataclass (a stage's algorithm's, :class:`StageConfig`'s)."""
+    return [f.name for f in fields(schema)]
 
 
 class StageChecks:
@@ -355,19 +399,26 @@ def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> D
         stages = {k: v for k, v in stages.items() if "algo" in v}  # not from their own keys
         stages["stage_template"] = cfg.task.stage_template
     for name, stage in stages.items():
+        schema = OmegaConf.get_type(stage)
         for key, value in every.items():
             if (name, key) in kept:
                 continue
             try:
+                if is_dataclass(schema) and key not in schema_keys(schema):  # an open node
+                    raise ConfigKeyError(key)  # would take it: its schema does not
                 stage[key] = value
             except OmegaConfBaseException as err:
-                schema = OmegaConf.get_type(stage)
                 where = "task.stage_template" if name == "stage_template" else f"task.stages.{name}"
+                close = nearest(key, schema_keys(schema)) if is_dataclass(schema) else None
+                fix = (
+                    f"did you mean all_stages.{close}?"
+                    if close and close not in every
+                    else f"set it for the stages that have it (task.stages.<stage>.{key}=...)"
+                )
                 raise ConfigError(
                     f"all_stages.{key}={value!r}: {where} "
                     f"({getattr(schema, '__name__', schema)}) cannot take it "
-                    f"({type(err).__name__}). Fix: set it for the stages that have it "
-                    f"(task.stages.<stage>.{key}=...)"
+                    f"({type(err).__name__}). Fix: {fix}"
                 ) from None
     cfg.all_stages = {}
     return cfg

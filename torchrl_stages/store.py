@@ -8,6 +8,14 @@ stage from its algorithm's keys and defaults. The ``stages_algorithms`` resolver
 registered algorithms and ``stages_options`` the options of a config group (what ``conf/`` and
 any config directory of yours hold), so that ``stages-train --help`` lists what there is.
 ``stages_by_prefix`` gives a key a value that depends on an id (a task's settings per level).
+
+Hydra closes every mapping of a composed config, so that a key it lacks needs ``+``. Three kinds
+of node stay open, so that one form of a key works on every task: ``task.stages`` (a template
+task, ``task=gym``, has no stage before the env is built, yet ``task.stages.s2.lr=1e-3`` sets
+one), each stage's keys (its algorithm's schema) and ``task.env`` (the env's own arguments, e.g.
+``task.env.size=10`` for ``task=custom``). What they are given is checked before training
+instead, with a one-line error naming the key and the nearest valid one
+(:func:`torchrl_stages.validate.validate_config`).
 """
 
 from __future__ import annotations
@@ -19,7 +27,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config import LoggerConfig, ScheduleConfig, TrainConfig, TuneAppConfig
 from torchrl_stages.learners import ALGORITHMS
@@ -35,18 +43,28 @@ def register_configs() -> None:
         True
     """
     cs = ConfigStore.instance()
-    cs.store(name="train_schema", node=TrainConfig)
-    cs.store(name="tune_schema", node=TuneAppConfig)  # stages-tune's root (conf/tune.yaml)
+    cs.store(name="train_schema", node=_open(TrainConfig, "task.stages", "task.env"))
+    # stages-tune's root (conf/tune.yaml)
+    cs.store(name="tune_schema", node=_open(TuneAppConfig, "task.stages", "task.env"))
     cs.store(group="logger", name="logger_schema", node=LoggerConfig)
     cs.store(group="schedule", name="schedule_schema", node=ScheduleConfig)
     for name, learner in ALGORITHMS.items():
-        cs.store(group="algo", name=f"{name}_schema", node=learner.Config)
+        cs.store(group="algo", name=f"{name}_schema", node=_open(learner.Config, ""))
     if not OmegaConf.has_resolver("stages_algorithms"):
         OmegaConf.register_new_resolver("stages_algorithms", lambda: "|".join(ALGORITHMS))
     if not OmegaConf.has_resolver("stages_options"):
         OmegaConf.register_new_resolver("stages_options", group_options)
     if not OmegaConf.has_resolver("stages_by_prefix"):
         OmegaConf.register_new_resolver("stages_by_prefix", by_prefix)
+
+
+def _open(schema: type, *keys: str) -> DictConfig:
+    """``schema`` as a config whose nodes at ``keys`` (``""``: the root) take keys they lack
+    without Hydra's ``+``: their flag survives composition, where Hydra closes the rest."""
+    node = OmegaConf.structured(schema)
+    for key in keys:
+        OmegaConf.set_struct(node if not key else OmegaConf.select(node, key), False)
+    return node
 
 
 def by_prefix(name: str, values: Mapping[str, Any], default: Any) -> Any:

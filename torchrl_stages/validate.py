@@ -4,12 +4,23 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import inspect
 import math
+from dataclasses import is_dataclass
 
 import torch
+from hydra.utils import get_object
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_stages.config import ConfigError, StageChecks, check, targets
+from torchrl_stages.config import (
+    ConfigError,
+    StageChecks,
+    check,
+    nearest,
+    schema_keys,
+    targets,
+    unknown_key,
+)
 from torchrl_stages.learners import ALGORITHMS, learner_class
 from torchrl_stages.schedules import get_schedule
 
@@ -182,8 +193,72 @@ def check_targets(cfg: DictConfig) -> None:
             raise TargetError(f"{key}={target}: {problem}")
 
 
+HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
+
+
+def env_arguments(target: str) -> list[str] | None:
+    """The keyword arguments the env ``target`` (a dotted class or function) takes; ``None``
+    when it takes any (``**kwargs``) or cannot be told.
+
+    Examples:
+        >>> "size" in env_arguments("torchrl_stages.envs.GridWorldEnv")
+        True
+        >>> env_arguments("torchrl_stages.GymStageEnv") is None  # the rest go to gymnasium
+        True
+    """
+    try:
+        found = get_object(target)
+        function = found.__init__ if isinstance(found, type) else found
+        parameters = inspect.signature(function).parameters.values()
+    except Exception:  # noqa: BLE001 - not found or no signature: check_targets says which
+        return None
+    if any(p.kind is p.VAR_KEYWORD for p in parameters):
+        return None
+    named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    return [p.name for p in parameters if p.kind in named and p.name != "self"]
+
+
+def check_env_arguments(cfg: DictConfig) -> None:
+    """Every key of ``task.env`` (and ``task.eval_env``, passed on top of it) is an argument of
+    the env it names: a key it lacks (``task.env.env_id`` on a task of its own env, a typo) is
+    one line naming the nearest argument, or ``task=gym`` for a gymnasium id."""
+    env = cfg.task.get("env")
+    target = env.get("_target_") if isinstance(env, DictConfig) else None
+    if not isinstance(target, str) or OmegaConf.is_missing(env, "_target_") or "${" in target:
+        return
+    known = env_arguments(target)
+    if known is None:
+        return
+    task = cfg.task.get("name")
+    for node_key in ("env", "eval_env"):
+        node = cfg.task.get(node_key)
+        if not isinstance(node, DictConfig):
+            continue
+        values = OmegaConf.to_container(node, resolve=False)
+        for name, value in values.items():
+            if name in HYDRA_KEYS or name in known:
+                continue
+            if name == "env_id":  # a gymnasium id given to a task of another env
+                raise ConfigError(
+                    f"task.{node_key}.env_id={value!r}: task '{task}' builds {target}, which "
+                    f"takes no env id. Fix: did you mean task=gym? (task=gym "
+                    f"task.env.env_id={value} task.env.stage_fn._target_=my_pkg.my_stage)"
+                )
+            error = unknown_key(
+                f"task.{node_key}",
+                name,
+                value,
+                known,
+                f"{target} (the env of task '{task}')",
+                f"drop it ({target} takes: {', '.join(known)})",
+                what="an argument",
+            )
+            raise error
+
+
 def check_env_keys(cfg: DictConfig) -> None:
-    """The env's keys can build it: none left ``???`` and every ``_target_`` found."""
+    """The env's keys can build it: none left ``???``, every ``_target_`` found and every key
+    an argument of the env (:func:`check_env_arguments`)."""
     for key in missing_keys(cfg.task.get("env"), "task.env"):
         check(
             False,
@@ -193,11 +268,69 @@ def check_env_keys(cfg: DictConfig) -> None:
             f"set it on the command line: {key}=...",
         )
     check_targets(cfg)
+    check_env_arguments(cfg)
+
+
+def stage_schema(stage: DictConfig) -> type | None:
+    """The config dataclass of a composed stage node (``algo@...`` gives it its algorithm's);
+    ``None`` for a plain mapping (a run's saved ``config.yaml``, whose keys are its own)."""
+    schema = OmegaConf.get_type(stage)
+    return schema if is_dataclass(schema) else None
+
+
+def _check_known(key: str, node: DictConfig, schema: type | None, cfg: DictConfig) -> None:
+    """Every key of the stage node ``node`` (at ``key``) is one of ``schema``'s."""
+    if schema is None:
+        return
+    known = schema_keys(schema)
+    owner = getattr(schema, "algo", None) or schema.__name__
+    listing = f"stages-train task={cfg.task.get('name')} --cfg job"
+    for name, value in OmegaConf.to_container(node, resolve=False).items():
+        error = unknown_key(key, name, value, known, owner, f"drop it (its keys: {listing})")
+        if error is not None:
+            raise error
+
+
+def check_stage_keys(cfg: DictConfig) -> None:
+    """Every stage of ``task.stages`` is one of the task's and every key of a stage (and of
+    ``task.stage_template``) is one of its algorithm's, whether the command line set it with
+    Hydra's ``+`` or without: one line naming the nearest stage or key otherwise."""
+    template = cfg.task.get("stage_template")
+    template_schema = stage_schema(template) if template else None
+    if template:
+        _check_known("task.stage_template", template, template_schema, cfg)
+    stages = cfg.task.get("stages") or {}
+    named = [name for name, stage in stages.items() if _is_stage(stage)]
+    for name, stage in stages.items():
+        key = f"task.stages.{name}"
+        if _is_stage(stage):
+            _check_known(key, stage, stage_schema(stage), cfg)
+        elif template and isinstance(stage, DictConfig):  # its own keys over the template
+            _check_known(key, stage, template_schema, cfg)
+        else:
+            close = nearest(str(name), named)
+            check(
+                False,
+                key,
+                stage,
+                f"task '{cfg.task.get('name')}' has no stage {name} (its stages: "
+                f"{', '.join(named)})",
+                f"did you mean task.stages.{close}?"
+                if close
+                else f"set a key of one of them, or add the stage with "
+                f"+algo@task.stages.{name}=<algo> ({'|'.join(ALGORITHMS)})",
+            )
+
+
+def _is_stage(stage: object) -> bool:
+    """Whether a ``task.stages`` entry is a stage learner config (it names its algorithm)."""
+    return isinstance(stage, DictConfig) and "algo" in stage
 
 
 def validate_config(cfg: DictConfig) -> None:
     """Checks what can be checked without building the env (its code is imported: the
     ``_target_`` s must be found)."""
+    check_stage_keys(cfg)
     _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
     _check_finite(cfg.task.get("stage_template"), "task.stage_template")
     for name in ("eval", "objective"):
@@ -304,7 +437,7 @@ def validate_config(cfg: DictConfig) -> None:
     )
     for name, stage in cfg.task.stages.items():
         check(
-            isinstance(stage, DictConfig) and "algo" in stage,
+            _is_stage(stage),
             f"task.stages.{name}",
             stage,
             "is not a stage learner config",
