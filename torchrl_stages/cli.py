@@ -36,11 +36,11 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import apply_all_stages, objective_value, stage_keys_set
 from torchrl_stages.experiment import Experiment, seed_dir
-from torchrl_stages.seed_run import with_env_stages
 from torchrl_stages.failures import DivergenceError, EnvError, one_line
 from torchrl_stages.gym_env import SuccessKeyError
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.rundir import RunDir, RunDirError, load_run
+from torchrl_stages.seed_run import with_env_stages
 from torchrl_stages.stage_store import SharedStageStore, StageEntry, StoreError
 from torchrl_stages.store import register_configs
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
