@@ -4,12 +4,18 @@ summaries) exist whichever backend is chosen."""
 from __future__ import annotations
 
 import csv
+import re
+import tomllib
+from pathlib import Path
 
 from helpers import assert_figure
 from torchrl.record.loggers import Logger
 
 from torchrl_stages import Experiment
 from torchrl_stages.loggers import RunLogger
+from torchrl_stages.validate import LOGGER_BACKENDS, LOGGER_PACKAGES
+
+ROOT = Path(__file__).resolve().parents[1]
 
 TWO_STAGES = [
     "task.env.size=10",
@@ -73,3 +79,18 @@ def test_learning_curves_without_a_metrics_backend(compose_cfg, tmp_path):
     assert {"train/stage_0/loss", "train/stage_1/grad_norm", "eval/stage_0/value_error"} <= names
     assert not (tmp_path / "csv").exists()  # no torchrl CSV files: no backend
     assert_figure(tmp_path / "learning_curves.png")
+
+
+def test_every_metrics_backend_has_an_extra_and_a_line_in_the_readme():
+    """``pip install "torchrl-stages[<backend>]"`` installs the package that ``logger=<backend>``
+    needs, and the README names every backend and those extras."""
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"
+    ]
+    for backend, package in LOGGER_PACKAGES.items():
+        names = [re.match(r"[A-Za-z0-9_.-]+", r)[0].lower() for r in extras.get(backend, [])]
+        assert names == [package], f"the extra [{backend}] should install {package}: {names}"
+    readme = (ROOT / "README.md").read_text()
+    listed = [set(m.split("|")) for m in re.findall(r"logger=([a-z]+(?:\|[a-z]+)+)", readme)]
+    assert set(LOGGER_BACKENDS) in listed, listed
+    assert 'pip install "torchrl-stages[tensorboard]"' in readme

@@ -293,3 +293,31 @@ def test_failed_sweep_still_writes_its_summary(sweeps):
     assert [r["status"] for r in rows] == ["invalid", "invalid"]
     assert "task.stages.s0.gamma=1.5: must be in (0, 1]" in rows[0]["reason"]
     assert "Sweep summary:" in output
+
+
+def test_performance_profile_legend_stays_inside_the_figure(tmp_path, monkeypatch):
+    """Long labels (a sweep over many overrides) wrap: the legend sits below the plot, inside
+    the figure, and hides no curve."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from torchrl_stages.sweeps import figures
+
+    drawn = []
+    monkeypatch.setattr(figures, "save_figure", lambda fig, out: drawn.append(fig) or out)
+    long = " ".join(
+        f"task.stages.s{k}.lr=0.000{k + 1} task.stages.s{k}.gamma=0.9" for k in range(5)
+    )
+    jobs = _jobs([0.2, 0.9, 1.0], config=f"{long} seed_group=a")
+    jobs += _jobs([0.5, 0.6], config="task.stages.s0.lr=0.01 seed_group=b")
+    figures.plot_performance_profile(jobs, tmp_path / "profile.png")
+    (fig,) = drawn
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()  # the layout, as savefig makes it
+    renderer = canvas.get_renderer()
+    (legend,) = fig.legends
+    box, page = legend.get_window_extent(renderer), fig.bbox
+    assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1
+    assert not box.overlaps(fig.axes[0].get_window_extent(renderer))
+    assert len(legend.get_texts()) == 2
+    fig.savefig(tmp_path / "profile.png")
+    assert_figure(tmp_path / "profile.png")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -25,6 +25,12 @@ class StackedPolicy(TensorDictModuleBase):
         policies: one greedy policy per stage, in stage order.
 
     Keyword Args:
+        stage_fn: the task's stage function (``stage_fn(td) -> int64 [*batch, 1]``, e.g. an
+            env's ``stage_fn``): the stage of an input that has no ``stage_key`` entry, such
+            as the env's own TensorDicts without :class:`~torchrl_stages.transforms.
+            StageTransform`. An input's ``stage_key`` entry, where it has one, is used as is.
+            Without ``stage_fn`` every input needs that entry (``stage_key`` is then the
+            first of :attr:`in_keys`).
         stage_key: the stage tag written by :class:`~torchrl_stages.transforms.StageTransform`.
         skip_absent: leave out the stages absent from the batch. ``False`` runs every stage
             policy at every call: for policies that draw random numbers (exploration), the
@@ -40,22 +46,31 @@ class StackedPolicy(TensorDictModuleBase):
         ...                 batch_size=[3])
         >>> StackedPolicy([p0, p1])(td)["action"].squeeze(-1)
         tensor([0., 1., 0.])
+
+        With a stage function, an input needs no ``"stage"`` entry:
+
+        >>> policy = StackedPolicy([p0, p1], stage_fn=lambda td: td["observation"][..., :1] > 0)
+        >>> policy(TensorDict(observation=torch.tensor([[0.0], [2.0]]), batch_size=[2]))[
+        ...     "action"].squeeze(-1)
+        tensor([0., 1.])
     """
 
     def __init__(
         self,
         policies: Sequence[TensorDictModuleBase],
         *,
+        stage_fn: Callable[[TensorDictBase], torch.Tensor] | None = None,
         stage_key: NestedKey = "stage",
         skip_absent: bool = True,
     ) -> None:
         super().__init__()
         self.policies = nn.ModuleList(policies)
+        self.stage_fn = stage_fn
         self.stage_key = stage_key
         self.skip_absent = skip_absent
         # each output's trailing shape and dtype, from the first call (every stage runs in it)
         self._outputs: dict[NestedKey, tuple[torch.Size, torch.dtype]] | None = None
-        in_keys: list[NestedKey] = [stage_key]
+        in_keys: list[NestedKey] = [] if stage_fn is not None else [stage_key]
         out_keys: list[NestedKey] = []
         for policy in policies:
             in_keys += [k for k in policy.in_keys if k not in in_keys]
@@ -63,8 +78,22 @@ class StackedPolicy(TensorDictModuleBase):
         self.in_keys = in_keys
         self.out_keys = out_keys
 
+    def stage(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The stage of each element of ``tensordict`` (int64, ``[*batch]``): its
+        ``stage_key`` entry, else ``stage_fn`` of it."""
+        stage = tensordict.get(self.stage_key, None)
+        if stage is not None:
+            return stage.squeeze(-1)
+        if self.stage_fn is None:
+            raise KeyError(
+                f"the input has no {self.stage_key!r} entry. Fix: tag the env with "
+                "StageTransform(stage_fn, num_stages), or build the policy with "
+                "StackedPolicy(policies, stage_fn=...) (load_policy does)"
+            )
+        return self.stage_fn(tensordict).to(torch.int64).reshape(tensordict.batch_size)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        stage = tensordict.get(self.stage_key).squeeze(-1)
+        stage = self.stage(tensordict)
         present = None
         if self.skip_absent and self._outputs is not None:
             present = torch.bincount(stage.reshape(-1), minlength=len(self.policies)).tolist()

@@ -705,13 +705,22 @@ def load_policy(
 ) -> StackedPolicy:
     """The greedy stacked policy of a finished run (``trust``: see :func:`load_run`).
 
+    It acts on the task env's TensorDicts as they come: an input without a ``"stage"`` entry
+    gets its stage from the task's stage function (:class:`StackedPolicy`'s ``stage_fn``; the
+    tasks without one, whose envs track their stage, write that entry themselves).
+
     Examples:
         >>> from torchrl_stages import load_policy  # doctest: +SKIP
         >>> policy = load_policy("outputs/2026-11-21/16-00-00")  # doctest: +SKIP
-        >>> env.rollout(200, policy)  # an env tagged by StageTransform  # doctest: +SKIP
+        >>> GridWorldEnv(batch_size=(8,)).rollout(200, policy)  # doctest: +SKIP
     """
-    run = load_run(run_dir, device, trust=trust)
-    return StackedPolicy([learner.policy for learner in run.learners])
+    return run_policy(load_run(run_dir, device, trust=trust))
+
+
+def run_policy(run: LoadedRun) -> StackedPolicy:
+    """The greedy stacked policy of a loaded run, with its task's stage function."""
+    stage_fn = getattr(run.task.spec_env, "stage_fn", None)
+    return StackedPolicy([learner.policy for learner in run.learners], stage_fn=stage_fn)
 
 
 def refuse_links(paths: Iterable[Path]) -> None:
@@ -734,4 +743,5 @@ __all__ = [
     "load_policy",
     "load_run",
     "refuse_links",
+    "run_policy",
 ]

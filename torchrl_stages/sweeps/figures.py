@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import math
 import re
+import textwrap
 import warnings
 from collections import defaultdict
 from collections.abc import Sequence
@@ -21,6 +22,9 @@ from torchrl_stages.sweeps.jobs import configs as configs_of
 from torchrl_stages.sweeps.stats import Aggregate, performance_profiles
 
 __all__ = ["plot_performance_profile", "plot_sweep_curves", "plot_sweep_final", "short_labels"]
+
+#: characters per line of a legend label (the 7-inch performance profile, 8-point text)
+_LEGEND_WIDTH = 90
 
 #: learning curves of the summary: whole-task probe, stage and joint-phase evaluations
 _CURVE = re.compile(
@@ -212,11 +216,15 @@ def plot_performance_profile(
     if not profiles:
         return None
     labels = labels or short_labels(list(profiles))
-    fig = Figure(figsize=(7.0, 4.2))
+    # the legend goes below the plot, each label wrapped to the figure's width: long override
+    # lists neither hide the curves nor run off the figure's edge
+    texts = [textwrap.fill(labels.get(c, c), _LEGEND_WIDTH) for c in profiles]
+    lines = sum(t.count("\n") + 1 for t in texts)
+    fig = Figure(figsize=(7.0, 4.2 + 0.17 * lines), layout="constrained")
     ax = fig.subplots()
-    for c, (config, (profile, (low, high))) in enumerate(profiles.items()):
+    for c, (text, (profile, (low, high))) in enumerate(zip(texts, profiles.values(), strict=True)):
         color = f"C{c % 10}"
-        ax.plot(taus, profile, color=color, linewidth=2, label=labels.get(config, config))
+        ax.plot(taus, profile, color=color, linewidth=2, label=text)
         ax.fill_between(taus, low, high, color=color, alpha=0.15, linewidth=0)
     ax.set(
         xlabel=f"{metric} threshold tau",
@@ -225,7 +233,6 @@ def plot_performance_profile(
         ylim=(-0.02, 1.02),
     )
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower left")
+    fig.legend(fontsize=8, loc="outside lower center")
     fig.suptitle("performance profile per configuration (band: 95% bootstrap CI)")
-    fig.tight_layout()
     return save_figure(fig, out)

@@ -1,0 +1,245 @@
+"""A trained stacked policy as one ``.pt2`` file that runs with PyTorch alone.
+
+:func:`export_policy` traces the whole stacked policy, the task's stage function included,
+with ``torch.export`` and saves the ``ExportedProgram`` with ``torch.export.save``. The program
+takes the plain tensors that the stage policies and the stage function read, each with one
+leading batch dimension of any size, in the order of the file's ``policy.json``
+(:data:`METADATA`), and returns the greedy action of each action entry, as a tuple. Only
+``torch`` is needed to run it::
+
+    import json, torch
+
+    extra = {"policy.json": ""}
+    program = torch.export.load("policy.pt2", extra_files=extra)
+    meta = json.loads(extra["policy.json"])  # its inputs and outputs, by key
+    (action,) = program.module()(observation)  # the grid world: "observation" [B, 2]
+
+``stages-export RUN_DIR FILE`` does the same from the command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_stages.policy import StackedPolicy
+from torchrl_stages.rundir import RunDirError, load_run, run_policy
+
+#: the name, inside the ``.pt2`` file, of the JSON that names the program's inputs and outputs
+METADATA = "policy.json"
+
+#: entries of an env's TensorDicts that are no observation (what a stage function may read)
+_NOT_OBSERVED = {"done", "terminated", "truncated", "reward", "is_init", "success", "_reset"}
+
+__all__ = ["METADATA", "TensorPolicy", "export_policy", "input_keys", "main"]
+
+
+class TensorPolicy(nn.Module):
+    """A stacked policy on plain tensors: ``in_keys``' tensors in (one leading batch
+    dimension), the ``out_keys`` entries it writes out, as a tuple. Every stage policy runs on
+    the whole batch (``skip_absent=False``), so the traced program holds no data-dependent
+    branch.
+
+    Examples:
+        >>> from tensordict.nn import TensorDictModule
+        >>> p0 = TensorDictModule(lambda o: o[..., 0] * 0 + 5, ["observation"], ["action"])
+        >>> p1 = TensorDictModule(lambda o: o[..., 0] * 0 + 7, ["observation"], ["action"])
+        >>> stacked = StackedPolicy([p0, p1], stage_fn=lambda td: td["observation"][..., :1] > 0)
+        >>> TensorPolicy(stacked, ["observation"], ["action"])(torch.tensor([[-1.0], [1.0]]))
+        (tensor([5., 7.]),)
+    """
+
+    def __init__(
+        self, policy: StackedPolicy, in_keys: Sequence[NestedKey], out_keys: Sequence[NestedKey]
+    ) -> None:
+        super().__init__()
+        self.policy = StackedPolicy(
+            list(policy.policies),
+            stage_fn=policy.stage_fn,
+            stage_key=policy.stage_key,
+            skip_absent=False,
+        )
+        self.in_keys, self.out_keys = list(in_keys), list(out_keys)
+
+    def forward(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        td = TensorDict(batch_size=inputs[0].shape[:1], device=inputs[0].device)
+        for key, value in zip(self.in_keys, inputs, strict=True):
+            td.set(key, value)
+        out = self.policy(td)
+        return tuple(out.get(key) for key in self.out_keys)
+
+
+def _key(key: NestedKey) -> str | list[str]:
+    return key if isinstance(key, str) else list(key)
+
+
+def _last(key: NestedKey) -> str:
+    return key if isinstance(key, str) else key[-1]
+
+
+def _describe(keys: Sequence[NestedKey], tensors: Sequence[torch.Tensor]) -> list[dict[str, Any]]:
+    return [
+        {"key": _key(k), "shape": ["batch", *t.shape[1:]], "dtype": str(t.dtype).split(".")[-1]}
+        for k, t in zip(keys, tensors, strict=True)
+    ]
+
+
+def input_keys(policy: StackedPolicy, example: TensorDictBase) -> list[NestedKey]:
+    """The entries the stacked policy reads, its stage function's included: the stage
+    policies' inputs, and, when the stage function reads more than those, every observation
+    entry of ``example``."""
+    keys = list(policy.in_keys)
+    if policy.stage_fn is None:
+        return keys
+    try:
+        policy.stage_fn(example.select(*keys))
+    except KeyError:
+        keys += [
+            k
+            for k in example.keys(True, True)
+            if k not in keys
+            and k != policy.stage_key
+            and not (isinstance(k, tuple) and k[0] == "next")
+            and _last(k) not in _NOT_OBSERVED
+            and "transition" not in _last(k)
+        ]
+    return keys
+
+
+def export_policy(
+    source: str | Path | StackedPolicy,
+    path: str | Path,
+    example: TensorDictBase | None = None,
+    *,
+    in_keys: Sequence[NestedKey] | None = None,
+    out_keys: Sequence[NestedKey] | None = None,
+    trust: bool = False,
+) -> Path:
+    """Exports a greedy stacked policy to ``path`` (a ``.pt2`` file) with ``torch.export``.
+
+    Args:
+        source: a finished run directory (its policy, as :func:`~torchrl_stages.load_policy`
+            loads it), or a :class:`~torchrl_stages.StackedPolicy`.
+        path: the file to write (``.pt2``), replaced atomically.
+        example: a TensorDict of the env's, with one batch dimension of at least 2 (e.g.
+            ``env.reset()``): the inputs' shapes and dtypes. Default for a run directory: a
+            reset of its task env.
+
+    Keyword Args:
+        in_keys: the program's inputs, in order (default: :func:`input_keys`).
+        out_keys: its outputs (default: the run's action entries; for a policy, its outputs
+            named ``"action"``, else all of them).
+        trust: see :func:`~torchrl_stages.load_run`.
+
+    Returns:
+        ``path``. Its ``policy.json`` (:data:`METADATA`) lists the inputs and outputs: key,
+        shape (``"batch"`` first) and dtype.
+
+    Examples:
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl_stages.envs import GridWorldEnv
+        >>> env = GridWorldEnv(batch_size=(4,), size=10, num_stages=2)
+        >>> def move(a):  # 3: right, 1: down
+        ...     return TensorDictModule(lambda o: o[..., 0].long() * 0 + a,
+        ...                             ["observation"], ["action"])
+        >>> policy = StackedPolicy([move(3), move(1)], stage_fn=env.stage_fn)
+        >>> import tempfile
+        >>> file = export_policy(policy, Path(tempfile.mkdtemp()) / "p.pt2", env.reset())
+        >>> program = torch.export.load(file).module()
+        >>> program(torch.tensor([[0.0, 0.0], [0.0, 1.8]]))  # cells (0, 0) and (0, 9)
+        (tensor([3, 1]),)
+    """
+    path = Path(path)
+    if path.suffix != ".pt2":
+        raise ValueError(f"{path}: the file must end in .pt2. Fix: name it e.g. policy.pt2")
+    if not path.parent.is_dir():
+        raise ValueError(f"{path.parent} is not a directory. Fix: create it, or pick another")
+    if isinstance(source, StackedPolicy):
+        if example is None:
+            raise ValueError("exporting a policy needs example=, a TensorDict of the env's")
+        policy = source
+        if out_keys is None:
+            out_keys = [k for k in policy.out_keys if _last(k) == "action"] or policy.out_keys
+    else:
+        run = load_run(source, trust=trust)
+        policy = run_policy(run)
+        if out_keys is None:
+            out_keys = list(
+                dict.fromkeys(run.task.specs(k).action_key for k in range(len(run.learners)))
+            )
+        if example is None:
+            env = run.task.base_env(2)
+            try:
+                example = env.reset()
+            finally:
+                env.close()
+    if example.batch_dims != 1 or example.batch_size[0] < 2:
+        raise ValueError(
+            f"example has batch size {list(example.batch_size)}. Fix: pass a TensorDict with "
+            "one batch dimension of at least 2 (e.g. the reset of an env with batch_size=(2,))"
+        )
+    keys = list(in_keys) if in_keys is not None else input_keys(policy, example)
+    inputs = tuple(example.get(k) for k in keys)
+    module = TensorPolicy(policy, keys, out_keys).eval()
+    batch = torch.export.Dim("batch", min=1)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        outputs = module(*inputs)  # eager first: the stacked policy learns its output shapes
+        program = torch.export.export(
+            module, inputs, dynamic_shapes=(tuple({0: batch} for _ in inputs),)
+        )
+    meta = {
+        "inputs": _describe(keys, inputs),
+        "outputs": _describe(out_keys, outputs),
+        "num_stages": len(policy.policies),
+        "stage": "input" if policy.stage_fn is None else "stage function, in the program",
+    }
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.pt2")
+    try:
+        torch.export.save(program, tmp, extra_files={METADATA: json.dumps(meta)})
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def _names(entries: list[dict[str, Any]]) -> str:
+    return ", ".join(
+        f"{e['key'] if isinstance(e['key'], str) else '.'.join(e['key'])} "
+        f"[{', '.join(map(str, e['shape']))}] {e['dtype']}"
+        for e in entries
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``stages-export RUN_DIR FILE``: a finished run's greedy stacked policy as one
+    ``torch.export`` file that runs with PyTorch alone."""
+    parser = argparse.ArgumentParser(prog="stages-export", description=main.__doc__)
+    parser.add_argument("run_dir", type=Path, help="a run directory written by stages-train")
+    parser.add_argument("file", type=Path, help="the .pt2 file to write")
+    parser.add_argument(
+        "--trust",
+        action="store_true",
+        help="load a run whose config names code of its own (see stages-eval --trust)",
+    )
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    try:
+        file = export_policy(args.run_dir, args.file, trust=args.trust)
+    except (RunDirError, ValueError) as err:
+        print(f"stages-export: {err}", file=sys.stderr)
+        sys.exit(2)
+    extra = {METADATA: ""}
+    torch.export.load(file, extra_files=extra)
+    meta = json.loads(extra[METADATA])
+    print(f"Wrote {file}: inputs {_names(meta['inputs'])}; outputs {_names(meta['outputs'])}")
