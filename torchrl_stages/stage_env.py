@@ -9,9 +9,11 @@ for a task with ``stage_starts: false``, which then trains with the joint or fla
 
 Examples:
     >>> from torchrl_stages.envs import GridWorldEnv
-    >>> env = GridWorldEnv((2,), num_stages=3)
-    >>> isinstance(env, StageEnv), isinstance(env, StageEnvHooks)
-    (True, True)
+    >>> env = GridWorldEnv((2,))
+    >>> isinstance(env, StageEnv), env.num_stages
+    (True, 5)
+    >>> [hook for hook in ("start_states", "stage_action_key") if hasattr(env, hook)]
+    ['start_states']
 """
 
 from __future__ import annotations
@@ -39,14 +41,15 @@ class StageEnv(Protocol):
     def stage_fn(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The stage of each state of ``tensordict`` (what a step returns, or its ``"next"``):
         int64 ``[*batch, 1]``, never lower than the stage of the state before it.
-        :class:`~torchrl_stages.transforms.StageTransform` tags every TensorDict with it."""
+        :class:`~torchrl_stages.transforms.StageTransform` tags every TensorDict with it. An
+        env that writes its own ``"stage"`` entry sets ``stage_fn = None``."""
         ...
 
 
 @runtime_checkable
 class StageEnvHooks(Protocol):
-    """What a multi-stage env may add; each hook is optional, and the package asks for it with
-    ``getattr`` / ``hasattr``.
+    """What a multi-stage env may add; each hook is optional (an env has any of them), and the
+    package asks for each with ``getattr`` / ``hasattr``.
 
     Attributes:
         max_steps: the time limit of an episode; evaluations cap their episodes there
