@@ -201,7 +201,8 @@ class StageTrainer:
         if latest is not None:
             self.checkpoints.load(latest, state)
             self.logs.rewind(counters.log)
-            log.info("stage %d (%s): resuming from %s", self.stage, self.name, latest)
+            seeds = f", {n} seeds" if n > 1 else ""
+            log.info("stage %d (%s)%s: resuming from %s", self.stage, self.name, seeds, latest)
         start = stops.start = time.perf_counter() - counters.seconds
         watch = Stopwatch()
         loop = Trainer(

@@ -289,6 +289,8 @@ class JointTrainer:
         latest = self.checkpoints.latest() if self.checkpoints is not None else None
         if latest is not None:
             self.checkpoints.load(latest, {"counters": counters})
+            seeds = f", {self.n} seeds" if self.n > 1 else ""
+            log.info("joint%s: resuming from %s", seeds, latest)
         start = time.perf_counter() - counters.seconds
         watch = Stopwatch()
         for index in range(counters.phase, len(self.starts)):
