@@ -10,9 +10,11 @@ added here, so a config names only the env and its stage function.
 from __future__ import annotations
 
 import functools
+import logging
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import cloudpickle
 import gymnasium
 import numpy as np
 import torch
@@ -23,12 +25,18 @@ from torchrl.data import Categorical, Composite
 from torchrl.envs import GymWrapper
 from torchrl.envs.gym_like import BaseInfoDictReader
 
+from torchrl_stages import episode_replay
+from torchrl_stages.episode_replay import EpisodeReplay
 from torchrl_stages.transforms import SUCCESS_KEY
 
-__all__ = ["GymStageEnv", "SuccessKeyError", "SuccessReader", "threshold_stage"]
+__all__ = ["EpisodeReplay", "GymStageEnv", "SuccessKeyError", "SuccessReader", "threshold_stage"]
 
 StageFn = Callable[[TensorDictBase], torch.Tensor]
 _UNSET = object()
+log = logging.getLogger("torchrl_stages")
+_WARNED: set[str] = set()  # env ids whose episodes could not be rebuilt (warned once a process)
+# the async workers get EpisodeReplay by value: they need not import this package (seconds each)
+cloudpickle.register_pickle_by_value(episode_replay)
 
 
 def threshold_stage(
@@ -236,7 +244,7 @@ class GymStageEnv(GymWrapper):
             num_envs=batch[0],
             vectorization_mode=vectorize,
             vector_kwargs={"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED},
-            wrappers=list(wrappers) or None,
+            wrappers=[*wrappers, EpisodeReplay],
             **kwargs,
         )
         super().__init__(
@@ -254,3 +262,50 @@ class GymStageEnv(GymWrapper):
         self.stage_fn = None if stage_fn is None else _stage_function(stage_fn)
         if max_steps is not None:  # else evaluations cap episodes at 1000 steps
             self.max_steps = int(max_steps)
+        self.episodes_rebuilt = True  # False after a load_state_dict that could not rebuild them
+
+    def get_extra_state(self) -> dict[str, Any]:
+        """The running episodes of the copies (:meth:`EpisodeReplay.episode_state`, plain data
+        and arrays) and the success reader's count: what a resumed run continues from."""
+        if self.is_closed:
+            return {}
+        reader = next((r for r in self.info_dict_reader if isinstance(r, SuccessReader)), None)
+        return {
+            "env_id": self.env_id,
+            "copies": list(self._env.call("episode_state")),
+            "success_reader": None if reader is None else [reader._ended, reader._seen],
+        }
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        """Rebuilds the copies' saved episodes (:meth:`EpisodeReplay.rebuild`). An env whose
+        episodes do not come back as they were (draws from elsewhere than ``np_random``) sets
+        :attr:`episodes_rebuilt` to ``False`` (the collector then starts its episodes over)
+        and logs one warning line per env id and process."""
+        copies = state.get("copies")
+        num = self.batch_size[0]
+        if copies is None or len(copies) != num:
+            failures = [(0, f"the checkpoint holds {len(copies or ())} copies for {num}")]
+        else:
+            self._env.set_attr("pending_episode", list(copies))
+            failures = [(i, why) for i, why in enumerate(self._env.call("rebuild_pending")) if why]
+        reader = next((r for r in self.info_dict_reader if isinstance(r, SuccessReader)), None)
+        if reader is not None and state.get("success_reader") is not None:
+            reader._ended, reader._seen = (
+                int(state["success_reader"][0]),
+                bool(state["success_reader"][1]),
+            )
+        self.episodes_rebuilt = not failures
+        if failures and self.env_id not in _WARNED:
+            _WARNED.add(self.env_id)
+            index, why = failures[0]
+            log.warning(
+                "resume: the gymnasium env %r did not rebuild its running episodes (%d of %d "
+                "copies; copy %d: %s): they start over, so this run is not bitwise equal to an "
+                "uninterrupted one. Fix: draw every random number of the env from its "
+                "self.np_random (docs/guides/bring-your-own-env.md, Resume)",
+                self.env_id,
+                len(failures),
+                num,
+                index,
+                why,
+            )
