@@ -24,7 +24,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.envs import GymWrapper, TransformedEnv
 
-from torchrl_stages import GymStageEnv, StagedTask, StageTrainer, gym_env
+from torchrl_stages import GymStageEnv, StagedTask, StageTrainer
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.evaluate import evaluate_policy
@@ -432,35 +432,39 @@ def _warnings(caplog, words: str) -> list[str]:
     return [r.getMessage() for r in caplog.records if words in r.getMessage()]
 
 
-def test_an_env_that_draws_from_elsewhere_warns_once_and_starts_its_episodes_over(
-    tmp_path, caplog, monkeypatch
-):
+def test_an_env_that_draws_from_elsewhere_warns_once_and_starts_its_episodes_over(tmp_path, caplog):
     """Steps drawn from a generator of the env's own: the replayed episodes differ, so one line
-    (for the training and the evaluation env together) says they start over, and they do, from
-    the resets the saved np_random gives."""
-    monkeypatch.setattr(gym_env, "_WARNED", set())
+    per resume (for the training and the evaluation env together) says they start over, and
+    they do, from the resets the saved np_random gives."""
     checkpoints = StageCheckpoints(tmp_path, every=0)
     env, eval_env = _drift(entropy=True), _drift(entropy=True)
-    resumed, resumed_eval = _drift(entropy=True), _drift(entropy=True)
     try:
         collector = _collector(env)
         next(iter(collector))
         eval_env.rollout(3)
         path = checkpoints.save(collector.frames, {"collector": collector, "eval_env": eval_env})
         fresh_starts = env.reset()["observation"]  # what the saved np_random draws next
-        collector = _collector(resumed)
-        with caplog.at_level(logging.WARNING, logger="torchrl_stages"):
-            checkpoints.load(path, {"collector": collector, "eval_env": resumed_eval})
-        batch = next(iter(collector))
     finally:
-        for e in (env, eval_env, resumed, resumed_eval):
-            e.close()
-    (line,) = _warnings(caplog, "did not rebuild")
+        env.close()
+        eval_env.close()
+    for resume in (1, 2):  # two resumes in one process (a sweep's jobs): a line each
+        resumed, resumed_eval = _drift(entropy=True), _drift(entropy=True)
+        try:
+            collector = _collector(resumed)
+            with caplog.at_level(logging.WARNING, logger="torchrl_stages"):
+                checkpoints.load(path, {"collector": collector, "eval_env": resumed_eval})
+            batch = next(iter(collector))
+        finally:
+            resumed.close()
+            resumed_eval.close()
+        assert len(_warnings(caplog, "did not rebuild")) == resume
+        assert not resumed.episodes_rebuilt and not resumed_eval.episodes_rebuilt
+        assert collector.frames == 512
+        assert torch.equal(batch["observation"][:, 0], fresh_starts)
+    line = _warnings(caplog, "did not rebuild")[0]
     assert "gymnasium env 'drift_env:Drift-v0'" in line and "4 of 4 copies" in line
+    assert "copy 0: the replayed observation differs from the saved one" in line
     assert "they start over" in line and "not bitwise equal" in line and "\n" not in line
-    assert not resumed.episodes_rebuilt and not resumed_eval.episodes_rebuilt
-    assert collector.frames == 512
-    assert torch.equal(batch["observation"][:, 0], fresh_starts)
 
 
 def test_an_env_without_state_says_its_episodes_start_over(tmp_path, caplog):
@@ -479,5 +483,24 @@ def test_an_env_without_state_says_its_episodes_start_over(tmp_path, caplog):
             checkpoints.load(path, {"collector": collector})
     finally:
         env.close()
-    (line,) = _warnings(caplog, "keeps no state in state_dict")
-    assert "the env GymWrapper" in line and "episodes start over" in line
+    (line,) = _warnings(caplog, "holds no state of the env")
+    assert "env GymWrapper (it keeps none in state_dict" in line and "episodes start over" in line
+
+
+def test_a_checkpoint_without_the_episodes_warns_and_starts_them_over(caplog):
+    """A collector's and an env's state written before the copies' episodes were kept (the
+    state a ``GymStageEnv`` had none of): a warning each, no failure."""
+    env = _drift()
+    try:
+        collector = _collector(env)
+        with caplog.at_level(logging.WARNING, logger="torchrl_stages"):
+            collector.load_state_dict({"frames": 256})
+            env.load_state_dict({})
+        batch = next(iter(collector))
+    finally:
+        env.close()
+    (line,) = _warnings(caplog, "holds no state of the env")
+    assert "env GymStageEnv (written by a version that did not keep it)" in line
+    (line,) = _warnings(caplog, "did not rebuild")
+    assert "the checkpoint holds none of its episodes" in line and "start over" in line
+    assert not env.episodes_rebuilt and collector.frames == 512 and batch.shape == (4, 64)

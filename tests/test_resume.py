@@ -526,3 +526,23 @@ def test_a_gymnasium_env_killed_mid_stage_then_resumed_is_bitwise_equal(tmp_path
     assert "resuming from" in logs and "did not rebuild" not in logs
     for run_dir in ["seed_0", "seed_1"] if seeds else ["."]:
         assert_same_run(reference / run_dir, killed / run_dir)
+
+
+def test_a_gymnasium_env_that_draws_from_elsewhere_says_so_in_one_line_at_resume(tmp_path):
+    """``Drift-v0`` stepping on a generator of its own: the resumed run says, once, that its
+    episodes start over (not bitwise), and finishes."""
+    entropy = "+task.env.entropy=true"
+    killed = tmp_path / "killed"
+    proc = spawn_drift(killed, entropy)
+    checkpoints = killed / "checkpoints" / "stage_1"
+    kill_when(proc, lambda: any(checkpoints.glob("frames-*")), delay=0.05)
+    resumed = spawn_drift(killed, entropy, "resume=true").result()
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    lines = [
+        line
+        for line in (resumed.stdout + resumed.stderr).splitlines()
+        if "did not rebuild its running episodes" in line
+    ]
+    assert len(lines) == 1, lines
+    assert "'drift_env:Drift-v0'" in lines[0] and "they start over" in lines[0]
+    assert (killed / "stage_0.pt").is_file() and (killed / "eval.json").is_file()

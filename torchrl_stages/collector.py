@@ -25,8 +25,10 @@ class StageCollector:
     holds the frame count, the carried TensorDict of the next step (observations, episode
     returns of wrappers such as ``RewardSum``) and the env's own state (its dynamics and random
     generator, through ``env.base_env.state_dict()``), so an interrupted stage continues from
-    the same episodes, bitwise, on envs that put their state in ``state_dict`` (all shipped
-    envs; see :class:`torchrl_stages.envs.StageStarts`). Other envs restart their episodes.
+    the same episodes, bitwise, on envs that put their state in ``state_dict`` (the shipped
+    envs, ``torchrl_stages.envs._common.StageStarts``; gymnasium envs that draw from their
+    ``np_random``, :class:`~torchrl_stages.gym_env.GymStageEnv`). Other envs restart their
+    episodes, with a warning.
 
     Args:
         env: a batched env (``env.batch_size`` is ``[num_envs]``).
@@ -121,10 +123,13 @@ class StageCollector:
             base.load_state_dict(state["env"])
             if getattr(base, "episodes_rebuilt", True):
                 self._carrier = TensorDict(state["carrier"], self.env.batch_size)
-        elif self.frames and not self.restorable:
+        elif self.frames:
             log.warning(
-                "resume: the env %s keeps no state in state_dict (get_extra_state): its "
-                "episodes start over, so this run is not bitwise equal to an uninterrupted one "
+                "resume: the checkpoint holds no state of the env %s (%s): its episodes start "
+                "over, so this run is not bitwise equal to an uninterrupted one "
                 "(docs/guides/bring-your-own-env.md, Resume)",
                 type(base).__name__,
+                "it keeps none in state_dict, get_extra_state"
+                if not self.restorable
+                else "written by a version that did not keep it",
             )
