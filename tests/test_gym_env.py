@@ -7,21 +7,26 @@ The CLI commands start together when the module's first test runs; each test wai
 
 from __future__ import annotations
 
+import itertools
 import json
+import logging
 import os
 from pathlib import Path
 
 import gymnasium
 import pytest
 import torch
+from drift_env import drift_stage
 from helpers import Launched, assert_figure
 from line_env import line_stage, unbatched_line
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
-from torchrl.envs import TransformedEnv
+from torchrl.envs import GymWrapper, TransformedEnv
 
 from torchrl_stages import GymStageEnv, StagedTask, StageTrainer
+from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.collector import StageCollector
 from torchrl_stages.evaluate import evaluate_policy
 from torchrl_stages.experiment import build_task
 from torchrl_stages.gym_env import SuccessKeyError, SuccessReader
@@ -368,3 +373,134 @@ def test_the_gym_template_passes_the_success_key(compose_cfg):
     finally:
         env.close()
     assert task.specs(0).observation_keys == ["observation"]  # the flag is no input
+
+
+# ------------------------------------------------------------------ resume
+def _drift(vectorize: str = "sync", **kwargs) -> GymStageEnv:
+    """Four copies of ``Drift-v0`` inside stage 1, seeded as a run seeds them."""
+    env = GymStageEnv(
+        "drift_env:Drift-v0",
+        drift_stage,
+        vectorize=vectorize,
+        batch_size=(4,),
+        start_stage=1,
+        **kwargs,
+    )
+    env.set_seed(3)
+    return env
+
+
+def _collector(env: GymStageEnv) -> StageCollector:
+    """Four batches of 64 steps per copy, all copies staying put (the drift is their noise)."""
+    return StageCollector(env, _always(1), frames_per_batch=256, total_frames=4 * 256)
+
+
+@pytest.mark.parametrize("vectorize", ["sync", pytest.param("async", marks=pytest.mark.slow)])
+def test_a_checkpointed_collector_continues_the_same_episodes_bitwise(vectorize, tmp_path):
+    """Episodes of 200 random steps, checkpointed 128 steps in (tensors and JSON on disk): the
+    resumed collector rebuilds each copy's episode (its np_random, its TimeLimit count) and
+    goes on as if it had never stopped."""
+    env = _drift(vectorize)
+    try:
+        whole = list(_collector(env))
+    finally:
+        env.close()
+    checkpoints = StageCheckpoints(tmp_path, every=0)
+    env = _drift(vectorize)
+    try:
+        collector = _collector(env)
+        first = list(itertools.islice(collector, 2))
+        path = checkpoints.save(collector.frames, {"collector": collector})
+    finally:
+        env.close()
+    resumed = _drift(vectorize)
+    try:
+        collector = _collector(resumed)
+        checkpoints.load(path, {"collector": collector})
+        rest = list(collector)
+    finally:
+        resumed.close()
+    assert resumed.episodes_rebuilt
+    assert not torch.cat(whole[:2], 1)["next", "done"].any()  # one episode per copy so far
+    assert whole[3]["next", "truncated"].any()  # step 200 of the rebuilt episodes truncates
+    assert len(first + rest) == len(whole) == 4
+    for a, b in zip(whole, first + rest, strict=True):
+        assert (a == b).all()
+
+
+def _warnings(caplog, words: str) -> list[str]:
+    return [r.getMessage() for r in caplog.records if words in r.getMessage()]
+
+
+def test_an_env_that_draws_from_elsewhere_warns_once_and_starts_its_episodes_over(tmp_path, caplog):
+    """Steps drawn from a generator of the env's own: the replayed episodes differ, so one line
+    per resume (for the training and the evaluation env together) says they start over, and
+    they do, from the resets the saved np_random gives."""
+    checkpoints = StageCheckpoints(tmp_path, every=0)
+    env, eval_env = _drift(entropy=True), _drift(entropy=True)
+    try:
+        collector = _collector(env)
+        next(iter(collector))
+        eval_env.rollout(3)
+        path = checkpoints.save(collector.frames, {"collector": collector, "eval_env": eval_env})
+        fresh_starts = env.reset()["observation"]  # what the saved np_random draws next
+    finally:
+        env.close()
+        eval_env.close()
+    for resume in (1, 2):  # two resumes in one process (a sweep's jobs): a line each
+        resumed, resumed_eval = _drift(entropy=True), _drift(entropy=True)
+        try:
+            collector = _collector(resumed)
+            with caplog.at_level(logging.WARNING, logger="torchrl_stages"):
+                checkpoints.load(path, {"collector": collector, "eval_env": resumed_eval})
+            batch = next(iter(collector))
+        finally:
+            resumed.close()
+            resumed_eval.close()
+        assert len(_warnings(caplog, "did not rebuild")) == resume
+        assert not resumed.episodes_rebuilt and not resumed_eval.episodes_rebuilt
+        assert collector.frames == 512
+        assert torch.equal(batch["observation"][:, 0], fresh_starts)
+    line = _warnings(caplog, "did not rebuild")[0]
+    assert "gymnasium env 'drift_env:Drift-v0'" in line and "4 of 4 copies" in line
+    assert "copy 0: the replayed observation differs from the saved one" in line
+    assert "they start over" in line and "not bitwise equal" in line and "\n" not in line
+
+
+def test_an_env_without_state_says_its_episodes_start_over(tmp_path, caplog):
+    """A TorchRL env that keeps no state in ``state_dict`` (torchrl's own ``GymWrapper``)."""
+    checkpoints = StageCheckpoints(tmp_path, every=0)
+    vector = gymnasium.vector.SyncVectorEnv(
+        [lambda: gymnasium.make("LineWorld-v0")] * 2,
+        autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
+    )
+    env = GymWrapper(vector, categorical_action_encoding=True)
+    try:
+        collector = StageCollector(env, _always(1), frames_per_batch=8, total_frames=16)
+        next(iter(collector))
+        path = checkpoints.save(collector.frames, {"collector": collector})
+        with caplog.at_level(logging.WARNING, logger="torchrl_stages"):
+            checkpoints.load(path, {"collector": collector})
+    finally:
+        env.close()
+    (line,) = _warnings(caplog, "holds no state of the env")
+    assert "env GymWrapper (it keeps none in state_dict" in line and "episodes start over" in line
+
+
+def test_a_checkpoint_without_the_episodes_warns_and_starts_them_over(caplog):
+    """A collector's and an env's state written before the copies' episodes were kept (the
+    state a ``GymStageEnv`` had none of): a warning each, no failure."""
+    env = _drift()
+    try:
+        collector = _collector(env)
+        with caplog.at_level(logging.WARNING, logger="torchrl_stages"):
+            collector.load_state_dict({"frames": 256})
+            env.load_state_dict({})
+        batch = next(iter(collector))
+    finally:
+        env.close()
+    (line,) = _warnings(caplog, "holds no state of the env")
+    assert "env GymStageEnv (written by a version that did not keep it)" in line
+    (line,) = _warnings(caplog, "did not rebuild")
+    assert "the checkpoint holds none of its episodes" in line and "start over" in line
+    assert not env.episodes_rebuilt and collector.frames == 512 and batch.shape == (4, 64)

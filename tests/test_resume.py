@@ -474,3 +474,77 @@ def test_many_seeds_killed_mid_stage_then_resumed_are_bitwise_equal(tmp_path):
     for seed in (0, 3):
         assert_same_run(reference / f"seed_{seed}", killed / f"seed_{seed}")
     assert not (killed / "seed_checkpoints").exists()  # dropped once every stage is kept
+
+
+# ------------------------------------------------------------------ a gymnasium env of one's own
+TESTS = Path(__file__).resolve().parent
+#: ``tests/drift_env.py``: episodes of 200 steps whose resets and steps draw from np_random
+DRIFT = [
+    "task=gym",
+    "task.env.env_id=drift_env:Drift-v0",
+    "task.env.stage_fn._target_=drift_env.drift_stage",
+    "experiment=smoke",
+    *[
+        f"all_stages.{key}={value}"
+        for key, value in {
+            "num_envs": 4,
+            "frames": 1024,
+            "frames_per_batch": 128,
+            "init_random_frames": 128,
+            "eval_every": 512,
+            "eval_episodes": 8,
+        }.items()
+    ],
+    "eval.episodes=8",
+    "checkpoint_every=256",
+    "eval.plots=false",
+    "progress=false",
+    f"device={os.environ.get('STAGES_TEST_DEVICE', 'cpu')}",
+]
+
+
+def spawn_drift(run_dir: Path, *extra: str) -> Launched:
+    """``stages-train`` on ``Drift-v0``, ``tests/`` on the path (where its module is)."""
+    path = os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])
+    argv = ["stages-train", *DRIFT, f"hydra.run.dir={run_dir}", *extra]
+    return Launched(argv, run_dir.parent, TIMEOUT_S, PYTHONPATH=path)
+
+
+@pytest.mark.parametrize("seeds", [[], ["seeds=[0,1]"]], ids=["one_seed", "stacked_seeds"])
+def test_a_gymnasium_env_killed_mid_stage_then_resumed_is_bitwise_equal(tmp_path, seeds):
+    """A gymnasium env of one's own, SIGKILLed in its first stage (its episodes 64 to 160 steps
+    into their 200): the resumed run rebuilds the running episodes and ends as the
+    uninterrupted one, the stage trained after the resume included."""
+    reference, killed = tmp_path / "reference", tmp_path / "killed"
+    ref = spawn_drift(reference, *seeds)
+    proc = spawn_drift(killed, *seeds)
+    checkpoints = killed / ("seed_checkpoints" if seeds else "checkpoints") / "stage_1"
+    kill_when(proc, lambda: len(list(checkpoints.glob("frames-*"))) >= 2, delay=0.05)
+    result = ref.result()
+    assert result.returncode == 0, result.stderr[-3000:]
+    resumed = spawn_drift(killed, *seeds, "resume=true").result()
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    logs = resumed.stdout + resumed.stderr
+    assert "resuming from" in logs and "did not rebuild" not in logs
+    for run_dir in ["seed_0", "seed_1"] if seeds else ["."]:
+        assert_same_run(reference / run_dir, killed / run_dir)
+
+
+def test_a_gymnasium_env_that_draws_from_elsewhere_says_so_in_one_line_at_resume(tmp_path):
+    """``Drift-v0`` stepping on a generator of its own: the resumed run says, once, that its
+    episodes start over (not bitwise), and finishes."""
+    entropy = "+task.env.entropy=true"
+    killed = tmp_path / "killed"
+    proc = spawn_drift(killed, entropy)
+    checkpoints = killed / "checkpoints" / "stage_1"
+    kill_when(proc, lambda: any(checkpoints.glob("frames-*")), delay=0.05)
+    resumed = spawn_drift(killed, entropy, "resume=true").result()
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    lines = [
+        line
+        for line in (resumed.stdout + resumed.stderr).splitlines()
+        if "did not rebuild its running episodes" in line
+    ]
+    assert len(lines) == 1, lines
+    assert "'drift_env:Drift-v0'" in lines[0] and "they start over" in lines[0]
+    assert (killed / "stage_0.pt").is_file() and (killed / "eval.json").is_file()

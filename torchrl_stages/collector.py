@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from typing import Any
 
@@ -10,6 +11,8 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+log = logging.getLogger("torchrl_stages")
 
 
 class StageCollector:
@@ -22,8 +25,10 @@ class StageCollector:
     holds the frame count, the carried TensorDict of the next step (observations, episode
     returns of wrappers such as ``RewardSum``) and the env's own state (its dynamics and random
     generator, through ``env.base_env.state_dict()``), so an interrupted stage continues from
-    the same episodes, bitwise, on envs that put their state in ``state_dict`` (all shipped
-    envs; see :class:`torchrl_stages.envs.StageStarts`). Other envs restart their episodes.
+    the same episodes, bitwise, on envs that put their state in ``state_dict`` (the shipped
+    envs, ``torchrl_stages.envs._common.StageStarts``; gymnasium envs that draw from their
+    ``np_random``, :class:`~torchrl_stages.gym_env.GymStageEnv`). Other envs restart their
+    episodes, with a warning.
 
     Args:
         env: a batched env (``env.batch_size`` is ``[num_envs]``).
@@ -106,8 +111,25 @@ class StageCollector:
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores the frame count and, where the state holds them, the env's state and the
+        running episodes. Where it does not (an env that keeps no state in ``state_dict``), or
+        the env could not rebuild them (``episodes_rebuilt`` false, see
+        :class:`~torchrl_stages.gym_env.GymStageEnv`), the episodes start over: that is
+        logged, since the run then differs from an uninterrupted one."""
         self.frames = int(state["frames"])
         self._carrier = None  # without a saved env state, the episodes start over
+        base = getattr(self.env, "base_env", self.env)
         if "env" in state:
-            getattr(self.env, "base_env", self.env).load_state_dict(state["env"])
-            self._carrier = TensorDict(state["carrier"], self.env.batch_size)
+            base.load_state_dict(state["env"])
+            if getattr(base, "episodes_rebuilt", True):
+                self._carrier = TensorDict(state["carrier"], self.env.batch_size)
+        elif self.frames:
+            log.warning(
+                "resume: the checkpoint holds no state of the env %s (%s): its episodes start "
+                "over, so this run is not bitwise equal to an uninterrupted one "
+                "(docs/guides/bring-your-own-env.md, Resume)",
+                type(base).__name__,
+                "it keeps none in state_dict, get_extra_state"
+                if not self.restorable
+                else "written by a version that did not keep it",
+            )

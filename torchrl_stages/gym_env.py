@@ -10,9 +10,11 @@ added here, so a config names only the env and its stage function.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Sequence
+import logging
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+import cloudpickle
 import gymnasium
 import numpy as np
 import torch
@@ -23,12 +25,20 @@ from torchrl.data import Categorical, Composite
 from torchrl.envs import GymWrapper
 from torchrl.envs.gym_like import BaseInfoDictReader
 
+from torchrl_stages import episode_replay
+from torchrl_stages.episode_replay import EpisodeReplay
 from torchrl_stages.transforms import SUCCESS_KEY
 
 __all__ = ["GymStageEnv", "SuccessKeyError", "SuccessReader", "threshold_stage"]
 
 StageFn = Callable[[TensorDictBase], torch.Tensor]
 _UNSET = object()
+log = logging.getLogger("torchrl_stages")
+#: env ids whose episodes could not be rebuilt since an env of that id was last built: a resume
+#: that loads a training and an evaluation env warns once
+_WARNED: set[str] = set()
+# the async workers get EpisodeReplay by value: they need not import this package (seconds each)
+cloudpickle.register_pickle_by_value(episode_replay)
 
 
 def threshold_stage(
@@ -150,6 +160,12 @@ class GymStageEnv(GymWrapper):
     (``"_reset"``), so a copy that ends its episode (or leaves a stage) restarts where the task
     says, inside stage k for stage-k starts.
 
+    Each copy is wrapped in :class:`~torchrl_stages.episode_replay.EpisodeReplay` (outermost),
+    so ``state_dict`` holds the copies' running episodes as plain data and ``load_state_dict``
+    rebuilds them: a resumed run goes on bitwise on an env whose random draws all come from
+    its ``np_random`` (otherwise :attr:`episodes_rebuilt` is ``False`` and one warning says the
+    episodes start over).
+
     Args:
         env_id: the gymnasium id; ``"my_module:MyEnv-v0"`` imports ``my_module`` first.
         stage_fn: ``stage_fn(td) -> int64 [*batch, 1]``, the stage of each state (a callable or
@@ -175,6 +191,7 @@ class GymStageEnv(GymWrapper):
     Attributes:
         max_steps: the env's ``max_episode_steps`` (else its ``max_steps`` attribute): the
             evaluations' episode cap, when it has one.
+        episodes_rebuilt: whether the last ``load_state_dict`` rebuilt every copy's episode.
 
     Examples:
         >>> env = GymStageEnv(
@@ -236,7 +253,7 @@ class GymStageEnv(GymWrapper):
             num_envs=batch[0],
             vectorization_mode=vectorize,
             vector_kwargs={"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED},
-            wrappers=list(wrappers) or None,
+            wrappers=[*wrappers, EpisodeReplay],
             **kwargs,
         )
         super().__init__(
@@ -250,7 +267,68 @@ class GymStageEnv(GymWrapper):
                 SuccessReader(str(success_key), batch_size=batch, device=self.device)
             )
         self.env_id = env_id
+        _WARNED.discard(env_id)
         self.num_stages = int(num_stages if num_stages is not None else found)
         self.stage_fn = None if stage_fn is None else _stage_function(stage_fn)
         if max_steps is not None:  # else evaluations cap episodes at 1000 steps
             self.max_steps = int(max_steps)
+        self.episodes_rebuilt = True  # False after a load_state_dict that could not rebuild them
+
+    def load_state_dict(
+        self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False
+    ) -> Any:
+        """``nn.Module``'s, where a state without the copies' episodes (a checkpoint written
+        before they were kept) warns and starts them over instead of failing."""
+        if "_extra_state" not in state_dict:
+            state_dict = {**state_dict, "_extra_state": {}}
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    def get_extra_state(self) -> dict[str, Any]:
+        """The running episodes of the copies (:meth:`EpisodeReplay.episode_state`, plain data
+        and arrays) and the success reader's count: what a resumed run continues from."""
+        if self.is_closed:
+            return {}
+        reader = next((r for r in self.info_dict_reader if isinstance(r, SuccessReader)), None)
+        return {
+            "env_id": self.env_id,
+            "copies": list(self._env.call("episode_state")),
+            "success_reader": None if reader is None else [reader._ended, reader._seen],
+        }
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        """Rebuilds the copies' saved episodes (:meth:`EpisodeReplay.rebuild`). An env whose
+        episodes do not come back as they were (draws from elsewhere than ``np_random``) sets
+        :attr:`episodes_rebuilt` to ``False`` (the collector then starts its episodes over)
+        and logs one warning line (once for the envs of one id loaded after they were built)."""
+        copies = state.get("copies")
+        num = self.batch_size[0]
+        fix = ""
+        if copies is None:
+            failures = [(0, "the checkpoint holds none of its episodes")]
+        elif len(copies) != num:
+            failures = [(0, f"the checkpoint holds {len(copies)} copies for {num}")]
+        else:
+            self._env.set_attr("pending_episode", list(copies))
+            failures = [(i, why) for i, why in enumerate(self._env.call("rebuild_pending")) if why]
+            fix = " Fix: draw every random number of the env from its self.np_random"
+        reader = next((r for r in self.info_dict_reader if isinstance(r, SuccessReader)), None)
+        if reader is not None and state.get("success_reader") is not None:
+            reader._ended, reader._seen = (
+                int(state["success_reader"][0]),
+                bool(state["success_reader"][1]),
+            )
+        self.episodes_rebuilt = not failures
+        if failures and self.env_id not in _WARNED:
+            _WARNED.add(self.env_id)
+            index, why = failures[0]
+            log.warning(
+                "resume: the gymnasium env %r did not rebuild its running episodes (%d of %d "
+                "copies; copy %d: %s): they start over, so this run is not bitwise equal to an "
+                "uninterrupted one.%s (docs/guides/bring-your-own-env.md, Resume)",
+                self.env_id,
+                len(failures),
+                num,
+                index,
+                why,
+                fix,
+            )

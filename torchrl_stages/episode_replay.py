@@ -1,0 +1,224 @@
+"""Rebuilding a gymnasium env's running episode from plain data: what a resumed run continues.
+
+An env that follows gymnasium's seeding API draws every random number from ``env.np_random``, a
+numpy generator whose state is plain data (ints and strings). The state of that generator just
+before the reset that began an episode, the reset's seed and options, and the actions taken
+since then rebuild the episode exactly: put the generator back, reset, step the same actions.
+:class:`EpisodeReplay` keeps them and replays them, and checks that the generator and the last
+observation end where they were (an env that draws from elsewhere fails that check).
+
+This module imports only numpy and gymnasium: the worker processes of an ``AsyncVectorEnv``
+receive :class:`EpisodeReplay` by value (``cloudpickle``), without importing the package.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+from collections.abc import Mapping
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+__all__ = ["MAX_REPLAY_STEPS", "EpisodeReplay"]
+
+#: the longest episode a copy keeps the actions of (a longer one cannot be rebuilt on resume)
+MAX_REPLAY_STEPS = 100_000
+#: numpy's bit generators, by the name their ``state`` carries
+_BIT_GENERATORS = {
+    name: getattr(np.random, name) for name in ("PCG64", "PCG64DXSM", "MT19937", "Philox", "SFC64")
+}
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with numpy arrays and scalars as lists and Python numbers (a generator's state
+    as plain data, comparable after a trip through JSON)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    return value
+
+
+def _is_plain(value: Any) -> bool:
+    """Whether ``value`` is what a checkpoint holds as it is: JSON values and numeric arrays."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return True
+    if isinstance(value, np.ndarray | np.generic):
+        return value.dtype.kind in "biuf"
+    if isinstance(value, list | tuple):
+        return all(_is_plain(v) for v in value)
+    if isinstance(value, Mapping):
+        return all(isinstance(k, str) and _is_plain(v) for k, v in value.items())
+    return False
+
+
+def _rng_state(env: gymnasium.Env) -> dict | None:
+    """The state of ``env``'s ``np_random`` as plain data (``None``: it has none yet)."""
+    generator = getattr(env, "_np_random", None)
+    return None if generator is None else _plain(generator.bit_generator.state)
+
+
+def _set_rng_state(env: gymnasium.Env, state: Mapping) -> None:
+    """Puts ``state`` into ``env``'s ``np_random`` (the same generator object where it has one
+    of that kind, so an env that keeps a reference to it draws from the restored state)."""
+    name = state["bit_generator"]
+    if name not in _BIT_GENERATORS:
+        raise ValueError(f"an unknown bit generator {name!r}")
+    generator = getattr(env, "_np_random", None)
+    if generator is None or type(generator.bit_generator).__name__ != name:
+        generator = np.random.Generator(_BIT_GENERATORS[name]())
+        env.np_random = generator
+    if name == "MT19937":  # its key is an array
+        state = {
+            **state,
+            "state": {**state["state"], "key": np.asarray(state["state"]["key"], np.uint32)},
+        }
+    generator.bit_generator.state = dict(state)
+
+
+def _digest(obs: Any) -> str:
+    """A SHA-256 of an observation (arrays, scalars, strings, dicts and tuples of them)."""
+    sha = hashlib.sha256()
+
+    def add(value: Any) -> None:
+        if isinstance(value, Mapping):
+            for key in sorted(value, key=str):
+                sha.update(repr(key).encode())
+                add(value[key])
+        elif isinstance(value, list | tuple):
+            sha.update(b"(%d" % len(value))
+            for item in value:
+                add(item)
+        else:
+            array = np.ascontiguousarray(value)
+            sha.update(f"{array.dtype.str}{array.shape}".encode())
+            sha.update(array.tobytes() if array.dtype.kind != "O" else repr(value).encode())
+
+    add(obs)
+    return sha.hexdigest()
+
+
+class EpisodeReplay(gymnasium.Wrapper):
+    """Keeps what rebuilds a gymnasium env's running episode, as plain data: the state of its
+    ``np_random`` just before the reset that began the episode (or that reset's seed), the
+    reset's options, and the actions since. :meth:`episode_state` returns it (with the
+    generator's state now and a digest of the last observation); :meth:`rebuild` puts the
+    generator back, resets and steps the same actions, which gives the same episode (the env's
+    own state and that of its wrappers, such as ``TimeLimit``'s step count) on an env whose
+    every random draw comes from ``np_random`` (gymnasium's seeding API), and checks that the
+    generator and the observation end where they were.
+
+    :class:`GymStageEnv` wraps each copy in it, so a resumed run continues the same episodes.
+
+    Examples:
+        >>> env = EpisodeReplay(gymnasium.make("CartPole-v1"))
+        >>> _ = env.reset(seed=0)
+        >>> for action in (0, 1, 1):
+        ...     _ = env.step(action)
+        >>> state = env.episode_state()
+        >>> twin = EpisodeReplay(gymnasium.make("CartPole-v1"))
+        >>> twin.rebuild(state) is None  # the same episode, to the last bit
+        True
+        >>> bool((twin.unwrapped.state == env.unwrapped.state).all())
+        True
+    """
+
+    def __init__(self, env: gymnasium.Env, max_steps: int = MAX_REPLAY_STEPS) -> None:
+        super().__init__(env)
+        self.max_steps = int(max_steps)
+        self.pending_episode: dict | None = None  # a state for rebuild_pending (a vector env's)
+        self._start: dict | None = None
+        self._actions: list[np.ndarray] = []
+        self._obs: Any = None
+        self._why_not: str | None = "it was never reset"
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        kept = None if options is None or not _is_plain(options) else copy.deepcopy(options)
+        self._start = {"seed": seed, "rng": _rng_state(self.env.unwrapped), "options": kept}
+        self._actions = []
+        self._why_not = None
+        if seed is None and self._start["rng"] is None:
+            self._why_not = "its np_random was never seeded"
+        elif seed is not None and not isinstance(seed, int):
+            self._why_not = f"its reset seed {seed!r} is no int"
+        elif not _is_plain(options):
+            self._why_not = "its reset options are not plain data"
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._obs = obs
+        return obs, info
+
+    def step(self, action: Any):
+        out = self.env.step(action)
+        if self._why_not is None:
+            if len(self._actions) >= self.max_steps:
+                self._why_not = f"its episode is longer than {self.max_steps} steps"
+                self._actions = []
+            elif isinstance(action, np.generic | int | float):  # immutable
+                self._actions.append(action)
+            elif isinstance(action, np.ndarray):
+                self._actions.append(action.copy())
+            else:
+                self._why_not, self._actions = "its actions are not numeric arrays", []
+        self._obs = out[0]
+        return out
+
+    def episode_state(self) -> dict[str, Any]:
+        """What :meth:`rebuild` needs, as plain data and arrays (``why_not``: the reason the
+        running episode cannot be rebuilt, else ``None``)."""
+        if self._why_not is not None:
+            return {"why_not": self._why_not, "rng_now": _rng_state(self.env.unwrapped)}
+        actions = np.stack(self._actions) if self._actions else None
+        if actions is not None and actions.dtype.kind not in "biuf":
+            return {
+                "why_not": "its actions are not numeric",
+                "rng_now": _rng_state(self.env.unwrapped),
+            }
+        return {
+            "why_not": None,
+            "seed": self._start["seed"],
+            "rng_start": self._start["rng"],
+            "options": self._start["options"],
+            "actions": actions,
+            "rng_now": _rng_state(self.env.unwrapped),
+            "obs": _digest(self._obs),
+        }
+
+    def rebuild(self, state: Mapping[str, Any]) -> str | None:
+        """Rebuilds the episode :meth:`episode_state` returned; ``None`` if it ends where it
+        was, else why not (the env's generator is then left in its saved state)."""
+        try:
+            why_not = self._replay(state)
+        except Exception as err:  # an env that cannot take its own actions back
+            why_not = f"replaying its episode raised {type(err).__name__}: {err}"
+        if why_not is not None and state.get("rng_now") is not None:
+            try:  # the generator goes on from where it was, for the episodes that start over
+                _set_rng_state(self.env.unwrapped, state["rng_now"])
+            except (KeyError, TypeError, ValueError):
+                pass
+        return why_not
+
+    def rebuild_pending(self) -> str | None:
+        """:meth:`rebuild` of :attr:`pending_episode` (what a vector env's ``call`` runs in each
+        copy, after ``set_attr("pending_episode", states)``)."""
+        state, self.pending_episode = self.pending_episode, None
+        return "no saved episode" if state is None else self.rebuild(state)
+
+    def _replay(self, state: Mapping[str, Any]) -> str | None:
+        if state.get("why_not") is not None:
+            return str(state["why_not"])
+        if state["seed"] is None:
+            _set_rng_state(self.env.unwrapped, state["rng_start"])
+        options = state["options"]
+        obs, _ = self.reset(seed=state["seed"], options=dict(options) if options else options)
+        actions = state["actions"]
+        for action in () if actions is None else np.asarray(actions):
+            obs = self.step(action.copy())[0]
+        if _rng_state(self.env.unwrapped) != _plain(state["rng_now"]):
+            return "its np_random ends elsewhere than it was"
+        if _digest(obs) != state["obs"]:
+            return "the replayed observation differs from the saved one"
+        return None
