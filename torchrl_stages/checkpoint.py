@@ -88,6 +88,10 @@ class TensorStateAdapter(StateDictCheckpointAdapter):
             super().save(StateOf(lambda: state, None), path, args=(), kwargs={})
         except RuntimeError as err:  # tensordict's memory-mapped writes report OS errors so
             raise OSError(errno.EIO, str(err).splitlines()[0], str(path)) from err
+        except OSError as err:  # a JSON part's write names no file: the component's
+            if err.filename is not None:
+                raise
+            raise OSError(err.errno, err.strerror or str(err), str(path)) from err
         write_checksums(path)
         return state
 
