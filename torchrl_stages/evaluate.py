@@ -14,7 +14,7 @@ from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_stages.handoff import Handoffs, collect_handoffs
-from torchrl_stages.preemption import check
+from torchrl_stages.preemption import stop_if_asked
 from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import SUCCESS_KEY, StageTransform
 
@@ -306,7 +306,7 @@ def evaluate_task(
     handoffs: list[list[Handoffs]] = []
     for i, size in enumerate(sizes):
         if interruptible:  # a resumed run evaluates again
-            check("the whole-task evaluation")
+            stop_if_asked("the whole-task evaluation")
         keep_threads()  # a chunk's env closing may have changed it
         env = task.task_env(size)
         env.set_seed(seed + i)

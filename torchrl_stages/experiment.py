@@ -36,7 +36,7 @@ from torchrl_stages.threads import hold_threads
 log = logging.getLogger("torchrl_stages")
 
 #: where the checkpoints of a launch of several seeds live, beside the seeds' directories
-CHECKPOINTS = "seed_checkpoints"
+SEED_CHECKPOINTS = "seed_checkpoints"
 
 __all__ = ["Experiment", "seed_dir", "validate_seeds"]
 
@@ -277,7 +277,7 @@ class Experiment:
     def checkpoint_root(self) -> Path:
         """Where the checkpoints of a loop of several seeds live: one state for all of them,
         beside their directories (``<run_dir>/seed_checkpoints/stage_<k>/``)."""
-        return self.run_dir / CHECKPOINTS
+        return self.run_dir / SEED_CHECKPOINTS
 
     def _checkpoints(self) -> Callable[[int | str], StageCheckpoints]:
         """The checkpoints of each scope (a stage) of several seeds for this launch. A launch

@@ -53,7 +53,7 @@ def requested() -> int | None:
     return _requested
 
 
-def check(where: str) -> None:
+def stop_if_asked(where: str) -> None:
     """Raises :class:`Interrupted` if a stop was requested (call it at a point where the
     state needed to resume is on disk)."""
     if _requested is not None:

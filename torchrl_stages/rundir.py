@@ -41,10 +41,10 @@ from torchrl_stages.runlock import LOCK_DIR, RunLock, RunLockedError
 from torchrl_stages.schedules import get_schedule
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
+from torchrl_stages.tasks import EVAL_FILE
 from torchrl_stages.validate import ConfigError, TargetError, missing_keys, validate_config
 
 CONFIG_FILE = "config.yaml"
-EVAL_FILE = "eval.json"
 METRICS_FILE = "metrics.csv"
 STATUS_FILE = "status.json"
 CHECKPOINTS = "checkpoints"

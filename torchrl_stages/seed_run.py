@@ -18,7 +18,7 @@ from omegaconf import DictConfig, open_dict
 from torchrl_stages.config import apply_all_stages, expand_stage_template
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import Observer, make_logger
-from torchrl_stages.preemption import check
+from torchrl_stages.preemption import stop_if_asked
 from torchrl_stages.run_store import RunStore
 from torchrl_stages.rundir import (
     METRICS_FILE,
@@ -287,7 +287,7 @@ class SeedRun:
         ``eval.json``; returns it."""
         cfg, run, schedule = self.cfg, self.run_dir, store.schedule
         learners, results = trained.learners, trained.results
-        check("the whole-task evaluation")  # a stop asked for during the last stage's save
+        stop_if_asked("the whole-task evaluation")  # a stop asked for during the last stage's save
         run.update_launch("done")
         training = {"schedule": schedule.name, **run.training_time()}
         training["stages"] = [asdict(r) for r in results]

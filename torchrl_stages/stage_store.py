@@ -38,7 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_stages.config import ConfigError
 from torchrl_stages.integrity import DamagedFileError, verify_checksums, write_checksums
 from torchrl_stages.learners import Learner
-from torchrl_stages.preemption import check
+from torchrl_stages.preemption import stop_if_asked
 from torchrl_stages.rundir import (
     RESUMABLE_CHANGES,
     RunDir,
@@ -481,7 +481,7 @@ class StageReuse:
                     self.store.root,
                 )
                 announced.append(True)
-            check(f"waiting for stage {stage} in the stage store")
+            stop_if_asked(f"waiting for stage {stage} in the stage store")
 
         lock.wait(POLL_S, waiting)
         found = self._from_store(task, stage, device)  # trained while this job waited

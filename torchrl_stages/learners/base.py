@@ -432,7 +432,7 @@ class Learner(nn.Module, ABC):
     @classmethod
     def value_from_loss(cls, loss: Any, live: bool = False) -> TensorDictModuleBase:
         """``V(s)`` from the target networks of a :attr:`torchrl_loss` of this algorithm (see
-        :func:`torchrl_stages.targets.target_value`)."""
+        :func:`torchrl_stages.loss_value.value_from_loss`)."""
         raise NotImplementedError(f"{cls.algo} has no value from a torchrl loss")
 
     @abstractmethod
