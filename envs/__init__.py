@@ -1,6 +1,6 @@
 """The package's tasks, installed as ``torchrl_stages.envs``: one sub-package each (its env,
 report and figures; its ``__init__`` registers the task with
-:func:`torchrl_stages.tasks.register_task`), and its config ``conf/task/<task>.yaml``. Every
+:func:`torchrl_stages.task_registry.register_task`), and its config ``conf/task/<task>.yaml``. Every
 sub-package is imported here, so a task is its folder and its YAML, nothing else."""
 
 import importlib

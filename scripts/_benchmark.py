@@ -23,8 +23,8 @@ from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 
 from torchrl_stages.envs import measure_throughput
-from torchrl_stages.experiment import Experiment
-from torchrl_stages.store import register_configs
+from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.runs.experiment import Experiment
 
 
 def compose_config(task: str, *overrides: str) -> DictConfig:

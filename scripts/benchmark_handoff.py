@@ -28,7 +28,7 @@ from _benchmark import (
     train,
 )
 
-from torchrl_stages.store import register_configs
+from torchrl_stages.hydra_configs import register_configs
 
 VARIANTS = {
     "gridworld": ("gridworld", []),

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from _benchmark import add_table_argument, command_line, machine_speed, speed_note, train
 
-from torchrl_stages.store import register_configs
+from torchrl_stages.hydra_configs import register_configs
 
 SCHEDULES = ("backward", "joint", "flat")
 

@@ -30,10 +30,10 @@ from pathlib import Path
 import torch
 from _benchmark import command_line, compose_config, run_table
 
-from torchrl_stages.experiment import build_task, compile_mode
-from torchrl_stages.rundir import load_run
+from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.runs.experiment import build_task, compile_mode
+from torchrl_stages.runs.loading import load_run
 from torchrl_stages.schedules import train_stage
-from torchrl_stages.store import register_configs
 
 COLUMNS = [
     "variant",

@@ -33,10 +33,10 @@ from _benchmark import (
     speed_note,
 )
 
-from torchrl_stages.experiment import Experiment
+from torchrl_stages.hydra_configs import register_configs
 from torchrl_stages.learners.base import FusedSoftUpdate
-from torchrl_stages.run_store import RunStore
-from torchrl_stages.store import register_configs
+from torchrl_stages.runs.experiment import Experiment
+from torchrl_stages.runs.keeper import RunKeeper
 
 PHASES = ("collect", "sample", "update", "target_update", "evaluate", "log", "checkpoint")
 
@@ -45,7 +45,7 @@ def profile(task: str, compile: str, threads: int | None, overrides: list[str], 
     """Trains one run; returns its per-stage breakdown."""
     per_stage: dict[int, float] = {}
     current = {"stage": None}
-    step, begin = FusedSoftUpdate.step, RunStore.begin
+    step, begin = FusedSoftUpdate.step, RunKeeper.begin
 
     def timed_step(self) -> None:
         start = time.perf_counter()
@@ -60,17 +60,17 @@ def profile(task: str, compile: str, threads: int | None, overrides: list[str], 
         threads = int(cfg.threads)
         experiment = Experiment(cfg, out / f"{task}_threads{threads}_{compile}")
 
-        def begin_hook(store: RunStore, scope: int | str):  # whose target updates are timed
+        def begin_hook(store: RunKeeper, scope: int | str):  # whose target updates are timed
             current["stage"] = scope
             return begin(store, scope)
 
-        RunStore.begin = begin_hook
+        RunKeeper.begin = begin_hook
         start = time.perf_counter()
         [result] = experiment.run()
         total = time.perf_counter() - start
     finally:
         FusedSoftUpdate.step = step
-        RunStore.begin = begin
+        RunKeeper.begin = begin
     rows = []
     for stage in result["training"]["stages"]:
         k, timing = stage["stage"], dict(stage["timing"])

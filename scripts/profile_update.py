@@ -50,10 +50,10 @@ from tensordict import TensorDictBase
 from torch.utils.flop_counter import FlopCounterMode
 
 from torchrl_stages.collector import StageCollector
-from torchrl_stages.experiment import build_task, compile_mode
+from torchrl_stages.hydra_configs import register_configs
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.replay import SeedReplayBuffer
-from torchrl_stages.store import register_configs
+from torchrl_stages.runs.experiment import build_task, compile_mode
 from torchrl_stages.task import StagedTask
 
 MODES = ("auto", "off", "default", "reduce-overhead", "max-autotune")

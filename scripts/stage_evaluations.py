@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from torchrl_stages.plots import Series, read_stage_metrics
-from torchrl_stages.rundir import METRICS_FILE
+from torchrl_stages.runs.layout import METRICS_FILE
 
 DEFAULT_METRICS = ("success_rate", "mean_steps", "discounted_return", "value_error")
 

@@ -17,7 +17,7 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_stages.store import register_configs
+from torchrl_stages.hydra_configs import register_configs
 from torchrl_stages.task import StagedTask
 
 

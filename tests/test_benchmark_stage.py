@@ -9,7 +9,7 @@ import sys
 import pytest
 from test_profile_scripts import SCRIPTS, TINY_GRID, main_of, run_script
 
-from torchrl_stages.store import register_configs
+from torchrl_stages.hydra_configs import register_configs
 
 SCRIPTS_ARGS = ["--task", "gridworld", *TINY_GRID]
 

@@ -11,12 +11,12 @@ from tensordict.nn import TensorDictModule
 from torchrl.data import Bounded, Categorical
 
 from torchrl_stages.evaluate import rollout_first_episodes
-from torchrl_stages.experiment import build_task
 from torchrl_stages.learners import make_learner
 from torchrl_stages.learners.dqn import DQNLearner
 from torchrl_stages.learners.networks import ConvEncoder
 from torchrl_stages.learners.td3 import TD3Learner
 from torchrl_stages.policy import StackedPolicy
+from torchrl_stages.runs.experiment import build_task
 from torchrl_stages.validate import ConfigError
 
 

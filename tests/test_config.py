@@ -16,11 +16,11 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config import LoggerConfig, apply_all_stages, as_dataclass
-from torchrl_stages.experiment import Experiment, build_task, with_env_stages
 from torchrl_stages.learners import ALGORITHMS, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
 from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.learners.td3 import TD3Config
+from torchrl_stages.runs.experiment import Experiment, build_task, with_env_stages
 from torchrl_stages.schedules import BackwardSchedule
 from torchrl_stages.validate import ConfigError, validate_config
 

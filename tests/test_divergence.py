@@ -13,11 +13,11 @@ from torchrl.data import Categorical
 from torchrl.envs import TransformedEnv
 
 from torchrl_stages.envs import GridWorldEnv
-from torchrl_stages.experiment import Experiment
 from torchrl_stages.failures import DivergenceError
 from torchrl_stages.learners import StageSpecs
 from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
+from torchrl_stages.runs.experiment import Experiment
 from torchrl_stages.transforms import NonFiniteValueError, StageTransform
 
 RIGHT = 3

@@ -13,8 +13,8 @@ from tensordict.nn import TensorDictModule
 from torchrl_stages import evaluate as evaluate_module
 from torchrl_stages.evaluate import EpisodeStats, discounted_return, episode_stats, evaluate_task
 from torchrl_stages.learners.dqn import DQNConfig
+from torchrl_stages.runs.evaluation import format_summary
 from torchrl_stages.task import StagedTask
-from torchrl_stages.tasks import format_summary
 
 T = 5
 

@@ -18,7 +18,7 @@ from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_stages import Experiment, load_policy, load_run
-from torchrl_stages.export import METADATA, export_policy, main
+from torchrl_stages.runs.export import METADATA, export_policy, main
 from torchrl_stages.transforms import StageTransform
 
 pytestmark = pytest.mark.slow

@@ -24,11 +24,14 @@ from omegaconf import OmegaConf
 from torchrl_stages import threads
 from torchrl_stages.checkpoint import CheckpointDamagedError, StageCheckpoints
 from torchrl_stages.cli import evaluate
-from torchrl_stages.experiment import Experiment
 from torchrl_stages.failures import DivergenceError, EnvError
+from torchrl_stages.hydra_configs import register_configs
 from torchrl_stages.integrity import atomic_write
-from torchrl_stages.rundir import RunDir, RunDirError, load_run, shippedtargets
-from torchrl_stages.store import register_configs
+from torchrl_stages.runs.directory import RunDir
+from torchrl_stages.runs.experiment import Experiment
+from torchrl_stages.runs.layout import RunDirError
+from torchrl_stages.runs.loading import load_run
+from torchrl_stages.runs.trust import shippedtargets
 from torchrl_stages.sweeps import read_job
 from torchrl_stages.validate import ConfigError
 
@@ -522,10 +525,10 @@ def test_a_stop_during_the_final_evaluation_ends_it_before_the_next_chunk(monkey
 
     from torchrl_stages import preemption
     from torchrl_stages.evaluate import evaluate_task
-    from torchrl_stages.experiment import build_task
     from torchrl_stages.learners import make_learner
     from torchrl_stages.policy import StackedPolicy
     from torchrl_stages.preemption import Interrupted
+    from torchrl_stages.runs.experiment import build_task
 
     task = build_task(compose())
     policy = StackedPolicy([make_learner(task.stage_cfg(k), task.specs(k)).policy for k in (0, 1)])

@@ -12,8 +12,8 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from torchrl_stages.evaluate import discounted_return
-from torchrl_stages.experiment import Experiment
 from torchrl_stages.handoff import Handoffs, collect_handoffs, handoff_diagnostics
+from torchrl_stages.runs.experiment import Experiment
 from torchrl_stages.task import StagedTask
 
 

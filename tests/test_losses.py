@@ -16,13 +16,13 @@ from test_shared_encoder import IMAGE, SMALL
 from test_shared_encoder import batch as image_batch
 from torchrl.data import Bounded, Categorical
 
-from torchrl_stages.experiment import compile_mode
 from torchrl_stages.learners import StageSpecs
 from torchrl_stages.learners.ddpg import DDPGConfig, DDPGLearner
 from torchrl_stages.learners.discrete_sac import DiscreteSACConfig, DiscreteSACLearner
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
 from torchrl_stages.learners.sac import SACConfig, SACLearner
 from torchrl_stages.learners.td3 import TD3Config, TD3Learner
+from torchrl_stages.runs.experiment import compile_mode
 
 DISCRETE = StageSpecs(["observation"], 2, "action", Categorical(4))
 # non-trivial bounds: the actor's tanh is rescaled into them

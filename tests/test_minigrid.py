@@ -23,7 +23,7 @@ from torchrl_stages.envs.minigrid import (  # noqa: E402
     stage_names,
 )
 from torchrl_stages.envs.minigrid.env import VIEW  # noqa: E402
-from torchrl_stages.experiment import build_task  # noqa: E402
+from torchrl_stages.runs.experiment import build_task  # noqa: E402
 from torchrl_stages.validate import ConfigError  # noqa: E402
 
 LEVELS = ["MiniGrid-DoorKey-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0", "MiniGrid-UnlockPickup-v0"]

@@ -17,12 +17,13 @@ from torchrl.objectives import DQNLoss, SoftUpdate
 
 import torchrl_stages
 from torchrl_stages.config import ConfigError
-from torchrl_stages.experiment import Experiment, build_task
 from torchrl_stages.failures import DivergenceError
 from torchrl_stages.learners import ALGORITHMS, learner_class, make_learner, register_algorithm
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
 from torchrl_stages.loss_value import value_from_loss
-from torchrl_stages.rundir import RunDirError, load_run
+from torchrl_stages.runs.experiment import Experiment, build_task
+from torchrl_stages.runs.layout import RunDirError
+from torchrl_stages.runs.loading import load_run
 
 PACKAGE = Path(torchrl_stages.__file__).parent
 TWO_STAGES = tiny_grid()

@@ -13,7 +13,7 @@ from helpers import run_cli
 from omegaconf import OmegaConf
 
 from torchrl_stages.config import apply_all_stages, stage_keys_set
-from torchrl_stages.experiment import Experiment, with_env_stages
+from torchrl_stages.runs.experiment import Experiment, with_env_stages
 from torchrl_stages.validate import ConfigError, validate_config, validate_sweeper
 
 CONF = importlib.resources.files("torchrl_stages.conf")

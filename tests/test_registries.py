@@ -12,9 +12,9 @@ from helpers import docstring_ids, hydra_config, tiny_grid
 
 import torchrl_stages
 from torchrl_stages.config import ConfigError
-from torchrl_stages.experiment import Experiment
+from torchrl_stages.runs.experiment import Experiment
 from torchrl_stages.schedules import SCHEDULES, BackwardSchedule, get_schedule, register_schedule
-from torchrl_stages.tasks import TASKS, register_task, task_report
+from torchrl_stages.task_registry import TASKS, register_task, task_report
 
 PACKAGE = Path(torchrl_stages.__file__).parent
 
@@ -68,9 +68,9 @@ def test_a_schedule_of_your_own_trains_through_the_registry(tmp_path):
     class Counting(BackwardSchedule):
         name = "counting"
 
-        def train(self, task, store=None, **kwargs):
+        def train(self, task, seeds=(0,), **kwargs):
             calls.append(task.num_stages)
-            return super().train(task, store, **kwargs)
+            return super().train(task, seeds, **kwargs)
 
     try:
         with hydra_config() as compose:

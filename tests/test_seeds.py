@@ -24,7 +24,6 @@ from torchrl_stages import loop as loop_module
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError
 from torchrl_stages.early_stop import SeedRow
-from torchrl_stages.experiment import Experiment, validate_seeds
 from torchrl_stages.learners import StageSpecs, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
 from torchrl_stages.learners.discrete_sac import DiscreteSACConfig
@@ -45,7 +44,8 @@ from torchrl_stages.loggers import RunLogger
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.replay import SeedReplayBuffer
-from torchrl_stages.rundir import load_run
+from torchrl_stages.runs.experiment import Experiment, validate_seeds
+from torchrl_stages.runs.loading import load_run
 from torchrl_stages.schedules import flat as flat_module
 from torchrl_stages.schedules.backward import train_backward
 from torchrl_stages.schedules.joint import (

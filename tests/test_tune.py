@@ -1,4 +1,4 @@
-"""``stages-tune``: an Optuna study of ``stages-train`` runs (``torchrl_stages.sweeps.tune``).
+"""``stages-tune``: an Optuna study of ``stages-train`` runs (``torchrl_stages.tune``).
 
 A 4-trial study with SQLite storage and the median pruner on a two-stage 10 x 10 grid world at
 the smoke budget, then the same command again (the study goes on, its fifth trial pruned for
@@ -20,9 +20,9 @@ import yaml
 from helpers import Launched, hydra_config, run_cli
 
 from torchrl_stages.config import ConfigError
-from torchrl_stages.experiment import Experiment
 from torchrl_stages.loggers import StopRun
-from torchrl_stages.sweeps.tune import StudyContext, TrialPruning, run_study
+from torchrl_stages.runs.experiment import Experiment
+from torchrl_stages.tune import StudyContext, TrialPruning, run_study
 
 HAS_OPTUNA = importlib.util.find_spec("optuna") is not None
 needs_optuna = pytest.mark.skipif(

@@ -1,6 +1,5 @@
 """torchrl-stages: Stacked Deep Q-Learning (SDQL) for multi-stage control on TorchRL."""
 
-from torchrl_stages.experiment import Experiment
 from torchrl_stages.gym_env import GymStageEnv, threshold_stage
 from torchrl_stages.learners import (
     ALGORITHMS,
@@ -11,7 +10,8 @@ from torchrl_stages.learners import (
 )
 from torchrl_stages.loss_value import value_from_loss
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.rundir import load_policy, load_run
+from torchrl_stages.runs.experiment import Experiment
+from torchrl_stages.runs.loading import load_policy, load_run
 from torchrl_stages.schedules import train_backward, train_stage
 from torchrl_stages.stage import StageTrainer
 from torchrl_stages.sweeps import summarize_sweep

@@ -2,9 +2,9 @@
 ``stages-eval RUN_DIR``, ``stages-report SWEEP_DIR`` and ``stages-store ls|rm|prune DIR``, and
 the Hydra callback that summarizes a sweep.
 
-All are thin shells over the library: :class:`torchrl_stages.experiment.Experiment` trains,
-:mod:`torchrl_stages.sweeps.tune` runs an Optuna study of such runs,
-:func:`torchrl_stages.rundir.load_run` and :func:`torchrl_stages.tasks.evaluate_run`
+All are thin shells over the library: :class:`torchrl_stages.runs.experiment.Experiment` trains,
+:mod:`torchrl_stages.tune` runs an Optuna study of such runs,
+:func:`torchrl_stages.runs.loading.load_run` and :func:`torchrl_stages.runs.evaluation.evaluate_run`
 re-evaluate, :func:`torchrl_stages.sweeps.summarize_sweep` summarizes. Exit codes: 0 done,
 1 failed (the env or other code raised, or returned NaN), 2 invalid config, refused or
 damaged directory, or a file that cannot be written, 3 training diverged, 128 + N stopped by
@@ -35,20 +35,27 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import apply_all_stages, objective_value, stage_keys_set
-from torchrl_stages.experiment import Experiment, seed_dir
-from torchrl_stages.failures import DivergenceError, EnvError, one_line
+from torchrl_stages.failures import (
+    EXIT_DIVERGED,
+    EXIT_FAILED,
+    EXIT_INVALID,
+    DivergenceError,
+    EnvError,
+    one_line,
+)
 from torchrl_stages.gym_env import SuccessKeyError
+from torchrl_stages.hydra_configs import register_configs
 from torchrl_stages.preemption import Interrupted
-from torchrl_stages.rundir import RunDir, RunDirError, load_run
-from torchrl_stages.seed_run import with_env_stages
-from torchrl_stages.stage_store import SharedStageStore, StageEntry, StoreError
-from torchrl_stages.store import register_configs
+from torchrl_stages.runs.directory import RunDir
+from torchrl_stages.runs.evaluation import evaluate_run, format_summary
+from torchrl_stages.runs.experiment import Experiment, seed_dir
+from torchrl_stages.runs.layout import RunDirError
+from torchrl_stages.runs.loading import load_run
+from torchrl_stages.runs.seed_run import with_env_stages
+from torchrl_stages.runs.stage_store import SharedStageStore, StageEntry, StoreError
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
-from torchrl_stages.sweeps.tune import tune_app
-from torchrl_stages.tasks import evaluate_run, format_summary
+from torchrl_stages.tune import StudyContext, StudyError, run_study
 from torchrl_stages.validate import ConfigError, validate_sweeper
-
-EXIT_FAILED, EXIT_INVALID, EXIT_DIVERGED = 1, 2, 3
 
 
 class JobFailed(RuntimeError):
@@ -227,7 +234,7 @@ def _shows_config(args: list[str]) -> bool:
 def with_template_stages(text: str) -> str:
     """The YAML of a composed config (``stages-train --cfg job``), its ``task.stages`` made from
     ``task.stage_template`` as a run makes them, from the env's ``num_stages``
-    (:func:`~torchrl_stages.seed_run.with_env_stages`); where the env cannot be built (its
+    (:func:`~torchrl_stages.runs.seed_run.with_env_stages`); where the env cannot be built (its
     keys not set yet), the text with a comment on ``stages:`` saying so. Other text as given.
 
     Examples:
@@ -258,9 +265,46 @@ def with_template_stages(text: str) -> str:
     return text[:at] + " ".join(note.splitlines()) + text[at:]
 
 
+@hydra.main(config_path="pkg://torchrl_stages.conf", config_name="tune", version_base="1.3")
+def tune_app(cfg: DictConfig) -> None:
+    """``stages-tune [OVERRIDES...]`` (Hydra app; ``torchrl_stages.cli.tune`` registers the
+    schemas first). Exit codes: 0 done, 1 every trial failed, 2 invalid config or a study that
+    cannot go on, 128 + N stopped by signal N."""
+    hydra_cfg = HydraConfig.get()
+
+    def compose(overrides: list[str]) -> DictConfig:
+        return hydra.compose(config_name="config", overrides=overrides)
+
+    context = StudyContext(
+        study_dir=Path(hydra_cfg.runtime.output_dir),
+        cwd=Path(hydra_cfg.runtime.cwd),
+        overrides=list(hydra_cfg.overrides.task),
+        compose=compose,
+        hydra_cfg=hydra_cfg,
+    )
+    try:
+        code = run_study(cfg, context)
+    except ConfigError as err:
+        print(f"stages-tune: invalid config: {err}", file=sys.stderr)
+        sys.exit(EXIT_INVALID)
+    except StudyError as err:
+        print(f"stages-tune: {err}", file=sys.stderr)
+        sys.exit(EXIT_INVALID)
+    except Interrupted as err:
+        print(
+            f"stages-tune: {err}; the trial is recorded as failed. Fix: run the same command "
+            "again to go on with the study",
+            file=sys.stderr,
+        )
+        sys.exit(err.exit_code)
+    if code:
+        print("stages-tune: every trial failed (their status.json say why)", file=sys.stderr)
+        sys.exit(code)
+
+
 def tune() -> None:
     """``stages-tune [OVERRIDES...]``: tune hyper-parameters with Optuna, each trial a
-    ``stages-train`` run (Hydra CLI; :mod:`torchrl_stages.sweeps.tune`)."""
+    ``stages-train`` run (Hydra CLI; :mod:`torchrl_stages.tune`)."""
     register_configs()
     tune_app()
 

@@ -257,7 +257,7 @@ class ObjectiveConfig:
 
 @dataclass
 class TuneConfig:
-    """The ``tune`` block of ``stages-tune`` (:mod:`torchrl_stages.sweeps.tune`): an Optuna
+    """The ``tune`` block of ``stages-tune`` (:mod:`torchrl_stages.tune`): an Optuna
     study that optimizes ``objective`` over ``params``, each trial a ``stages-train`` run.
 
     ``params`` maps a config key (``task.stages.s3.lr``; ``++all_stages.lr`` adds a key, here

@@ -14,6 +14,10 @@ from torchrl_stages.early_stop import finite
 from torchrl_stages.learners import Learner
 from torchrl_stages.transforms import NonFiniteInputError
 
+#: the exit codes of the console scripts: a run that failed, bad input (refused before
+#: anything is written), a run that diverged
+EXIT_FAILED, EXIT_INVALID, EXIT_DIVERGED = 1, 2, 3
+
 __all__ = ["DivergenceError", "EnvError", "non_finite_entries", "one_line", "stage_failure"]
 
 

@@ -32,7 +32,7 @@ Observer = Callable[[dict[str, float], int], None]
 class StopRun(Exception):  # noqa: N818 - an outcome, not an error
     """Raised by an :data:`Observer` to end a run early, as ``status`` (e.g. ``pruned``): the
     run's ``status.json`` records the status and the reason
-    (:meth:`torchrl_stages.experiment.Experiment.run`).
+    (:meth:`torchrl_stages.runs.experiment.Experiment.run`).
 
     Examples:
         >>> err = StopRun("pruned", "stage 4's success rate 0.1 is below the median")

@@ -2,7 +2,7 @@
 ``data/cargo_map.txt``), its report (``report``) and figure (``figures``). Its config is
 ``conf/task/cargo.yaml``."""
 
-from torchrl_stages.tasks import register_task
+from torchrl_stages.task_registry import register_task
 
 from .env import ROBOTS, CargoEnv, load_obstacle_map
 from .report import report

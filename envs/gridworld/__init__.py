@@ -2,7 +2,7 @@
 (``env``), the report that checks a run against it (``report``) and its figures (``figures``).
 Its config is ``conf/task/gridworld.yaml``."""
 
-from torchrl_stages.tasks import register_task
+from torchrl_stages.task_registry import register_task
 
 from . import env
 from .env import *  # noqa: F403 (the env's public names)

@@ -2,7 +2,7 @@
 final distances (``report``) and its figure (``figures``). Its config is
 ``conf/task/manipulator.yaml``."""
 
-from torchrl_stages.tasks import register_task
+from torchrl_stages.task_registry import register_task
 
 from .env import ManipulatorEnv, forward_kinematics, inverse_kinematics, wrap_angle
 from .report import report

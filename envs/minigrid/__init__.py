@@ -2,7 +2,7 @@
 (``env``), the report of a run's evaluation (``report``) and its figure (``figures``). Needs the
 ``minigrid`` extra. Its config is ``conf/task/minigrid.yaml``."""
 
-from torchrl_stages.tasks import register_task
+from torchrl_stages.task_registry import register_task
 
 from . import env
 from .env import *  # noqa: F403 (the env's public names)

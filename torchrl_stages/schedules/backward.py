@@ -18,7 +18,7 @@ from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.schedules.base import (
     Probe,
     Schedule,
-    StageStore,
+    StageKeeper,
     Trained,
     begin_loop,
     finished_for_every_seed,
@@ -33,7 +33,7 @@ def train_backward(
     task: StagedTask,
     seeds: Sequence[int] = (0,),
     *,
-    stores: Sequence[StageStore | None] | None = None,
+    keepers: Sequence[StageKeeper | None] | None = None,
     logs: Sequence[MetricsLog] | None = None,
     checkpoints: Callable[[int | str], StageCheckpoints] | None = None,
     progress: bool = False,
@@ -47,7 +47,7 @@ def train_backward(
     already trained stage k+1 (its target networks). Each stage is :func:`train_stage`, seeded
     from the seed and its index alone (:mod:`~torchrl_stages.seeding`), so a stage's training
     does not depend on how the ones after it were reached (trained now, or loaded by a resumed
-    run). ``stores`` (one per seed) skip the stages every seed has finished and keep each
+    run). ``keepers`` (one per seed) skip the stages every seed has finished and keep each
     finished stage; ``logs`` (one per seed) receive each seed's metrics; ``checkpoints(k)``
     gives the checkpoints of stage ``k`` in progress, one state for all the seeds, dropped once
     every seed's stage is kept. ``probe`` (one seed) follows the whole task at stage 0's
@@ -69,14 +69,14 @@ def train_backward(
         [[256, 256], [256, 256]]
     """
     n, num_stages = len(seeds), task.num_stages
-    stores = list(stores) if stores is not None else [None] * n
+    keepers = list(keepers) if keepers is not None else [None] * n
     logs = list(logs) if logs is not None else [MetricsLog(None) for _ in range(n)]
     learners: list[list[Learner]] = [[None] * num_stages for _ in range(n)]  # type: ignore[list-item]
     results: list[list[StageResult]] = [[None] * num_stages for _ in range(n)]  # type: ignore[list-item]
     next_value, frames_before = None, 0
     resume = "stages-train seed=<s> resume=true hydra.run.dir=<its directory>"
     for k in reversed(range(num_stages)):
-        done = finished_for_every_seed(stores, seeds, k, resume)
+        done = finished_for_every_seed(keepers, seeds, k, resume)
         if done is None:
             on_evaluate = None
             if probe is not None and k == 0:
@@ -91,10 +91,10 @@ def train_backward(
                 seeds=seeds,
                 logs=logs,
                 progress=progress,
-                checkpoints=begin_loop(stores, checkpoints, k),
+                checkpoints=begin_loop(keepers, checkpoints, k),
                 on_evaluate=on_evaluate,
                 compile=compile,
-                keep=stores,
+                keep=keepers,
             )
         for i, (learner, result) in enumerate(done):
             learners[i][k], results[i][k] = learner, result
@@ -124,7 +124,7 @@ def train_stage(
     checkpoints: StageCheckpoints | None = None,
     on_evaluate: Callable[[Learner, int], None] | None = None,
     compile: str = "off",
-    keep: Sequence[StageStore | None] | None = None,
+    keep: Sequence[StageKeeper | None] | None = None,
 ) -> list[tuple[Learner, StageResult]]:
     """Trains stage ``stage`` of ``task`` on its own, as the backward schedule does, for every
     seed of ``seeds`` at once; returns each seed's learner and result.
@@ -134,7 +134,7 @@ def train_stage(
     :mod:`~torchrl_stages.seeding`: with the same ``next_value``, the stage is the one a whole
     backward run with the seed trains (what ``scripts/benchmark_stage.py`` relies on).
     ``on_evaluate(learner, frames)`` runs after each of the stage's evaluations (one seed).
-    ``keep`` (one store per seed) keeps each seed's finished stage, then the stage's
+    ``keep`` (one keeper per seed) keeps each seed's finished stage, then the stage's
     ``checkpoints`` go. A missing or superfluous ``next_value`` fails in
     :class:`~torchrl_stages.transforms.StageTransform`.
 
@@ -179,15 +179,15 @@ def train_stage(
 
 
 def keep_stage(
-    trainer: StageTrainer, stores: Sequence[StageStore | None] | None
+    trainer: StageTrainer, keepers: Sequence[StageKeeper | None] | None
 ) -> list[tuple[Learner, StageResult]]:
-    """Trains ``trainer``'s stage; each seed's learner and result is kept in its store
-    (``store.save``; a ``None`` store keeps nothing), then the stage's checkpoints, which the
+    """Trains ``trainer``'s stage; each seed's learner and result is kept in its keeper
+    (``keeper.save``; a ``None`` keeper keeps nothing), then the stage's checkpoints, which the
     kept stage supersedes, are dropped. Returns each seed's learner and result."""
     out = trainer.train()
-    for store, (learner, result) in zip(stores or [None] * len(out), out, strict=True):
-        if store is not None:
-            store.save(trainer.stage, learner, result)
+    for keeper, (learner, result) in zip(keepers or [None] * len(out), out, strict=True):
+        if keeper is not None:
+            keeper.save(trainer.stage, learner, result)
     if trainer.checkpoints is not None:
         trainer.checkpoints.clear()
     return out

@@ -3,8 +3,8 @@
 A :class:`Schedule` trains a task's learners (:meth:`Schedule.train`) and says what its runs
 look like on disk and on resume: which stages a finished one freezes, which checkpoints a
 restarted stage drops, which stage file holds each stage's learner. It keeps its stages in a
-:class:`StageStore` that the caller passes down (a run directory,
-:class:`~torchrl_stages.run_store.RunStore`, or nothing): the schedule never calls back into
+:class:`StageKeeper` that the caller passes down (a run directory,
+:class:`~torchrl_stages.runs.keeper.RunKeeper`, or nothing): the schedule never calls back into
 the code that runs it.
 """
 
@@ -28,7 +28,7 @@ __all__ = [
     "finished_for_every_seed",
     "Probe",
     "Schedule",
-    "StageStore",
+    "StageKeeper",
     "Trained",
     "get_schedule",
     "register_schedule",
@@ -40,9 +40,9 @@ __all__ = [
 Probe = Callable[[list[Learner], int], None]
 
 
-class StageStore(Protocol):
+class StageKeeper(Protocol):
     """Where a schedule keeps its stages (a run directory:
-    :class:`~torchrl_stages.run_store.RunStore`): finished ones, checkpoints of the one in
+    :class:`~torchrl_stages.runs.keeper.RunKeeper`): finished ones, checkpoints of the one in
     progress, and what else a schedule needs to resume (``keep`` / ``kept``)."""
 
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
@@ -100,7 +100,7 @@ class Schedule:
     def train(self, task: StagedTask, seeds: Sequence[int] = (0,), **kwargs: Any) -> list[Trained]:
         """Trains (what is left of) ``task``'s stages for every seed of ``seeds`` at once
         (several: their networks stacked, see :mod:`torchrl_stages.stage`); one
-        :class:`Trained` per seed. ``kwargs``: ``stores`` and ``logs`` (one per seed: where
+        :class:`Trained` per seed. ``kwargs``: ``keepers`` and ``logs`` (one per seed: where
         each seed's stages are kept and its metrics logged), ``checkpoints`` (a checkpoint
         scope (:meth:`checkpoint_scope`) -> its
         :class:`~torchrl_stages.checkpoint.StageCheckpoints`, one state for all the seeds),
@@ -132,12 +132,12 @@ class Schedule:
 
 
 def finished_for_every_seed(
-    stores: Sequence[StageStore | None], seeds: Sequence[int], stage: int, resume: str
+    keepers: Sequence[StageKeeper | None], seeds: Sequence[int], stage: int, resume: str
 ) -> list[tuple[Learner, StageResult]] | None:
-    """Each seed's finished ``stage`` (``store.finished(stage)``) when every seed's store has
+    """Each seed's finished ``stage`` (``keeper.finished(stage)``) when every seed's keeper has
     it, ``None`` when none has; a ``RuntimeError`` naming the seeds and the fix (``resume``: the
     command that resumes one seed's run directory) when only some have."""
-    done = [store.finished(stage) if store is not None else None for store in stores]
+    done = [keeper.finished(stage) if keeper is not None else None for keeper in keepers]
     if all(d is None for d in done):
         return None
     missing = [s for s, d in zip(seeds, done, strict=True) if d is None]
@@ -150,17 +150,17 @@ def finished_for_every_seed(
 
 
 def begin_loop(
-    stores: Sequence[StageStore | None],
+    keepers: Sequence[StageKeeper | None],
     checkpoints: Callable[[int | str], StageCheckpoints] | None,
     scope: int | str,
 ) -> StageCheckpoints | None:
     """The checkpoints of the loop ``scope`` (none without ``checkpoints``); without one to go
-    on from, each seed's store starts the loop afresh (:meth:`StageStore.begin`)."""
+    on from, each seed's keeper starts the loop afresh (:meth:`StageKeeper.begin`)."""
     scoped = checkpoints(scope) if checkpoints is not None else None
     if scoped is None or scoped.latest() is None:
-        for store in stores:
-            if store is not None:
-                store.begin(scope)
+        for keeper in keepers:
+            if keeper is not None:
+                keeper.begin(scope)
     return scoped
 
 

@@ -17,7 +17,7 @@ from torchrl_stages.schedules.backward import keep_stage
 from torchrl_stages.schedules.base import (
     Probe,
     Schedule,
-    StageStore,
+    StageKeeper,
     Trained,
     begin_loop,
     finished_for_every_seed,
@@ -40,7 +40,7 @@ def train_flat(
     task: StagedTask,
     seeds: Sequence[int] = (0,),
     *,
-    stores: Sequence[StageStore | None] | None = None,
+    keepers: Sequence[StageKeeper | None] | None = None,
     logs: Sequence[MetricsLog] | None = None,
     checkpoints: Callable[[int | str], StageCheckpoints] | None = None,
     progress: bool = False,
@@ -55,7 +55,7 @@ def train_flat(
     (:class:`~torchrl_stages.transforms.StageDiscount`), so it optimizes the objective the
     stacked learners do. Its evaluations are whole-task episodes. Each seed's
     :class:`~torchrl_stages.schedules.Trained` holds its learner once per stage (it acts
-    everywhere) and its one result; ``stores``, ``logs``, ``checkpoints`` and ``probe`` as in
+    everywhere) and its one result; ``keepers``, ``logs``, ``checkpoints`` and ``probe`` as in
     :func:`~torchrl_stages.schedules.backward.train_backward`.
 
     Examples:
@@ -74,9 +74,9 @@ def train_flat(
         (True, 512)
     """
     n = len(seeds)
-    stores = list(stores) if stores is not None else [None] * n
+    keepers = list(keepers) if keepers is not None else [None] * n
     resume = "stages-train schedule=flat seed=<s> resume=true hydra.run.dir=<its directory>"
-    done = finished_for_every_seed(stores, seeds, 0, resume)
+    done = finished_for_every_seed(keepers, seeds, 0, resume)
     if done is None:
         cfg, specs = flat_config(task), task.specs(0)
 
@@ -103,11 +103,11 @@ def train_flat(
             name="flat",
             progress=progress,
             seeds=seeds,
-            checkpoints=begin_loop(stores, checkpoints, 0),
+            checkpoints=begin_loop(keepers, checkpoints, 0),
             on_evaluate=on_evaluate,
             **stage_discounts(task, cfg),
         )
-        done = keep_stage(trainer, stores)
+        done = keep_stage(trainer, keepers)
     return [Trained([learner] * task.num_stages, [result]) for learner, result in done]
 
 

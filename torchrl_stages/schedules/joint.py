@@ -16,7 +16,7 @@ one :class:`~torchrl_stages.replay.SeedReplayBuffer` per stage whose seeds fill 
 pace. Each seed keeps what a joint run of its own keeps: its initial weights, its replay
 contents, the stages it updates (stage m of seed i takes its gradient steps once seed i holds
 enough of stage m's transitions), its evaluations, each phase's early stop (a seed that stops
-keeps the weights and Adam moments it stopped with and stores nothing more until the next
+keeps the weights and Adam moments it stopped with and keepers nothing more until the next
 phase), its best weights, its phases and its metrics. What the seeds share: the envs' random
 streams, each stage's exploration schedule (annealed by the mean count of the updating seeds'
 transitions of that stage) and each parameter's Adam step count.
@@ -63,7 +63,7 @@ from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.schedules.base import (
     Probe,
     Schedule,
-    StageStore,
+    StageKeeper,
     Trained,
     begin_loop,
     finished_for_every_seed,
@@ -356,12 +356,12 @@ class JointTrainer:
             seed_names=self.seeds,
         )
 
-        def store(batch: TensorDictBase) -> None:
+        def on_batch(batch: TensorDictBase) -> None:
             counters.frames = frames_before + collector.frames // n
             with watch("collect"):
                 self._route(batch, stops.active(), counters)
 
-        loop.register_op("batch", store)
+        loop.register_op("batch", on_batch)
         loop.register_op("update", lambda frames: self._update(stops.active(), counters, watch))
         loop.register_op(
             "log", lambda batch, losses: self._log_batch(k, batch, losses, counters, stops)
@@ -574,7 +574,7 @@ def train_joint(
     task: StagedTask,
     seeds: Sequence[int] = (0,),
     *,
-    stores: Sequence[StageStore | None] | None = None,
+    keepers: Sequence[StageKeeper | None] | None = None,
     logs: Sequence[MetricsLog] | None = None,
     checkpoints: Any = None,
     progress: bool = False,
@@ -582,31 +582,31 @@ def train_joint(
     compile: str = "off",
 ) -> list[Trained]:
     """The joint schedule for every seed of ``seeds`` at once (:class:`JointTrainer`);
-    ``stores``, ``logs`` and ``checkpoints`` (called with ``"joint"``) as in
-    :func:`~torchrl_stages.schedules.backward.train_backward`. A run every seed's store has
+    ``keepers``, ``logs`` and ``checkpoints`` (called with ``"joint"``) as in
+    :func:`~torchrl_stages.schedules.backward.train_backward`. A run every seed's keeper has
     finished is loaded, not trained."""
     n, stages = len(seeds), task.num_stages
-    stores = list(stores) if stores is not None else [None] * n
+    keepers = list(keepers) if keepers is not None else [None] * n
     resume = "stages-train schedule=joint seed=<s> resume=true hydra.run.dir=<its directory>"
-    done = [finished_for_every_seed(stores, seeds, k, resume) for k in range(stages)]
+    done = [finished_for_every_seed(keepers, seeds, k, resume) for k in range(stages)]
     if all(d is not None for d in done):
         return [
             Trained(
                 [done[k][i][0] for k in range(stages)],
                 [done[k][i][1] for k in range(stages)],
-                {"phases": list(stores[i].kept("phases") or [])},
+                {"phases": list(keepers[i].kept("phases") or [])},
             )
             for i in range(n)
         ]
-    scope = begin_loop(stores, checkpoints, "joint")
+    scope = begin_loop(keepers, checkpoints, "joint")
     trainer = JointTrainer(
         task, seeds, logs=logs, progress=progress, checkpoints=scope, probe=probe, compile=compile
     )
     runs = trainer.train()
-    for seed, store, run in zip(seeds, stores, runs, strict=True):
+    for seed, keeper, run in zip(seeds, keepers, runs, strict=True):
         log_phases(run.extra["phases"], "joint" if n == 1 else f"seed {seed}: joint")
-        if store is not None:
-            keep_joint(store, run.learners, run.results, run.extra["phases"])
+        if keeper is not None:
+            keep_joint(keeper, run.learners, run.results, run.extra["phases"])
     if scope is not None:
         scope.clear()
     return runs
@@ -665,14 +665,14 @@ def log_phases(phases: Sequence[dict[str, Any]], who: str = "joint") -> None:
 
 
 def keep_joint(
-    store: StageStore,
+    keeper: StageKeeper,
     learners: Sequence[Learner],
     results: Sequence[StageResult],
     phases: Sequence[dict[str, Any]],
 ) -> None:
-    """Keeps a finished joint run in ``store``: its phases (for a resumed launch's
+    """Keeps a finished joint run in ``keeper``: its phases (for a resumed launch's
     ``eval.json``) and every stage; its checkpoints go."""
-    store.keep("phases", list(phases))
+    keeper.keep("phases", list(phases))
     for k, (learner, result) in enumerate(zip(learners, results, strict=True)):
-        store.save(k, learner, result)
-    store.clear("joint")
+        keeper.save(k, learner, result)
+    keeper.clear("joint")

@@ -20,7 +20,7 @@ directory the tables (:mod:`~torchrl_stages.sweeps.tables`) and figures
 
 ``stages-train -m`` writes them when a sweep ends (:class:`torchrl_stages.cli.SweepSummaryCallback`,
 configured in ``hydra.callbacks``), ``stages-tune`` when a study's trials end
-(:mod:`torchrl_stages.sweeps.tune`), ``stages-report DIR`` on demand.
+(:mod:`torchrl_stages.tune`), ``stages-report DIR`` on demand.
 """
 
 from __future__ import annotations

@@ -34,7 +34,8 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.rundir import RunDirError, load_run, run_policy
+from torchrl_stages.runs.layout import RunDirError
+from torchrl_stages.runs.loading import load_run, run_policy
 
 #: the name, inside the ``.pt2`` file, of the JSON that names the program's inputs and outputs
 METADATA = "policy.json"

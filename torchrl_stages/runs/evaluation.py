@@ -1,27 +1,12 @@
-"""Tasks: what a task adds to a run beyond its env and config, and the whole-task evaluation.
-
-A task registers itself with :func:`register_task` (the package's own do so in
-``torchrl_stages.envs.<task>``; a task of your own in the module that defines its env, which
-Hydra imports when it builds the env). Its :class:`TaskReport` is looked up by ``task.name``:
-
-* ``report(task, learners, evaluation, run_dir, plots) -> dict`` reads the run's whole-task
-  evaluation (or runs task-specific deterministic checks), draws the task's figures, and its
-  dict is stored under ``"task_metrics"`` in ``eval.json``;
-* ``headline``: the names among those metrics that a sweep summary shows beside the success
-  rate (listed in ``eval.json`` as ``"headline_metrics"``);
-* ``probe(task, learners) -> dict``: numbers followed during training with ``eval.probe=true``.
-
-Every run gets one whole-task evaluation (:func:`evaluate_run`): its success rate, returns and
-steps are the run's numbers.
-"""
+"""A run's whole-task evaluation (:func:`evaluate_run`: ``eval.json``), the whole task
+followed during training (:func:`probe_task`) and the lines a finished run prints
+(:func:`format_summary`)."""
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,71 +18,10 @@ from torchrl_stages.handoff import handoff_diagnostics, plot_handoffs, warn_extr
 from torchrl_stages.integrity import atomic_write
 from torchrl_stages.learners import Learner
 from torchrl_stages.policy import StackedPolicy
+from torchrl_stages.runs.layout import EVAL_FILE
+from torchrl_stages.seeding import TASK_EVAL_OFFSET
 from torchrl_stages.task import StagedTask
-
-__all__ = [
-    "EVAL_FILE",
-    "TASKS",
-    "TaskReport",
-    "evaluate_run",
-    "format_summary",
-    "probe_task",
-    "register_task",
-    "task_report",
-]
-
-
-@dataclass(frozen=True)
-class TaskReport:
-    """What a task adds to the whole-task evaluation: its report (metrics and figures), the
-    names of its headline metrics, and its probe (numbers followed during training).
-
-    Examples:
-        >>> info = TaskReport(report=lambda task, learners, evaluation, run_dir, plots: {})
-        >>> info.headline, info.probe
-        ((), None)
-    """
-
-    report: Callable[..., dict[str, Any]] | None = None
-    headline: tuple[str, ...] = ()
-    probe: Callable[..., dict[str, float]] | None = None
-
-
-#: registered tasks by ``task.name``
-TASKS: dict[str, TaskReport] = {}
-
-
-def register_task(
-    name: str,
-    *,
-    report: Callable[..., dict[str, Any]] | None = None,
-    headline: Sequence[str] = (),
-    probe: Callable[..., dict[str, float]] | None = None,
-) -> TaskReport:
-    """Registers what the task ``name`` (its ``task.name``) adds to a run; returns it.
-
-    Examples:
-        >>> def report(task, learners, evaluation, run_dir, plots):
-        ...     return {"distance": 0.5}
-        >>> info = register_task("my_task", report=report, headline=["distance"])
-        >>> task_report("my_task") is info
-        True
-        >>> _ = TASKS.pop("my_task")
-    """
-    TASKS[name] = TaskReport(report, tuple(headline), probe)
-    return TASKS[name]
-
-
-def task_report(name: str) -> TaskReport | None:
-    """The registered :class:`TaskReport` of ``name``, or ``None`` (a task without a report:
-    its run has the whole-task numbers only)."""
-    if name not in TASKS:
-        importlib.import_module("torchrl_stages.envs")  # the package's own tasks register there
-    return TASKS.get(name)
-
-
-EVAL_FILE = "eval.json"
-EVAL_SEED_OFFSET = 20_000  # whole-task evaluation seeds: run seed + this (+ chunk index)
+from torchrl_stages.task_registry import task_report
 
 
 @torch.no_grad()
@@ -144,7 +68,7 @@ def evaluate_run(
     """
     policy = StackedPolicy([learner.policy for learner in learners])
     evaluation = evaluate_task(
-        task, policy, int(cfg.eval.episodes), int(cfg.seed) + EVAL_SEED_OFFSET, interruptible=True
+        task, policy, int(cfg.eval.episodes), int(cfg.seed) + TASK_EVAL_OFFSET, interruptible=True
     )
     result: dict[str, Any] = {
         "task": cfg.task.name,
@@ -158,7 +82,7 @@ def evaluate_run(
         )
         result["headline_metrics"] = list(report.headline)
     if evaluation.handoffs:  # how each stage's value holds where the stage before hands over
-        seed = int(cfg.seed) + EVAL_SEED_OFFSET
+        seed = int(cfg.seed) + TASK_EVAL_OFFSET
         records = handoff_diagnostics(task, learners, evaluation.handoffs, seed)
         warn_extrapolated(records)
         if cfg.eval.plots:

@@ -13,7 +13,7 @@ key of stage k or of a later stage changes, and never when an earlier stage's do
   never served (it is removed and the stage trained again).
 * ``init_from=RUN_DIR`` takes the stages of another run whose identity is unchanged.
 
-:class:`StageReuse` combines both for one run; :class:`~torchrl_stages.run_store.RunStore`
+:class:`StageReuse` combines both for one run; :class:`~torchrl_stages.runs.keeper.RunKeeper`
 asks it before training a stage and hands it every stage it trains.
 """
 
@@ -39,14 +39,11 @@ from torchrl_stages.config import ConfigError
 from torchrl_stages.integrity import DamagedFileError, verify_checksums, write_checksums
 from torchrl_stages.learners import Learner
 from torchrl_stages.preemption import stop_if_asked
-from torchrl_stages.rundir import (
-    RESUMABLE_CHANGES,
-    RunDir,
-    RunDirError,
-    config_differences,
-    restore_learner,
-)
-from torchrl_stages.runlock import RunLock
+from torchrl_stages.runs.directory import RunDir
+from torchrl_stages.runs.layout import RunDirError
+from torchrl_stages.runs.loading import restore_learner
+from torchrl_stages.runs.lock import RunLock
+from torchrl_stages.runs.trust import RESUMABLE_CHANGES, config_differences
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 

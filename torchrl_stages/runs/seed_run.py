@@ -19,20 +19,15 @@ from torchrl_stages.config import apply_all_stages, expand_stage_template
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import Observer, make_logger
 from torchrl_stages.preemption import stop_if_asked
-from torchrl_stages.run_store import RunStore
-from torchrl_stages.rundir import (
-    METRICS_FILE,
-    RESUMABLE_CHANGES,
-    STATUS_FILE,
-    RunDir,
-    RunDirError,
-    config_differences,
-)
+from torchrl_stages.runs.directory import RunDir
+from torchrl_stages.runs.evaluation import evaluate_run, probe_task
+from torchrl_stages.runs.keeper import RunKeeper
+from torchrl_stages.runs.layout import METRICS_FILE, STATUS_FILE, RunDirError
+from torchrl_stages.runs.stage_store import StageReuse
+from torchrl_stages.runs.trust import RESUMABLE_CHANGES, config_differences
 from torchrl_stages.schedules import Probe, Trained, get_schedule
 from torchrl_stages.seeding import TASK_EVAL_OFFSET
-from torchrl_stages.stage_store import StageReuse
 from torchrl_stages.task import StagedTask
-from torchrl_stages.tasks import evaluate_run, probe_task
 from torchrl_stages.validate import ConfigError, check_env_keys, validate_config, validate_task
 
 log = logging.getLogger("torchrl_stages")
@@ -92,12 +87,12 @@ def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
 
 class SeedRun:
     """One seed's run of ``cfg`` in the run directory ``run_dir``, from its checks to its
-    ``eval.json``: what :class:`~torchrl_stages.experiment.Experiment` makes for each seed it
+    ``eval.json``: what :class:`~torchrl_stages.runs.experiment.Experiment` makes for each seed it
     trains.
 
     Everything is checked when it is built, before anything is written: the config
     (:class:`~torchrl_stages.validate.ConfigError`) and the run directory
-    (:class:`~torchrl_stages.rundir.RunDirError`), which it locks until the run ends (one
+    (:class:`~torchrl_stages.runs.layout.RunDirError`), which it locks until the run ends (one
     process per directory). A directory that already holds a run is refused unless ``resume``
     (continue it: finished stages are loaded, the stage in progress goes on from its last
     checkpoint; keys of stages that no finished stage depends on may change, and those stages
@@ -107,13 +102,13 @@ class SeedRun:
     ``hydra_files`` (``{name: config}``) are written to ``.hydra/`` when the run starts or its
     config changes (what ``stages-train`` records of Hydra). ``observers``
     (:data:`~torchrl_stages.loggers.Observer`) see the metrics as the run logs them.
-    :meth:`start` begins a launch (the store its schedule trains into), :meth:`finish` ends it
+    :meth:`start` begins a launch (the keeper its schedule trains into), :meth:`finish` ends it
     (the whole-task evaluation), :meth:`ended` records one that did not finish.
 
     Examples:
         >>> import tempfile
         >>> from hydra import compose, initialize_config_module
-        >>> from torchrl_stages.store import register_configs
+        >>> from torchrl_stages.hydra_configs import register_configs
         >>> register_configs()
         >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
         ...     cfg = compose("config", overrides=["experiment=smoke"])
@@ -151,7 +146,7 @@ class SeedRun:
         try:
             self.resuming = self._check_run_dir()
             self.task = build_task(cfg, validated=True)  # validated above
-            # stage_store / init_from: checked (and the store created) before any training
+            # stage_store / init_from: checked (and the stage store created) before any training
             self.reuse = StageReuse.from_config(cfg, self.run_dir.path)
         except BaseException:
             self._lock.release(remove=self._lock.created_dir)
@@ -243,9 +238,9 @@ class SeedRun:
             run.write_config(cfg)
         run.begin_launch()
 
-    def start(self) -> RunStore:
+    def start(self) -> RunKeeper:
         """The start of a launch: what the run starts with is written (:meth:`_prepare`), then
-        the logger and the store of the run's stages that the schedule trains into are made."""
+        the logger and the keeper of the run's stages that the schedule trains into are made."""
         self._prepare()
         cfg, run = self.cfg, self.run_dir
         logging.getLogger("torchrl").setLevel(logging.WARNING)
@@ -254,7 +249,7 @@ class SeedRun:
         self.logger = make_logger(cfg, run.path, observers=self.observers)
         run.claim_new(before)  # a backend's own files
         self._start = time.perf_counter()
-        return RunStore(
+        return RunKeeper(
             run,
             self.task,
             get_schedule(str(cfg.schedule.name)),
@@ -282,10 +277,10 @@ class SeedRun:
 
         return probe
 
-    def finish(self, trained: Trained, store: RunStore) -> dict[str, Any]:
+    def finish(self, trained: Trained, keeper: RunKeeper) -> dict[str, Any]:
         """The end of a launch: records it done, evaluates the trained stages and writes
         ``eval.json``; returns it."""
-        cfg, run, schedule = self.cfg, self.run_dir, store.schedule
+        cfg, run, schedule = self.cfg, self.run_dir, keeper.schedule
         learners, results = trained.learners, trained.results
         stop_if_asked("the whole-task evaluation")  # a stop asked for during the last stage's save
         run.update_launch("done")
@@ -293,22 +288,22 @@ class SeedRun:
         training["stages"] = [asdict(r) for r in results]
         training.update(trained.extra)
         if self.reuse is not None:
-            training["reused"] = store.reused
+            training["reused"] = keeper.reused
             names = self.task.stage_names
             log.info(
                 "%sreused stages: %s; trained: %s",
-                "" if store.seed is None else f"seed {store.seed}: ",
-                ", ".join(n for n in names if n in store.reused) or "none",
-                ", ".join(n for n in names if n not in store.reused) or "none",
+                "" if keeper.seed is None else f"seed {keeper.seed}: ",
+                ", ".join(n for n in names if n in keeper.reused) or "none",
+                ", ".join(n for n in names if n not in keeper.reused) or "none",
             )
         before = run.listing()
         run.claim("eval.json")
         result = evaluate_run(cfg, self.task, learners, run.path, training=training)
         run.claim_new(before)  # the task's figures
-        if self.resuming and store.log.logger is not None:  # an earlier final evaluation's rows
-            store.log.rewind(run.read_stage(0)["log"])
+        if self.resuming and keeper.log.logger is not None:  # an earlier final evaluation's rows
+            keeper.log.rewind(run.read_stage(0)["log"])
         frames = sum(r.frames for r in results)  # the whole-task evaluation, after all frames
         keys = ("success_rate", "mean_return", "mean_steps")
-        store.log({f"eval/final/{key}": result[key] for key in keys}, frames)
+        keeper.log({f"eval/final/{key}": result[key] for key in keys}, frames)
         (run.path / STATUS_FILE).unlink(missing_ok=True)  # an earlier launch's outcome
         return result

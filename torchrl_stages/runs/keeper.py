@@ -1,6 +1,6 @@
-"""A schedule's stages kept in a run directory: :class:`RunStore`, the
-:class:`~torchrl_stages.schedules.StageStore` that :class:`~torchrl_stages.experiment.Experiment`
-passes down to the schedule it runs."""
+"""A schedule's stages kept in a run directory: :class:`RunKeeper`, the
+:class:`~torchrl_stages.schedules.StageKeeper` that each seed's
+:class:`~torchrl_stages.runs.seed_run.SeedRun` passes down to the schedule it runs."""
 
 from __future__ import annotations
 
@@ -12,18 +12,19 @@ from torchrl.record.loggers import Logger
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.learners import Learner
 from torchrl_stages.metrics import MetricsLog
-from torchrl_stages.rundir import RunDir, load_stage
+from torchrl_stages.runs.directory import RunDir
+from torchrl_stages.runs.loading import load_stage
+from torchrl_stages.runs.stage_store import StageReuse
 from torchrl_stages.schedules import Schedule
 from torchrl_stages.stage import StageResult
-from torchrl_stages.stage_store import StageReuse
 from torchrl_stages.task import StagedTask
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunStore"]
+__all__ = ["RunKeeper"]
 
 
-class RunStore:
+class RunKeeper:
     """Finished stages (``stage_<k>.pt``), checkpoints of the loop in progress and the logger's
     position, in the run directory ``run``.
 
@@ -37,14 +38,14 @@ class RunStore:
     Examples:
         >>> import tempfile
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_stages.rundir import RunDir
+        >>> from torchrl_stages.runs.directory import RunDir
         >>> from torchrl_stages.schedules import get_schedule
         >>> from torchrl_stages.task import StagedTask
         >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": {}, "b": {}},
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
         ...             "num_stages": 2}}))
-        >>> store = RunStore(RunDir(tempfile.mkdtemp()), task, get_schedule("flat"))
-        >>> store.finished(0) is None, store.schedule.stage_name(task, 0)
+        >>> keeper = RunKeeper(RunDir(tempfile.mkdtemp()), task, get_schedule("flat"))
+        >>> keeper.finished(0) is None, keeper.schedule.stage_name(task, 0)
         (True, 'flat')
     """
 

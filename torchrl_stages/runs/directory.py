@@ -1,16 +1,10 @@
-"""A run directory on disk: its files, writing them safely, and reading them back.
-
-A run directory holds ``config.yaml`` (the resolved config), ``stage_<k>.pt`` for every
-finished stage, ``checkpoints/`` for the stage in progress, ``metrics.csv``, ``eval.json``,
-figures, ``status.json`` when a run did not finish, and ``.stages/``: the run's record
-(``run.json``: every entry the package wrote, the SHA-256 of the stage files and of
-``config.yaml``, every launch's wall-clock) and the lock that keeps a second process out.
+"""A run directory on disk (:class:`RunDir`): its files, writing them safely, and reading them
+back.
 
 Files are written atomically (a temporary file unique to the process, then a rename); a
 failed write leaves no temporary file. A run directory is untrusted data when it is read back:
-checksums are verified, a config may only instantiate what its task ships with (see
-:func:`check_trusted`), and a damaged or foreign file raises :class:`RunDirError` naming the
-file and the fix.
+checksums are verified and a damaged or foreign file raises
+:class:`~torchrl_stages.runs.layout.RunDirError` naming the file and the fix.
 """
 
 from __future__ import annotations
@@ -18,12 +12,10 @@ from __future__ import annotations
 import io
 import json
 import logging
-import re
 import shutil
 import time
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import asdict, dataclass, fields
-from importlib import resources
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, fields
 from pathlib import Path
 from typing import Any
 
@@ -33,165 +25,29 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_stages.checkpoint import StageCheckpoints
-from torchrl_stages.config import TrainConfig, targets
+from torchrl_stages.config import TrainConfig
 from torchrl_stages.integrity import atomic_write, sha256_file
-from torchrl_stages.learners import Learner, make_learner
-from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.runlock import LOCK_DIR, RunLock, RunLockedError
-from torchrl_stages.schedules import get_schedule
-from torchrl_stages.stage import StageResult
-from torchrl_stages.task import StagedTask
-from torchrl_stages.tasks import EVAL_FILE
-from torchrl_stages.validate import ConfigError, TargetError, missing_keys, validate_config
-
-CONFIG_FILE = "config.yaml"
-METRICS_FILE = "metrics.csv"
-STATUS_FILE = "status.json"
-CHECKPOINTS = "checkpoints"
-RECORD_FILE = "run.json"  # in .stages/
-#: names of a run's files: a directory holding any of them (or a stage file) holds a run
-RUN_MARKERS = (CONFIG_FILE, EVAL_FILE, METRICS_FILE, CHECKPOINTS)
-#: what runs of versions without a record wrote (adopted when such a run is resumed)
-LEGACY_ENTRIES = (*RUN_MARKERS, STATUS_FILE, "csv", ".hydra")
-LEGACY_PATTERNS = ("stage_*.pt",)
-#: the figures earlier versions wrote (the shipped tasks' reports and the learning curves)
-LEGACY_FIGURES = (
-    "learning_curves.png",
-    "trajectories.png",
-    "value_map.png",
-    "value_map.npy",
-    "manipulator.png",
-    "cargo.png",
+from torchrl_stages.learners import Learner
+from torchrl_stages.runs.layout import (
+    CHECKPOINTS,
+    CONFIG_FILE,
+    EVAL_FILE,
+    LEGACY_ENTRIES,
+    LEGACY_FIGURES,
+    LEGACY_PATTERNS,
+    RECORD_FILE,
+    RECORD_FORMAT,
+    RUN_MARKERS,
+    STATUS_FILE,
+    RunDirError,
 )
-RECORD_FORMAT = "torchrl-stages run"
+from torchrl_stages.runs.lock import LOCK_DIR, RunLock, RunLockedError
+from torchrl_stages.runs.trust import ADDED_KEYS, _interpolations
+from torchrl_stages.stage import StageResult
 
 log = logging.getLogger("torchrl_stages")
 
-
-class RunDirError(RuntimeError):
-    """A run directory cannot be used as asked: it already holds a run, another process holds
-    it, a file in it is damaged or foreign, or its config names code it may not run."""
-
-
-def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
-    if isinstance(value, dict):
-        for key, item in value.items():
-            yield from _flatten(item, f"{prefix}{key}.")
-    else:
-        yield prefix.rstrip("."), value
-
-
-#: top-level keys a resumed run may change: they do not alter what the stages train to
-RESUMABLE_CHANGES = (
-    "resume",
-    "overwrite",
-    "progress",
-    "eval",
-    "objective",
-    "checkpoint_every",
-    "checkpoint_keep",
-    "stage_store",  # a stage taken from there is the one training gives, bit for bit
-    "init_from",
-)
-
-
-def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...] = ()) -> list[str]:
-    """Dotted keys whose resolved values differ between two configs (``ignore``: key prefixes
-    that may differ).
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> a = OmegaConf.create({"seed": 0, "eval": {"plots": True}, "task": {"lr": 1.0}})
-        >>> b = OmegaConf.create({"seed": 0, "eval": {"plots": False}, "task": {"lr": 2.0}})
-        >>> config_differences(a, b, ignore=("eval",))
-        ['task.lr']
-    """
-    flat_old = dict(_flatten(OmegaConf.to_container(old, resolve=True)))
-    flat_new = dict(_flatten(OmegaConf.to_container(new, resolve=True)))
-    keys = sorted(set(flat_old) | set(flat_new))
-    return [
-        k
-        for k in keys
-        if flat_old.get(k, "<unset>") != flat_new.get(k, "<unset>")
-        and not any(k == p or k.startswith(f"{p}.") for p in ignore)
-    ]
-
-
-#: root keys a config written by an earlier version lacks, with the value they had then
-ADDED_KEYS: dict[str, Any] = {"all_stages": {}}
-
-
-# ---------------------------------------------------------------------- what a config may run
-_TASK_NAME = re.compile(r"^[A-Za-z0-9_]+$")
-
-
-def _interpolations(node: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
-    """``(dotted key, text)`` of every string under ``node`` that holds ``${``."""
-    if isinstance(node, dict):
-        for key, item in node.items():
-            yield from _interpolations(item, f"{prefix}.{key}" if prefix else str(key))
-    elif isinstance(node, list):
-        for index, item in enumerate(node):
-            yield from _interpolations(item, f"{prefix}.{index}")
-    elif isinstance(node, str) and "${" in node:
-        yield prefix, node
-
-
-def shippedtargets(task_name: str) -> dict[str, str] | None:
-    """What the package's own ``conf/task/<task_name>.yaml`` instantiates (its env and
-    whole-task eval env, ``{dotted key: _target_}``), or ``None`` when that is not fixed by
-    the package: no such task, or a task that leaves its env to the user (``???``)."""
-    if not _TASK_NAME.match(task_name):
-        return None
-    source = resources.files("torchrl_stages.conf").joinpath("task", f"{task_name}.yaml")
-    if not source.is_file():
-        return None
-    shipped = yaml.safe_load(source.read_text()) or {}
-    nodes = {key: shipped.get(key) or {} for key in ("env", "eval_env")}
-    if missing_keys(OmegaConf.create(nodes), "task"):  # ??? : left to the user
-        return None
-    return dict(targets({"task": nodes}))
-
-
-def check_trusted(cfg: DictConfig, source: Path) -> None:
-    """Refuses a loaded config that would instantiate anything its task does not ship with.
-
-    Every ``_target_`` of the config (at any depth, env keyword arguments included) must be
-    one of the package's own task config (:func:`shipped_targets`), at the same key. Runs of
-    your own env (``task=gym``, ``task=custom``, a config directory of yours) name code of
-    yours to import: loading them needs ``trust=True``.
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"task": {"name": "gridworld", "env": {
-        ...     "_target_": "torchrl_stages.envs.GridWorldEnv", "size": 25}}})
-        >>> check_trusted(cfg, Path("run/config.yaml"))
-        >>> cfg.task.env.size = {"_target_": "os.system", "_args_": ["echo hi"]}
-        >>> check_trusted(cfg, Path("run/config.yaml"))
-        Traceback (most recent call last):
-        ...
-        torchrl_stages.rundir.RunDirError: run/config.yaml: task.env.size._target_='os.system' ...
-    """
-    container = OmegaConf.to_container(cfg, resolve=False)
-    task_name = str((container.get("task") or {}).get("name", ""))
-    allowed = shippedtargets(task_name)
-    fix = (
-        "Fix: if you made this run (or checked what it imports), load it with trust=True "
-        "(stages-eval --trust)"
-    )
-    if allowed is None:
-        raise RunDirError(
-            f"{source}: task '{task_name}' is not one the package ships with a fixed env, so "
-            "loading it would import and call code that the run directory names (a run "
-            f"directory is untrusted data). {fix}"
-        )
-    for key, target in targets(container):
-        if allowed.get(key) != target:
-            expected = f"'{allowed[key]}'" if key in allowed else "nothing there"
-            raise RunDirError(
-                f"{source}: {key}={target!r} is not what task '{task_name}' instantiates "
-                f"({expected}); loading a run never runs code its files name. {fix}"
-            )
+__all__ = ["RunDir", "refuse_links"]
 
 
 # ---------------------------------------------------------------------- the directory
@@ -576,153 +432,6 @@ class RunDir:
         return removed
 
 
-@dataclass
-class LoadedRun:
-    """A finished run read back from disk (learners and results in stage order)."""
-
-    cfg: DictConfig
-    task: StagedTask
-    learners: list[Learner]
-    results: list[dict[str, Any]]
-
-
-def load_stage(
-    run: RunDir,
-    task: StagedTask,
-    stage: int,
-    device: str | torch.device = "cpu",
-    *,
-    name: str | None = None,
-) -> tuple[Learner, dict[str, Any]] | None:
-    """Stage ``stage``'s learner and result from ``stage_<k>.pt`` (``None``: not finished),
-    which must hold the stage ``name`` (default: the task's name of stage ``stage``)."""
-    state = run.read_stage(stage, map_location=device)
-    if state is None:
-        return None
-    name = task.stage_names[stage] if name is None else name
-    if state.get("name") != name:
-        raise RunDirError(
-            f"{run.stage_file(stage)} holds stage {state.get('name')!r}, but the run's stage "
-            f"{stage} is {name!r}. Fix: restore the config it was trained "
-            "with, or delete the file and resume the run to retrain the stage."
-        )
-    fix = (
-        "restore the config it was trained with, or delete the file and resume the run to "
-        "retrain the stage."
-    )
-    learner = restore_learner(task, stage, state, device, run.stage_file(stage), fix)
-    return learner, state["result"]
-
-
-def restore_learner(
-    task: StagedTask,
-    stage: int,
-    state: dict[str, Any],
-    device: str | torch.device,
-    source: Path,
-    fix: str,
-) -> Learner:
-    """Stage ``stage``'s learner, built from the task's config and loaded from ``state`` (a
-    stage file's content, read from ``source``); :class:`RunDirError` naming ``source`` and
-    ``fix`` when they do not match."""
-    learner = make_learner(task.stage_cfg(stage), task.specs(stage), device=device)
-    try:
-        learner.load_checkpoint(state)
-        StageResult(**state["result"])
-    except (KeyError, RuntimeError, ValueError, TypeError) as err:
-        raise RunDirError(
-            f"{source} does not match the run's config ({type(err).__name__}: "
-            f"{str(err).splitlines()[0][:200]}). Fix: {fix}"
-        ) from err
-    return learner
-
-
-def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> DictConfig:
-    """The run's config, checked: what it may instantiate (unless ``trust``) and every value
-    (as ``stages-train`` checks them), for loading on ``device``."""
-    cfg = run.read_config()
-    source = run.config_source
-    if not trust:
-        check_trusted(cfg, source)
-    try:
-        checked = cfg.copy()  # as it would run here: on this device, with no logger
-        checked.device, checked.logger.backend = str(device), "none"
-        validate_config(checked)
-    except TargetError as err:  # code of the run's own that is not importable here
-        raise RunDirError(f"{source}: {err}") from None
-    except (ConfigError, OmegaConfBaseException, AttributeError, TypeError, ValueError) as err:
-        raise RunDirError(
-            f"{source} is not a valid config ({str(err).splitlines()[0]}). Fix: restore it "
-            "from the run's .hydra/config.yaml, or retrain into a new directory"
-        ) from err
-    return cfg
-
-
-def load_run(
-    run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
-) -> LoadedRun:
-    """Config, task, trained learners and training results of a finished run directory.
-
-    The directory is untrusted data: its config may only instantiate what its task ships with
-    (:func:`check_trusted`; ``trust=True`` lifts that, for runs of your own env), checksums are
-    verified and nothing in it is unpickled.
-
-    Examples:
-        >>> from torchrl_stages import load_run  # doctest: +SKIP
-        >>> run = load_run("outputs/2026-11-21/16-00-00")  # doctest: +SKIP
-        >>> run.learners[0].policy, run.task.task_env(8)  # doctest: +SKIP
-    """
-    run = RunDir(run_dir)
-    cfg = read_run_config(run, device, trust)
-    try:
-        task = StagedTask(cfg.task, device=device)
-    except Exception as err:  # noqa: BLE001 - the run's env cannot be built here
-        raise RunDirError(
-            f"{run.path}: cannot build the env of task '{cfg.task.name}' "
-            f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}). Fix: "
-            "install what the run's env needs (see its config.yaml task.env)"
-        ) from err
-    schedule = get_schedule(str(cfg.schedule.name))  # which file holds each stage's learner
-    loaded: dict[int, tuple[Learner, dict[str, Any]] | None] = {}
-    for k in range(task.num_stages):
-        stored = schedule.stored_stage(k)
-        if stored not in loaded:
-            name = schedule.stage_name(task, stored)
-            loaded[stored] = load_stage(run, task, stored, device, name=name)
-    stages = [loaded[schedule.stored_stage(k)] for k in range(task.num_stages)]
-    missing = [run.stage_file(k).name for k, s in enumerate(stages) if s is None]
-    if missing:
-        raise RunDirError(
-            f"{run.path} lacks {', '.join(missing)}: those stages never finished training. "
-            f"Fix: rerun the same stages-train command with hydra.run.dir={run.path} resume=true "
-            "(stages are written from the last one backwards)."
-        )
-    return LoadedRun(cfg, task, [s[0] for s in stages], [s[1] for s in stages])
-
-
-def load_policy(
-    run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
-) -> StackedPolicy:
-    """The greedy stacked policy of a finished run (``trust``: see :func:`load_run`).
-
-    It acts on the task env's TensorDicts as they come: an input without a ``"stage"`` entry
-    gets its stage from the task's stage function (:class:`StackedPolicy`'s ``stage_fn``; the
-    tasks without one, whose envs track their stage, write that entry themselves).
-
-    Examples:
-        >>> from torchrl_stages import load_policy  # doctest: +SKIP
-        >>> policy = load_policy("outputs/2026-11-21/16-00-00")  # doctest: +SKIP
-        >>> GridWorldEnv(batch_size=(8,)).rollout(200, policy)  # doctest: +SKIP
-    """
-    return run_policy(load_run(run_dir, device, trust=trust))
-
-
-def run_policy(run: LoadedRun) -> StackedPolicy:
-    """The greedy stacked policy of a loaded run, with its task's stage function."""
-    stage_fn = getattr(run.task.spec_env, "stage_fn", None)
-    return StackedPolicy([learner.policy for learner in run.learners], stage_fn=stage_fn)
-
-
 def refuse_links(paths: Iterable[Path]) -> None:
     """Raises :class:`RunDirError` naming the first of ``paths`` that is a symbolic link (a
     run's own files are never links: writing or deleting through one touches another place)."""
@@ -733,15 +442,3 @@ def refuse_links(paths: Iterable[Path]) -> None:
                 "links (writing or deleting through it would touch another place). "
                 "Fix: replace it with the file itself, or pick another directory"
             )
-
-
-__all__ = [
-    "LoadedRun",
-    "RunDir",
-    "RunDirError",
-    "check_trusted",
-    "load_policy",
-    "load_run",
-    "refuse_links",
-    "run_policy",
-]

@@ -3,7 +3,7 @@
 :class:`Experiment` trains and evaluates a config for one seed (``seed=s``: one run directory)
 or several at once (``seeds=[...]``: one run directory per seed, ``<run_dir>/seed_<s>/``, and a
 summary over them), with one code path: each seed's directory is a
-:class:`~torchrl_stages.seed_run.SeedRun` (checked, locked, resumed and evaluated alike), and
+:class:`~torchrl_stages.runs.seed_run.SeedRun` (checked, locked, resumed and evaluated alike), and
 the schedule trains every seed's stages in one call, their networks stacked when there are
 several. The CLI, ``stages-tune``, the benchmark scripts and Python users all go through it.
 """
@@ -27,23 +27,14 @@ from torchrl_stages.failures import DivergenceError, one_line
 from torchrl_stages.learners import make_learner
 from torchrl_stages.loggers import Observer, StopRun
 from torchrl_stages.preemption import Interrupted, handle_signals
-from torchrl_stages.rundir import refuse_links
+from torchrl_stages.runs.directory import refuse_links
+from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
+from torchrl_stages.runs.seed_run import SeedRun, build_task, compile_mode, with_env_stages
 from torchrl_stages.schedules import SCHEDULES, get_schedule
-from torchrl_stages.seed_run import SeedRun, build_task, compile_mode, with_env_stages
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import hold_threads
 
 log = logging.getLogger("torchrl_stages")
-
-#: where the checkpoints of a launch of several seeds live, beside the seeds' directories
-SEED_CHECKPOINTS = "seed_checkpoints"
-
-__all__ = ["Experiment", "seed_dir", "validate_seeds"]
-
-
-def seed_dir(run_dir: str | Path, seed: int) -> Path:
-    """Where seed ``seed`` of a many-seed run in ``run_dir`` lives."""
-    return Path(run_dir) / f"seed_{seed}"
 
 
 def validate_seeds(cfg: DictConfig) -> list[int]:
@@ -138,7 +129,7 @@ class Experiment:
     with ``cfg.seeds``, every seed at once, seed ``s`` in ``<run_dir>/seed_<s>/``;
     :meth:`run` returns each seed's ``eval.json``.
 
-    Each seed's directory is a :class:`~torchrl_stages.seed_run.SeedRun` (checked, locked and
+    Each seed's directory is a :class:`~torchrl_stages.runs.seed_run.SeedRun` (checked, locked and
     written alike: ``resume`` and ``overwrite`` act on each; ``load_run``, ``stages-eval`` and
     ``stages-report`` read it as any other), built before anything is written. The schedule
     trains every seed's stages in one call; several seeds' networks are stacked (schedules and
@@ -154,7 +145,7 @@ class Experiment:
 
     Examples:
         >>> from hydra import compose, initialize_config_module
-        >>> from torchrl_stages.store import register_configs
+        >>> from torchrl_stages.hydra_configs import register_configs
         >>> register_configs()
         >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
         ...     cfg = compose("config", overrides=["experiment=smoke", "seeds=[0,1]"])
@@ -245,22 +236,22 @@ class Experiment:
 
     def _run(self) -> list[dict[str, Any]]:
         runs, cfg = self.runs, self.runs[0].cfg
-        stores = []
+        keepers = []
         for seed, run in zip(self.seeds, runs, strict=True):
-            stores.append(run.start())
+            keepers.append(run.start())
             if self.stacked:
-                stores[-1].seed = seed  # its log lines name it
+                keepers[-1].seed = seed  # its log lines name it
         compile = compile_mode(cfg)
         if compile != "off":
             # compiled code starts fresh in every run: the jobs of a sweep run one after another
             # in one process, and their learners' recompiles would add up to Dynamo's limit
             torch._dynamo.reset()
-        trained = stores[0].schedule.train(
+        trained = keepers[0].schedule.train(
             self.task,
             self.seeds,
-            stores=stores,
-            logs=[store.log for store in stores],
-            checkpoints=self._checkpoints() if self.stacked else stores[0].checkpoints,
+            keepers=keepers,
+            logs=[keeper.log for keeper in keepers],
+            checkpoints=self._checkpoints() if self.stacked else keepers[0].checkpoints,
             progress=bool(cfg.progress),
             probe=runs[0].probe() if len(runs) == 1 else None,
             compile=compile,
@@ -270,7 +261,7 @@ class Experiment:
             for one in trained:  # eval.json: its wall-clock is that of all of them
                 one.extra["trained_with_seeds"] = list(self.seeds)
         return [
-            run.finish(one, store) for run, store, one in zip(runs, stores, trained, strict=True)
+            run.finish(one, keeper) for run, keeper, one in zip(runs, keepers, trained, strict=True)
         ]
 
     @property

@@ -1,0 +1,140 @@
+"""What a run directory may make this package do: a resumed run's config may change only what
+its finished stages do not depend on (:func:`config_differences`), and a loaded config may only
+instantiate what its task ships with (:func:`check_trusted`): a run directory is untrusted
+data."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_stages.config import targets
+from torchrl_stages.runs.layout import RunDirError
+from torchrl_stages.validate import missing_keys
+
+
+def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    if isinstance(value, dict):
+        for key, item in value.items():
+            yield from _flatten(item, f"{prefix}{key}.")
+    else:
+        yield prefix.rstrip("."), value
+
+
+#: top-level keys a resumed run may change: they do not alter what the stages train to
+RESUMABLE_CHANGES = (
+    "resume",
+    "overwrite",
+    "progress",
+    "eval",
+    "objective",
+    "checkpoint_every",
+    "checkpoint_keep",
+    "stage_store",  # a stage taken from there is the one training gives, bit for bit
+    "init_from",
+)
+
+
+def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...] = ()) -> list[str]:
+    """Dotted keys whose resolved values differ between two configs (``ignore``: key prefixes
+    that may differ).
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> a = OmegaConf.create({"seed": 0, "eval": {"plots": True}, "task": {"lr": 1.0}})
+        >>> b = OmegaConf.create({"seed": 0, "eval": {"plots": False}, "task": {"lr": 2.0}})
+        >>> config_differences(a, b, ignore=("eval",))
+        ['task.lr']
+    """
+    flat_old = dict(_flatten(OmegaConf.to_container(old, resolve=True)))
+    flat_new = dict(_flatten(OmegaConf.to_container(new, resolve=True)))
+    keys = sorted(set(flat_old) | set(flat_new))
+    return [
+        k
+        for k in keys
+        if flat_old.get(k, "<unset>") != flat_new.get(k, "<unset>")
+        and not any(k == p or k.startswith(f"{p}.") for p in ignore)
+    ]
+
+
+#: root keys a config written by an earlier version lacks, with the value they had then
+ADDED_KEYS: dict[str, Any] = {"all_stages": {}}
+
+
+# ---------------------------------------------------------------------- what a config may run
+_TASK_NAME = re.compile(r"^[A-Za-z0-9_]+$")
+
+
+def _interpolations(node: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
+    """``(dotted key, text)`` of every string under ``node`` that holds ``${``."""
+    if isinstance(node, dict):
+        for key, item in node.items():
+            yield from _interpolations(item, f"{prefix}.{key}" if prefix else str(key))
+    elif isinstance(node, list):
+        for index, item in enumerate(node):
+            yield from _interpolations(item, f"{prefix}.{index}")
+    elif isinstance(node, str) and "${" in node:
+        yield prefix, node
+
+
+def shippedtargets(task_name: str) -> dict[str, str] | None:
+    """What the package's own ``conf/task/<task_name>.yaml`` instantiates (its env and
+    whole-task eval env, ``{dotted key: _target_}``), or ``None`` when that is not fixed by
+    the package: no such task, or a task that leaves its env to the user (``???``)."""
+    if not _TASK_NAME.match(task_name):
+        return None
+    source = resources.files("torchrl_stages.conf").joinpath("task", f"{task_name}.yaml")
+    if not source.is_file():
+        return None
+    shipped = yaml.safe_load(source.read_text()) or {}
+    nodes = {key: shipped.get(key) or {} for key in ("env", "eval_env")}
+    if missing_keys(OmegaConf.create(nodes), "task"):  # ??? : left to the user
+        return None
+    return dict(targets({"task": nodes}))
+
+
+def check_trusted(cfg: DictConfig, source: Path) -> None:
+    """Refuses a loaded config that would instantiate anything its task does not ship with.
+
+    Every ``_target_`` of the config (at any depth, env keyword arguments included) must be
+    one of the package's own task config (:func:`shipped_targets`), at the same key. Runs of
+    your own env (``task=gym``, ``task=custom``, a config directory of yours) name code of
+    yours to import: loading them needs ``trust=True``.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"task": {"name": "gridworld", "env": {
+        ...     "_target_": "torchrl_stages.envs.GridWorldEnv", "size": 25}}})
+        >>> check_trusted(cfg, Path("run/config.yaml"))
+        >>> cfg.task.env.size = {"_target_": "os.system", "_args_": ["echo hi"]}
+        >>> check_trusted(cfg, Path("run/config.yaml"))
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.runs.layout.RunDirError: run/config.yaml: task.env.size._target_=...
+    """
+    container = OmegaConf.to_container(cfg, resolve=False)
+    task_name = str((container.get("task") or {}).get("name", ""))
+    allowed = shippedtargets(task_name)
+    fix = (
+        "Fix: if you made this run (or checked what it imports), load it with trust=True "
+        "(stages-eval --trust)"
+    )
+    if allowed is None:
+        raise RunDirError(
+            f"{source}: task '{task_name}' is not one the package ships with a fixed env, so "
+            "loading it would import and call code that the run directory names (a run "
+            f"directory is untrusted data). {fix}"
+        )
+    for key, target in targets(container):
+        if allowed.get(key) != target:
+            expected = f"'{allowed[key]}'" if key in allowed else "nothing there"
+            raise RunDirError(
+                f"{source}: {key}={target!r} is not what task '{task_name}' instantiates "
+                f"({expected}); loading a run never runs code its files name. {fix}"
+            )

@@ -1,0 +1,90 @@
+"""Optuna's side of a study: each stage evaluation reported to the trial and pruned on
+(:class:`TrialPruning`), the sampler and the pruner."""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from omegaconf import DictConfig
+
+from torchrl_stages.loggers import StopRun
+
+#: what a trial reports: the success rate of each loop's evaluations
+STAGE_EVALUATION = re.compile(r"^eval/(stage|joint)_\d+/success_rate$")
+
+
+# ---------------------------------------------------------------------- pruning
+class TrialPruning:
+    """An observer of a run's metrics (:data:`torchrl_stages.loggers.Observer`) that reports
+    every stage evaluation's success rate to an Optuna ``trial`` and ends the run with
+    :class:`~torchrl_stages.loggers.StopRun` (``pruned``) when the trial should be pruned.
+
+    The step of a report is the evaluation's index in the run (0, 1, ...: the backward
+    schedule evaluates the last stage first). With ``direction="minimize"`` (the objective's)
+    it reports the failure rate ``1 - success``, so that lower is better there too.
+
+    Examples:
+        >>> class Trial:  # what it uses of an optuna.Trial
+        ...     reported = []
+        ...     def report(self, value, step):
+        ...         self.reported.append((step, value))
+        ...     def should_prune(self):
+        ...         return len(self.reported) >= 2
+        >>> trial = Trial()
+        >>> pruning = TrialPruning(trial)
+        >>> pruning({"eval/stage_4/success_rate": 0.5, "eval/stage_4/value_error": 0.1}, 512)
+        >>> pruning({"train/stage_4/loss": 0.2}, 768)  # not an evaluation
+        >>> pruning({"eval/stage_4/success_rate": 0.25}, 1024)
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.loggers.StopRun: pruned at stage evaluation 1 (...=0.25 at 1024 frames ...)
+        >>> trial.reported
+        [(0, 0.5), (1, 0.25)]
+    """
+
+    def __init__(self, trial: Any, direction: str = "maximize") -> None:
+        self.trial = trial
+        self.minimize = direction == "minimize"
+        self.evaluations = 0
+
+    def __call__(self, metrics: dict[str, float], step: int) -> None:
+        for name, value in metrics.items():
+            if STAGE_EVALUATION.match(name) is None:
+                continue
+            index, self.evaluations = self.evaluations, self.evaluations + 1
+            success = float(value)
+            self.trial.report(1.0 - success if self.minimize else success, index)
+            if self.trial.should_prune():
+                raise StopRun(
+                    "pruned",
+                    f"pruned at stage evaluation {index} ({name}={success:g} at {step} frames "
+                    "of the stage)",
+                )
+
+
+def make_sampler(name: str, seed: int) -> Any:
+    """The Optuna sampler ``tune.sampler`` names, seeded."""
+    import optuna
+
+    if name == "random":
+        return optuna.samplers.RandomSampler(seed=seed)
+    return optuna.samplers.TPESampler(seed=seed)
+
+
+def make_pruner(tune: DictConfig, direction: str) -> Any:
+    """The Optuna pruner ``tune.pruner`` names, over the values :class:`TrialPruning`
+    reports (success rates; failure rates when the objective is minimized)."""
+    import optuna
+
+    warmup = int(tune.warmup_steps)
+    if tune.pruner == "median":
+        return optuna.pruners.MedianPruner(
+            n_startup_trials=int(tune.startup_trials), n_warmup_steps=warmup
+        )
+    if tune.pruner == "threshold":
+        below = float(tune.prune_below)
+        if direction == "minimize":  # failure rates reported: above 1 - below is pruned
+            return optuna.pruners.ThresholdPruner(upper=1.0 - below, n_warmup_steps=warmup)
+        return optuna.pruners.ThresholdPruner(lower=below, n_warmup_steps=warmup)
+    return optuna.pruners.NopPruner()

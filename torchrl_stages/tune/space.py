@@ -1,0 +1,246 @@
+"""The search space of a study: ``tune.params`` read into :class:`ParamSpec` s, and each
+trial's values as ``stages-train`` overrides."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_stages.config import (
+    check,
+)
+
+SAMPLERS = ("tpe", "random")
+PRUNERS = ("median", "threshold", "none")
+SPEC_KEYS = ("low", "high", "log", "step", "choices")
+BEST_FILE = "best.yaml"
+#: the metrics a stage evaluation logs its success rate as (backward and flat: ``stage_<k>``,
+#: joint: ``joint_<k>``, phase k)
+_PLAIN = re.compile(r"^[A-Za-z_][\w\-./@:]*$")
+
+#: ``compose(overrides)``: the config ``stages-train`` composes from ``overrides``
+Compose = Callable[[list[str]], DictConfig]
+
+
+class TrialFailed(RuntimeError):
+    """A trial whose run did not finish (bad config, divergence, the env's error): recorded as
+    failed in the study, which goes on with the next trial."""
+
+
+class StudyError(RuntimeError):
+    """The study cannot go on (a trial's directory holds another run, a disk error)."""
+
+
+# ---------------------------------------------------------------------- the search space
+def hydra_value(value: Any) -> str:
+    """``value`` as a Hydra command-line value.
+
+    Examples:
+        >>> [hydra_value(v) for v in (3, 0.001, True, None, "sac", "a b")]
+        ['3', '0.001', 'true', 'null', 'sac', "'a b'"]
+    """
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if value is None:
+        return "null"
+    if isinstance(value, int | float):
+        return repr(value)
+    text = str(value)
+    if _PLAIN.match(text) and text.lower() not in ("true", "false", "null", "nan", "inf"):
+        return text
+    return "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+@dataclass
+class ParamSpec:
+    """One entry of ``tune.params``: a config key (or group) and its range.
+
+    ``key`` is written as on the command line: ``task.stages.s3.lr``, ``+all_stages.lr`` (a key
+    added to a mapping), ``algo@task.stages.s0`` (a config group); Optuna knows the parameter
+    by :attr:`name`, the key without ``+``.
+
+    Examples:
+        >>> spec = ParamSpec.parse("task.stages.s3.lr", {"low": 1e-4, "high": 1e-2, "log": True})
+        >>> spec.kind, spec.override(0.003), spec.candidates()
+        ('float', 'task.stages.s3.lr=0.003', [0.0001, 0.01])
+        >>> ParamSpec.parse("task.stages.s3.batch_size", {"low": 32, "high": 256}).kind
+        'int'
+        >>> ParamSpec.parse("algo@task.stages.s0", {"choices": ["dqn", "sac"]}).kind
+        'categorical'
+        >>> ParamSpec.parse("task.stages.s3.lr", {"low": 0.0, "high": 1e-2, "log": True})
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.config.ConfigError: tune.params.task.stages.s3.lr.low=0.0: ...
+    """
+
+    key: str
+    kind: str  # float | int | categorical
+    low: float | int | None = None
+    high: float | int | None = None
+    log: bool = False
+    step: float | int | None = None
+    choices: tuple[Any, ...] = ()
+
+    @property
+    def name(self) -> str:
+        """The parameter's name in the study: the key without its leading ``+``."""
+        return self.key.lstrip("+")
+
+    @classmethod
+    def parse(cls, key: str, spec: Any) -> ParamSpec:
+        """The spec ``{low, high[, log][, step]}`` or ``{choices}`` of ``key``; a
+        :class:`~torchrl_stages.config.ConfigError` names what is wrong and the fix."""
+        where = f"tune.params.{key}"
+        example = "{low: 1e-4, high: 1e-2, log: true} or {choices: [a, b]}"
+        check(
+            isinstance(spec, Mapping) and bool(spec),
+            where,
+            spec,
+            f"a range is a mapping of {', '.join(SPEC_KEYS)}",
+            f"write it as {example}",
+        )
+        unknown = [str(k) for k in spec if k not in SPEC_KEYS]
+        check(
+            not unknown,
+            where,
+            dict(spec),
+            f"unknown {', '.join(unknown)} (known: {', '.join(SPEC_KEYS)})",
+            f"write it as {example}",
+        )
+        if "choices" in spec:
+            choices = spec["choices"]
+            check(
+                set(spec) == {"choices"},
+                where,
+                dict(spec),
+                "choices cannot go with low, high, log or step",
+                "keep either choices or the range",
+            )
+            ok = isinstance(choices, Sequence) and not isinstance(choices, str) and choices
+            check(bool(ok), f"{where}.choices", choices, "must be a non-empty list", example)
+            for choice in choices:
+                check(
+                    choice is None or isinstance(choice, bool | int | float | str),
+                    f"{where}.choices",
+                    list(choices),
+                    f"{choice!r} is not a number, a string, a boolean or null",
+                    "list plain values (a config group's options by name)",
+                )
+            return cls(key, "categorical", choices=tuple(choices))
+        for bound in ("low", "high"):
+            check(
+                _is_number(spec.get(bound)),
+                f"{where}.{bound}",
+                spec.get(bound),
+                "must be a finite number",
+                f"write the range as {example}",
+            )
+        low, high, log, step = spec["low"], spec["high"], spec.get("log", False), spec.get("step")
+        check(isinstance(log, bool), f"{where}.log", log, "must be true or false", "set log: true")
+        check(low < high, f"{where}.low", low, f"must be below high={high}", "swap them")
+        if log:
+            check(low > 0, f"{where}.low", low, "must be > 0 with log: true", "set low > 0")
+            check(step is None, f"{where}.step", step, "cannot go with log: true", "drop one")
+        if step is not None:
+            check(_is_number(step) and step > 0, f"{where}.step", step, "must be > 0", "fix it")
+        is_int = all(isinstance(v, int) for v in (low, high, step if step is not None else 1))
+        return cls(key, "int" if is_int else "float", low, high, log, step)
+
+    def suggest(self, trial: Any) -> Any:
+        """The trial's value (``trial``: an ``optuna.Trial``)."""
+        if self.kind == "categorical":
+            return trial.suggest_categorical(self.name, list(self.choices))
+        if self.kind == "int":
+            step = 1 if self.step is None else int(self.step)
+            return trial.suggest_int(self.name, self.low, self.high, step=step, log=self.log)
+        return trial.suggest_float(self.name, self.low, self.high, step=self.step, log=self.log)
+
+    def override(self, value: Any) -> str:
+        """The command-line override that sets ``value``."""
+        return f"{self.key}={hydra_value(value)}"
+
+    def candidates(self) -> list[Any]:
+        """The values checked before any training: the bounds, or every choice."""
+        return list(self.choices) if self.kind == "categorical" else [self.low, self.high]
+
+    @property
+    def group(self) -> str | None:
+        """The config group the key selects an option of (``algo@task.stages.s0``: ``algo``),
+        as far as its spelling says (``schedule`` is one too: see :func:`check_space`)."""
+        path = self.name.split("@", 1)[0]
+        return path if ("@" in self.name or "/" in path) else None
+
+
+def _flatten(params: Mapping, prefix: str = "") -> Iterable[tuple[str, Any]]:
+    for key, value in params.items():
+        path = f"{prefix}.{key}" if prefix else str(key)
+        is_spec = (  # a range has low, high or choices (and no mapping in it)
+            isinstance(value, Mapping)
+            and bool({"low", "high", "choices"} & set(value))
+            and not any(isinstance(v, Mapping) for v in value.values())
+        )
+        if isinstance(value, Mapping) and value and not is_spec:
+            yield from _flatten(value, path)
+        else:
+            yield path, value
+
+
+def search_space(params: Any) -> list[ParamSpec]:
+    """``tune.params`` as specs: keys written with dots (``{task.stages.s3.lr: {...}}``) or
+    nested (``+tune.params.task.stages.s3.lr={...}`` on the command line) alike.
+
+    Examples:
+        >>> space = search_space({"task.stages.s3.lr": {"low": 1e-4, "high": 1e-2, "log": True},
+        ...                       "task": {"stages": {"s2": {"gamma": {"choices": [0.9, 0.99]}}}}})
+        >>> [(p.name, p.kind) for p in space]
+        [('task.stages.s3.lr', 'float'), ('task.stages.s2.gamma', 'categorical')]
+    """
+    if isinstance(params, DictConfig):
+        params = OmegaConf.to_container(params, resolve=True)
+    check(
+        isinstance(params, Mapping) and bool(params),
+        "tune.params",
+        params,
+        "the search space is empty",
+        "add one range per key, e.g. 'tune.params={task.stages.s3.lr: {low: 1e-4, "
+        "high: 1e-2, log: true}}'",
+    )
+    space = [ParamSpec.parse(key, spec) for key, spec in _flatten(params)]
+    names = [p.name for p in space]
+    for name in names:
+        check(
+            names.count(name) == 1,
+            f"tune.params.{name}",
+            "...",
+            "given twice",
+            "keep one",
+        )
+    return space
+
+
+def override_key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def train_overrides(overrides: Iterable[str]) -> list[str]:
+    """The command line's overrides that ``stages-train`` takes: all but the ``tune`` ones.
+
+    Examples:
+        >>> train_overrides(["experiment=smoke", "tune.n_trials=4", "+tune.params={}", "tune=lr"])
+        ['experiment=smoke']
+    """
+    out = []
+    for override in overrides:
+        key = override_key(override)
+        if key != "tune" and not key.startswith("tune."):
+            out.append(override)
+    return out
