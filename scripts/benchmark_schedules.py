@@ -29,6 +29,8 @@ import numpy as np
 from _benchmark import parse_args, run_table, train
 from matplotlib.figure import Figure
 
+from torchrl_stages.metric_names import TASK, parse_metric
+
 TASKS = {
     "gridworld-homo": ("gridworld", ["task/gammas=homo"]),
     "gridworld-hetero": ("gridworld", ["task/gammas=hetero"]),
@@ -52,10 +54,9 @@ def curves(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
     series: dict[str, list[tuple[int, float]]] = defaultdict(list)
     with (run_dir / "metrics.csv").open() as f:
         for row in csv.DictReader(f):
-            if row["name"].startswith("eval/task/"):
-                series[row["name"].removeprefix("eval/task/")].append(
-                    (int(row["step"]), float(row["value"]))
-                )
+            name = parse_metric(row["name"])
+            if name is not None and name.scope == TASK:
+                series[name.metric].append((int(row["step"]), float(row["value"])))
     return series
 
 

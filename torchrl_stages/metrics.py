@@ -1,6 +1,6 @@
-"""A run's metrics as its loops log them: :class:`MetricsLog` (one seed's scalars, to a torchrl
-logger, with the position and rewind a resumed loop needs) and :class:`SeedLogs` (one per seed
-of a loop, as one)."""
+"""A run's metrics as its loops log them (named by :mod:`~torchrl_stages.metric_names`):
+:class:`MetricsLog` (one seed's scalars, to a torchrl logger, with the position and rewind a
+resumed loop needs) and :class:`SeedLogs` (one per seed of a loop, as one)."""
 
 from __future__ import annotations
 

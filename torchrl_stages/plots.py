@@ -8,11 +8,12 @@ matplotlib backend alone.
 from __future__ import annotations
 
 import csv
-import re
 from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from torchrl_stages.metric_names import parse_metric
 
 if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn: it costs every CLI start
     from matplotlib.figure import Figure
@@ -33,11 +34,6 @@ def save_figure(fig: Figure, out: str | Path) -> Path:
     return path
 
 
-#: per-stage rows of metrics.csv: train/stage_3/loss, eval/stage_3/success_rate and, under
-#: the joint schedule, train/joint_1/episode_return, eval/joint_1/success_rate (phase 1)
-_STAGE_METRIC = re.compile(
-    r"^(?P<kind>train|eval)/(?P<scope>stage|joint)_(?P<stage>\d+)/(?P<metric>.+)$"
-)
 #: losses in the order their panels appear (others follow, sorted)
 _LOSS_ORDER = ("loss", "loss_value", "loss_qvalue", "loss_actor")
 Series = dict[tuple[str, str, str], list[tuple[float, float]]]  # (kind, scope, metric) -> points
@@ -49,15 +45,15 @@ def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
     out: dict[int, Series] = defaultdict(lambda: defaultdict(list))
     with open(metrics_csv, newline="") as handle:
         for row in csv.DictReader(handle):
-            match = _STAGE_METRIC.match(row.get("name") or "")
-            if match is None:
+            # a loop's rows (train/stage_3/loss, eval/joint_1/success_rate: phase 1), by index
+            name = parse_metric(row.get("name") or "")
+            if name is None or name.index is None:
                 continue
             try:
                 step, value = float(row["step"]), float(row["value"])
             except (KeyError, TypeError, ValueError):
                 continue
-            key = (match["kind"], match["scope"], match["metric"])
-            out[int(match["stage"])][key].append((step, value))
+            out[name.index][(name.kind, name.scope, name.metric)].append((step, value))
     return out
 
 

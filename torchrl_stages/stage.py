@@ -37,6 +37,7 @@ from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.learners.stacking import unstack_learner, update_rows
 from torchrl_stages.loop import LoopCounters, Stopwatch, Trainer, can_stop_early
+from torchrl_stages.metric_names import STAGE, metric_name
 from torchrl_stages.metrics import MetricsLog, SeedLogs
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.threads import keep_threads
@@ -169,7 +170,6 @@ class StageTrainer:
         self.progress, self.checkpoints = progress, checkpoints
         self.gammas, self.postproc, self.on_evaluate = gammas, postproc, on_evaluate
         self.keys = list(dict.fromkeys([*learner.replay_keys, *extra_keys]))
-        self.prefix = f"train/stage_{stage}"
 
     @functools.cached_property
     def _value(self) -> TensorDictModuleBase:
@@ -301,7 +301,8 @@ class StageTrainer:
         )
         for i in active() if active is not None else range(n):
             self.logs[i](
-                {f"eval/stage_{self.stage}/{k}": v for k, v in summaries[i].items()}, frames
+                {metric_name("eval", STAGE, self.stage, k): v for k, v in summaries[i].items()},
+                frames,
             )
         return Evaluation(
             [s["success_rate"] for s in summaries],
@@ -322,7 +323,8 @@ class StageTrainer:
         for i in active:
             metrics = {**episodes[i], **{k: v[i] for k, v in means.items()}}
             metrics["updates"] = self.learner.num_updates
-            self.logs[i]({f"{self.prefix}/{k}": v for k, v in metrics.items()}, frames)
+            named = {metric_name("train", STAGE, self.stage, k): v for k, v in metrics.items()}
+            self.logs[i](named, frames)
 
     def _result(
         self, i: int, stops: SeedEarlyStops, collector, start: float, watch: Stopwatch

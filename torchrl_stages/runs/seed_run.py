@@ -18,6 +18,7 @@ from omegaconf import DictConfig, open_dict
 from torchrl_stages.config import apply_all_stages, expand_stage_template
 from torchrl_stages.learners import Learner
 from torchrl_stages.loggers import Observer, make_logger
+from torchrl_stages.metric_names import FINAL, TASK, metric_name
 from torchrl_stages.preemption import stop_if_asked
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.evaluation import evaluate_run, probe_task
@@ -273,7 +274,7 @@ class SeedRun:
             metrics["seconds"] = time.perf_counter() - start
             if self.logger is not None:
                 for key, value in metrics.items():
-                    self.logger.log_scalar(f"eval/task/{key}", value, step=frames)
+                    self.logger.log_scalar(metric_name("eval", TASK, None, key), value, frames)
 
         return probe
 
@@ -304,6 +305,6 @@ class SeedRun:
             keeper.log.rewind(run.read_stage(0)["log"])
         frames = sum(r.frames for r in results)  # the whole-task evaluation, after all frames
         keys = ("success_rate", "mean_return", "mean_steps")
-        keeper.log({f"eval/final/{key}": result[key] for key in keys}, frames)
+        keeper.log({metric_name("eval", FINAL, None, key): result[key] for key in keys}, frames)
         (run.path / STATUS_FILE).unlink(missing_ok=True)  # an earlier launch's outcome
         return result

@@ -57,6 +57,7 @@ from torchrl_stages.learners.stacking import (
     update_rows,
 )
 from torchrl_stages.loop import LoopCounters, Stopwatch, Trainer, can_stop_early
+from torchrl_stages.metric_names import JOINT, STAGE, metric_name
 from torchrl_stages.metrics import MetricsLog, SeedLogs
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.replay import SeedReplayBuffer
@@ -500,7 +501,7 @@ class JointTrainer:
             groups=self.n,
         )
         for i in stops.active():
-            metrics = {f"eval/joint_{k}/{key}": v for key, v in summaries[i].items()}
+            metrics = {metric_name("eval", JOINT, k, key): v for key, v in summaries[i].items()}
             self.logs[i](metrics, counters.trained[i])
         return Evaluation(
             [s["success_rate"] for s in summaries],
@@ -531,14 +532,13 @@ class JointTrainer:
         episodes = MetricsLog.episodes_by_row(batch.reshape(self.n, -1))
         means = {m: loss_means(stage_losses) for m, stage_losses in losses.items()}
         for i in stops.active():
-            metrics = {f"train/joint_{k}/{key}": v for key, v in episodes[i].items()}
+            metrics = {metric_name("train", JOINT, k, key): v for key, v in episodes[i].items()}
             for m, stage_means in means.items():
                 values = {key: v[i] for key, v in stage_means.items()}
                 if all(v != v for v in values.values()):  # NaN: seed i's stage m waits for data
                     continue
-                for key, value in values.items():
-                    metrics[f"train/stage_{m}/{key}"] = value
-                metrics[f"train/stage_{m}/updates"] = counters.updates[i][m]
+                for key, value in {**values, "updates": counters.updates[i][m]}.items():
+                    metrics[metric_name("train", STAGE, m, key)] = value
             self.logs[i](metrics, counters.trained[i])
 
 

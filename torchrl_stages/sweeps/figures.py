@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import csv
 import math
-import re
 import textwrap
 import warnings
 from collections import defaultdict
@@ -16,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from torchrl_stages.metric_names import STAGE, TASK, MetricName, parse_metric
 from torchrl_stages.plots import save_figure
-from torchrl_stages.sweeps.jobs import Job, finite_float, metric_names
+from torchrl_stages.sweeps.jobs import Job, finite_float, result_metrics
 from torchrl_stages.sweeps.jobs import configs as configs_of
 from torchrl_stages.sweeps.stats import Aggregate, performance_profiles
 
@@ -26,10 +26,14 @@ __all__ = ["plot_performance_profile", "plot_sweep_curves", "plot_sweep_final", 
 #: characters per line of a legend label (the 7-inch performance profile, 8-point text)
 _LEGEND_WIDTH = 90
 
-#: learning curves of the summary: whole-task probe, stage and joint-phase evaluations
-_CURVE = re.compile(
-    r"^eval/(?P<scope>task|stage_(?P<stage>\d+)|joint_(?P<phase>\d+))/success_rate$"
-)
+
+def _curve(name: str) -> MetricName | None:
+    """A learning curve of the summary: the success of the whole-task probe, or of a loop's
+    evaluations (a stage's, a joint phase's, any schedule's loop)."""
+    parsed = parse_metric(name)
+    if parsed is None or parsed.kind != "eval" or parsed.metric != "success_rate":
+        return None
+    return parsed if parsed.scope == TASK or parsed.index is not None else None
 
 
 def short_labels(names: Sequence[str]) -> dict[str, str]:
@@ -54,7 +58,7 @@ def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
         with metrics_csv.open(newline="") as handle:
             for row in csv.DictReader(handle):
                 name = row.get("name") or ""
-                if _CURVE.match(name) is None:
+                if _curve(name) is None:
                     continue
                 step, value = finite_float(row.get("step")), finite_float(row.get("value"))
                 if step is not None and value is not None:
@@ -64,24 +68,22 @@ def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
     return {name: sorted(points) for name, points in curves.items()}
 
 
-def _curve_order(name: str) -> tuple[int, int]:
-    match = _CURVE.match(name)
-    assert match is not None
-    if match["scope"] == "task":
-        return (0, 0)
-    if match["phase"] is not None:
-        return (2, int(match["phase"]))
-    return (1, int(match["stage"]))
+def _curve_order(name: str) -> tuple[int, str, int]:
+    curve = _curve(name)
+    assert curve is not None
+    if curve.index is None:  # the whole task first, then stages, then other loops' phases
+        return (0, "", 0)
+    return (1 if curve.scope == STAGE else 2, curve.scope, curve.index)
 
 
 def _curve_title(name: str) -> str:
-    match = _CURVE.match(name)
-    assert match is not None
-    if match["scope"] == "task":
+    curve = _curve(name)
+    assert curve is not None
+    if curve.index is None:
         return "whole task (eval.probe), frames of all stages"
-    if match["phase"] is not None:
-        return f"joint phase {match['phase']}, frames of the phase"
-    return f"stage {match['stage']}, frames in the stage"
+    if curve.scope == STAGE:
+        return f"stage {curve.index}, frames in the stage"
+    return f"{curve.scope} phase {curve.index}, frames of the phase"
 
 
 def _forward_fill(points: list[tuple[float, float]], grid: np.ndarray) -> np.ndarray:
@@ -162,7 +164,7 @@ def plot_sweep_final(
         return None
     configs = configs_of(done)
     labels = labels or short_labels(configs)
-    shown = [m for m in metric_names(done) if m != "mean_return"]  # and the task's headline
+    shown = [m for m in result_metrics(done) if m != "mean_return"]  # and the task's headline
     metrics = [m for m in shown if any(j.metrics.get(m) is not None for j in done)]
     by_key = {(a.config, a.metric): a for a in aggregates}
     height = max(2.6, 0.45 * len(configs) + 1.4)

@@ -26,7 +26,7 @@ __all__ = [
     "configs",
     "find_jobs",
     "finite_float",
-    "metric_names",
+    "result_metrics",
     "read_job",
 ]
 
@@ -92,7 +92,7 @@ def configs(jobs: Iterable[Job]) -> list[str]:
     return list(dict.fromkeys(job.config for job in jobs))
 
 
-def metric_names(jobs: Iterable[Job]) -> list[str]:
+def result_metrics(jobs: Iterable[Job]) -> list[str]:
     """:data:`METRICS`, then every headline metric some job reports, in the order seen."""
     names = dict.fromkeys(METRICS)
     for job in jobs:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from torchrl_stages.sweeps.jobs import Job, configs, metric_names
+from torchrl_stages.sweeps.jobs import Job, configs, result_metrics
 
 __all__ = ["Aggregate", "aggregate_jobs", "interval_estimates", "performance_profiles"]
 
@@ -101,12 +101,12 @@ def _mean_and_iqm(scores: np.ndarray) -> np.ndarray:
 def aggregate_jobs(
     jobs: Sequence[Job], metrics: Sequence[str] | None = None, seed: int = 0
 ) -> list[Aggregate]:
-    """Mean and IQM of each metric (default: :func:`~torchrl_stages.sweeps.jobs.metric_names`)
+    """Mean and IQM of each metric (default: :func:`~torchrl_stages.sweeps.jobs.result_metrics`)
     per configuration over its finished jobs, with stratified-bootstrap 95% intervals."""
     out = []
     for config in configs(jobs):
         failed = sum(j.status != "done" for j in jobs if j.config == config)
-        for metric in metric_names(jobs) if metrics is None else metrics:
+        for metric in result_metrics(jobs) if metrics is None else metrics:
             scores = _scores(jobs, config, metric)
             if scores.size == 0:
                 out.append(Aggregate(config, metric, 0, failed, *[None] * 6))

@@ -10,7 +10,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from torchrl_stages.sweeps.jobs import Job, configs, metric_names
+from torchrl_stages.sweeps.jobs import Job, configs, result_metrics
 from torchrl_stages.sweeps.stats import REPS, Aggregate
 
 __all__ = ["markdown", "write_configs_csv", "write_jobs_csv"]
@@ -39,7 +39,7 @@ def _write_csv(path: Path, header: Sequence[str], rows: Iterable[dict[str, Any]]
 def write_jobs_csv(path: Path, jobs: Sequence[Job]) -> None:
     """One row per job: overrides, status and reason, metrics, training seconds, frames and
     updates."""
-    metrics = metric_names(jobs)
+    metrics = result_metrics(jobs)
     header = list(Job(Path(), "", [], None, "").row(metrics))
     _write_csv(path, header, (job.row(metrics) for job in jobs))
 
@@ -59,7 +59,7 @@ def markdown(
     """``summary.md``: the per-configuration statistics, every job, and the figures."""
     counts = Counter(job.status for job in jobs)
     status = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
-    metrics = [m for m in metric_names(jobs) if m != "mean_return"]
+    metrics = [m for m in result_metrics(jobs) if m != "mean_return"]
     lines = [
         f"# Sweep summary: {sweep_dir}",
         "",

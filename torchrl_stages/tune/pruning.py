@@ -3,15 +3,12 @@
 
 from __future__ import annotations
 
-import re
 from typing import Any
 
 from omegaconf import DictConfig
 
 from torchrl_stages.loggers import StopRun
-
-#: what a trial reports: the success rate of each loop's evaluations
-STAGE_EVALUATION = re.compile(r"^eval/(stage|joint)_\d+/success_rate$")
+from torchrl_stages.metric_names import is_loop_evaluation
 
 
 # ---------------------------------------------------------------------- pruning
@@ -50,7 +47,7 @@ class TrialPruning:
 
     def __call__(self, metrics: dict[str, float], step: int) -> None:
         for name, value in metrics.items():
-            if STAGE_EVALUATION.match(name) is None:
+            if not is_loop_evaluation(name):
                 continue
             index, self.evaluations = self.evaluations, self.evaluations + 1
             success = float(value)

@@ -19,8 +19,6 @@ SAMPLERS = ("tpe", "random")
 PRUNERS = ("median", "threshold", "none")
 SPEC_KEYS = ("low", "high", "log", "step", "choices")
 BEST_FILE = "best.yaml"
-#: the metrics a stage evaluation logs its success rate as (backward and flat: ``stage_<k>``,
-#: joint: ``joint_<k>``, phase k)
 _PLAIN = re.compile(r"^[A-Za-z_][\w\-./@:]*$")
 
 #: ``compose(overrides)``: the config ``stages-train`` composes from ``overrides``

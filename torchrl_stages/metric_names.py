@@ -1,0 +1,93 @@
+"""The names a run's metrics are logged under: one scheme that the loops write
+(:func:`metric_name`) and the plots, sweep summaries and the tuner read (:func:`parse_metric`).
+
+A name is ``<kind>/<scope>[_<index>]/<metric>``: ``kind`` is ``train`` or ``eval``; ``scope``
+is the loop that logs it, with its index (``stage_3``: stage 3 of the backward or flat
+schedule; ``joint_1``: the joint phase from stage 1; a stage's own learner in a joint run logs
+under ``stage_<k>`` too), or a whole-run scope without one (``task``: the whole task followed
+during training; ``final``: the whole-task evaluation). A new schedule's loops log under a
+scope of their own and are plotted, summarized and pruned on like the others.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+__all__ = [
+    "FINAL",
+    "JOINT",
+    "STAGE",
+    "TASK",
+    "MetricName",
+    "is_loop_evaluation",
+    "metric_name",
+    "parse_metric",
+]
+
+#: the scopes of a stage of the backward or flat schedule, and of a joint phase
+STAGE, JOINT = "stage", "joint"
+#: the whole-run scopes: the whole task followed during training, and evaluated at the end
+TASK, FINAL = "task", "final"
+
+_NAME = re.compile(
+    r"^(?P<kind>train|eval)/(?P<scope>[a-z]+)(?:_(?P<index>\d+))?/(?P<metric>[^/].*)$"
+)
+
+
+@dataclass(frozen=True)
+class MetricName:
+    """A metric's name read back (:func:`parse_metric`)."""
+
+    kind: str  # train | eval
+    scope: str  # stage | joint | task | final | a schedule's own loops
+    index: int | None  # the stage (or phase) of a loop's scope; None for whole-run scopes
+    metric: str
+
+
+def metric_name(kind: str, scope: str, index: int | None, metric: str) -> str:
+    """The name a metric is logged under.
+
+    Examples:
+        >>> metric_name("eval", STAGE, 3, "success_rate")
+        'eval/stage_3/success_rate'
+        >>> metric_name("eval", FINAL, None, "mean_return")
+        'eval/final/mean_return'
+    """
+    where = scope if index is None else f"{scope}_{index}"
+    return f"{kind}/{where}/{metric}"
+
+
+def parse_metric(name: str) -> MetricName | None:
+    """``name`` read back (``None``: not a name of :func:`metric_name`'s scheme).
+
+    Examples:
+        >>> parse_metric("train/joint_1/loss")
+        MetricName(kind='train', scope='joint', index=1, metric='loss')
+        >>> parse_metric("eval/task/success_rate").index is None, parse_metric("loss")
+        (True, None)
+    """
+    match = _NAME.match(name)
+    if match is None:
+        return None
+    index = None if match["index"] is None else int(match["index"])
+    return MetricName(match["kind"], match["scope"], index, match["metric"])
+
+
+def is_loop_evaluation(name: str, metric: str = "success_rate") -> bool:
+    """Whether ``name`` is ``metric`` of a loop's evaluation (a stage's, a joint phase's, any
+    schedule's loop with an index), what a tuner prunes on.
+
+    Examples:
+        >>> is_loop_evaluation("eval/joint_0/success_rate")
+        True
+        >>> is_loop_evaluation("eval/task/success_rate")  # the whole task: no loop
+        False
+    """
+    parsed = parse_metric(name)
+    return (
+        parsed is not None
+        and parsed.kind == "eval"
+        and parsed.index is not None
+        and parsed.metric == metric
+    )
