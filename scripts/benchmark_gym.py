@@ -18,7 +18,7 @@ from _benchmark import parse_args, run_table, train
 
 VARIANTS = {
     "discrete/dqn": [],
-    "box/sac": ["+task.env.continuous=true", "algo@task.stage_template=sac"],
+    "box/sac": ["task.env.continuous=true", "algo@task.stage_template=sac"],
 }
 ENV = [
     "task.env.env_id=waypoints:Waypoints-v0",
