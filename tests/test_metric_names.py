@@ -1,8 +1,9 @@
 """Metric names: one scheme the loops write and the plots, sweep summaries and tuner read, so
 a schedule's own loops (a scope of their own) are plotted and pruned on like the shipped ones."""
 
-from torchrl_stages.metric_names import JOINT, STAGE, metric_name, parse_metric
+from torchrl_stages.metric_names import STAGE, metric_name, parse_metric
 from torchrl_stages.plots import read_stage_metrics
+from torchrl_stages.schedules.joint import JOINT
 from torchrl_stages.sweeps.figures import _curve
 from torchrl_stages.tune import TrialPruning
 

@@ -11,6 +11,7 @@ import pytest
 from helpers import docstring_ids, hydra_config, tiny_grid
 
 import torchrl_stages
+import torchrl_stages.envs  # noqa: F401  (registers the shipped tasks)
 from torchrl_stages.config import ConfigError
 from torchrl_stages.runs.experiment import Experiment
 from torchrl_stages.schedules import SCHEDULES, BackwardSchedule, get_schedule, register_schedule

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 __all__ = [
     "FINAL",
-    "JOINT",
     "STAGE",
     "TASK",
     "MetricName",
@@ -25,8 +24,8 @@ __all__ = [
     "parse_metric",
 ]
 
-#: the scopes of a stage of the backward or flat schedule, and of a joint phase
-STAGE, JOINT = "stage", "joint"
+#: the scope of a stage's own learner (a schedule's phases log under a scope of their own)
+STAGE = "stage"
 #: the whole-run scopes: the whole task followed during training, and evaluated at the end
 TASK, FINAL = "task", "final"
 
@@ -62,8 +61,8 @@ def parse_metric(name: str) -> MetricName | None:
     """``name`` read back (``None``: not a name of :func:`metric_name`'s scheme).
 
     Examples:
-        >>> parse_metric("train/joint_1/loss")
-        MetricName(kind='train', scope='joint', index=1, metric='loss')
+        >>> parse_metric("train/phase_1/loss")
+        MetricName(kind='train', scope='phase', index=1, metric='loss')
         >>> parse_metric("eval/task/success_rate").index is None, parse_metric("loss")
         (True, None)
     """
@@ -79,7 +78,7 @@ def is_loop_evaluation(name: str, metric: str = "success_rate") -> bool:
     schedule's loop with an index), what a tuner prunes on.
 
     Examples:
-        >>> is_loop_evaluation("eval/joint_0/success_rate")
+        >>> is_loop_evaluation("eval/stage_0/success_rate")
         True
         >>> is_loop_evaluation("eval/task/success_rate")  # the whole task: no loop
         False

@@ -57,7 +57,7 @@ from torchrl_stages.learners.stacking import (
     update_rows,
 )
 from torchrl_stages.loop import LoopCounters, Stopwatch, Trainer, can_stop_early
-from torchrl_stages.metric_names import JOINT, STAGE, metric_name
+from torchrl_stages.metric_names import STAGE, metric_name
 from torchrl_stages.metrics import MetricsLog, SeedLogs
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.replay import SeedReplayBuffer
@@ -77,6 +77,9 @@ from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import NonFiniteValueError, StageRewardTransform, StageTransform
 
 log = logging.getLogger(__name__)
+
+#: the metrics scope of the phases (``eval/joint_<k>/...``: the phase from stage k)
+JOINT = "joint"
 
 TAGS: tuple[NestedKey, ...] = (
     "stage",
