@@ -2,7 +2,11 @@
 (``schedule=<name>``): :mod:`~torchrl_stages.schedules.backward` (stage by stage, the last one
 first), :mod:`~torchrl_stages.schedules.joint` (every stage at once, the paper's Algorithm 1)
 and :mod:`~torchrl_stages.schedules.flat` (one learner, no stages). A schedule of your own: a
-:class:`Schedule` subclass decorated with :func:`register_schedule`."""
+:class:`Schedule` subclass decorated with :func:`register_schedule`; every module here is
+imported with the package, so a schedule is its module and its ``conf/schedule/<name>.yaml``."""
+
+import importlib
+import pkgutil
 
 from torchrl_stages.schedules.backward import BackwardSchedule, train_backward, train_stage
 from torchrl_stages.schedules.base import (
@@ -16,6 +20,9 @@ from torchrl_stages.schedules.base import (
 )
 from torchrl_stages.schedules.flat import FlatSchedule, flat_config, train_flat
 from torchrl_stages.schedules.joint import JointSchedule, JointTrainer
+
+for _module in pkgutil.iter_modules(__path__):  # each schedule module registers itself
+    importlib.import_module(f"{__name__}.{_module.name}")
 
 __all__ = [
     "SCHEDULES",
