@@ -183,6 +183,7 @@ def evaluate_policy(
     return episode_stats(rollout), rollout
 
 
+@torch.no_grad()
 def evaluate_greedy(
     env: EnvBase,
     policy: TensorDictModuleBase,
@@ -190,29 +191,16 @@ def evaluate_greedy(
     max_steps: int,
     gamma: float | Sequence[float],
     reduce: str = "mean",
-) -> dict[str, float]:
-    """A loop's evaluation: greedy first episodes of ``policy`` on ``env`` (their
+    *,
+    groups: int = 1,
+) -> list[dict[str, float]]:
+    """A loop's evaluation, one summary per group of ``groups`` equal, consecutive parts of
+    ``env``'s batch (the seeds of a seed-stacked policy, whose env holds one copy of the starts
+    per seed), in order: greedy first episodes of ``policy`` (their
     :meth:`EpisodeStats.summary`), ``discounted_return`` (the mean discounted return ``G``,
     ``gamma`` per stage or one) and ``value_error``: ``|V(s_0) - G|`` between ``value``'s
-    estimate at the start and the return the policy got, reduced over the starts by
-    ``reduce`` (``mean`` or ``max``): whether the values a stage hands on have converged."""
-    return evaluate_greedy_groups(env, policy, value, max_steps, gamma, reduce, groups=1)[0]
-
-
-@torch.no_grad()
-def evaluate_greedy_groups(
-    env: EnvBase,
-    policy: TensorDictModuleBase,
-    value: TensorDictModuleBase,
-    max_steps: int,
-    gamma: float | Sequence[float],
-    reduce: str = "mean",
-    *,
-    groups: int,
-) -> list[dict[str, float]]:
-    """:func:`evaluate_greedy` of each of ``groups`` equal, consecutive parts of ``env``'s batch
-    (the seeds of a seed-stacked policy, whose env holds one copy of the starts per seed): one
-    summary per group, in order."""
+    estimate at the start and the return the policy got, reduced over the starts by ``reduce``
+    (``mean`` or ``max``): whether the values a stage hands on have converged."""
     keep_threads()
     stats, rollout = evaluate_policy(env, policy, max_steps)
     returns = discounted_return(rollout, stats.length, gamma)

@@ -31,7 +31,7 @@ from torchrl_stages.checkpoint import StageCheckpoints, StateOf
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, first_evaluation, seed_rows
-from torchrl_stages.evaluate import evaluate_greedy_groups
+from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.failures import stage_failure
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
@@ -290,7 +290,7 @@ class StageTrainer:
         """
         cfg, n = self.cfg, self.n
         max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
-        summaries = evaluate_greedy_groups(
+        summaries = evaluate_greedy(
             self.eval_env,
             self.learner.policy,
             self._value,

@@ -46,7 +46,7 @@ from torchrl_stages.early_stop import (
     TeamRow,
     first_evaluation,
 )
-from torchrl_stages.evaluate import evaluate_greedy_groups
+from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.failures import stage_failure
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
@@ -494,7 +494,7 @@ class JointTrainer:
         max_steps = int(getattr(eval_env.base_env, "max_steps", 1000))
         if cfg.eval_max_steps:  # each stage an episode crosses may take eval_max_steps
             max_steps = min(max_steps, int(cfg.eval_max_steps) * (self.task.num_stages - k))
-        summaries = evaluate_greedy_groups(
+        summaries = evaluate_greedy(
             eval_env,
             policy,
             self._value,
