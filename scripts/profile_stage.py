@@ -34,7 +34,7 @@ from _benchmark import (
 )
 
 from torchrl_stages.hydra_configs import register_configs
-from torchrl_stages.learners.base import FusedSoftUpdate
+from torchrl_stages.learners.ops import FusedSoftUpdate
 from torchrl_stages.runs.experiment import Experiment
 from torchrl_stages.runs.keeper import RunKeeper
 

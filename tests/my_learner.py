@@ -17,7 +17,7 @@ from torch import nn
 from torchrl.modules import EGreedyModule, QValueActor
 
 from torchrl_stages.learners import Learner, StageSpecs
-from torchrl_stages.learners.base import linear_schedule
+from torchrl_stages.learners.ops import linear_schedule
 from torchrl_stages.values import QMaxValue
 
 

@@ -135,7 +135,7 @@ def test_fused_adam_makes_the_same_updates_up_to_rounding(algo):
 
 def _adam_pair(**kw):
     """Two copies of a small network, one under torch's fused Adam, one under FusedAdam."""
-    from torchrl_stages.learners.base import FusedAdam
+    from torchrl_stages.learners.ops import FusedAdam
 
     torch.manual_seed(0)
     nets = [torch.nn.Sequential(torch.nn.Linear(5, 8), torch.nn.ReLU(), torch.nn.Linear(8, 2))]
@@ -216,7 +216,7 @@ def test_fused_adam_direct_step_runs_adam_step_where_it_must():
 
 
 def test_total_grad_norm_is_torchs_total_norm():
-    from torchrl_stages.learners.base import total_grad_norm
+    from torchrl_stages.learners.ops import total_grad_norm
 
     grads = [torch.randn(64, 14), torch.randn(64), torch.randn(4, 64), torch.randn(1)]
     assert torch.equal(total_grad_norm(grads), torch.nn.utils.get_total_norm(grads))

@@ -19,13 +19,8 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config import ConfigError
-from torchrl_stages.learners.base import (
-    ALGORITHMS,
-    FusedAdam,
-    Learner,
-    StageSpecs,
-    register_algorithm,
-)
+from torchrl_stages.learners.base import ALGORITHMS, Learner, StageSpecs, register_algorithm
+from torchrl_stages.learners.ops import FusedAdam
 from torchrl_stages.learners.stacking import stacked_networks
 
 for _module in pkgutil.iter_modules(__path__):  # each algorithm module registers itself

@@ -19,15 +19,9 @@ from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
 from torchrl.objectives import LossModule, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
-from torchrl_stages.learners.base import (
-    FusedSoftUpdate,
-    Learner,
-    StageSpecs,
-    check_loss_function,
-    linear_schedule,
-    stacked_calls,
-)
+from torchrl_stages.learners.base import Learner, StageSpecs, check_loss_function
 from torchrl_stages.learners.networks import SharedEncoderCritic, mlp
+from torchrl_stages.learners.ops import FusedSoftUpdate, linear_schedule, stacked_calls
 from torchrl_stages.values import with_params
 
 SATURATION = 2.0  # pre-tanh magnitude beyond which `saturation_penalty` applies (tanh(2) = 0.96)

@@ -3,27 +3,25 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torch.func import functional_call
-from torch.optim.optimizer import (
-    ParamsT,
-    _global_optimizer_post_hooks,
-    _global_optimizer_pre_hooks,
-)
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
-from torchrl.objectives import SoftUpdate
 
 from torchrl_stages.config import StageChecks, StageConfig, as_dataclass
 from torchrl_stages.learners.networks import ConvSpec
+from torchrl_stages.learners.ops import (
+    FusedAdam,
+    clip_seed_grads,
+    linear_schedule,
+    seed_grad_norms,
+    total_grad_norm,
+)
 from torchrl_stages.learners.stacking import current_rows, current_seeds, seed_axes
 
 
@@ -70,177 +68,6 @@ class NonFiniteError(FloatingPointError):
         self.what, self.update = what, update
 
 
-class FusedSoftUpdate(SoftUpdate):
-    """torchrl's ``SoftUpdate`` (``target <- target + tau (online - target)``) in one fused
-    ``torch._foreach_lerp_`` over all parameter pairs, instead of a TensorDict walk per call.
-
-    Examples:
-        >>> import torch
-        >>> from torchrl.modules import QValueActor
-        >>> from torchrl.objectives import DQNLoss
-        >>> loss = DQNLoss(QValueActor(torch.nn.Linear(3, 2), action_space="categorical"),
-        ...                delay_value=True, action_space="categorical")
-        >>> updater = FusedSoftUpdate(loss, tau=0.5)
-        >>> with torch.no_grad():
-        ...     _ = loss.value_network_params["module", "0", "module", "bias"].fill_(1.0)
-        ...     _ = loss.target_value_network_params["module", "0", "module", "bias"].fill_(0.0)
-        >>> updater.step()
-        >>> loss.target_value_network_params["module", "0", "module", "bias"].tolist()
-        [0.5, 0.5]
-    """
-
-    _pairs: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
-
-    def step(self) -> None:
-        if self._pairs is None:
-            if not self.initialized:
-                self.init_()
-            sources, targets = [], []
-            for key, params in self._sources.items():
-                target = self._targets.get(f"target_{key}")
-                for name, value in params.items(True, True):
-                    sources.append(value.data)
-                    targets.append(target.get(name).data)
-            self._pairs = (sources, targets)
-        sources, targets = self._pairs
-        torch._foreach_lerp_(targets, sources, 1.0 - float(self.eps))
-
-
-class FusedAdam(torch.optim.Adam):
-    """torch's ``Adam(fused=True)`` with :meth:`direct_step`: one direct call of its kernel.
-
-    ``Adam.step`` with ``fused=True`` ends in ``torch._fused_adam_`` over the parameters that
-    have a gradient; on the way it runs optimizer hooks, a profiler annotation and a grouping
-    of the tensors by device and dtype, Python that costs more than the kernel itself on small
-    networks. When none of that applies (no hooks, fused groups, every parameter with a gradient
-    and optimizer state, one device and dtype, a float learning rate, plain Adam)
-    :meth:`direct_step` makes the same kernel call with the same arguments, so the update is the
-    same bit for bit; otherwise it runs ``step``, which is ``Adam.step``. The state is
-    ``Adam``'s: checkpoints load into either class (a non-fused Adam's state turns ``fused``
-    off, and ``Adam.step`` then steps as that Adam would).
-
-    Examples:
-        >>> import torch
-        >>> net = torch.nn.Linear(3, 1)
-        >>> optimizer = FusedAdam(net.parameters(), lr=1e-2)
-        >>> for _ in range(2):
-        ...     net(torch.ones(4, 3)).sum().backward()
-        ...     optimizer.direct_step()  # the first step is Adam.step's: it creates the state
-        ...     optimizer.zero_grad()
-        >>> int(optimizer.state[net.bias]["step"])
-        2
-    """
-
-    def __init__(self, params: ParamsT, lr: float = 1e-3, **kwargs: Any) -> None:
-        super().__init__(params, lr=lr, fused=True, **kwargs)
-
-    def _direct(self) -> bool:
-        """Whether :meth:`direct_step` can call the kernel itself (see the class docstring)."""
-        # the hook registries are torch's own (private, stable in the pinned torch 2.13)
-        if self._optimizer_step_pre_hooks or self._optimizer_step_post_hooks:
-            return False
-        if _global_optimizer_pre_hooks or _global_optimizer_post_hooks:
-            return False
-        kinds = set()
-        for group in self.param_groups:
-            if not group["fused"]:  # e.g. the state of a non-fused Adam was loaded
-                return False
-            if isinstance(group["lr"], torch.Tensor) or group["amsgrad"] or group["maximize"]:
-                return False
-            if group["differentiable"] or group.get("decoupled_weight_decay", False):
-                return False
-            for p in group["params"]:
-                if p.grad is None or p not in self.state or p.grad.is_sparse:
-                    return False
-                kinds.add((p.device, p.dtype))
-        return len(kinds) == 1
-
-    @torch.no_grad()
-    def direct_step(self) -> None:
-        """``self.step()``, by a direct call of the fused kernel where that is the same."""
-        if not self._direct():
-            self.step()
-            return
-        for group in self.param_groups:
-            params = group["params"]
-            if not params:
-                continue
-            states = [self.state[p] for p in params]
-            steps = [state["step"] for state in states]
-            beta1, beta2 = group["betas"]
-            torch._foreach_add_(steps, 1)
-            torch._fused_adam_(
-                params,
-                [p.grad for p in params],
-                [state["exp_avg"] for state in states],
-                [state["exp_avg_sq"] for state in states],
-                [],
-                steps,
-                amsgrad=False,
-                lr=group["lr"],
-                beta1=beta1,
-                beta2=beta2,
-                weight_decay=group["weight_decay"],
-                eps=group["eps"],
-                maximize=False,
-                grad_scale=None,
-                found_inf=None,
-            )
-
-
-def total_grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
-    """``torch.nn.utils.get_total_norm(grads)`` (the 2-norm of all gradients): for plain
-    tensors on one CPU or CUDA device and dtype the same two ops (``torch._foreach_norm``, then
-    the norm of the norms) without its grouping of the tensors; otherwise torch's function."""
-    kinds = {(g.device, g.dtype) for g in grads}
-    plain = all(type(g) is torch.Tensor and g.device.type in ("cpu", "cuda") for g in grads)
-    if len(kinds) != 1 or not plain:
-        return torch.nn.utils.get_total_norm(grads)
-    return torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
-
-
-def seed_grad_norms(
-    grads: list[torch.Tensor], num_seeds: int, axes: Sequence[int] | None = None
-) -> torch.Tensor:
-    """The 2-norm of each seed's gradients (``[num_seeds]``) over seed-stacked gradients, the
-    seeds on axis ``axes[i]`` of ``grads[i]`` (default: 0)."""
-    axes = axes if axes is not None else [0] * len(grads)
-    per_tensor = torch.stack(
-        [
-            g.movedim(a, 0).reshape(num_seeds, -1).norm(dim=1)
-            for g, a in zip(grads, axes, strict=True)
-        ]
-    )
-    return torch.linalg.vector_norm(per_tensor, 2.0, dim=0)
-
-
-def clip_seed_grads(
-    grads: list[torch.Tensor],
-    max_norm: float,
-    norms: torch.Tensor,
-    axes: Sequence[int] | None = None,
-) -> None:
-    """Scales each seed's gradients to at most ``max_norm`` (``norms``: their norms; the seeds
-    on axis ``axes[i]`` of ``grads[i]``, default 0), as ``torch.nn.utils.clip_grads_with_norm_``
-    does for one set of parameters."""
-    coef = (max_norm / (norms + 1e-6)).clamp(max=1.0)
-    axes = axes if axes is not None else [0] * len(grads)
-    for g, a in zip(grads, axes, strict=True):
-        shape = [1] * g.ndim
-        shape[a] = -1
-        g.mul_(coef.view(shape))
-
-
-def td0_target(
-    next_td: TensorDictBase, next_value: torch.Tensor, gamma: float, steps: torch.Tensor | None
-) -> torch.Tensor:
-    """``r + gamma^steps * (1 - terminated) * V(s')``, torchrl's TD(0) estimate (``[B, 1]``)."""
-    reward = next_td.get("reward")
-    discount = gamma if steps is None else gamma ** steps.view_as(reward)
-    alive = (~next_td.get("terminated")).to(reward.dtype)
-    return reward + discount * alive * next_value
-
-
 LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
 
 
@@ -254,41 +81,6 @@ def check_loss_function(checks: StageChecks) -> None:
     )
 
 
-def distance(pred: torch.Tensor, target: torch.Tensor, loss_function: str) -> torch.Tensor:
-    """torchrl's ``distance_loss`` (l1, l2 or smooth_l1), elementwise."""
-    if loss_function == "l2":
-        return (pred - target).pow(2)
-    if loss_function == "l1":
-        return (pred - target).abs()
-    return F.smooth_l1_loss(pred, target, reduction="none")
-
-
-def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tensor) -> list:
-    """``module(*inputs)`` once per parameter set of the stacked ``params``
-    (``[num_nets, ...]``, e.g. twin critics), through ``torch.func.functional_call``."""
-    flat = dict(params.flatten_keys(".").items())
-    return [
-        functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
-        for i in range(params.batch_size[0])
-    ]
-
-
-def detached_copy(loss: torch.Tensor) -> torch.Tensor:
-    """A detached copy of ``loss`` that outlives the update (what :meth:`Learner.update`
-    returns): under ``compile=reduce-overhead`` the loss is a CUDA graph's static output, which
-    the graph's next replay overwrites, so the losses a stage logs after its batch of updates
-    must not be views of it."""
-    return loss.detach().clone()
-
-
-def linear_schedule(start: float, end: float, frames: int, horizon: int) -> float:
-    """Linear annealing from ``start`` to ``end`` over ``horizon`` frames, then constant."""
-    if horizon <= 0:
-        return end
-    return end + (start - end) * max(0.0, 1.0 - frames / horizon)
-
-
-#: every algorithm by its name in configs (``algo: <name>``), filled by :func:`register_algorithm`
 ALGORITHMS: dict[str, type[Learner]] = {}
 
 

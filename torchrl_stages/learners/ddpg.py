@@ -15,7 +15,8 @@ from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticConfig,
     DeterministicActorCriticLearner,
 )
-from torchrl_stages.learners.base import detached_copy, distance, register_algorithm, td0_target
+from torchrl_stages.learners.base import register_algorithm
+from torchrl_stages.learners.ops import detached_copy, distance, td0_target
 from torchrl_stages.values import ActorCriticValue, with_params
 
 

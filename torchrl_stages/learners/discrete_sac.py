@@ -14,17 +14,14 @@ from torchrl.objectives import DiscreteSACLoss, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
 from torchrl_stages.learners.base import (
-    FusedSoftUpdate,
     Learner,
     StageSpecs,
     check_loss_function,
-    distance,
     register_algorithm,
-    stacked_calls,
-    td0_target,
 )
 from torchrl_stages.learners.entropy import EntropyRegularized
 from torchrl_stages.learners.networks import mlp
+from torchrl_stages.learners.ops import FusedSoftUpdate, distance, stacked_calls, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 from torchrl_stages.values import with_params
 

@@ -14,17 +14,19 @@ from torchrl.objectives import DQNLoss, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
 from torchrl_stages.learners.base import (
-    FusedSoftUpdate,
     Learner,
     StageSpecs,
     check_loss_function,
+    register_algorithm,
+)
+from torchrl_stages.learners.networks import qvalue_net
+from torchrl_stages.learners.ops import (
+    FusedSoftUpdate,
     detached_copy,
     distance,
     linear_schedule,
-    register_algorithm,
     td0_target,
 )
-from torchrl_stages.learners.networks import qvalue_net
 from torchrl_stages.values import QMaxValue, with_params
 
 

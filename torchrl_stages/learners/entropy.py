@@ -8,7 +8,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from torchrl_stages.config import StageChecks
-from torchrl_stages.learners.base import detached_copy
+from torchrl_stages.learners.ops import detached_copy
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 
 

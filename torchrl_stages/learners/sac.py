@@ -15,14 +15,10 @@ from torchrl.objectives import SACLoss
 
 from torchrl_stages.config import StageChecks
 from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
-from torchrl_stages.learners.base import (
-    distance,
-    register_algorithm,
-    stacked_calls,
-    td0_target,
-)
+from torchrl_stages.learners.base import register_algorithm
 from torchrl_stages.learners.entropy import EntropyRegularized
 from torchrl_stages.learners.networks import Chain
+from torchrl_stages.learners.ops import distance, stacked_calls, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 from torchrl_stages.values import with_params
 
