@@ -1,5 +1,6 @@
 """Early stop and best-weights restoration of the stage loop."""
 
+import pytest
 import torch
 from omegaconf import OmegaConf
 from torch import nn
@@ -104,3 +105,21 @@ def test_final_return_is_that_of_the_evaluation_the_stage_ends_with():
     old = {k: v for k, v in budget.state_dict().items() if not k.endswith("_return")}
     restored.load_state_dict(old)  # a checkpoint from before the returns were kept
     assert restored.final == (1.0, 0.02) and restored.final_return is None
+
+
+def test_a_checkpoint_of_an_earlier_version_is_refused_with_the_fix(tmp_path):
+    # the loops' counters of an earlier version (no format): its replay, early stop and
+    # counters held another state, which this version would misread
+    from torchrl_stages.checkpoint import CheckpointDamagedError, StageCheckpoints
+    from torchrl_stages.loop import LoopCounters
+    from torchrl_stages.schedules.joint import JointCounters
+
+    checkpoints = StageCheckpoints(tmp_path / "stage_1", every=1)
+    checkpoints.save(64, {"counters": {"next_eval": 128, "seconds": 1.0, "log": {}}})
+    for counters in (LoopCounters(next_eval=0), JointCounters(2, 1)):
+        with pytest.raises(CheckpointDamagedError, match="earlier version.*Fix: delete"):
+            checkpoints.load(checkpoints.latest(), {"counters": counters})
+    checkpoints.save(128, {"counters": LoopCounters(next_eval=256)})  # this version's
+    restored = LoopCounters(next_eval=0)
+    checkpoints.load(checkpoints.latest(), {"counters": restored})
+    assert restored.next_eval == 256

@@ -74,6 +74,21 @@ class CheckpointDamagedError(RuntimeError):
     """A checkpoint on disk cannot be read back."""
 
 
+#: the form of the loops' state in a checkpoint: a loop refuses one of another form
+CHECKPOINT_FORMAT = 2
+
+
+class CheckpointFormatError(ValueError):
+    """A checkpoint written by a version of the package whose loops kept another state."""
+
+
+def check_format(state: dict) -> None:
+    """Raises :class:`CheckpointFormatError` unless a loop's saved counters are of
+    :data:`CHECKPOINT_FORMAT`."""
+    if state.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointFormatError(f"format {state.get('format', 1)}, not {CHECKPOINT_FORMAT}")
+
+
 class TensorStateAdapter(StateDictCheckpointAdapter):
     """torchrl's state-dict adapter in its tensor + JSON format (no pickle), with the
     SHA-256 of every file it writes, verified before it reads them back."""
@@ -229,6 +244,13 @@ class StageCheckpoints:
                 f"checkpoint before it, or delete {self.directory} to restart this stage"
             ) from err
         except (CheckpointError, OSError, RuntimeError, ValueError, KeyError, TypeError) as err:
+            cause = err if isinstance(err, CheckpointFormatError) else err.__cause__
+            if isinstance(cause, CheckpointFormatError):  # torchrl's CheckpointError wraps it
+                raise CheckpointDamagedError(
+                    f"{path} was written by an earlier version of torchrl-stages, whose loops "
+                    f"kept another state ({cause}). Fix: delete {self.directory} to restart "
+                    "this stage, or finish the run with the version that wrote it"
+                ) from err
             raise CheckpointDamagedError(
                 f"{path} cannot be read back ({type(err).__name__}: {str(err)[:200]}). Fix: "
                 f"delete it to resume from the checkpoint before it, or delete {self.directory} "

@@ -19,7 +19,7 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from torchrl_stages.checkpoint import StageCheckpoints
+from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, StageCheckpoints, check_format
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.early_stop import Evaluation, SeedEarlyStops
@@ -161,7 +161,7 @@ class LoopCounters:
 
     Examples:
         >>> counters = LoopCounters(next_eval=64)
-        >>> counters.load_state_dict({"next_eval": 128, "seconds": 2.0, "log": {}})
+        >>> counters.load_state_dict({"next_eval": 128, "seconds": 2.0, "log": {}, "format": 2})
         >>> counters.next_eval, counters.state_dict()["seconds"]
         (128, 2.0)
     """
@@ -169,14 +169,15 @@ class LoopCounters:
     next_eval: int
     seconds: float = 0.0
     log: dict[str, Any] = field(default_factory=dict)
+    format: int = CHECKPOINT_FORMAT  # what a resumed loop checks first
 
     def state_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        check_format(state)
         for f in fields(self):
-            if f.name in state:
-                setattr(self, f.name, state[f.name])
+            setattr(self, f.name, state[f.name])
 
 
 def _shown(value: float | Sequence[float], digits: int) -> str:

@@ -199,6 +199,7 @@ class StageTrainer:
         }
         latest = self.checkpoints.latest() if self.checkpoints is not None else None
         if latest is not None:
+            self.checkpoints.load(latest, {"counters": counters})  # first: is it of this form
             self.checkpoints.load(latest, state)
             self.logs.rewind(counters.log)
             seeds = f", {n} seeds" if n > 1 else ""

@@ -38,7 +38,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.envs import Compose, RewardSum, TransformedEnv
 
-from torchrl_stages.checkpoint import StageCheckpoints, StateOf
+from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, StageCheckpoints, StateOf, check_format
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.early_stop import (
     Evaluation,
@@ -108,6 +108,7 @@ class JointCounters:
     stored: list[list[int]] = field(default_factory=list)  # per seed and stage
     updates: list[list[int]] = field(default_factory=list)  # per seed and stage
     phases: list[list[dict[str, Any]]] = field(default_factory=list)  # per seed
+    format: int = CHECKPOINT_FORMAT  # what a resumed run checks first
 
     def __post_init__(self) -> None:
         n, stages = self.seeds, self.stages
@@ -121,6 +122,7 @@ class JointCounters:
         return asdict(self)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        check_format(state)
         for f in fields(self):
             setattr(self, f.name, state[f.name])
 
