@@ -241,7 +241,9 @@ class Experiment:
             keepers.append(run.start())
             if self.stacked:
                 keepers[-1].seed = seed  # its log lines name it
-        compile = compile_mode(cfg)
+        # several seeds' stacked networks train uncompiled, as they always have: compiling
+        # them (CUDA graphs on a GPU) has not been measured
+        compile = "off" if self.stacked else compile_mode(cfg)
         if compile != "off":
             # compiled code starts fresh in every run: the jobs of a sweep run one after another
             # in one process, and their learners' recompiles would add up to Dynamo's limit
