@@ -18,6 +18,7 @@ one before.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import logging
 import re
@@ -80,6 +81,19 @@ CHECKPOINT_FORMAT = 2
 
 class CheckpointFormatError(ValueError):
     """A checkpoint written by a version of the package whose loops kept another state."""
+
+
+class SavedCounters:
+    """What a loop's counters (a dataclass with a ``format`` field) are in a checkpoint: their
+    fields as a dict, read back only from a state of :data:`CHECKPOINT_FORMAT`."""
+
+    def state_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)  # type: ignore[call-overload]
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        check_format(state)
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            setattr(self, f.name, state[f.name])
 
 
 def check_format(state: dict) -> None:

@@ -14,12 +14,12 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 from tqdm.auto import tqdm
 
-from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, StageCheckpoints, check_format
+from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, SavedCounters, StageCheckpoints
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.early_stop import Evaluation, SeedEarlyStops
@@ -154,7 +154,7 @@ _END = object()
 
 
 @dataclass
-class LoopCounters:
+class LoopCounters(SavedCounters):
     """What a loop counts, saved with its checkpoints: the frames (per seed) of its next
     evaluation, the training seconds of earlier launches, and the logs' positions at the last
     checkpoint (a resumed loop rewinds its logs to them).
@@ -170,14 +170,6 @@ class LoopCounters:
     seconds: float = 0.0
     log: dict[str, Any] = field(default_factory=dict)
     format: int = CHECKPOINT_FORMAT  # what a resumed loop checks first
-
-    def state_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        check_format(state)
-        for f in fields(self):
-            setattr(self, f.name, state[f.name])
 
 
 def _shown(value: float | Sequence[float], digits: int) -> str:

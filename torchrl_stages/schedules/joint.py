@@ -29,7 +29,7 @@ import logging
 import statistics
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -38,7 +38,12 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.envs import Compose, RewardSum, TransformedEnv
 
-from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, StageCheckpoints, StateOf, check_format
+from torchrl_stages.checkpoint import (
+    CHECKPOINT_FORMAT,
+    SavedCounters,
+    StageCheckpoints,
+    StateOf,
+)
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.early_stop import (
     Evaluation,
@@ -93,7 +98,7 @@ TAGS: tuple[NestedKey, ...] = (
 
 
 @dataclass
-class JointCounters:
+class JointCounters(SavedCounters):
     """What a joint run counts, per seed where seeds differ, saved with its checkpoints."""
 
     stages: int
@@ -117,14 +122,6 @@ class JointCounters:
         self.stored = self.stored or [[0] * stages for _ in range(n)]
         self.updates = self.updates or [[0] * stages for _ in range(n)]
         self.phases = self.phases or [[] for _ in range(n)]
-
-    def state_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        check_format(state)
-        for f in fields(self):
-            setattr(self, f.name, state[f.name])
 
 
 def team_rows(learners: Sequence[Learner]) -> list[Any]:
