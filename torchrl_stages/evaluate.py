@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch.nn.functional import one_hot
 from torchrl.envs import Compose, EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -25,22 +26,11 @@ CHUNK = 250  # whole-task episodes per batched rollout (bounds the memory of lon
 
 
 def can_step_finished(env: EnvBase) -> bool:
-    """Whether :func:`rollout_first_episodes` may step ``env``'s finished elements on instead
-    of resetting them, with the same first episodes.
+    """Whether :func:`rollout_first_episodes` may step ``env``'s finished elements on.
 
-    True when the class of the innermost env defines ``can_step_finished`` and it is ``True``
-    on the env (stepping a finished element is legal, and neither that step nor a skipped reset
-    changes another element or what a later reset draws, e.g. a
-    :class:`~torchrl_stages.envs.GridWorldEnv` with fixed starts) and every transform around it
-    is a :class:`~torchrl_stages.transforms.StageTransform` (no state across elements or steps).
-    Batched envs (``SerialEnv``, ``ParallelEnv``) and any other transform: ``False``.
-
-    Examples:
-        >>> from torchrl_stages.envs import GridWorldEnv
-        >>> can_step_finished(GridWorldEnv((2,), start_cell=(0, 0)))
-        True
-        >>> can_step_finished(GridWorldEnv((2,)))  # random starts: resets draw from its rng
-        False
+    The innermost env's class must declare ``can_step_finished`` (see
+    :class:`~torchrl_stages.stage_env.StageEnvHooks`), true on the env, and every transform
+    around it be a :class:`~torchrl_stages.transforms.StageTransform`.
     """
     transforms: list = []
     while isinstance(env, TransformedEnv):
@@ -59,12 +49,10 @@ def can_step_finished(env: EnvBase) -> bool:
 def rollout_first_episodes(
     env: EnvBase, policy: TensorDictModuleBase, max_steps: int
 ) -> TensorDictBase:
-    """Greedy rollout ``[*batch, T]`` until every batch element has finished one episode.
+    """Greedy rollout ``[*batch, T <= max_steps]`` until every element has ended one episode.
 
-    Elements that finish early are reset and keep stepping; :func:`episode_stats` reads only each
-    element's first episode. ``T <= max_steps``. Where :func:`can_step_finished` holds (the grid
-    world's evaluation envs) finished elements step on instead: the same first episodes without
-    torchrl's partial reset, which costs about as much as a step.
+    Elements that finish early are reset (or step on, where :func:`can_step_finished`: the same
+    first episodes without torchrl's partial reset, which costs about as much as a step).
     """
     steps = []
     finished = torch.zeros(env.batch_size, dtype=torch.bool, device=env.device)
@@ -90,16 +78,12 @@ def rollout_first_episodes(
 
 
 def ended_well(td: TensorDictBase) -> torch.Tensor:
-    """Whether each step of ``td`` (its ``"next"`` content read) ends an episode solved, if it
-    ends one: the env's boolean ``"success"`` entry where it writes one, else ``terminated``
-    (a task whose episodes terminate only where it succeeds).
+    """Whether each step of ``td`` would end its episode solved: the env's ``("next",
+    "success")`` flag where it writes one, else ``terminated`` (tasks that end only on success).
 
     Examples:
         >>> from tensordict import TensorDict
-        >>> no = torch.zeros(2, 1, dtype=torch.bool)
-        >>> td = TensorDict({"next": {"terminated": ~no}}, [2])
-        >>> ended_well(td).squeeze(-1).tolist()
-        [True, True]
+        >>> td = TensorDict({"next": {"terminated": torch.ones(2, 1, dtype=torch.bool)}}, [2])
         >>> td["next", "success"] = torch.tensor([[True], [False]])  # the second one failed
         >>> ended_well(td).squeeze(-1).tolist()
         [True, False]
@@ -117,8 +101,7 @@ class EpisodeStats:
     ret: torch.Tensor  # float [B]: undiscounted return of the first episode
 
     def summary(self) -> dict[str, float | None]:
-        """Success rate, mean return and steps; steps of successful episodes (``None`` when
-        there is none)."""
+        """Success rate, mean return and steps; steps of successes (``None`` without any)."""
         ok = self.success
         steps = self.length[ok].float()
         return {
@@ -137,8 +120,8 @@ class EpisodeStats:
 
 
 def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
-    """Success (:func:`ended_well` on its last step), length and return of the first episode
-    of each row of a ``[B, T]`` rollout."""
+    """Success (:func:`ended_well` on its last step), length and return of each row's first
+    episode in a ``[B, T]`` rollout."""
     done = rollout.get(("next", "done")).squeeze(-1)  # [B, T]
     solved = ended_well(rollout).squeeze(-1)
     reward = rollout.get(("next", "reward")).squeeze(-1)
@@ -157,11 +140,10 @@ def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
 def discounted_return(
     rollout: TensorDictBase, length: torch.Tensor, gamma: float | Sequence[float]
 ) -> torch.Tensor:
-    """``sum_t w_t r_t`` over each row's first episode (``length``: its episode lengths).
+    """``sum_t w_t r_t`` over each row's first ``length`` steps.
 
-    ``gamma`` is one discount (``w_t = gamma^t``) or one per stage: then each step is
-    discounted by the gamma of the stage of the state it leaves, ``w_t = prod_{j<t}
-    gamma[stage(s_j)]``, the merged return whose expectation Proposition 1 speaks of.
+    ``w_t = gamma^t``, or with one gamma per stage ``w_t = prod_{j<t} gamma[stage(s_j)]``: the
+    merged return whose expectation Proposition 1 speaks of.
     """
     reward = rollout.get(("next", "reward")).squeeze(-1)  # [B, T]
     steps = torch.arange(reward.shape[-1], device=reward.device)
@@ -194,13 +176,10 @@ def evaluate_greedy(
     *,
     groups: int = 1,
 ) -> list[dict[str, float]]:
-    """A loop's evaluation, one summary per group of ``groups`` equal, consecutive parts of
-    ``env``'s batch (the seeds of a seed-stacked policy, whose env holds one copy of the starts
-    per seed), in order: greedy first episodes of ``policy`` (their
-    :meth:`EpisodeStats.summary`), ``discounted_return`` (the mean discounted return ``G``,
-    ``gamma`` per stage or one) and ``value_error``: ``|V(s_0) - G|`` between ``value``'s
-    estimate at the start and the return the policy got, reduced over the starts by ``reduce``
-    (``mean`` or ``max``): whether the values a stage hands on have converged."""
+    """A loop's evaluation: one summary per equal, consecutive part of ``env``'s batch (one per
+    seed of a seed-stacked policy), with the mean ``discounted_return`` G and ``value_error``,
+    ``|V(s_0) - G|`` reduced over the starts by ``reduce`` (``mean`` or ``max``): whether the
+    values a stage hands on have converged."""
     keep_threads()
     stats, rollout = evaluate_policy(env, policy, max_steps)
     returns = discounted_return(rollout, stats.length, gamma)
@@ -221,31 +200,18 @@ def evaluate_greedy(
 
 @dataclass
 class TaskEvaluation:
-    """Greedy whole-task episodes of a stacked policy (the first episode of every batch row).
-
-    Attributes:
-        stats: success, length and return of every episode ``[E]``.
-        steps_per_stage: int64 ``[E, N]``, the steps each episode spent in each stage.
-        final: the ``"next"`` TensorDict of every episode's last step ``[E]`` (where it ended).
-        rollout: the first chunk's rollout ``[min(E, CHUNK), T]``, for figures.
-        all_starts: every whole-task start state was evaluated once (else random starts).
-        one_start: not ``all_starts``, and every episode (more than one) started from the same
-            observation: the env has one fixed start.
-        handoffs: per boundary k -> k+1, the states where episodes entered stage k+1 and the
-            returns obtained after them (:mod:`torchrl_stages.handoff`).
-    """
+    """Greedy whole-task episodes of a stacked policy (the first episode of every batch row)."""
 
     stats: EpisodeStats
-    steps_per_stage: torch.Tensor
-    final: TensorDictBase
-    rollout: TensorDictBase
-    all_starts: bool
-    handoffs: list[Handoffs] = field(default_factory=list)
-    one_start: bool = False
+    steps_per_stage: torch.Tensor  # int64 [E, N]: the steps each episode spent in each stage
+    final: TensorDictBase  # the "next" content of every episode's last step [E]
+    rollout: TensorDictBase  # the first chunk's rollout, for figures
+    all_starts: bool  # every whole-task start state was evaluated once (else random starts)
+    handoffs: list[Handoffs] = field(default_factory=list)  # per boundary k -> k+1
+    one_start: bool = False  # not all_starts, and every episode had the same start observation
 
     def summary(self) -> dict[str, Any]:
-        """The numbers ``eval.json`` reports for every task (``starts``: ``"all"``,
-        ``"fixed"`` or ``"random"``)."""
+        """The numbers ``eval.json`` reports for every task."""
         starts = "all" if self.all_starts else "fixed" if self.one_start else "random"
         return {
             "episodes": len(self.stats.length),
@@ -255,22 +221,14 @@ class TaskEvaluation:
         }
 
 
-def _same_starts(env: EnvBase, rollout: TensorDictBase, first: TensorDictBase | None) -> bool:
-    """Whether every episode of ``rollout`` starts from the observation ``first`` starts
-    from (``None``: the rollout's first episode)."""
+def _same_starts(env: EnvBase, rollout: TensorDictBase, first: TensorDictBase) -> bool:
+    """Whether every episode of ``rollout`` starts from the observation of ``first``."""
     starts = rollout[:, 0].select(*env.observation_spec.keys(True, True), strict=False)
-    first = starts[0] if first is None else first
-    for key, value in starts.items(True, True):
-        if isinstance(value, torch.Tensor) and not torch.equal(
-            value, first.get(key).expand_as(value)
-        ):
-            return False
-    return True
-
-
-def _last_steps(rollout: TensorDictBase, length: torch.Tensor) -> TensorDictBase:
-    rows = torch.arange(rollout.shape[0], device=length.device)
-    return rollout.get("next")[rows, length - 1]
+    return all(
+        torch.equal(value, first.get(key).expand_as(value))
+        for key, value in starts.items(True, True)
+        if isinstance(value, torch.Tensor)
+    )
 
 
 @torch.no_grad()
@@ -282,10 +240,9 @@ def evaluate_task(
     *,
     interruptible: bool = False,
 ) -> TaskEvaluation:
-    """Greedy whole-task episodes of ``policy``: one from every whole-task start state when the
-    env enumerates them (``episodes`` is then ignored), else ``episodes`` from random starts,
-    in batched chunks of :data:`CHUNK` seeded from ``seed``. ``interruptible``: a stop asked
-    for by a signal (:mod:`torchrl_stages.preemption`) ends it before the next chunk."""
+    """Greedy whole-task episodes of ``policy``: one from every start state where the env lists
+    them, else ``episodes`` random starts in chunks of :data:`CHUNK` seeded from ``seed``.
+    ``interruptible``: a stop asked for by a signal ends it before the next chunk."""
     all_starts = task.start_states(None) is not None
     sizes = [None] if all_starts else [min(CHUNK, episodes - i) for i in range(0, episodes, CHUNK)]
     stats, per_stage, final, first = [], [], [], None
@@ -301,16 +258,14 @@ def evaluate_task(
         chunk, rollout = evaluate_policy(env, policy, int(getattr(env.base_env, "max_steps", 1000)))
         steps = torch.arange(rollout.shape[-1], device=chunk.length.device)
         in_episode = steps < chunk.length.unsqueeze(-1)
-        stage = rollout.get("stage").squeeze(-1)
-        per_stage.append(
-            torch.stack([((stage == k) & in_episode).sum(-1) for k in range(task.num_stages)], -1)
-        )
+        stage = one_hot(rollout.get("stage").squeeze(-1), task.num_stages).bool()
+        per_stage.append((stage & in_episode.unsqueeze(-1)).sum(1))
         stats.append(chunk)
-        final.append(_last_steps(rollout, chunk.length))
+        rows = torch.arange(rollout.shape[0], device=chunk.length.device)
+        final.append(rollout.get("next")[rows, chunk.length - 1])
         handoffs.append(collect_handoffs(rollout, chunk.length, gammas))
-        start = None if first is None else first[0, 0]
-        one_start = not all_starts and one_start and _same_starts(env, rollout, start)
         first = rollout if first is None else first
+        one_start = one_start and not all_starts and _same_starts(env, rollout, first[0, 0])
     return TaskEvaluation(
         EpisodeStats.cat(stats),
         torch.cat(per_stage),
