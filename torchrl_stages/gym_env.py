@@ -1,11 +1,5 @@
-"""Gymnasium envs as multi-stage tasks: a batched TorchRL env named by its id and stage function.
-
-``task=gym`` builds :class:`GymStageEnv` from ``task.env``: the gymnasium env id (``module:Id``
-imports ``module`` first, where it registers the env), the stage function (``stage_fn``) and
-the env's own constructor keys. Everything the task protocol needs (a batch dimension, the
-device, ``num_stages``, ``stage_fn``, ``start_stage`` for envs that can start inside a stage) is
-added here, so a config names only the env and its stage function.
-"""
+"""Gymnasium envs as multi-stage tasks (``task=gym``): a batched TorchRL env built from a
+gymnasium id, a stage function and the env's own constructor keys."""
 
 from __future__ import annotations
 
@@ -27,15 +21,13 @@ from torchrl.envs.gym_like import BaseInfoDictReader
 
 from torchrl_stages import episode_replay
 from torchrl_stages.episode_replay import EpisodeReplay
-from torchrl_stages.transforms import SUCCESS_KEY
+from torchrl_stages.transforms import SUCCESS_KEY, StageFn
 
 __all__ = ["GymStageEnv", "SuccessKeyError", "SuccessReader", "threshold_stage"]
 
-StageFn = Callable[[TensorDictBase], torch.Tensor]
 _UNSET = object()
 log = logging.getLogger("torchrl_stages")
-#: env ids whose episodes could not be rebuilt since an env of that id was last built: a resume
-#: that loads a training and an evaluation env warns once
+# env ids warned about since an env of that id was built: a resume warns once for all its envs
 _WARNED: set[str] = set()
 # the async workers get EpisodeReplay by value: they need not import this package (seconds each)
 cloudpickle.register_pickle_by_value(episode_replay)
@@ -48,8 +40,7 @@ def threshold_stage(
     key: NestedKey = "observation",
     index: int = 0,
 ) -> torch.Tensor:
-    """A stage function: the number of ``thresholds`` at or below ``td[key][..., index]``
-    (``len(thresholds) + 1`` stages). Name it in a config with ``_partial_: true``.
+    """A stage function: how many ``thresholds`` lie at or below ``td[key][..., index]``.
 
     Examples:
         >>> import torch
@@ -64,8 +55,7 @@ def threshold_stage(
 
 
 def _stage_function(stage_fn: StageFn | str) -> StageFn:
-    """The stage function from a callable (e.g. a ``_partial_: true`` node) or a dotted path,
-    returning int64 ``[*batch, 1]``."""
+    """``stage_fn`` (a callable or a dotted path) returning int64 ``[*batch, 1]``."""
     fn = get_method(stage_fn) if isinstance(stage_fn, str) else stage_fn
     if not callable(fn):
         raise TypeError(
@@ -89,13 +79,11 @@ class SuccessKeyError(ValueError):
 
 
 class SuccessReader(BaseInfoDictReader):
-    """Reads a gymnasium env's success flag, ``info[info_key]`` (``"is_success"`` in
-    gymnasium-robotics and Stable-Baselines3), into a boolean ``"success"`` entry ``[n, 1]``:
-    the entry evaluations count an episode's success by (see
-    :func:`torchrl_stages.evaluate.ended_well`). The env must report it at least on the last
-    step of every episode; a copy that does not report it on a step reads ``False``. Once
-    ``patience`` episodes have ended with the key never reported, :class:`SuccessKeyError`
-    stops the run (a misspelled key would count every episode as failed).
+    """Reads a gymnasium env's success flag ``info[info_key]`` into the ``"success"`` entry.
+
+    The env must report it at least on every episode's last step (a step without it reads
+    ``False``); after ``patience`` ended episodes that never reported it,
+    :class:`SuccessKeyError` stops the run (a misspelled key would fail every episode).
 
     Examples:
         >>> import numpy as np
@@ -116,7 +104,7 @@ class SuccessReader(BaseInfoDictReader):
     ) -> None:
         self.info_key = info_key
         self.patience = patience
-        self._ended = 0  # episodes ended (the env's own done) while the key was never reported
+        self._ended = 0  # episodes ended while the key was never reported
         self._seen = False
         self._spec = Composite(
             {SUCCESS_KEY: Categorical(2, shape=(*batch_size, 1), dtype=torch.bool, device=device)},
@@ -152,46 +140,17 @@ class SuccessReader(BaseInfoDictReader):
 
 
 class GymStageEnv(GymWrapper):
-    """A gymnasium env as a multi-stage task: ``batch_size[0]`` copies stepped as one gymnasium
-    vector env (``SyncVectorEnv``, or ``AsyncVectorEnv`` worker processes), wrapped by torchrl's
-    ``GymWrapper``, with what a multi-stage task needs: ``num_stages`` and ``stage_fn``.
+    """A gymnasium env as a multi-stage task: ``batch_size[0]`` copies stepped as one vector env.
 
-    The vector env runs with ``autoreset_mode=DISABLED``: a copy resets only when torchrl asks
-    (``"_reset"``), so a copy that ends its episode (or leaves a stage) restarts where the task
-    says, inside stage k for stage-k starts.
-
-    Each copy is wrapped in :class:`~torchrl_stages.episode_replay.EpisodeReplay` (outermost),
-    so ``state_dict`` holds the copies' running episodes as plain data and ``load_state_dict``
-    rebuilds them: a resumed run goes on bitwise on an env whose random draws all come from
-    its ``np_random`` (otherwise :attr:`episodes_rebuilt` is ``False`` and one warning says the
-    episodes start over).
-
-    Args:
-        env_id: the gymnasium id; ``"my_module:MyEnv-v0"`` imports ``my_module`` first.
-        stage_fn: ``stage_fn(td) -> int64 [*batch, 1]``, the stage of each state (a callable or
-            a dotted path); ``None`` when the env writes a ``"stage"`` observation itself.
-        num_stages: the number of stages (default: the gymnasium env's ``num_stages``).
-
-    Keyword Args:
-        success_key: the ``info`` key of the env's success flag (e.g. ``"is_success"``), read
-            into a boolean ``"success"`` entry (:class:`SuccessReader`): evaluations count an
-            episode as solved when it is true on the episode's last step. ``None`` (default):
-            an episode is solved when it terminates (for envs that terminate only on success).
-        vectorize: ``"sync"`` (default: the copies step one after another in this process) or
-            ``"async"`` (one worker process per copy: for envs whose step costs more than the
-            inter-process round trip, about 0.1 ms).
-        wrappers: gymnasium wrapper factories applied to each copy, in order.
-        batch_size: ``(n,)``: the number of env copies.
-        device: where the TensorDicts live.
-        start_stage: given (``None`` included) only for tasks with ``task.stage_starts=true``;
-            passed to the gymnasium env's constructor, which then starts its episodes inside
-            that stage (``None``: the task's own starts).
-        **kwargs: the gymnasium env's own constructor keys.
-
-    Attributes:
-        max_steps: the env's ``max_episode_steps`` (else its ``max_steps`` attribute): the
-            evaluations' episode cap, when it has one.
-        episodes_rebuilt: whether the last ``load_state_dict`` rebuilt every copy's episode.
+    The copies run with ``autoreset_mode=DISABLED`` (a copy resets only when torchrl asks, so it
+    restarts where the task says) and are each wrapped in
+    :class:`~torchrl_stages.episode_replay.EpisodeReplay`, so that ``state_dict`` holds their
+    running episodes and a resumed run goes on bitwise (:attr:`episodes_rebuilt` is ``False``
+    where the env draws from elsewhere than its ``np_random``). ``env_id`` ``"module:Id"``
+    imports ``module`` first; ``stage_fn`` is ``None`` where the env writes ``"stage"``;
+    ``success_key`` names the ``info`` flag read by :class:`SuccessReader` (``None``: an episode
+    is solved when it terminates); ``vectorize`` is ``"sync"`` or ``"async"`` (worker processes,
+    for steps costlier than about 0.1 ms); ``max_steps`` caps evaluation episodes.
 
     Examples:
         >>> env = GymStageEnv(
@@ -274,21 +233,23 @@ class GymStageEnv(GymWrapper):
             self.max_steps = int(max_steps)
         self.episodes_rebuilt = True  # False after a load_state_dict that could not rebuild them
 
+    @property
+    def _success_reader(self) -> SuccessReader | None:
+        return next((r for r in self.info_dict_reader if isinstance(r, SuccessReader)), None)
+
     def load_state_dict(
         self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False
     ) -> Any:
-        """``nn.Module``'s, where a state without the copies' episodes (a checkpoint written
-        before they were kept) warns and starts them over instead of failing."""
+        """A state without the copies' episodes warns and starts them over instead of failing."""
         if "_extra_state" not in state_dict:
             state_dict = {**state_dict, "_extra_state": {}}
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def get_extra_state(self) -> dict[str, Any]:
-        """The running episodes of the copies (:meth:`EpisodeReplay.episode_state`, plain data
-        and arrays) and the success reader's count: what a resumed run continues from."""
+        """The copies' running episodes and the success reader's count, as plain data."""
         if self.is_closed:
             return {}
-        reader = next((r for r in self.info_dict_reader if isinstance(r, SuccessReader)), None)
+        reader = self._success_reader
         return {
             "env_id": self.env_id,
             "copies": list(self._env.call("episode_state")),
@@ -296,10 +257,7 @@ class GymStageEnv(GymWrapper):
         }
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
-        """Rebuilds the copies' saved episodes (:meth:`EpisodeReplay.rebuild`). An env whose
-        episodes do not come back as they were (draws from elsewhere than ``np_random``) sets
-        :attr:`episodes_rebuilt` to ``False`` (the collector then starts its episodes over)
-        and logs one warning line (once for the envs of one id loaded after they were built)."""
+        """Rebuilds the copies' saved episodes, or warns once per env id that they start over."""
         copies = state.get("copies")
         num = self.batch_size[0]
         fix = ""
@@ -311,12 +269,9 @@ class GymStageEnv(GymWrapper):
             self._env.set_attr("pending_episode", list(copies))
             failures = [(i, why) for i, why in enumerate(self._env.call("rebuild_pending")) if why]
             fix = " Fix: draw every random number of the env from its self.np_random"
-        reader = next((r for r in self.info_dict_reader if isinstance(r, SuccessReader)), None)
-        if reader is not None and state.get("success_reader") is not None:
-            reader._ended, reader._seen = (
-                int(state["success_reader"][0]),
-                bool(state["success_reader"][1]),
-            )
+        reader, saved = self._success_reader, state.get("success_reader")
+        if reader is not None and saved is not None:
+            reader._ended, reader._seen = int(saved[0]), bool(saved[1])
         self.episodes_rebuilt = not failures
         if failures and self.env_id not in _WARNED:
             _WARNED.add(self.env_id)
