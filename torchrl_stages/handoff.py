@@ -1,20 +1,6 @@
-"""Handoff diagnostics: how well stage k+1's value holds where stage k actually hands over.
-
-The backward schedule fails quietly when stage k arrives in stage k+1 at states that stage k+1
-never trained from: its transition reward then reads ``V_{k+1}`` where it was extrapolated.
-From the whole-task evaluation's greedy episodes, at each boundary k -> k+1:
-
-* **value error**: ``V_{k+1}(s')`` at the handoff state ``s'`` (the first state of stage k+1)
-  against the return the stacked policy obtained after it, each step discounted by the gamma
-  of its stage (the return ``V_{k+1}`` estimates).
-* **distance to the training starts**: a sample of stage k+1's training starts (its env reset
-  with ``start_stage=k+1``) is the reference; the distance of a state to it is the distance
-  to its nearest start, in the learner's observations standardized by the starts' spread. A
-  second, held-out sample of starts calibrates it: a state farther than 95% of held-out starts
-  is *outside* the starts' support. States drawn like the starts are outside 5% of the time
-  (0% where the starts are finitely many and all sampled); a boundary with more than
-  :data:`OUTSIDE_WARNING` outside is reported as extrapolated.
-"""
+"""Handoff diagnostics: at each boundary k -> k+1, how well ``V_{k+1}`` holds at the states where
+stage k hands over (against the return obtained after them), and whether they lie inside stage
+k+1's training starts (where ``V_{k+1}`` was not extrapolated)."""
 
 from __future__ import annotations
 
@@ -33,25 +19,17 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = ["Handoffs", "OUTSIDE_WARNING", "collect_handoffs", "handoff_diagnostics"]
-
-#: a boundary whose handoff states lie outside stage k+1's training starts more often than
-#: this is warned about (states drawn like the starts: 5%)
+# the share of handoff states outside the starts that is warned about (drawn like them: 5%)
 OUTSIDE_WARNING = 0.25
 REFERENCE_STARTS, HELD_OUT_STARTS = 1024, 256
 
 
 @dataclass
 class Handoffs:
-    """The handoff states of one boundary k -> k+1 over a set of episodes.
+    """The handoff states of one boundary k -> k+1 over a set of episodes."""
 
-    Attributes:
-        states: the first state of stage k+1 of every episode that reached it ``[M]``.
-        returns: the stage-discounted return each episode obtained from that state ``[M]``.
-    """
-
-    states: TensorDictBase | None
-    returns: torch.Tensor
+    states: TensorDictBase | None  # the first state of stage k+1 of each episode that reached it
+    returns: torch.Tensor  # the stage-discounted return each episode obtained from it
 
     @classmethod
     def cat(cls, parts: Sequence[Handoffs]) -> Handoffs:
@@ -63,21 +41,7 @@ class Handoffs:
 def collect_handoffs(
     rollout: TensorDictBase, length: torch.Tensor, gammas: Sequence[float]
 ) -> list[Handoffs]:
-    """The handoffs at each boundary (``len(gammas) - 1`` of them) of the first episodes of a
-    ``[B, T]`` rollout (``length``: their lengths).
-
-    Examples:
-        >>> from tensordict import TensorDict
-        >>> stage = torch.tensor([[0, 0, 1, 1]]).unsqueeze(-1)  # enters stage 1 at step 2
-        >>> td = TensorDict({"stage": stage, "observation": torch.arange(4.0).view(1, 4, 1),
-        ...     "next": {"stage": torch.tensor([[0, 1, 1, 1]]).unsqueeze(-1),
-        ...              "observation": torch.arange(1.0, 5.0).view(1, 4, 1),
-        ...              "reward": torch.tensor([[0.0, 0.0, 0.0, 1.0]]).unsqueeze(-1)}},
-        ...     batch_size=[1, 4])
-        >>> (h,) = collect_handoffs(td, torch.tensor([4]), [0.9, 0.5])
-        >>> h.states["observation"].tolist(), h.returns.tolist()  # s' = s_2: r_3 * 0.5
-        ([[2.0]], [0.5])
-    """
+    """The handoffs at each boundary of the first ``length`` steps of a ``[B, T]`` rollout."""
     stage = rollout.get("stage").squeeze(-1)  # [B, T]: stage of s_t
     nxt = rollout.get(("next", "stage")).squeeze(-1)
     reward = rollout.get(("next", "reward")).squeeze(-1).to(torch.float64)
@@ -107,10 +71,6 @@ def _features(td: TensorDictBase, keys: Sequence[Any]) -> torch.Tensor:
     return torch.cat([td.get(key).reshape(td.shape[0], -1).to(torch.float64) for key in keys], -1)
 
 
-def _nearest(x: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    return torch.cdist(x, ref).min(-1).values
-
-
 @torch.no_grad()
 def handoff_diagnostics(
     task: StagedTask,
@@ -118,12 +78,9 @@ def handoff_diagnostics(
     handoffs: Sequence[Handoffs],
     seed: int,
 ) -> list[dict[str, Any]]:
-    """One record per boundary k -> k+1 (what ``eval.json`` keeps under ``"handoff"``):
-    episodes that crossed it, the value error at the handoff states (mean and max
-    ``|V_{k+1}(s') - G|``, mean ``V - G``) and, when the env starts inside stages, the
-    median distance to stage k+1's training starts and the fraction outside their support;
-    ``extrapolated`` when that fraction exceeds :data:`OUTSIDE_WARNING`. Each record keeps
-    ``values`` and ``returns`` per episode for the figure."""
+    """One record per boundary (``eval.json``'s ``"handoff"``): the value error ``|V_{k+1}(s') -
+    G|`` at the handoff states and, where the env starts inside stages, their distance to stage
+    k+1's training starts; ``values`` and ``returns`` per episode are for the figure."""
     records = []
     for k, handoff in enumerate(handoffs):
         name = f"{task.stage_names[k]} -> {task.stage_names[k + 1]}"
@@ -152,6 +109,8 @@ def handoff_diagnostics(
 def _distance_to_starts(
     task: StagedTask, stage: int, states: TensorDictBase, seed: int
 ) -> dict[str, Any]:
+    """The distance of ``states`` to their nearest start, in observations standardized by the
+    starts' spread; outside the starts beyond the 95% quantile of held-out starts' distances."""
     keys = task.specs(stage).observation_keys
     wanted = REFERENCE_STARTS + HELD_OUT_STARTS
     # the stage's own training batch, reset until enough starts are drawn (a vector env of
@@ -171,8 +130,8 @@ def _distance_to_starts(
     mean, std = ref.mean(0), ref.std(0).clamp_min(1e-6)
     ref, held_out = (ref - mean) / std, (held_out - mean) / std
     handed = (_features(states.cpu(), keys) - mean) / std
-    threshold = torch.quantile(_nearest(held_out, ref), 0.95)
-    distance = _nearest(handed, ref)
+    threshold = torch.quantile(torch.cdist(held_out, ref).min(-1).values, 0.95)
+    distance = torch.cdist(handed, ref).min(-1).values
     # distances that differ by float rounding only (discrete starts: 0 and ~1e-8) are equal
     outside = (distance > threshold * (1 + 1e-6) + 1e-6).double().mean().item()
     return {
@@ -187,24 +146,17 @@ def warn_extrapolated(records: Sequence[dict[str, Any]]) -> None:
     """Logs a warning for every boundary whose handoff states lie outside the starts."""
     for r in records:
         if r.get("extrapolated"):
+            k = r["stage"]
             log.warning(
-                "handoff %s: %.0f%% of the states stage %d hands over lie outside stage %d's "
-                "training starts, where its value is extrapolated (|V - G| %.3g on average). "
-                "Fix: make the env's start_stage=%d starts cover where stage %d arrives",
-                r["boundary"],
-                100 * r["outside_starts"],
-                r["stage"],
-                r["stage"] + 1,
-                r["value_error_mean"],
-                r["stage"] + 1,
-                r["stage"],
+                f"handoff {r['boundary']}: {100 * r['outside_starts']:.0f}% of the states stage "
+                f"{k} hands over lie outside stage {k + 1}'s training starts, where its value is "
+                f"extrapolated (|V - G| {r['value_error_mean']:.3g} on average). Fix: make the "
+                f"env's start_stage={k + 1} starts cover where stage {k} arrives"
             )
 
 
 def plot_handoffs(records: Sequence[dict[str, Any]], out: str | Path) -> Path | None:
-    """``handoff.png``: per boundary, ``V_{k+1}(s')`` against the return obtained after it
-    (on the diagonal where the value holds), titled with the value error and the share of
-    handoff states outside the training starts."""
+    """``handoff.png``: per boundary, ``V_{k+1}(s')`` against the return obtained after it."""
     shown = [r for r in records if r.get("episodes")]
     if not shown:
         return None
