@@ -16,28 +16,14 @@ log = logging.getLogger("torchrl_stages")
 
 
 class StageCollector:
-    """Yields ``[*env.batch_size, T]`` batches of ``frames_per_batch`` env steps.
+    """Yields ``[num_envs, T]`` batches of ``frames_per_batch`` steps of a batched env.
 
-    It collects like torchrl's ``Collector`` on a batched env (``step_and_maybe_reset``,
-    uniformly random actions from the action spec for the first ``init_random_frames``, then
-    ``policy`` under the random exploration type) and adds what that collector cannot restore
-    (its ``load_state_dict`` starts fresh trajectories): the running episodes. :meth:`state_dict`
-    holds the frame count, the carried TensorDict of the next step (observations, episode
-    returns of wrappers such as ``RewardSum``) and the env's own state (its dynamics and random
-    generator, through ``env.base_env.state_dict()``), so an interrupted stage continues from
-    the same episodes, bitwise, on envs that put their state in ``state_dict`` (the shipped
-    envs, ``torchrl_stages.envs._common.StageStarts``; gymnasium envs that draw from their
-    ``np_random``, :class:`~torchrl_stages.gym_env.GymStageEnv`). Other envs restart their
+    It collects like torchrl's ``Collector`` (``step_and_maybe_reset``, random actions for the
+    first ``init_random_frames``, then ``policy`` under the random exploration type), and its
+    :meth:`state_dict` holds what that collector cannot restore: the running episodes (the
+    carried next-step TensorDict and ``env.base_env.state_dict()``). An interrupted stage so
+    continues bitwise on envs that keep their state in ``state_dict``; others restart their
     episodes, with a warning.
-
-    Args:
-        env: a batched env (``env.batch_size`` is ``[num_envs]``).
-        policy: the exploration policy.
-
-    Keyword Args:
-        frames_per_batch: env frames per batch (a multiple of the env's batch size).
-        total_frames: the budget; iteration stops once this many frames were collected.
-        init_random_frames: frames of uniformly random actions before the policy acts.
 
     Examples:
         >>> from torchrl_stages.envs import GridWorldEnv
@@ -98,27 +84,24 @@ class StageCollector:
     @property
     def restorable(self) -> bool:
         """Whether the env keeps its dynamic state in ``state_dict`` (``get_extra_state``)."""
-        base = getattr(self.env, "base_env", self.env)
-        return type(base).get_extra_state is not torch.nn.Module.get_extra_state
+        return type(self._base).get_extra_state is not torch.nn.Module.get_extra_state
+
+    @property
+    def _base(self) -> EnvBase:
+        return getattr(self.env, "base_env", self.env)
 
     def state_dict(self) -> dict[str, Any]:
-        """Frames so far and, on restorable envs, the carried TensorDict of the next step and
-        the env's state."""
         state: dict[str, Any] = {"frames": self.frames}
         if self.restorable and self._carrier is not None:
             state["carrier"] = self._carrier.to_dict()
-            state["env"] = getattr(self.env, "base_env", self.env).state_dict()
+            state["env"] = self._base.state_dict()
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restores the frame count and, where the state holds them, the env's state and the
-        running episodes. Where it does not (an env that keeps no state in ``state_dict``), or
-        the env could not rebuild them (``episodes_rebuilt`` false, see
-        :class:`~torchrl_stages.gym_env.GymStageEnv`), the episodes start over: that is
-        logged, since the run then differs from an uninterrupted one."""
+        """Restores the frames and, where the state holds them, the running episodes."""
         self.frames = int(state["frames"])
         self._carrier = None  # without a saved env state, the episodes start over
-        base = getattr(self.env, "base_env", self.env)
+        base = self._base
         if "env" in state:
             base.load_state_dict(state["env"])
             if getattr(base, "episodes_rebuilt", True):
