@@ -14,27 +14,12 @@ from torch import nn
 class StackedPolicy(TensorDictModuleBase):
     """Runs, for every batch element, the policy of the stage it is in.
 
-    The policy of each stage present in the batch runs on the whole batch, and its outputs are
-    kept where ``stage_key`` names that stage; an output written by some stages only (e.g. a
-    per-stage action key) is zero where another stage acts. Stage policies are small, so this
-    needs no masking of the batch. A stage absent from the batch is not run (unless
-    ``skip_absent=False``): its outputs are zeros, of the shapes the first call, which runs
-    every stage, gave.
-
-    Args:
-        policies: one greedy policy per stage, in stage order.
-
-    Keyword Args:
-        stage_fn: the task's stage function (``stage_fn(td) -> int64 [*batch, 1]``, e.g. an
-            env's ``stage_fn``): the stage of an input that has no ``stage_key`` entry, such
-            as the env's own TensorDicts without :class:`~torchrl_stages.transforms.
-            StageTransform`. An input's ``stage_key`` entry, where it has one, is used as is.
-            Without ``stage_fn`` every input needs that entry (``stage_key`` is then the
-            first of :attr:`in_keys`).
-        stage_key: the stage tag written by :class:`~torchrl_stages.transforms.StageTransform`.
-        skip_absent: leave out the stages absent from the batch. ``False`` runs every stage
-            policy at every call: for policies that draw random numbers (exploration), the
-            numbers a call draws then do not depend on which stages the batch holds.
+    Each stage's policy runs on the whole batch (stage policies are small) and its outputs are
+    kept where the element's stage (its ``stage_key`` entry, else ``stage_fn(td)``) is that
+    stage; an output of other stages is zero there. A stage absent from the batch is not run,
+    its outputs zeros of the shapes the first call gave; ``skip_absent=False`` runs every stage
+    at every call, so that the random numbers exploring policies draw do not depend on which
+    stages the batch holds.
 
     Examples:
         >>> import torch
@@ -46,8 +31,6 @@ class StackedPolicy(TensorDictModuleBase):
         ...                 batch_size=[3])
         >>> StackedPolicy([p0, p1])(td)["action"].squeeze(-1)
         tensor([0., 1., 0.])
-
-        With a stage function, an input needs no ``"stage"`` entry:
 
         >>> policy = StackedPolicy([p0, p1], stage_fn=lambda td: td["observation"][..., :1] > 0)
         >>> policy(TensorDict(observation=torch.tensor([[0.0], [2.0]]), batch_size=[2]))[
@@ -79,8 +62,7 @@ class StackedPolicy(TensorDictModuleBase):
         self.out_keys = out_keys
 
     def stage(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The stage of each element of ``tensordict`` (int64, ``[*batch]``): its
-        ``stage_key`` entry, else ``stage_fn`` of it."""
+        """The stage of each element of ``tensordict``, int64 ``[*batch]``."""
         stage = tensordict.get(self.stage_key, None)
         if stage is not None:
             return stage.squeeze(-1)
