@@ -1,19 +1,7 @@
-"""The registry of tasks: what a task adds to a run beyond its env and config.
+"""The registry of tasks: what a task adds to a run beyond its env and config, by ``task.name``.
 
-A task registers itself with :func:`register_task` (the package's own do so in
-``torchrl_stages.envs.<task>``; a task of your own in the module that defines its env, which
-Hydra imports when it builds the env). Its :class:`TaskReport` is looked up by ``task.name``:
-
-* ``report(task, learners, evaluation, run_dir, plots) -> dict`` reads the run's whole-task
-  evaluation (or runs task-specific deterministic checks), draws the task's figures, and its
-  dict is stored under ``"task_metrics"`` in ``eval.json``;
-* ``headline``: the names among those metrics that a sweep summary shows beside the success
-  rate (listed in ``eval.json`` as ``"headline_metrics"``);
-* ``probe(task, learners) -> dict``: numbers followed during training with ``eval.probe=true``.
-
-Every run gets one whole-task evaluation
-(:func:`~torchrl_stages.runs.evaluation.evaluate_run`): its success rate, returns and steps are
-the run's numbers.
+A task registers in the module that defines its env (Hydra imports it when it builds the env);
+the package's own tasks register in ``torchrl_stages.envs``.
 """
 
 from __future__ import annotations
@@ -23,13 +11,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["TASKS", "TaskReport", "register_task", "task_report"]
-
 
 @dataclass(frozen=True)
 class TaskReport:
-    """What a task adds to the whole-task evaluation: its report (metrics and figures), the
-    names of its headline metrics, and its probe (numbers followed during training).
+    """What a task adds to the whole-task evaluation.
+
+    ``report(task, learners, evaluation, run_dir, plots) -> dict`` gives the task's metrics
+    (``eval.json``'s ``"task_metrics"``) and draws its figures; ``headline`` names the metrics
+    a sweep summary shows beside the success rate; ``probe(task, learners) -> dict`` gives the
+    numbers followed during training with ``eval.probe=true``.
 
     Examples:
         >>> info = TaskReport(report=lambda task, learners, evaluation, run_dir, plots: {})
@@ -53,23 +43,13 @@ def register_task(
     headline: Sequence[str] = (),
     probe: Callable[..., dict[str, float]] | None = None,
 ) -> TaskReport:
-    """Registers what the task ``name`` (its ``task.name``) adds to a run; returns it.
-
-    Examples:
-        >>> def report(task, learners, evaluation, run_dir, plots):
-        ...     return {"distance": 0.5}
-        >>> info = register_task("my_task", report=report, headline=["distance"])
-        >>> task_report("my_task") is info
-        True
-        >>> _ = TASKS.pop("my_task")
-    """
+    """Registers what the task ``name`` adds to a run; returns it."""
     TASKS[name] = TaskReport(report, tuple(headline), probe)
     return TASKS[name]
 
 
 def task_report(name: str) -> TaskReport | None:
-    """The registered :class:`TaskReport` of ``name``, or ``None`` (a task without a report:
-    its run has the whole-task numbers only)."""
+    """The registered :class:`TaskReport` of ``name``, or ``None`` (the whole-task numbers only)."""
     if name not in TASKS:
         importlib.import_module("torchrl_stages.envs")  # the package's own tasks register there
     return TASKS.get(name)
