@@ -107,12 +107,11 @@ class StageCollector:
             if getattr(base, "episodes_rebuilt", True):
                 self._carrier = TensorDict(state["carrier"], self.env.batch_size)
         elif self.frames:
+            why = "written by a version that did not keep it"
+            if not self.restorable:
+                why = "it keeps none in state_dict, get_extra_state"
             log.warning(
-                "resume: the checkpoint holds no state of the env %s (%s): its episodes start "
-                "over, so this run is not bitwise equal to an uninterrupted one "
-                "(docs/guides/bring-your-own-env.md, Resume)",
-                type(base).__name__,
-                "it keeps none in state_dict, get_extra_state"
-                if not self.restorable
-                else "written by a version that did not keep it",
+                f"resume: the checkpoint holds no state of the env {type(base).__name__} ({why}): "
+                "its episodes start over, so this run is not bitwise equal to an uninterrupted "
+                "one (docs/guides/bring-your-own-env.md, Resume)"
             )

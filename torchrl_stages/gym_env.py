@@ -71,9 +71,6 @@ def _stage_function(stage_fn: StageFn | str) -> StageFn:
     return stage
 
 
-VECTORIZE = ("sync", "async")
-
-
 class SuccessKeyError(ValueError):
     """The env's ``info`` has never carried the success key on an episode's last step."""
 
@@ -181,7 +178,7 @@ class GymStageEnv(GymWrapper):
         batch = tuple(int(b) for b in batch_size)
         if len(batch) != 1:
             raise ValueError(f"GymStageEnv needs batch_size=(n,), got {batch}")
-        if vectorize not in VECTORIZE:
+        if vectorize not in ("sync", "async"):
             raise ValueError(
                 f"vectorize={vectorize!r}: Fix: task.env.vectorize=sync (copies stepped in "
                 "this process) or async (worker processes)"
@@ -277,13 +274,8 @@ class GymStageEnv(GymWrapper):
             _WARNED.add(self.env_id)
             index, why = failures[0]
             log.warning(
-                "resume: the gymnasium env %r did not rebuild its running episodes (%d of %d "
-                "copies; copy %d: %s): they start over, so this run is not bitwise equal to an "
-                "uninterrupted one.%s (docs/guides/bring-your-own-env.md, Resume)",
-                self.env_id,
-                len(failures),
-                num,
-                index,
-                why,
-                fix,
+                f"resume: the gymnasium env {self.env_id!r} did not rebuild its running episodes "
+                f"({len(failures)} of {num} copies; copy {index}: {why}): they start over, so "
+                f"this run is not bitwise equal to an uninterrupted one.{fix} "
+                "(docs/guides/bring-your-own-env.md, Resume)"
             )

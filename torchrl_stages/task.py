@@ -106,11 +106,7 @@ class StagedTask:
         *,
         copies: int = 1,
     ) -> TransformedEnv:
-        """Stage ``stage``'s training env: episodes start inside the stage and end leaving it.
-
-        The transition reward adds ``gamma_stage * next_value(s_{t+1})``; ``RewardSum`` writes
-        ``("next", "episode_reward")``, what the training logs read.
-        """
+        """Stage ``stage``'s training env, with the episode returns the training logs read."""
         base = self.base_env(batch_size * copies, start_stage=stage)
         return self._stage_view(stage, base, next_value, RewardSum())
 
@@ -129,11 +125,8 @@ class StagedTask:
     def task_env(
         self, batch_size: int | None = None, *, train: bool = False, copies: int = 1, **overrides
     ) -> TransformedEnv:
-        """Whole-task env (stage tags only), with ``task.eval_env`` starts unless overridden.
-
-        ``batch_size=None`` gives one element per whole-task start state; ``train`` adds
-        ``RewardSum`` (episode returns for the training logs).
-        """
+        """Whole-task env (stage tags only), with ``task.eval_env`` starts unless overridden:
+        one element per start state with ``batch_size=None``, episode returns with ``train``."""
         eval_env = self.cfg.get("eval_env") or {}
         kwargs = {**OmegaConf.to_container(OmegaConf.create(eval_env), resolve=True), **overrides}
         if batch_size is None:
