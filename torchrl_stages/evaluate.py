@@ -26,12 +26,8 @@ CHUNK = 250  # whole-task episodes per batched rollout (bounds the memory of lon
 
 
 def can_step_finished(env: EnvBase) -> bool:
-    """Whether :func:`rollout_first_episodes` may step ``env``'s finished elements on.
-
-    The innermost env's class must declare ``can_step_finished`` (see
-    :class:`~torchrl_stages.stage_env.StageEnvHooks`), true on the env, and every transform
-    around it be a :class:`~torchrl_stages.transforms.StageTransform`.
-    """
+    """Whether :func:`rollout_first_episodes` may step ``env``'s finished elements on: its
+    class declares ``can_step_finished``, true, under StageTransforms only."""
     transforms: list = []
     while isinstance(env, TransformedEnv):
         transform = env.transform
@@ -79,15 +75,7 @@ def rollout_first_episodes(
 
 def ended_well(td: TensorDictBase) -> torch.Tensor:
     """Whether each step of ``td`` would end its episode solved: the env's ``("next",
-    "success")`` flag where it writes one, else ``terminated`` (tasks that end only on success).
-
-    Examples:
-        >>> from tensordict import TensorDict
-        >>> td = TensorDict({"next": {"terminated": torch.ones(2, 1, dtype=torch.bool)}}, [2])
-        >>> td["next", "success"] = torch.tensor([[True], [False]])  # the second one failed
-        >>> ended_well(td).squeeze(-1).tolist()
-        [True, False]
-    """
+    "success")`` flag where it writes one, else ``terminated`` (tasks that end only on success)."""
     flag = td.get(("next", SUCCESS_KEY), None)
     return td.get(("next", "terminated")) if flag is None else flag.to(torch.bool)
 
@@ -140,11 +128,8 @@ def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
 def discounted_return(
     rollout: TensorDictBase, length: torch.Tensor, gamma: float | Sequence[float]
 ) -> torch.Tensor:
-    """``sum_t w_t r_t`` over each row's first ``length`` steps.
-
-    ``w_t = gamma^t``, or with one gamma per stage ``w_t = prod_{j<t} gamma[stage(s_j)]``: the
-    merged return whose expectation Proposition 1 speaks of.
-    """
+    """``sum_t w_t r_t`` over each row's first ``length`` steps, ``w_t = gamma^t`` or, one gamma
+    per stage, ``prod_{j<t} gamma[stage(s_j)]`` (the merged return of Proposition 1)."""
     reward = rollout.get(("next", "reward")).squeeze(-1)  # [B, T]
     steps = torch.arange(reward.shape[-1], device=reward.device)
     if isinstance(gamma, int | float):

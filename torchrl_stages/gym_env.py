@@ -139,15 +139,11 @@ class SuccessReader(BaseInfoDictReader):
 class GymStageEnv(GymWrapper):
     """A gymnasium env as a multi-stage task: ``batch_size[0]`` copies stepped as one vector env.
 
-    The copies run with ``autoreset_mode=DISABLED`` (a copy resets only when torchrl asks, so it
-    restarts where the task says) and are each wrapped in
-    :class:`~torchrl_stages.episode_replay.EpisodeReplay`, so that ``state_dict`` holds their
-    running episodes and a resumed run goes on bitwise (:attr:`episodes_rebuilt` is ``False``
-    where the env draws from elsewhere than its ``np_random``). ``env_id`` ``"module:Id"``
-    imports ``module`` first; ``stage_fn`` is ``None`` where the env writes ``"stage"``;
-    ``success_key`` names the ``info`` flag read by :class:`SuccessReader` (``None``: an episode
-    is solved when it terminates); ``vectorize`` is ``"sync"`` or ``"async"`` (worker processes,
-    for steps costlier than about 0.1 ms); ``max_steps`` caps evaluation episodes.
+    A copy resets only when torchrl asks (``autoreset_mode=DISABLED``), and ``state_dict`` holds
+    the copies' running episodes (:class:`~torchrl_stages.episode_replay.EpisodeReplay`), so a
+    resumed run goes on bitwise where the env draws only from its ``np_random``.
+    ``success_key`` names the ``info`` flag read by :class:`SuccessReader` (``None``: solved
+    when terminated); ``vectorize="async"`` steps the copies in worker processes.
 
     Examples:
         >>> env = GymStageEnv(
