@@ -58,83 +58,91 @@ def freeze(module: nn.Module) -> nn.Module:
     return module.eval()
 
 
-def _check_stage(
-    stage: int | None,
-    num_stages: int,
-    gamma: float,
-    next_value: TensorDictModuleBase | None,
-    standalone: bool,
-) -> None:
-    if num_stages < 1:
-        raise ValueError(f"num_stages must be >= 1, got {num_stages}.")
-    if stage is not None and not 0 <= stage < num_stages:
-        raise ValueError(f"stage {stage} is outside 0..{num_stages - 1}.")
-    if not 0.0 < gamma <= 1.0:
-        raise ValueError(f"gamma={gamma} is outside (0, 1].")
-    has_next = stage is not None and stage < num_stages - 1
-    if next_value is not None and not has_next:
-        raise ValueError(
-            f"next_value is only used when training a stage that has a next stage: stage {stage} "
-            f"is the last one or no stage is trained (num_stages={num_stages})."
-        )
-    if has_next and next_value is None and not standalone:
-        raise ValueError(
-            f"stage {stage} has a next stage: pass next_value (stage {stage + 1}'s state value, "
-            "e.g. learner.value()) for its transition reward, or standalone=True to train the "
-            "stage on its own rewards only."
-        )
+class _StageView(Transform):
+    """What both stage transforms share: their checks and stage ``stage``'s view of transitions."""
 
-
-@torch.no_grad()
-def apply_stage_view(
-    stage: int,
-    gamma: float,
-    next_value: TensorDictModuleBase | None,
-    stage_t: torch.Tensor,
-    next_td: TensorDictBase,
-    keys: StageKeys,
-) -> None:
-    """Stage ``stage``'s view of transitions, in place on their ``"next"`` content.
-
-    A transition that leaves the stage is ``terminated`` and, unless the task terminated on it,
-    gains ``gamma * next_value(s_{t+1})``; it must land in the next stage, whose value is finite.
-    """
-    leaving = next_td.get(keys.transition) & (stage_t == stage)
-    task_terminated = next_td.get(keys.terminated)
-    if next_value is not None and leaving.any():
-        landed = next_td.get(keys.stage)[leaving]
-        if (landed != stage + 1).any():
+    def __init__(
+        self,
+        stage: int | None,
+        num_stages: int,
+        gamma: float,
+        next_value: TensorDictModuleBase | None,
+        standalone: bool,
+        keys: StageKeys,
+        out_keys: list[NestedKey],
+    ) -> None:
+        if num_stages < 1:
+            raise ValueError(f"num_stages must be >= 1, got {num_stages}.")
+        if stage is not None and not 0 <= stage < num_stages:
+            raise ValueError(f"stage {stage} is outside 0..{num_stages - 1}.")
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"gamma={gamma} is outside (0, 1].")
+        has_next = stage is not None and stage < num_stages - 1
+        if next_value is not None and not has_next:
             raise ValueError(
-                f"a transition out of stage {stage} landed in stage "
-                f"{landed[landed != stage + 1][0].item()}: with a next-stage value, a step may "
-                f"only move to stage {stage + 1} (whose value it gets)."
+                "next_value is only used when training a stage that has a next stage: stage "
+                f"{stage} is the last one or no stage is trained (num_stages={num_stages})."
             )
-        bootstrap = leaving & ~task_terminated
-        reward = next_td.get(keys.reward)
-        # the value module runs on a selection: it cannot write into the transition
-        inputs = next_td.select(*next_value.in_keys)
-        value = next_value(inputs.clone(False)).get(keys.value)
-        value = value.to(reward.dtype).reshape(reward.shape)
-        if not bool(torch.isfinite(value[bootstrap]).all()):
-            for key, entry in inputs.items(True, True):
-                if entry.is_floating_point() and not bool(torch.isfinite(entry).all()):
-                    raise NonFiniteInputError(unravel_key(("next", key)), stage)
-            raise NonFiniteValueError(
-                f"the value of stage {stage + 1}, V(s_t+1), is not finite on a transition out "
-                f"of stage {stage}: stage {stage + 1}'s networks diverged, so stage {stage}'s "
-                "transition rewards would be NaN or infinite"
+        if has_next and next_value is None and not standalone:
+            raise ValueError(
+                f"stage {stage} has a next stage: pass next_value (stage {stage + 1}'s state "
+                "value, e.g. learner.value()) for its transition reward, or standalone=True to "
+                "train the stage on its own rewards only."
             )
-        next_td.set(keys.reward, torch.where(bootstrap, reward + gamma * value, reward))
-    terminated = task_terminated | leaving
-    next_td.set(keys.terminated, terminated)
-    truncated = next_td.get(keys.truncated, None)
-    if truncated is None:  # an env without a truncated entry
-        next_td.set(keys.done, next_td.get(keys.done) | terminated)
-    else:
-        next_td.set(keys.done, terminated | truncated)
+        super().__init__(in_keys=[], out_keys=out_keys)
+        self.stage, self.num_stages, self.gamma, self.keys = stage, num_stages, gamma, keys
+
+    @torch.no_grad()
+    def _view(self, stage_t: torch.Tensor, next_td: TensorDictBase) -> None:
+        """Stage ``stage``'s view of transitions, in place on their ``"next"`` content.
+
+        A transition that leaves the stage is ``terminated`` and, unless the task terminated on
+        it, gains ``gamma * next_value(s_{t+1})``; it must land in the next stage, whose value
+        is finite.
+        """
+        stage, keys, next_value = self.stage, self.keys, self.next_value
+        leaving = next_td.get(keys.transition) & (stage_t == stage)
+        task_terminated = next_td.get(keys.terminated)
+        if next_value is not None and leaving.any():
+            landed = next_td.get(keys.stage)[leaving]
+            if (landed != stage + 1).any():
+                raise ValueError(
+                    f"a transition out of stage {stage} landed in stage "
+                    f"{landed[landed != stage + 1][0].item()}: with a next-stage value, a step "
+                    f"may only move to stage {stage + 1} (whose value it gets)."
+                )
+            bootstrap = leaving & ~task_terminated
+            reward = next_td.get(keys.reward)
+            # the value module runs on a selection: it cannot write into the transition
+            inputs = next_td.select(*next_value.in_keys)
+            value = next_value(inputs.clone(False)).get(keys.value)
+            value = value.to(reward.dtype).reshape(reward.shape)
+            if not bool(torch.isfinite(value[bootstrap]).all()):
+                for key, entry in inputs.items(True, True):
+                    if entry.is_floating_point() and not bool(torch.isfinite(entry).all()):
+                        raise NonFiniteInputError(unravel_key(("next", key)), stage)
+                raise NonFiniteValueError(
+                    f"the value of stage {stage + 1}, V(s_t+1), is not finite on a transition "
+                    f"out of stage {stage}: stage {stage + 1}'s networks diverged, so stage "
+                    f"{stage}'s transition rewards would be NaN or infinite"
+                )
+            next_td.set(keys.reward, torch.where(bootstrap, reward + self.gamma * value, reward))
+        terminated = task_terminated | leaving
+        next_td.set(keys.terminated, terminated)
+        truncated = next_td.get(keys.truncated, None)
+        if truncated is None:  # an env without a truncated entry
+            next_td.set(keys.done, next_td.get(keys.done) | terminated)
+        else:
+            next_td.set(keys.done, terminated | truncated)
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(stage={self.stage}, num_stages={self.num_stages}, "
+            f"gamma={self.gamma}, next_value={'set' if self.next_value is not None else None})"
+        )
 
 
-class StageTransform(Transform):
+class StageTransform(_StageView):
     """Tags every step with its stage and, training stage k, gives stage k's view of it.
 
     ``stage_fn(td)`` gives each state's stage (int64 ``[*batch, 1]``; ``None`` reads the env's
@@ -168,14 +176,10 @@ class StageTransform(Transform):
         rewrite_in_env: bool = True,
         keys: StageKeys = StageKeys(),
     ) -> None:
-        _check_stage(train_stage, num_stages, gamma, next_value, standalone)
-        super().__init__(in_keys=[], out_keys=[keys.stage, keys.transition])
+        out_keys = [keys.stage, keys.transition]
+        super().__init__(train_stage, num_stages, gamma, next_value, standalone, keys, out_keys)
         self.stage_fn = stage_fn
-        self.num_stages = num_stages
-        self.train_stage = train_stage
-        self.gamma = gamma
         self.rewrite_in_env = rewrite_in_env
-        self.keys = keys
         self.next_value = None
         self.set_next_value(next_value)
 
@@ -192,7 +196,7 @@ class StageTransform(Transform):
     @property
     def _writes_success(self) -> bool:
         # leaving stage k is a truncation, which ended_well would count as failed
-        return self.train_stage is not None and not self.rewrite_in_env
+        return self.stage is not None and not self.rewrite_in_env
 
     def _stage(self, td: TensorDictBase) -> torch.Tensor:
         stage = td.get(self.keys.stage) if self.stage_fn is None else self.stage_fn(td)
@@ -209,13 +213,13 @@ class StageTransform(Transform):
     def _learner_view(self, stage_t: torch.Tensor, next_td: TensorDictBase) -> None:
         """Ends stage k's episode where a step leaves stage k, and marks it solved."""
         keys = self.keys
-        leaving = next_td.get(keys.transition) & (stage_t == self.train_stage)
+        leaving = next_td.get(keys.transition) & (stage_t == self.stage)
         success = next_td.get(keys.success, None)
         if success is not None:  # leaving stage k is stage k's success, unless the task failed
             failed = next_td.get(keys.terminated) & ~success
             next_td.set(keys.success, success | (leaving & ~failed))
         if self.rewrite_in_env:
-            apply_stage_view(self.train_stage, self.gamma, self.next_value, stage_t, next_td, keys)
+            self._view(stage_t, next_td)
             return
         if success is None:
             next_td.set(keys.success, next_td.get(keys.terminated) | leaving)
@@ -239,7 +243,7 @@ class StageTransform(Transform):
         stage_next = torch.maximum(self._stage(next_tensordict), stage_t)
         next_tensordict.set(self.keys.stage, stage_next)
         next_tensordict.set(self.keys.transition, stage_next > stage_t)
-        if self.train_stage is not None:
+        if self.stage is not None:
             self._learner_view(stage_t, next_tensordict)
         return next_tensordict
 
@@ -261,14 +265,8 @@ class StageTransform(Transform):
             observation_spec[self.keys.success] = spec(2, torch.bool)
         return observation_spec
 
-    def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}(num_stages={self.num_stages}, train_stage={self.train_stage}, "
-            f"gamma={self.gamma}, next_value={'set' if self.next_value is not None else None})"
-        )
 
-
-class StageRewardTransform(Transform):
+class StageRewardTransform(_StageView):
     """Stage k's view of replay-buffer samples, from the *current* next-stage value.
 
     The storage holds raw transitions tagged by :class:`StageTransform`; every sample gets the
@@ -312,9 +310,7 @@ class StageRewardTransform(Transform):
         gamma: float = 0.99,
         keys: StageKeys = StageKeys(),
     ) -> None:
-        _check_stage(stage, num_stages, gamma, next_value, standalone)
-        super().__init__(in_keys=[], out_keys=[])
-        self.stage, self.num_stages, self.gamma, self.keys = stage, num_stages, gamma, keys
+        super().__init__(stage, num_stages, gamma, next_value, standalone, keys, [])
         # not a sub-module: it belongs to the next stage's learner, and must not travel in
         # this transform's (or the replay buffer's) state_dict
         self.__dict__["next_value"] = next_value
@@ -335,8 +331,7 @@ class StageRewardTransform(Transform):
                 'store transitions collected through StageTransform (it writes "stage" and '
                 '("next", "stage_transition")), keeping those entries in the buffer.'
             )
-        stage_t, next_td = tensordict.get(keys.stage), tensordict.get("next")
-        apply_stage_view(self.stage, self.gamma, self.next_value, stage_t, next_td, keys)
+        self._view(tensordict.get(keys.stage), tensordict.get("next"))
         return tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase):
@@ -344,12 +339,6 @@ class StageRewardTransform(Transform):
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase):
         raise RuntimeError(self.ENV_ERR)
-
-    def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}(stage={self.stage}, num_stages={self.num_stages}, "
-            f"gamma={self.gamma}, next_value={'set' if self.next_value is not None else None})"
-        )
 
 
 class StageDiscount(Transform):
