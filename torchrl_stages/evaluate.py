@@ -116,12 +116,10 @@ def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
     T = done.shape[-1]
     steps = torch.arange(T, device=done.device)
     any_done = done.any(-1)
-    first = torch.where(
-        any_done, done.float().argmax(-1), torch.full_like(any_done, T - 1, dtype=torch.long)
-    )
+    first = torch.where(any_done, done.float().argmax(-1), T - 1)
     in_first = steps <= first.unsqueeze(-1)
     success = any_done & solved.gather(-1, first.unsqueeze(-1)).squeeze(-1)
-    length = torch.where(any_done, first + 1, torch.full_like(first, T))
+    length = torch.where(any_done, first + 1, T)
     return EpisodeStats(success=success, length=length, ret=(reward * in_first).sum(-1))
 
 

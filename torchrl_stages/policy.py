@@ -96,6 +96,4 @@ class StackedPolicy(TensorDictModuleBase):
         for key, (shape, dtype) in self._outputs.items():
             if key not in merged:  # written only by stages absent from this batch
                 merged[key] = torch.zeros(*stage.shape, *shape, dtype=dtype, device=device)
-        for key, value in merged.items():
-            tensordict.set(key, value)
-        return tensordict
+        return tensordict.update(merged)
