@@ -279,14 +279,13 @@ class StageRewardTransform(_StageView):
         >>> from tensordict import TensorDict
         >>> from tensordict.nn import TensorDictModule
         >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-        >>> v1 = TensorDictModule(lambda o: o.sum(-1, keepdim=True), ["observation"],
-        ...                       ["state_value"])
+        >>> v1 = TensorDictModule(lambda o: o + 1, ["observation"], ["state_value"])
         >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(4), batch_size=2)
         >>> _ = rb.append_transform(StageRewardTransform(0, 2, next_value=v1, gamma=0.5))
         >>> leaves = torch.tensor([[True], [False]])  # the first transition enters stage 1
         >>> no = torch.zeros(2, 1, dtype=torch.bool)
         >>> _ = rb.extend(TensorDict(stage=torch.zeros(2, 1, dtype=torch.long), next=TensorDict(
-        ...     observation=torch.ones(2, 2), stage=leaves.long(), stage_transition=leaves,
+        ...     observation=torch.ones(2, 1), stage=leaves.long(), stage_transition=leaves,
         ...     reward=torch.zeros(2, 1), terminated=no, truncated=no, done=no,
         ...     batch_size=[2]), batch_size=[2]))
         >>> nxt = rb[:]["next"]  # the storage stays raw; samples get stage 0's view
