@@ -183,6 +183,10 @@ class StageTransform(_StageView):
         self.next_value = None
         self.set_next_value(next_value)
 
+    @property
+    def train_stage(self) -> int | None:
+        return self.stage
+
     def set_next_value(self, module: TensorDictModuleBase | None) -> None:
         """Installs a frozen snapshot of the next stage's value module (or removes it)."""
         self.next_value = None if module is None else freeze(module)
