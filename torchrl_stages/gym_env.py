@@ -142,8 +142,10 @@ class GymStageEnv(GymWrapper):
     A copy resets only when torchrl asks (``autoreset_mode=DISABLED``), and ``state_dict`` holds
     the copies' running episodes (:class:`~torchrl_stages.episode_replay.EpisodeReplay`), so a
     resumed run goes on bitwise where the env draws only from its ``np_random``.
-    ``success_key`` names the ``info`` flag read by :class:`SuccessReader` (``None``: solved
-    when terminated); ``vectorize="async"`` steps the copies in worker processes.
+    ``env_id`` ``"module:Id"`` imports ``module`` first; ``stage_fn`` is ``None`` where the env
+    writes ``"stage"``; ``success_key`` names the ``info`` flag read by :class:`SuccessReader`
+    (``None``: solved when terminated); ``vectorize="async"`` steps the copies in worker
+    processes; ``max_steps`` (the env's time limit) caps evaluation episodes.
 
     Examples:
         >>> env = GymStageEnv(
