@@ -145,14 +145,12 @@ class _StageView(Transform):
 class StageTransform(_StageView):
     """Tags every step with its stage and, training stage k, gives stage k's view of it.
 
-    ``stage_fn(td)`` gives each state's stage (int64 ``[*batch, 1]``; ``None`` reads the env's
-    own ``keys.stage`` entry); stages only move forward. With ``train_stage=k`` the step that
-    leaves stage k ends stage k's episode: it is ``terminated`` and its reward gains
-    ``gamma * V_{k+1}(s_{t+1})`` from a frozen copy of ``next_value``, unless the task itself
-    terminated on it. ``standalone=True`` trains a stage that has a next one without that term.
-    With ``rewrite_in_env=False`` the step is ``truncated`` instead and stays raw, for a
-    :class:`StageRewardTransform` on the replay buffer; the transform then writes the success
-    flag where the env has none, so leaving stage k counts as solved in both modes.
+    ``stage_fn(td)`` gives each state's stage, int64 ``[*batch, 1]`` (``None``: the env's own
+    ``keys.stage`` entry); stages only move forward. With ``train_stage=k`` the step that leaves
+    stage k ends its episode: it is ``terminated`` and gains ``gamma * V_{k+1}(s_{t+1})`` from a
+    frozen copy of ``next_value``, unless the task terminated on it (``standalone=True``: never).
+    With ``rewrite_in_env=False`` it is ``truncated`` instead and stays raw for a
+    :class:`StageRewardTransform`; in both modes leaving stage k counts as solved.
 
     Examples:
         >>> from torchrl.envs import TransformedEnv
