@@ -45,11 +45,8 @@ def can_step_finished(env: EnvBase) -> bool:
 def rollout_first_episodes(
     env: EnvBase, policy: TensorDictModuleBase, max_steps: int
 ) -> TensorDictBase:
-    """Greedy rollout ``[*batch, T <= max_steps]`` until every element has ended one episode.
-
-    Elements that finish early are reset (or step on, where :func:`can_step_finished`: the same
-    first episodes without torchrl's partial reset, which costs about as much as a step).
-    """
+    """Greedy rollout ``[*batch, T <= max_steps]`` until every element has ended one episode;
+    finished elements are reset, or step on where :func:`can_step_finished` (no reset cost)."""
     steps = []
     finished = torch.zeros(env.batch_size, dtype=torch.bool, device=env.device)
     reset_finished = not can_step_finished(env)

@@ -94,12 +94,8 @@ class _StageView(Transform):
 
     @torch.no_grad()
     def _view(self, stage_t: torch.Tensor, next_td: TensorDictBase) -> None:
-        """Stage ``stage``'s view of transitions, in place on their ``"next"`` content.
-
-        A transition that leaves the stage is ``terminated`` and, unless the task terminated on
-        it, gains ``gamma * next_value(s_{t+1})``; it must land in the next stage, whose value
-        is finite.
-        """
+        """In place on ``"next"``: a transition that leaves the stage is ``terminated`` and,
+        unless the task terminated on it, gains ``gamma * next_value(s_{t+1})``."""
         stage, keys, next_value = self.stage, self.keys, self.next_value
         leaving = next_td.get(keys.transition) & (stage_t == stage)
         task_terminated = next_td.get(keys.terminated)
