@@ -1,9 +1,5 @@
 """Schedules: how a task's stages are trained, one module each, registered by name
-(``schedule=<name>``): :mod:`~torchrl_stages.schedules.backward` (stage by stage, the last one
-first), :mod:`~torchrl_stages.schedules.joint` (every stage at once, the paper's Algorithm 1)
-and :mod:`~torchrl_stages.schedules.flat` (one learner, no stages). A schedule of your own: a
-:class:`Schedule` subclass decorated with :func:`register_schedule`; every module here is
-imported with the package, so a schedule is its module and its ``conf/schedule/<name>.yaml``."""
+(``schedule=<name>``); every module here is imported with the package."""
 
 import importlib
 import pkgutil
@@ -13,6 +9,7 @@ from torchrl_stages.schedules.base import (
     SCHEDULES,
     Probe,
     Schedule,
+    SeedRuns,
     StageKeeper,
     Trained,
     get_schedule,
@@ -32,6 +29,7 @@ __all__ = [
     "JointTrainer",
     "Probe",
     "Schedule",
+    "SeedRuns",
     "StageKeeper",
     "Trained",
     "flat_config",
