@@ -50,7 +50,6 @@ class EarlyStop:
         self.stopped = False
         self.best: tuple[float, float] | None = None  # (success, value error) of the best
         self.best_score: tuple[float, float] | None = None
-        self.best_is_last = False
         self.best_state: dict | None = None
         self.last: tuple[float, float] | None = None
         self.best_return: float | None = None  # mean discounted return of those evaluations
@@ -69,8 +68,7 @@ class EarlyStop:
         self.last, self.last_return = (success, value_error), ret
         by_return = 0.0 if ret is None else ret
         score = (success, by_return if cfg.keep_best_by == "return" else -value_error)
-        self.best_is_last = cfg.keep_best and (self.best_score is None or score > self.best_score)
-        if self.best_is_last:
+        if cfg.keep_best and (self.best_score is None or score > self.best_score):
             self.best_score, self.best = score, (success, value_error)
             self.best_return = ret
             self.best_state = copy.deepcopy(learner.state_dict())
@@ -83,7 +81,7 @@ class EarlyStop:
         self.stopped = self.streak >= cfg.patience and frames >= cfg.min_frames
         return self.stopped
 
-    _FIELDS = "streak stopped best best_score best_is_last last best_return last_return".split()
+    _FIELDS = "streak stopped best best_score last best_return last_return".split()
 
     def state_dict(self) -> dict:
         return {f: getattr(self, f) for f in [*self._FIELDS, "best_state"]}
@@ -167,11 +165,14 @@ class SeedRow:
                 own[id(learner)][key].data.select(axis, self.seed).copy_(state[entry])
 
 
-def seed_rows(learner: Learner) -> list[Any]:
-    """What an early stop keeps and restores of each seed of ``learner`` (ordinary: itself)."""
-    if learner.seeds is None:
-        return [learner]
-    return [SeedRow(learner, i) for i in range(int(learner.seeds))]
+def seed_rows(learners: Learner | Sequence[Learner]) -> list[Any]:
+    """What an early stop keeps and restores of each seed of a learner or of a team of them
+    (ordinary learners: themselves, one row)."""
+    one = isinstance(learners, nn.Module)
+    seeds = (learners if one else learners[0]).seeds
+    if seeds is None:
+        return [learners if one else nn.ModuleList(learners)]
+    return [SeedRow(learners, i) for i in range(int(seeds))]
 
 
 def finite(state: dict[str, torch.Tensor]) -> bool:

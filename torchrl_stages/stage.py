@@ -59,8 +59,8 @@ class StageResult:
 def per_seed_metrics(
     metrics: dict[str, torch.Tensor], rows: torch.Tensor | None, n: int
 ) -> dict[str, torch.Tensor]:
-    """An update's metrics with one entry per seed (``[n]``); those computed for ``rows`` alone
-    placed in their rows, NaN in the others.
+    """An update's metrics per seed (``[n]``): those of ``rows`` alone in their rows, NaN in the
+    others.
 
     Examples:
         >>> per_seed_metrics({"loss": torch.tensor(0.5)}, None, 1)["loss"]
@@ -86,13 +86,9 @@ def gradient_steps(
     watch: Stopwatch,
     transform: Callable[[TensorDictBase], TensorDictBase] | None = None,
 ) -> list[dict[str, torch.Tensor]]:
-    """A batch's ``updates_per_batch`` gradient steps of ``learner`` for its seeds ``rows``
-    (``None``: all), on samples of ``buffer`` (``transform``-ed); their per-seed losses.
-
-    One draw for all the steps, split per step: the same indices as a draw per step (the
-    randint stream is the same) unless the update itself draws random numbers in between (TD3's
-    target smoothing), and one storage read instead of one per step.
-    """
+    """A batch's gradient steps of ``learner``'s seeds ``rows`` (``None``: all) on samples of
+    ``buffer``; their per-seed losses. One draw for all the steps (the same indices as a draw per
+    step, in one storage read) unless the update itself draws random numbers (TD3)."""
     n = int(learner.seeds or 1)
     steps, size = int(cfg.updates_per_batch), int(cfg.batch_size)
     draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
@@ -114,16 +110,12 @@ def gradient_steps(
 
 
 class StageTrainer(SeedLoop):
-    """Trains stage ``stage`` for every seed of ``learner`` (an ordinary learner: one seed).
-
-    ``env`` and ``eval_env`` start inside the stage, one copy of their batch per seed; ``cfg``'s
-    frames, batches and evaluation periods are per seed. ``logs``: one per seed; with
-    ``checkpoints`` an interrupted stage goes on exactly where it stopped. ``gammas`` (one per
-    stage) makes evaluations compare values with the stage-discounted return; ``postproc``
-    transforms each batch and ``extra_keys`` are stored with what the loss reads (the flat
-    schedule's discounts); ``on_evaluate(frames)`` runs after each evaluation. :meth:`train`
-    returns each seed's ordinary learner (``make_learner()`` builds the empty one a stacked
-    row is taken into) and result.
+    """Trains stage ``stage`` for every seed of ``learner`` (ordinary: one seed); ``env`` and
+    ``eval_env`` hold one copy of their batch per seed, ``cfg``'s budgets are per seed. With
+    ``checkpoints`` an interrupted stage goes on exactly where it stopped. The flat schedule
+    passes ``gammas`` (evaluations' stage discounts), ``postproc`` (applied to each batch) and
+    ``extra_keys`` (stored too). :meth:`train` returns each seed's ordinary learner
+    (``make_learner()`` builds the one a stacked row is taken into) and result.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -169,7 +161,7 @@ class StageTrainer(SeedLoop):
 
     @functools.cached_property
     def _value(self) -> TensorDictModuleBase:
-        """What evaluations read V from: the learner's target networks themselves (live)."""
+        """The learner's live target networks, what evaluations read V from."""
         return self.learner.value(live=True)
 
     def train(self) -> list[tuple[Learner, StageResult]]:
@@ -224,8 +216,7 @@ class StageTrainer(SeedLoop):
     def _update(
         self, buffer: SeedReplayBuffer, stops: SeedEarlyStops, watch: Stopwatch, frames: int
     ) -> list[dict[str, torch.Tensor]]:
-        """The seeds that have not stopped take their gradient steps (a stopped seed's row gets
-        none; its stopped weights are restored at the end)."""
+        """The seeds that have not stopped take their gradient steps."""
         self.learner.anneal(frames)
         if frames < self.cfg.init_random_frames:
             return []
@@ -234,11 +225,8 @@ class StageTrainer(SeedLoop):
         return gradient_steps(self.learner, buffer, self.cfg, rows, watch)
 
     def evaluate(self, frames: int, active: Callable[[], list[int]] | None = None) -> Evaluation:
-        """Greedy episodes from the evaluation env's starts, for each seed (the ``active`` ones
-        log theirs under ``eval/stage_<k>/``): ``success_rate`` (episodes that leave the stage or
-        end the task solved), ``value_error`` (``|V(s_0) - G|`` reduced over the starts by
-        ``cfg.value_error_reduce``) and ``discounted_return`` (the mean of the returns G).
-        """
+        """Greedy episodes from the evaluation env's starts for each seed (the ``active`` ones
+        logged): success, value error ``|V(s_0) - G|`` and mean discounted return G."""
         cfg, n = self.cfg, self.n
         max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
         summaries = evaluate_greedy(

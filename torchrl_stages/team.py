@@ -13,10 +13,9 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey, unravel_key
-from torch import nn
 
 from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, SavedCounters, StageCheckpoints
-from torchrl_stages.early_stop import SeedRow
+from torchrl_stages.early_stop import seed_rows
 from torchrl_stages.failures import stage_failure
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
@@ -59,14 +58,6 @@ class JointCounters(SavedCounters):
         self.stored = self.stored or [[0] * stages for _ in range(n)]
         self.updates = self.updates or [[0] * stages for _ in range(n)]
         self.phases = self.phases or [[] for _ in range(n)]
-
-
-def team_rows(learners: Sequence[Learner]) -> list[Any]:
-    """What a whole-task early stop keeps and restores of each seed (ordinary learners: the team
-    itself)."""
-    if learners[0].seeds is None:
-        return [nn.ModuleList(learners)]
-    return [SeedRow(learners, i) for i in range(int(learners[0].seeds))]
 
 
 def seed_moments(
@@ -207,7 +198,7 @@ class StageTeam(SeedLoop):
                     self.task.stage_names[m],
                     learner,
                     self.buffers[m].held(),
-                    [team_rows(self.learners)[i] for i in ready],
+                    [seed_rows(self.learners)[i] for i in ready],
                     [self.seeds[i] for i in ready],
                 ) from err
             for i in ready:

@@ -15,8 +15,8 @@ from torchrl_stages.schedules.base import (
     get_schedule,
     register_schedule,
 )
-from torchrl_stages.schedules.flat import FlatSchedule, flat_config, train_flat
-from torchrl_stages.schedules.joint import JointSchedule, JointTrainer
+from torchrl_stages.schedules.flat import train_flat
+from torchrl_stages.schedules.joint import JointTrainer
 
 for _module in pkgutil.iter_modules(__path__):  # each schedule module registers itself
     importlib.import_module(f"{__name__}.{_module.name}")
@@ -24,15 +24,12 @@ for _module in pkgutil.iter_modules(__path__):  # each schedule module registers
 __all__ = [
     "SCHEDULES",
     "BackwardSchedule",
-    "FlatSchedule",
-    "JointSchedule",
     "JointTrainer",
     "Probe",
     "Schedule",
     "SeedRuns",
     "StageKeeper",
     "Trained",
-    "flat_config",
     "get_schedule",
     "register_schedule",
     "train_backward",

@@ -22,13 +22,10 @@ from torchrl_stages.task import StagedTask
 
 
 def train_backward(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """Trains stages N-1, ..., 0 of ``task`` in turn for every seed of ``seeds`` at once
-    (:meth:`Schedule.train <torchrl_stages.schedules.Schedule.train>`'s arguments); each seed's
-    learners and results in stage order.
-
-    Stage k's episodes start inside it; its transition reward uses the frozen value of the
-    trained stage k+1. Each stage is seeded from the seed and its index alone, so it does not
-    depend on how the stages after it were reached (trained now, or loaded by a resumed run).
+    """Trains stages N-1, ..., 0 of ``task`` in turn, each against the frozen value of the one
+    after it, for every seed of ``seeds`` at once (``kwargs``: those of :meth:`Schedule.train
+    <torchrl_stages.schedules.Schedule.train>`). A stage is seeded from the seed and its index
+    alone, so it does not depend on how the stages after it were reached (trained or loaded).
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -70,13 +67,10 @@ def train_stage(
     on_evaluate: Callable[[Learner, int], None] | None = None,
     compile: str = "off",
 ) -> list[tuple[Learner, StageResult]]:
-    """Trains stage ``stage`` of ``task`` on its own, as the backward schedule does, for every
-    seed of ``seeds`` at once; each seed's learner and result.
-
-    ``next_value``: the frozen value of stage ``stage + 1`` (``None`` for the last stage). With
-    the same ``next_value``, the stage is the one a backward run with the seed trains (what
-    ``scripts/benchmark_stage.py`` relies on). ``on_evaluate(learner, frames)`` runs after each
-    evaluation (one seed).
+    """Trains stage ``stage`` of ``task`` against ``next_value`` (stage ``stage + 1``'s frozen
+    value; ``None`` for the last stage) for every seed of ``seeds``, as a backward run does
+    (what ``scripts/benchmark_stage.py`` relies on); each seed's learner and result.
+    ``on_evaluate(learner, frames)`` runs after each evaluation (one seed).
 
     Examples:
         >>> from omegaconf import OmegaConf

@@ -58,17 +58,23 @@ class Trained:
 
 @dataclass
 class SeedRuns:
-    """The seeds a schedule trains at once: each one's keeper (``None``: keeps nothing) and log,
-    the checkpoints of a loop scope (one state for all the seeds), and how the loops run."""
+    """The seeds a schedule trains at once (:meth:`Schedule.train`'s arguments): each one's
+    keeper (``None``: keeps nothing) and log, the checkpoints of a loop scope (one state for all
+    the seeds), and how the loops run (``probe``: one seed)."""
 
     schedule: str
     seeds: list[int]
-    keepers: list[StageKeeper | None]
-    logs: list[MetricsLog]
+    keepers: Sequence[StageKeeper | None] | None = None
+    logs: Sequence[MetricsLog] | None = None
     checkpoints: Callable[[int | str], StageCheckpoints] | None = None
     progress: bool = False
     probe: Probe | None = None
     compile: str = "off"
+
+    def __post_init__(self) -> None:
+        n = len(self.seeds)
+        self.keepers = list(self.keepers) if self.keepers is not None else [None] * n
+        self.logs = list(self.logs) if self.logs is not None else [MetricsLog(None)] * n
 
     def finished(self, stage: int) -> list[tuple[Learner, StageResult]] | None:
         """Each seed's finished ``stage`` when every keeper has it, ``None`` when none has."""
@@ -128,33 +134,10 @@ class Schedule:
     #: whether :meth:`train` trains several seeds in one process (``seeds=[...]``)
     stacks_seeds: ClassVar[bool] = False
 
-    def train(
-        self,
-        task: StagedTask,
-        seeds: Sequence[int] = (0,),
-        *,
-        keepers: Sequence[StageKeeper | None] | None = None,
-        logs: Sequence[MetricsLog] | None = None,
-        checkpoints: Callable[[int | str], StageCheckpoints] | None = None,
-        progress: bool = False,
-        probe: Probe | None = None,
-        compile: str = "off",
-    ) -> list[Trained]:
+    def train(self, task: StagedTask, seeds: Sequence[int] = (0,), **kwargs: Any) -> list[Trained]:
         """Trains (what is left of) ``task``'s stages for every seed of ``seeds`` at once; one
-        :class:`Trained` per seed. ``keepers`` and ``logs``: one per seed; ``checkpoints``: a
-        :meth:`checkpoint_scope` -> its checkpoints; ``probe``: one seed."""
-        n = len(seeds)
-        runs = SeedRuns(
-            self.name,
-            list(seeds),
-            list(keepers) if keepers is not None else [None] * n,
-            list(logs) if logs is not None else [MetricsLog(None) for _ in range(n)],
-            checkpoints,
-            progress,
-            probe,
-            compile,
-        )
-        return self.run(task, runs)
+        :class:`Trained` per seed. ``kwargs``: the fields of :class:`SeedRuns`."""
+        return self.run(task, SeedRuns(self.name, list(seeds), **kwargs))
 
     def run(self, task: StagedTask, runs: SeedRuns) -> list[Trained]:
         """What :meth:`train` does, for a schedule of its own."""

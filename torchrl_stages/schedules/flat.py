@@ -25,14 +25,11 @@ def flat_config(task: StagedTask) -> DictConfig:
 
 
 def train_flat(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """One learner over the whole task for every seed of ``seeds`` at once
-    (:meth:`Schedule.train <torchrl_stages.schedules.Schedule.train>`'s arguments).
-
-    It has stage 0's algorithm and hyper-parameters and the sum of the stages' budgets, starts
-    from the task's own starts and discounts every transition with the gamma of its stage
-    (:class:`~torchrl_stages.transforms.StageDiscount`), so it optimizes the objective the
-    stacked learners do; it evaluates whole-task episodes. Each seed's :class:`Trained` holds
-    its learner once per stage and its one result.
+    """One learner over the whole task for every seed of ``seeds`` at once (``kwargs``: those
+    of :meth:`Schedule.train <torchrl_stages.schedules.Schedule.train>`): stage 0's config with
+    the stages' budgets summed, every transition discounted with its stage's gamma
+    (:class:`~torchrl_stages.transforms.StageDiscount`), whole-task episodes. Each seed's
+    :class:`Trained` holds its learner once per stage and its one result.
 
     Examples:
         >>> from omegaconf import OmegaConf

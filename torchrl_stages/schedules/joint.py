@@ -14,19 +14,18 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import Compose, RewardSum, TransformedEnv
 
-from torchrl_stages.checkpoint import StageCheckpoints, StateOf
+from torchrl_stages.checkpoint import StateOf
 from torchrl_stages.collector import StageCollector
-from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, first_evaluation
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, first_evaluation, seed_rows
 from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.learners.stacking import unstack_learner
 from torchrl_stages.loop import LoopCounters, Stopwatch
-from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.schedules.base import Probe, Schedule, SeedRuns, Trained, register_schedule
 from torchrl_stages.seeding import EVAL_OFFSET, phase_seed, stage_seed
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask, tile_starts
-from torchrl_stages.team import JointCounters, StageTeam, seed_moments, team_rows
+from torchrl_stages.team import JointCounters, StageTeam, seed_moments
 from torchrl_stages.transforms import StageTransform
 
 log = logging.getLogger(__name__)
@@ -63,25 +62,15 @@ class JointTrainer(StageTeam):
     """
 
     def __init__(
-        self,
-        task: StagedTask,
-        seeds: Sequence[int] = (0,),
-        *,
-        logs: Sequence[MetricsLog] | None = None,
-        progress: bool = False,
-        checkpoints: StageCheckpoints | None = None,
-        probe: Probe | None = None,
-        compile: str = "off",
+        self, task: StagedTask, seeds: Sequence[int] = (0,), *, probe: Probe | None = None, **kwargs
     ) -> None:
-        super().__init__(
-            task, seeds, logs=logs, progress=progress, checkpoints=checkpoints, compile=compile
-        )
+        """``kwargs``: :class:`StageTeam`'s ``logs``, ``progress``, ``checkpoints``, ``compile``."""
+        super().__init__(task, seeds, **kwargs)
         self.probe = probe
         self.starts = list(reversed(range(task.num_stages))) if task.stage_starts else [None]
 
     def _env(self, start: int | None, batch_size: int, eval_env: bool = False):
-        """Whole-task env from stage ``start``'s starts (stage tags, no learner view), its batch
-        repeated once per seed."""
+        """Whole-task env from stage ``start``'s starts, its batch repeated once per seed."""
         task = self.task
         starts = task.start_states(start) if eval_env else None
         if starts is not None:
@@ -92,8 +81,7 @@ class JointTrainer(StageTeam):
         return TransformedEnv(base, tags if eval_env else Compose(tags, RewardSum()))
 
     def _phase_envs(self, k: int, start_stage: int | None, cfg) -> tuple[Any, Any]:
-        """The phase's training and evaluation envs, seeded (the global generator too) as
-        phase ``k`` is."""
+        """Phase ``k``'s training and evaluation envs, seeded (the global generator too)."""
         seed = self.seeds[0]
         torch.manual_seed(phase_seed(seed, k))
         env = self._env(start_stage, int(cfg.num_envs))
@@ -130,8 +118,7 @@ class JointTrainer(StageTeam):
         return [self._trained(i, counters, seconds, watch) for i in range(self.n)]
 
     def _trained(self, i: int, counters: JointCounters, seconds: float, watch) -> Trained:
-        """Seed ``i``'s learners and results: each stage's stored transitions and updates, and
-        the last phase's whole-task evaluation."""
+        """Seed ``i``'s learners and results (the last phase's evaluation for every stage)."""
         phases = counters.phases[i]
         last = phases[-1] if phases else {}
         learners, results = [], []
@@ -156,8 +143,7 @@ class JointTrainer(StageTeam):
         return Trained(learners, results, {"phases": phases})
 
     def _phase(self, start_stage, counters: JointCounters, stateful, latest, watch, t0) -> None:
-        """One phase for every seed: collect from ``start_stage``'s starts, route each seed's
-        transitions, update each seed's ready stages, evaluate and stop each seed."""
+        """One phase for every seed, from ``start_stage``'s starts."""
         n, k = self.n, 0 if start_stage is None else start_stage
         cfg = self.task.stage_cfg(k)
         resume_in_phase = latest is not None and counters.in_phase
@@ -173,7 +159,7 @@ class JointTrainer(StageTeam):
             total_frames=int(cfg.frames) * n,
             init_random_frames=int(cfg.init_random_frames) * n if counters.phase == 0 else 0,
         )
-        stops = SeedEarlyStops(cfg, team_rows(self.learners), start=t0)
+        stops = SeedEarlyStops(cfg, seed_rows(self.learners), start=t0)
         phase = LoopCounters(next_eval=first_evaluation(cfg))
         state = {
             **stateful,
@@ -234,8 +220,7 @@ class JointTrainer(StageTeam):
     def evaluate(
         self, k: int, eval_env, counters: JointCounters, stops: SeedEarlyStops
     ) -> Evaluation:
-        """Greedy whole-task episodes from stage-k starts for each seed: success, merged value
-        error and merged discounted return (logged under ``eval/joint_<k>/``)."""
+        """Greedy whole-task episodes from stage-k starts for each seed."""
         cfg = self.task.stage_cfg(k)
         policy = StackedPolicy([learner.policy for learner in self.learners])
         max_steps = int(getattr(eval_env.base_env, "max_steps", 1000))
