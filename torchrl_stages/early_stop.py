@@ -1,7 +1,5 @@
-"""When a loop stops, and which weights it keeps: each seed's greedy evaluations
-(:class:`Evaluation`), the early stop and best weights of one seed (:class:`EarlyStop`) and of
-every seed of a loop (:class:`SeedEarlyStops`), over the rows of a seed-stacked learner
-(:class:`SeedRow`, :class:`TeamRow`; an ordinary learner is its own one row)."""
+"""When a loop stops and which weights it keeps, for one seed (:class:`EarlyStop`) or each seed
+of a loop (:class:`SeedEarlyStops`), over the rows of a seed-stacked learner."""
 
 from __future__ import annotations
 
@@ -18,22 +16,11 @@ from torchrl_stages.config import StageConfig
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.stacking import seed_axes
 
-__all__ = [
-    "EarlyStop",
-    "Evaluation",
-    "SeedEarlyStops",
-    "SeedRow",
-    "TeamRow",
-    "first_evaluation",
-    "seed_rows",
-]
-
 
 def first_evaluation(cfg: StageConfig) -> int:
-    """Frames of a stage's first evaluation: ``eval_every``, or, with an early stop that the
-    budget allows, the first of the ``patience`` evaluations that can stop the stage at
-    ``min_frames`` (earlier ones could not stop it: evaluations only as often as the early stop
-    needs)."""
+    """Frames of a stage's first evaluation: ``eval_every``, or, with an early stop, the first of
+    the ``patience`` evaluations that can stop the stage at ``min_frames`` (earlier ones could
+    not)."""
     first = int(cfg.eval_every)
     if cfg.success_threshold is not None and int(cfg.min_frames) <= int(cfg.frames):
         first = max(first, int(cfg.min_frames) - (int(cfg.patience) - 1) * first)
@@ -42,8 +29,7 @@ def first_evaluation(cfg: StageConfig) -> int:
 
 @dataclass
 class Evaluation:
-    """One evaluation of every seed of a loop (lists: one entry per seed): greedy success,
-    value error and mean discounted return, and each seed's frames and updates so far."""
+    """One evaluation of every seed of a loop (one entry per seed)."""
 
     success: list[float]
     value_error: list[float]
@@ -53,13 +39,10 @@ class Evaluation:
 
 
 class EarlyStop:
-    """Early stop and best-weights bookkeeping over a stage's greedy evaluations.
-
-    The early-stop criterion must hold for ``patience`` consecutive evaluations after
-    ``min_frames``. When the budget runs out first, :meth:`restore_best` puts back the weights of
-    the best evaluation, if ``keep_best``: highest success, then lowest value error (``keep_best_by
-    = "value_error"``) or highest mean discounted return (``"return"``).
-    """
+    """Early stop and best weights over a stage's greedy evaluations: the criterion must hold
+    for ``patience`` consecutive evaluations after ``min_frames``; if the budget runs out first,
+    :meth:`restore_best` puts back the best evaluation's weights (``keep_best``: highest success,
+    then ``keep_best_by`` lowest value error or highest return)."""
 
     def __init__(self, cfg: StageConfig) -> None:
         self.cfg = cfg
@@ -67,7 +50,6 @@ class EarlyStop:
         self.stopped = False
         self.best: tuple[float, float] | None = None  # (success, value error) of the best
         self.best_score: tuple[float, float] | None = None
-        self.best_is_last = False
         self.best_state: dict | None = None
         self.last: tuple[float, float] | None = None
         self.best_return: float | None = None  # mean discounted return of those evaluations
@@ -81,14 +63,12 @@ class EarlyStop:
         frames: int,
         ret: float | None = None,
     ) -> bool:
-        """Records one evaluation (``ret``: its mean discounted return); returns whether the
-        stage should stop now."""
+        """Records one evaluation (``ret``: its mean discounted return); whether to stop now."""
         cfg = self.cfg
         self.last, self.last_return = (success, value_error), ret
         by_return = 0.0 if ret is None else ret
         score = (success, by_return if cfg.keep_best_by == "return" else -value_error)
-        self.best_is_last = cfg.keep_best and (self.best_score is None or score > self.best_score)
-        if self.best_is_last:
+        if cfg.keep_best and (self.best_score is None or score > self.best_score):
             self.best_score, self.best = score, (success, value_error)
             self.best_return = ret
             self.best_state = copy.deepcopy(learner.state_dict())
@@ -101,31 +81,19 @@ class EarlyStop:
         self.stopped = self.streak >= cfg.patience and frames >= cfg.min_frames
         return self.stopped
 
-    _FIELDS = (
-        "streak",
-        "stopped",
-        "best",
-        "best_score",
-        "best_is_last",
-        "last",
-        "best_return",
-        "last_return",
-    )
+    _FIELDS = "streak stopped best best_score last best_return last_return".split()
 
     def state_dict(self) -> dict:
-        return {**{f: getattr(self, f) for f in self._FIELDS}, "best_state": self.best_state}
+        return {f: getattr(self, f) for f in [*self._FIELDS, "best_state"]}
 
     def load_state_dict(self, state: dict) -> None:
         for f in self._FIELDS:
-            # checkpoints from before the returns were kept lack those two fields
             value = state.get(f) if f.endswith("_return") else state[f]
             setattr(self, f, tuple(value) if isinstance(value, list) else value)
         self.best_state = state["best_state"]
 
     def restore_best(self, learner: nn.Module) -> bool:
-        """Puts back the best evaluated weights (the budget ran out before the early stop);
-        returns whether they differ from the weights the loop ended with (updates may follow
-        the last evaluation)."""
+        """Puts back the best evaluated weights; whether they differ from the loop's last ones."""
         if self.stopped or self.best_state is None:
             return False
         current = learner.state_dict()
@@ -136,7 +104,7 @@ class EarlyStop:
 
     @property
     def final(self) -> tuple[float | None, float | None]:
-        """Evaluation of the weights the stage ends with."""
+        """(success, value error) of the weights the stage ends with."""
         if self.last is None:
             return None, None
         if self.stopped or self.best is None:
@@ -152,29 +120,9 @@ class EarlyStop:
 
 
 class SeedRow:
-    """Seed ``seed``'s row of a seed-stacked learner, as :class:`~torchrl_stages.loop.EarlyStop`
-    reads and restores a learner: ``state_dict`` copies the row out, ``load_state_dict`` writes
-    it back (entries shared by the seeds, such as the exploration schedule, are left alone)."""
-
-    def __init__(self, learner: Learner, seed: int) -> None:
-        self.learner, self.seed = learner, seed
-        self.axes = {k: a for k, a in seed_axes(learner).items() if a is not None}
-
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        state = self.learner.state_dict()
-        return {k: state[k].select(axis, self.seed).clone() for k, axis in self.axes.items()}
-
-    @torch.no_grad()
-    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        own = self.learner.state_dict(keep_vars=True)
-        for key, value in state.items():
-            own[key].data.select(self.axes[key], self.seed).copy_(value)
-
-
-class TeamRow:
-    """Seed ``seed``'s row of every seed-stacked learner of ``learners`` as one
-    :class:`SeedRow` (entries ``<m>.<key>``: learner ``m``'s): what a whole-task early stop
-    keeps and restores of one seed.
+    """Seed ``seed``'s row of a seed-stacked learner, or of every learner of a team (entries
+    ``<m>.<key>``), as :class:`EarlyStop` reads and restores it (entries the seeds share, such as
+    the exploration schedule, are left alone).
 
     Examples:
         >>> from torchrl.data import Categorical
@@ -182,34 +130,49 @@ class TeamRow:
         >>> from torchrl_stages.learners.dqn import DQNConfig
         >>> specs = StageSpecs(["observation"], 3, "action", Categorical(2, (1,)))
         >>> team = [make_learner(DQNConfig(num_cells=[8]), specs, seeds=2) for _ in range(2)]
-        >>> row = TeamRow(team, 1)
-        >>> state = row.state_dict()  # learner 1's target network, seed 1's row
+        >>> state = SeedRow(team, 1).state_dict()  # learner 1's target network, seed 1's row
         >>> state["1.loss.target_value_network_params.module.0.module.value.2.weight"].shape
         torch.Size([1, 8])
     """
 
-    def __init__(self, learners: Sequence[Learner], seed: int) -> None:
-        self.rows = [SeedRow(learner, seed) for learner in learners]
+    def __init__(self, learners: Learner | Sequence[Learner], seed: int) -> None:
+        self.team = not isinstance(learners, nn.Module)
+        self.learners = list(learners) if self.team else [learners]
+        self.seed = seed
+        self.axes = [
+            {k: a for k, a in seed_axes(learner).items() if a is not None}
+            for learner in self.learners
+        ]
+
+    def _entries(self):
+        """(learner, its state key, its seed axis, the row's key) of every entry."""
+        for m, (learner, axes) in enumerate(zip(self.learners, self.axes, strict=True)):
+            for key, axis in axes.items():
+                yield learner, key, axis, f"{m}.{key}" if self.team else key
 
     def state_dict(self) -> dict[str, torch.Tensor]:
+        states = {id(learner): learner.state_dict() for learner in self.learners}
         return {
-            f"{m}.{k}": v for m, row in enumerate(self.rows) for k, v in row.state_dict().items()
+            entry: states[id(learner)][key].select(axis, self.seed).clone()
+            for learner, key, axis, entry in self._entries()
         }
 
+    @torch.no_grad()
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        for m, row in enumerate(self.rows):
-            prefix = f"{m}."
-            row.load_state_dict(
-                {k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)}
-            )
+        own = {id(learner): learner.state_dict(keep_vars=True) for learner in self.learners}
+        for learner, key, axis, entry in self._entries():
+            if entry in state:
+                own[id(learner)][key].data.select(axis, self.seed).copy_(state[entry])
 
 
-def seed_rows(learner: Learner) -> list[Any]:
-    """What an early stop keeps and restores of each seed of ``learner``: its rows
-    (:class:`SeedRow`) when it is seed-stacked, the learner itself when it is not."""
-    if learner.seeds is None:
-        return [learner]
-    return [SeedRow(learner, i) for i in range(int(learner.seeds))]
+def seed_rows(learners: Learner | Sequence[Learner]) -> list[Any]:
+    """What an early stop keeps and restores of each seed of a learner or of a team of them
+    (ordinary learners: themselves, one row)."""
+    one = isinstance(learners, nn.Module)
+    seeds = (learners if one else learners[0]).seeds
+    if seeds is None:
+        return [learners if one else nn.ModuleList(learners)]
+    return [SeedRow(learners, i) for i in range(int(seeds))]
 
 
 def finite(state: dict[str, torch.Tensor]) -> bool:
@@ -218,10 +181,8 @@ def finite(state: dict[str, torch.Tensor]) -> bool:
 
 
 class SeedEarlyStops:
-    """One :class:`EarlyStop` per seed, over ``rows`` (one per seed: :func:`seed_rows`, or a
-    :class:`TeamRow`): :meth:`record` takes an :class:`Evaluation` and says whether every seed
-    has stopped; a seed that stops has its weights (its row), frames, updates and seconds
-    kept (:attr:`stopped_at`) while the others train on.
+    """One :class:`EarlyStop` per seed over its row of ``rows``; a seed that stops keeps its
+    row's weights, frames, updates and seconds (:attr:`stopped_at`) while the others train on.
 
     Examples:
         >>> from torchrl_stages.learners.dqn import DQNConfig
@@ -240,7 +201,7 @@ class SeedEarlyStops:
         self.stopped_at: list[dict | None] = [None] * len(self.rows)
 
     def record(self, evaluation: Evaluation) -> bool:
-        """Records each active seed's evaluation; returns whether every seed has stopped."""
+        """Records each active seed's evaluation; whether every seed has stopped."""
         ev = evaluation
         for i, monitor in enumerate(self.monitors):
             if self.stopped_at[i] is not None:
@@ -260,14 +221,21 @@ class SeedEarlyStops:
         """The seeds that have not stopped."""
         return [i for i, at in enumerate(self.stopped_at) if at is None]
 
-    def finish(self, i: int) -> bool:
-        """Seed ``i``'s row gets the weights it ends with: those it stopped with, else its best
-        evaluated ones (:meth:`EarlyStop.restore_best`); returns whether those were restored."""
-        at = self.stopped_at[i]
+    def finish(self, i: int) -> dict[str, Any]:
+        """Seed ``i``'s row gets the weights it stopped with, else its best evaluated ones; the
+        evaluation of those weights."""
+        at, monitor = self.stopped_at[i], self.monitors[i]
         if at is not None:
             self.rows[i].load_state_dict(at["state"])
-            return False
-        return self.monitors[i].restore_best(self.rows[i])
+        restored = at is None and monitor.restore_best(self.rows[i])
+        success, value_error = monitor.final
+        return {
+            "success_rate": success,
+            "value_error": value_error,
+            "discounted_return": monitor.final_return,
+            "early_stopped": monitor.stopped,
+            "restored_best": restored,
+        }
 
     def state_dict(self) -> dict:
         return {

@@ -1,5 +1,5 @@
-"""How a stage's training fails: the env's data is not finite (:class:`EnvError`), or the
-learner diverged (:class:`DivergenceError`); :func:`stage_failure` tells one from the other."""
+"""How a stage's training fails: the env's data is not finite (:class:`EnvError`) or the learner
+diverged (:class:`DivergenceError`)."""
 
 from __future__ import annotations
 
@@ -22,13 +22,7 @@ __all__ = ["DivergenceError", "EnvError", "non_finite_entries", "one_line", "sta
 
 
 class EnvError(RuntimeError):
-    """The env returned a NaN or infinite observation or reward: the env's fault, not the
-    learner's. The message names the entry and the stage.
-
-    Attributes:
-        stage: the stage whose training found it.
-        key: the env's entry that is not finite.
-    """
+    """The env returned a NaN or infinite observation or reward (``key``) in stage ``stage``."""
 
     def __init__(self, stage: int, name: str, key: NestedKey, cause: str = "") -> None:
         where = f" ({cause})" if cause else ""
@@ -70,11 +64,9 @@ def stage_failure(
     rows: Sequence[Any] = (),
     seeds: Sequence[int] = (),
 ) -> RuntimeError:
-    """The error a non-finite loss, gradient or value becomes: :class:`EnvError` when the
-    env's own data (``held``: the transitions in the stage's replay buffer, its actions aside)
-    holds the NaN or infinity, else :class:`DivergenceError`, naming the ``seeds`` whose
-    ``rows`` (:class:`~torchrl_stages.early_stop.SeedRow`) are no longer finite when there
-    are several."""
+    """The error a non-finite loss, gradient or value becomes: :class:`EnvError` when the env's
+    own data (``held``: the replay buffer's transitions, actions aside) is not finite, else
+    :class:`DivergenceError`, naming the ``seeds`` whose ``rows`` are no longer finite."""
     if isinstance(err, NonFiniteInputError):
         return EnvError(stage, name, err.key, "the next stage's value of it is not finite")
     bad = non_finite_entries(held, skip=[learner.specs.action_key]) if held is not None else []
@@ -88,12 +80,8 @@ def stage_failure(
 
 
 class DivergenceError(RuntimeError):
-    """A stage's training produced a NaN or infinite loss, gradient or parameter, or got a
-    non-finite transition value from the next stage.
-
-    The message names the stage, its algorithm, what was not finite and where; nothing of the
-    stage has been saved.
-    """
+    """A stage's training produced a NaN or infinite loss, gradient, parameter or transition
+    value; nothing of the stage has been saved."""
 
     def __init__(self, stage: int, name: str, learner: Learner, cause: FloatingPointError) -> None:
         key = f"task.stages.{name}"
@@ -106,8 +94,7 @@ class DivergenceError(RuntimeError):
 
 
 def one_line(err: BaseException) -> str:
-    """An exception as one line: its type and the last line of its message (what
-    ``status.json`` keeps of a failure).
+    """An exception's type and the last line of its message (what ``status.json`` keeps).
 
     Examples:
         >>> one_line(RuntimeError("loading the map" + chr(10) + "file not found: a.txt"))

@@ -1,10 +1,5 @@
-"""The loop every schedule runs (:class:`Trainer`): a collector's batches, each stored,
-learned from and logged, an evaluation every ``eval_every`` frames with an early stop over each
-seed, and checkpoints with clean stops on a signal. What a schedule does at each point is a
-hook registered by name (:meth:`Trainer.register_op`), as in torchrl's ``Trainer``; what the
-loop counts is a :class:`LoopCounters`, saved with every checkpoint. A stage of the backward or
-flat schedule (:class:`~torchrl_stages.stage.StageTrainer`) and a phase of the joint one
-(:class:`~torchrl_stages.schedules.joint.JointTrainer`) are compositions of these hooks."""
+"""The loop every schedule runs (:class:`Trainer`: named hooks over a collector's batches, typed
+counters) and what a trainer of several seeds builds it with (:class:`SeedLoop`)."""
 
 from __future__ import annotations
 
@@ -12,62 +7,34 @@ import logging
 import sys
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
+import torch
+from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
 from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, SavedCounters, StageCheckpoints
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.early_stop import Evaluation, SeedEarlyStops
+from torchrl_stages.metric_names import STAGE, metric_name
+from torchrl_stages.metrics import MetricsLog, SeedLogs
 from torchrl_stages.preemption import Interrupted, requested
 from torchrl_stages.threads import keep_threads
 
-__all__ = [
-    "LoopCounters",
-    "Stopwatch",
-    "Trainer",
-    "can_stop_early",
-    "log_evaluation",
-    "progress_bar",
-]
-
+__all__ = ["LoopCounters", "SeedLoop", "Stopwatch", "Trainer", "can_stop_early", "loss_means"]
 
 log = logging.getLogger("torchrl_stages")
 
-
-def progress_bar(
-    initial: int, total: int, desc: str, enabled: bool, open_ended: bool = False
-) -> tqdm:
-    """A stage's (or joint phase's) frame bar, shown only on a terminal (:func:`bar_shown`).
-    ``open_ended`` (an early stop may end the loop before ``total``): no total, percentage or
-    time left, which would count to a budget the loop seldom reaches; the frames, their rate
-    and the budget in the description."""
-    if open_ended:
-        desc = f"{desc} (budget {total} frames)"
-    return tqdm(
-        initial=initial,
-        total=None if open_ended else total,
-        desc=desc,
-        unit="frame",
-        disable=not bar_shown(enabled),
-        leave=False,
-    )
-
-
-def bar_shown(enabled: bool) -> bool:
-    """Whether a loop with ``progress=enabled`` shows its bar: on a terminal (stderr) only.
-    Elsewhere (a log file, nohup, a batch job, CI) it logs a line per evaluation instead
-    (:func:`log_evaluation`)."""
-    return enabled and sys.stderr.isatty()
+#: the hook points of :class:`Trainer`, in the order a batch meets them
+HOOKS = ("batch", "update", "log", "evaluate", "evaluated", "checkpoint")
 
 
 def can_stop_early(cfg: StageConfig) -> bool:
-    """Whether an early stop can end a loop of ``cfg`` before its frame budget: a success
-    threshold, evaluations, and ``min_frames`` within the budget.
+    """Whether an early stop can end a loop of ``cfg`` before its frame budget.
 
     Examples:
         >>> from torchrl_stages.config import StageConfig
@@ -83,38 +50,13 @@ def can_stop_early(cfg: StageConfig) -> bool:
     )
 
 
-def log_evaluation(
-    where: str,
-    frames: int,
-    budget: int,
-    success: float,
-    value_error: float,
-    seconds: float,
-    seed: int | None = None,
-) -> None:
-    """One INFO line of the ``torchrl_stages`` logger for one evaluation of a loop (``where``:
-    the stage or joint phase; ``seed``: which seed of a seed-stacked loop). A run of
-    ``stages-train`` has Hydra send it to the console and to the run's log file.
-
-    Examples:
-        >>> shown = logging.StreamHandler(sys.stdout)
-        >>> log.addHandler(shown), log.setLevel(logging.INFO)
-        (None, None)
-        >>> log_evaluation("stage 1 (s1)", 2048, 8192, 0.75, 0.0312, 12.34, seed=3)
-        seed 3: stage 1 (s1): 2048 of 8192 frames, success 0.75, value error 0.031, 12.3s
-        >>> log.removeHandler(shown), log.setLevel(logging.NOTSET)
-        (None, None)
-    """
-    who = where if seed is None else f"seed {seed}: {where}"
-    log.info(
-        "%s: %d of %d frames, success %.2f, value error %.3f, %.1fs",
-        who,
-        frames,
-        budget,
-        success,
-        value_error,
-        seconds,
-    )
+def loss_means(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, list[float]]:
+    """Each loss entry's mean over a batch's updates, per seed (an entry some updates leave
+    out, such as TD3's delayed actor loss: over the others)."""
+    keys = dict.fromkeys(k for loss in losses for k in loss)
+    return {
+        k: torch.stack([loss[k] for loss in losses if k in loss]).mean(0).tolist() for k in keys
+    }
 
 
 class Stopwatch:
@@ -155,9 +97,8 @@ _END = object()
 
 @dataclass
 class LoopCounters(SavedCounters):
-    """What a loop counts, saved with its checkpoints: the frames (per seed) of its next
-    evaluation, the training seconds of earlier launches, and the logs' positions at the last
-    checkpoint (a resumed loop rewinds its logs to them).
+    """What a loop counts, saved with its checkpoints (a resumed loop rewinds its logs to
+    ``log``).
 
     Examples:
         >>> counters = LoopCounters(next_eval=64)
@@ -179,30 +120,14 @@ def _shown(value: float | Sequence[float], digits: int) -> str:
     return f"{value:.{digits}f}"
 
 
-#: the hook points of :class:`Trainer`, in the order a batch meets them
-HOOKS = ("batch", "update", "log", "evaluate", "evaluated", "checkpoint")
-
-
 class Trainer:
-    """The loop: for every batch of ``collector`` (``seeds`` equal, seed-major parts), the
-    registered hooks in turn:
-
-    - ``batch(batch)``: the batch was collected (store it);
-    - ``update(frames) -> losses``: the gradient steps (``frames``: each seed's so far);
-    - ``log(batch, losses)``;
-    - every ``eval_every`` frames (per seed) from ``counters.next_eval`` on:
-      ``evaluate(frames) -> Evaluation``, recorded by ``early_stop``, then
-      ``evaluated(evaluation)``; the loop ends once every seed has stopped;
-    - ``checkpoint()`` before a checkpoint is written (when one is due, or a stop was asked for:
-      :mod:`torchrl_stages.preemption`, which then raises
-      :class:`~torchrl_stages.preemption.Interrupted`). ``state`` is what a checkpoint holds;
-      its name is ``frames_before`` plus each seed's frames.
-
-    ``where`` names the loop in messages, on its progress bar (``progress``, on a terminal;
-    ``open_ended``: an early stop can end it before its budget, see :func:`progress_bar`) and
-    in the line each evaluation of a seed still training logs where the bar is not shown
-    (:func:`log_evaluation`; several seeds: each line names its seed of ``seed_names``);
-    ``watch`` times its phases.
+    """The loop: for every batch of ``collector`` (``seeds`` equal, seed-major parts) the hooks
+    ``batch(batch)``, ``update(frames) -> losses`` (each seed's frames), ``log(batch, losses)``;
+    every ``eval_every`` frames ``evaluate(frames) -> Evaluation`` and ``evaluated(evaluation)``
+    (it ends once every seed has stopped); ``checkpoint()`` before a checkpoint of ``state``,
+    named ``frames_before`` plus each seed's frames, is written (when due, or when a stop was
+    asked for: then :class:`~torchrl_stages.preemption.Interrupted` is raised). ``where`` names
+    the loop; ``open_ended``: an early stop may end it before its budget.
 
     Examples:
         >>> import torch
@@ -248,8 +173,8 @@ class Trainer:
         self.ops: dict[str, list[Callable[..., Any]]] = {point: [] for point in HOOKS}
 
     def register_op(self, point: str, op: Callable[..., Any]) -> None:
-        """Runs ``op`` at hook ``point`` (one of :data:`HOOKS`); ``update`` and ``evaluate``
-        take one op each, whose result the loop uses."""
+        """Runs ``op`` at hook ``point``; ``update`` and ``evaluate`` take one op each, whose
+        result the loop uses."""
         if point not in self.ops:
             raise ValueError(f"unknown hook point {point!r} (known: {', '.join(HOOKS)})")
         if point in ("update", "evaluate") and self.ops[point]:
@@ -266,8 +191,18 @@ class Trainer:
         """Runs the loop to the collector's budget or every seed's early stop."""
         collector, counters, watch, n = self.collector, self.counters, self.watch, self.seeds
         budget = int(collector.total_frames)
-        bar = progress_bar(collector.frames, budget, self.label, self.progress, self.open_ended)
-        report = self.progress and not bar_shown(self.progress)
+        desc = f"{self.label} (budget {budget} frames)" if self.open_ended else self.label
+        shown = self.progress and sys.stderr.isatty()  # elsewhere: a line per evaluation
+        total = None if self.open_ended else budget
+        bar = tqdm(
+            initial=collector.frames,
+            total=total,
+            desc=desc,
+            unit="frame",
+            disable=not shown,
+            leave=False,
+        )
+        report = self.progress and not shown
         try:
             for batch in watch.timed("collect", collector):
                 frames = collector.frames // n
@@ -299,9 +234,16 @@ class Trainer:
     def _log_lines(self, evaluation: Evaluation, rows: list[int], frames: int, budget: int) -> None:
         seconds = time.perf_counter() - self.early_stop.start
         for i in rows:
-            seed = self.seed_names[i] if self.seeds > 1 else None
-            success, value_error = evaluation.success[i], evaluation.value_error[i]
-            log_evaluation(self.where, frames, budget, success, value_error, seconds, seed)
+            who = self.where if self.seeds == 1 else f"seed {self.seed_names[i]}: {self.where}"
+            log.info(
+                "%s: %d of %d frames, success %.2f, value error %.3f, %.1fs",
+                who,
+                frames,
+                budget,
+                evaluation.success[i],
+                evaluation.value_error[i],
+                seconds,
+            )
 
     def _checkpoint_or_stop(self, frames: int) -> None:
         signum = requested()
@@ -311,3 +253,122 @@ class Trainer:
                 self.checkpoints.save(frames, self.state)
         if signum is not None:
             raise Interrupted(signum, f"{self.label} at {frames} frames")
+
+
+class SeedLoop:
+    """What a schedule's trainer of ``n`` seeds shares: one log per seed (``logs``), its
+    checkpoints, and the :class:`Trainer` it builds with them."""
+
+    def __init__(
+        self,
+        n: int,
+        logs: Sequence[MetricsLog] | None,
+        seeds: Sequence[int] | None,
+        progress: bool,
+        checkpoints: StageCheckpoints | None,
+    ) -> None:
+        logs = list(logs) if logs is not None else [MetricsLog(None) for _ in range(n)]
+        if len(logs) != n:
+            raise ValueError(f"{len(logs)} logs for {n} seeds")
+        self.n, self.logs = n, SeedLogs(logs)
+        self.seeds = list(seeds) if seeds is not None else list(range(n))
+        self.progress, self.checkpoints = progress, checkpoints
+
+    def latest(self, counters: SavedCounters) -> str | None:
+        """The newest checkpoint, its ``counters`` loaded first (a checkpoint of another form
+        is refused before anything else is read)."""
+        latest = self.checkpoints.latest() if self.checkpoints is not None else None
+        if latest is not None:
+            self.checkpoints.load(latest, {"counters": counters})
+        return latest
+
+    def restore(self, latest: str, state: dict[str, Any], counters: SavedCounters) -> None:
+        """Loads ``state`` from checkpoint ``latest`` and rewinds the logs to it."""
+        self.checkpoints.load(latest, state)
+        self.logs.rewind(counters.log)
+
+    def loop(
+        self,
+        collector: StageCollector,
+        stops: SeedEarlyStops,
+        counters: LoopCounters,
+        cfg: StageConfig,
+        state: dict[str, Any],
+        saved: SavedCounters,
+        where: str,
+        watch: Stopwatch,
+        frames_before: int = 0,
+    ) -> Trainer:
+        """The :class:`Trainer` of a loop of ``cfg``; before each checkpoint, ``saved`` takes the
+        training seconds (since ``stops.start``) and the logs' positions."""
+
+        def record() -> None:
+            saved.seconds = time.perf_counter() - stops.start
+            saved.log = self.logs.position()
+
+        loop = Trainer(
+            collector,
+            stops,
+            counters,
+            eval_every=int(cfg.eval_every),
+            checkpoints=self.checkpoints,
+            state=state,
+            seeds=self.n,
+            progress=self.progress,
+            open_ended=can_stop_early(cfg),
+            seed_names=self.seeds,
+            where=where,
+            watch=watch,
+            frames_before=frames_before,
+        )
+        loop.register_op("checkpoint", record)
+        return loop
+
+    def log_evaluation(
+        self,
+        summaries: Sequence[dict[str, float]],
+        scope: str,
+        index: int,
+        active: Sequence[int],
+        steps: Sequence[int],
+        frames: list[int],
+        updates: list[int],
+    ) -> Evaluation:
+        """Each ``active`` seed's evaluation ``summaries`` logged under ``eval/<scope>_<index>/``
+        at its ``steps``; the :class:`Evaluation` of every seed."""
+        for i in active:
+            metrics = {metric_name("eval", scope, index, k): v for k, v in summaries[i].items()}
+            self.logs[i](metrics, steps[i])
+        return Evaluation(
+            [s["success_rate"] for s in summaries],
+            [s["value_error"] for s in summaries],
+            [s["discounted_return"] for s in summaries],
+            frames,
+            updates,
+        )
+
+    def log_batch(
+        self,
+        batch: TensorDictBase,
+        scope: str,
+        index: int,
+        losses: dict[int, list[dict]],
+        updates: Sequence[Mapping[int, int] | Sequence[int]],
+        active: Sequence[int],
+        steps: Sequence[int],
+    ) -> None:
+        """Each ``active`` seed's episodes of ``batch`` under ``train/<scope>_<index>/``, and
+        each stage m's mean ``losses`` and ``updates[seed][m]`` under ``train/stage_<m>/``."""
+        if self.logs.silent:
+            return
+        episodes = MetricsLog.episodes_by_row(batch.reshape(self.n, -1))
+        means = {m: loss_means(stage_losses) for m, stage_losses in losses.items()}
+        for i in active:
+            metrics = {metric_name("train", scope, index, k): v for k, v in episodes[i].items()}
+            for m, stage_means in means.items():
+                values = {k: v[i] for k, v in stage_means.items()}
+                if values and all(v != v for v in values.values()):  # seed i's stage m waits
+                    continue
+                for k, value in {**values, "updates": updates[i][m]}.items():
+                    metrics[metric_name("train", STAGE, m, k)] = value
+            self.logs[i](metrics, steps[i])

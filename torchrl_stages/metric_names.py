@@ -1,28 +1,11 @@
-"""The names a run's metrics are logged under: one scheme that the loops write
-(:func:`metric_name`) and the plots, sweep summaries and the tuner read (:func:`parse_metric`).
-
-A name is ``<kind>/<scope>[_<index>]/<metric>``: ``kind`` is ``train`` or ``eval``; ``scope``
-is the loop that logs it, with its index (``stage_3``: stage 3 of the backward or flat
-schedule; ``joint_1``: the joint phase from stage 1; a stage's own learner in a joint run logs
-under ``stage_<k>`` too), or a whole-run scope without one (``task``: the whole task followed
-during training; ``final``: the whole-task evaluation). A new schedule's loops log under a
-scope of their own and are plotted, summarized and pruned on like the others.
-"""
+"""The names a run's metrics are logged under, ``<kind>/<scope>[_<index>]/<metric>``: written
+by the loops (:func:`metric_name`), read by the plots, sweep summaries and tuner
+(:func:`parse_metric`)."""
 
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-
-__all__ = [
-    "FINAL",
-    "STAGE",
-    "TASK",
-    "MetricName",
-    "is_loop_evaluation",
-    "metric_name",
-    "parse_metric",
-]
 
 #: the scope of a stage's own learner (a schedule's phases log under a scope of their own)
 STAGE = "stage"
@@ -36,7 +19,7 @@ _NAME = re.compile(
 
 @dataclass(frozen=True)
 class MetricName:
-    """A metric's name read back (:func:`parse_metric`)."""
+    """A metric's name read back."""
 
     kind: str  # train | eval
     scope: str  # stage | joint | task | final | a schedule's own loops
@@ -58,7 +41,7 @@ def metric_name(kind: str, scope: str, index: int | None, metric: str) -> str:
 
 
 def parse_metric(name: str) -> MetricName | None:
-    """``name`` read back (``None``: not a name of :func:`metric_name`'s scheme).
+    """``name`` read back (``None``: not of this scheme).
 
     Examples:
         >>> parse_metric("train/phase_1/loss")
@@ -74,8 +57,8 @@ def parse_metric(name: str) -> MetricName | None:
 
 
 def is_loop_evaluation(name: str, metric: str = "success_rate") -> bool:
-    """Whether ``name`` is ``metric`` of a loop's evaluation (a stage's, a joint phase's, any
-    schedule's loop with an index), what a tuner prunes on.
+    """Whether ``name`` is ``metric`` of a loop's evaluation (one with an index), what a tuner
+    prunes on.
 
     Examples:
         >>> is_loop_evaluation("eval/stage_0/success_rate")

@@ -1,6 +1,5 @@
-"""A run's metrics as its loops log them (named by :mod:`~torchrl_stages.metric_names`):
-:class:`MetricsLog` (one seed's scalars, to a torchrl logger, with the position and rewind a
-resumed loop needs) and :class:`SeedLogs` (one per seed of a loop, as one)."""
+"""A run's metrics as its loops log them: one seed's (:class:`MetricsLog`) and a loop's seeds'
+(:class:`SeedLogs`)."""
 
 from __future__ import annotations
 
@@ -16,11 +15,9 @@ __all__ = ["MetricsLog", "SeedLogs"]
 
 
 class MetricsLog:
-    """A loop's metrics: scalars to a torchrl ``logger`` (none: dropped), and the logger's
-    position and rewind where it has them (:class:`~torchrl_stages.loggers.CSVMetricsLogger`),
-    so that a resumed loop drops the rows of an interrupted attempt. Each call's scalars are
-    then shown together to the logger's observers, where it has them
-    (:data:`~torchrl_stages.loggers.Observer`: an observer may end the run).
+    """Scalars to a torchrl ``logger`` (none: dropped), shown together to its observers; the
+    logger's position and rewind where it has them, so that a resumed loop drops the rows of an
+    interrupted attempt.
 
     Examples:
         >>> log = MetricsLog(None)
@@ -52,14 +49,9 @@ class MetricsLog:
             rewind(position)
 
     @staticmethod
-    def episodes(batch: TensorDictBase) -> dict[str, float]:
-        """``episode_return`` and ``episode_success`` of the episodes a batch ended."""
-        return MetricsLog.episodes_by_row(batch.reshape(1, -1))[0]
-
-    @staticmethod
     def episodes_by_row(batch: TensorDictBase) -> list[dict[str, float]]:
-        """:meth:`episodes` of each row of a ``[rows, ...]`` batch (one row per seed), read
-        back from the device at once.
+        """``episode_return`` and ``episode_success`` of the episodes each row (seed) of a
+        ``[rows, ...]`` batch ended.
 
         Examples:
             >>> from tensordict import TensorDict
@@ -80,18 +72,9 @@ class MetricsLog:
             for count, total, win in zip(counts, totals, wins, strict=True)
         ]
 
-    @staticmethod
-    def losses(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, float]:
-        """Each loss entry's mean over a batch's updates."""
-        keys = dict.fromkeys(k for loss in losses for k in loss)
-        return {
-            k: torch.stack([loss[k] for loss in losses if k in loss]).mean().item() for k in keys
-        }
-
 
 class SeedLogs:
-    """The logs of a loop's seeds (one :class:`MetricsLog` each) as one, for a checkpoint:
-    their positions, and their rewind.
+    """A loop's seeds' logs (one :class:`MetricsLog` each) as one: their positions and rewind.
 
     Examples:
         >>> logs = SeedLogs([MetricsLog(None), MetricsLog(None)])
@@ -105,12 +88,9 @@ class SeedLogs:
     def __getitem__(self, seed: int) -> MetricsLog:
         return self.logs[seed]
 
-    def __len__(self) -> int:
-        return len(self.logs)
-
     @property
     def silent(self) -> bool:
-        """Whether no seed's log has a logger (nothing logged is kept)."""
+        """Whether no seed's log has a logger."""
         return all(log.logger is None for log in self.logs)
 
     def position(self) -> dict[str, dict[str, int]]:

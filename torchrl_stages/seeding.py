@@ -1,21 +1,6 @@
-"""The seeding rule: which generator seeds build and drive each part of a run, in one place.
-
-For seed ``s`` (the first of a run's seeds when several share its envs):
-
-- a backward stage ``k``: the global generator and the training env ``s + k``, the
-  evaluation env ``s + 10_000 + k`` (:data:`EVAL_OFFSET`);
-- the flat learner: the same with ``k = 0``;
-- a joint phase from stage ``k``: the global generator ``s + 1000 * (k + 1)``
-  (:func:`phase_seed`), the training env ``s + k``, the evaluation env ``s + 10_000 + k``;
-  the learners of every stage are built once, right after ``torch.manual_seed(s)``;
-- the whole-task evaluation and the probe: ``s + 20_000`` (:data:`TASK_EVAL_OFFSET`).
-
-A stage's learner of one seed is built after its envs, from the generator they were built
-with; with several seeds, seed ``s``'s row holds the weights ``make()`` builds right after
-``torch.manual_seed(s + k)`` (:func:`seed_learner`), and the envs, built after them, draw
-from the first seed's streams. A seed's run among others is thus a draw from the same
-distribution as its run alone, not the same bits.
-"""
+"""The seeding rule: which generator seeds build and drive each part of a run. For seed ``s``
+(the first of several sharing envs): stage ``k``'s generator and training env ``s + k``, its
+evaluation env ``+ EVAL_OFFSET``; the whole-task evaluation and probe ``s + TASK_EVAL_OFFSET``."""
 
 from __future__ import annotations
 
@@ -26,15 +11,6 @@ import torch
 
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.stacking import stack_learners
-
-__all__ = [
-    "EVAL_OFFSET",
-    "TASK_EVAL_OFFSET",
-    "phase_seed",
-    "seed_learner",
-    "seeded",
-    "stage_seed",
-]
 
 T = TypeVar("T")
 
@@ -55,30 +31,25 @@ def phase_seed(seed: int, stage: int) -> int:
     return seed + 1000 * (stage + 1)
 
 
-def seed_learner(make: Callable[..., Learner], seeds: Sequence[int], offset: int = 0) -> Learner:
-    """``make(seeds=len(seeds))`` holding, in row ``i``, the initial weights of ``make()``
-    built right after ``torch.manual_seed(seeds[i] + offset)`` (those of a run of that seed
-    alone, when building its envs draws nothing from the global generator)."""
-    singles = []
-    for seed in seeds:
-        torch.manual_seed(seed + offset)
-        singles.append(make())
-    return stack_learners(make(seeds=len(seeds)), singles)
-
-
 def seeded(
     make: Callable[..., Learner],
     seeds: Sequence[int],
     offset: int,
     envs: Callable[[], T],
 ) -> tuple[Learner, T]:
-    """A stage's learner (``make``) and envs (``envs()``) by the rule: the global generator
-    seeded with ``seeds[0] + offset``, then the envs; then, for one seed, its learner; for
-    several, :func:`seed_learner` built before the envs."""
+    """A stage's learner (``make``) and envs (``envs()``): the global generator seeded with
+    ``seeds[0] + offset``, then the envs, then one seed's learner. Several seeds' learner is
+    built first, row ``i`` holding the weights ``make()`` builds right after
+    ``torch.manual_seed(seeds[i] + offset)``, so each seed's run among others is a draw from the
+    distribution of its run alone."""
     if len(seeds) == 1:
         torch.manual_seed(seeds[0] + offset)
         built = envs()
         return make(), built
-    learner = seed_learner(make, seeds, offset)
+    singles = []
+    for seed in seeds:
+        torch.manual_seed(seed + offset)
+        singles.append(make())
+    learner = stack_learners(make(seeds=len(seeds)), singles)
     torch.manual_seed(seeds[0] + offset)
     return learner, envs()

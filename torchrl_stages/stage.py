@@ -1,17 +1,6 @@
-"""One stage's training for any number of seeds (:class:`StageTrainer`: the
-:class:`~torchrl_stages.loop.Trainer` over a stage's collector, replay buffer and learner) and
-what it returns (:class:`StageResult`).
-
-One seed is the ordinary case: an ordinary learner is one row. Several seeds train at once as
-one seed-stacked learner (:mod:`~torchrl_stages.learners.stacking`), one env holding
-``num_envs`` copies per seed and one replay storage with a ring per seed
-(:class:`~torchrl_stages.replay.SeedReplayBuffer`). Every seed keeps what a run of its own
-keeps: its initial weights, its replay contents, its evaluations, its early stop (a seed that
-stops keeps the weights it stopped with while the others train on, and is left out of their
-updates: :func:`~torchrl_stages.learners.stacking.update_rows`), its best weights and its
-metrics. The env's random streams are shared by the seeds, so a seed's run among others is a
-draw from the same distribution as its run alone, not the same bits.
-"""
+"""One stage's training for any number of seeds (:class:`StageTrainer`) and what it returns
+(:class:`StageResult`). Several seeds train as one seed-stacked learner, each keeping what a run
+of its own keeps; they share the env's random streams."""
 
 from __future__ import annotations
 
@@ -36,14 +25,14 @@ from torchrl_stages.failures import stage_failure
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.learners.stacking import unstack_learner, update_rows
-from torchrl_stages.loop import LoopCounters, Stopwatch, Trainer, can_stop_early
-from torchrl_stages.metric_names import STAGE, metric_name
-from torchrl_stages.metrics import MetricsLog, SeedLogs
+from torchrl_stages.loop import LoopCounters, SeedLoop, Stopwatch
+from torchrl_stages.metric_names import STAGE
+from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import NonFiniteValueError
 
-__all__ = ["StageResult", "StageTrainer", "per_seed_metrics"]
+__all__ = ["StageResult", "StageTrainer", "gradient_steps", "per_seed_metrics"]
 
 log = logging.getLogger("torchrl_stages")
 
@@ -70,8 +59,8 @@ class StageResult:
 def per_seed_metrics(
     metrics: dict[str, torch.Tensor], rows: torch.Tensor | None, n: int
 ) -> dict[str, torch.Tensor]:
-    """An update's metrics with one entry per seed (``[n]``): an ordinary learner's scalars
-    as one, and those computed for ``rows`` alone placed in their rows (NaN in the others).
+    """An update's metrics per seed (``[n]``): those of ``rows`` alone in their rows, NaN in the
+    others.
 
     Examples:
         >>> per_seed_metrics({"loss": torch.tensor(0.5)}, None, 1)["loss"]
@@ -89,32 +78,44 @@ def per_seed_metrics(
     return out
 
 
-def loss_means(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, list[float]]:
-    """Each loss entry's mean over a batch's updates, per seed (an entry some updates leave
-    out, such as TD3's delayed actor loss: over the others)."""
-    keys = dict.fromkeys(k for loss in losses for k in loss)
-    return {
-        k: torch.stack([loss[k] for loss in losses if k in loss]).mean(0).tolist() for k in keys
-    }
+def gradient_steps(
+    learner: Learner,
+    buffer: SeedReplayBuffer,
+    cfg: StageConfig,
+    rows: torch.Tensor | None,
+    watch: Stopwatch,
+    transform: Callable[[TensorDictBase], TensorDictBase] | None = None,
+) -> list[dict[str, torch.Tensor]]:
+    """A batch's gradient steps of ``learner``'s seeds ``rows`` (``None``: all) on samples of
+    ``buffer``; their per-seed losses. One draw for all the steps (the same indices as a draw per
+    step, in one storage read) unless the update itself draws random numbers (TD3)."""
+    n = int(learner.seeds or 1)
+    steps, size = int(cfg.updates_per_batch), int(cfg.batch_size)
+    draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
+    losses: list[dict[str, torch.Tensor]] = []
+    for _ in range(draws):
+        with watch("sample"):
+            drawn = buffer.sample(size * per_draw, rows)
+            if learner.seeds is None:  # an ordinary learner reads [batch] samples
+                drawn = drawn[0]
+        for sample in drawn.split(size, dim=-1):
+            if transform is not None:
+                with watch("sample"), update_rows(rows):
+                    sample = transform(sample)
+            with watch("update"), update_rows(rows):
+                keep_threads()
+                losses.append(per_seed_metrics(learner.update(sample), rows, n))
+    learner.check_finite()
+    return losses
 
 
-class StageTrainer:
-    """Trains stage ``stage`` for every seed of ``learner`` (an ordinary learner: one seed).
-
-    ``env`` is the stage's training env (starts inside the stage, transitions terminal, rewards
-    rewritten by :class:`~torchrl_stages.transforms.StageTransform`) and ``eval_env`` the same
-    kind of env for greedy evaluations and the early stop on ``cfg.success_threshold``; each
-    holds one copy of its batch per seed, seed-major (:meth:`~torchrl_stages.task.StagedTask.
-    stage_env` with ``copies``). ``cfg``'s frames, batches and evaluation periods are per seed.
-    ``logs`` (one :class:`~torchrl_stages.metrics.MetricsLog` per seed) receive each seed's
-    metrics; ``seeds`` name the seeds in messages. With ``checkpoints`` the loop saves every
-    ``checkpoints.every`` frames and goes on from the newest checkpoint on disk, the logs
-    rewound with it, so an interrupted stage goes on exactly where it stopped. ``gammas`` (one
-    per stage) makes evaluations compare values with the stage-discounted return; ``postproc``
-    transforms each collected batch and ``extra_keys`` are stored with what the loss reads
-    (the flat schedule's per-transition discounts); ``on_evaluate(frames)`` runs after every
-    evaluation. :meth:`train` returns each seed's ordinary learner (``make_learner()`` builds
-    an empty one to take a seed's row out of a stacked learner) and result.
+class StageTrainer(SeedLoop):
+    """Trains stage ``stage`` for every seed of ``learner`` (ordinary: one seed); ``env`` and
+    ``eval_env`` hold one copy of their batch per seed, ``cfg``'s budgets are per seed. With
+    ``checkpoints`` an interrupted stage goes on exactly where it stopped. The flat schedule
+    passes ``gammas`` (evaluations' stage discounts), ``postproc`` (applied to each batch) and
+    ``extra_keys`` (stored too). :meth:`train` returns each seed's ordinary learner
+    (``make_learner()`` builds the one a stacked row is taken into) and result.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -152,29 +153,15 @@ class StageTrainer:
         extra_keys: Sequence[NestedKey] = (),
         on_evaluate: Callable[[int], None] | None = None,
     ) -> None:
-        self.stage, self.learner, self.env, self.eval_env, self.cfg = (
-            stage,
-            learner,
-            env,
-            eval_env,
-            cfg,
-        )
-        self.n = int(learner.seeds or 1)
-        logs = list(logs) if logs is not None else [MetricsLog(None) for _ in range(self.n)]
-        if len(logs) != self.n:
-            raise ValueError(f"{len(logs)} logs for {self.n} seeds")
-        self.logs = SeedLogs(logs)
-        self.make_learner = make_learner
-        self.seeds = list(seeds) if seeds is not None else list(range(self.n))
-        self.name = name or str(stage)
-        self.progress, self.checkpoints = progress, checkpoints
+        super().__init__(int(learner.seeds or 1), logs, seeds, progress, checkpoints)
+        self.stage, self.learner, self.env, self.eval_env = stage, learner, env, eval_env
+        self.cfg, self.make_learner, self.name = cfg, make_learner, name or str(stage)
         self.gammas, self.postproc, self.on_evaluate = gammas, postproc, on_evaluate
         self.keys = list(dict.fromkeys([*learner.replay_keys, *extra_keys]))
 
     @functools.cached_property
     def _value(self) -> TensorDictModuleBase:
-        """What evaluations read V from: the learner's target networks themselves (live), built
-        once instead of copied at every evaluation."""
+        """The learner's live target networks, what evaluations read V from."""
         return self.learner.value(live=True)
 
     def train(self) -> list[tuple[Learner, StageResult]]:
@@ -197,38 +184,21 @@ class StageTrainer:
             "monitor": stops,
             "counters": counters,
         }
-        latest = self.checkpoints.latest() if self.checkpoints is not None else None
+        latest = self.latest(counters)
         if latest is not None:
-            self.checkpoints.load(latest, {"counters": counters})  # first: is it of this form
-            self.checkpoints.load(latest, state)
-            self.logs.rewind(counters.log)
+            self.restore(latest, state, counters)
             seeds = f", {n} seeds" if n > 1 else ""
             log.info("stage %d (%s)%s: resuming from %s", self.stage, self.name, seeds, latest)
         start = stops.start = time.perf_counter() - counters.seconds
         watch = Stopwatch()
-        loop = Trainer(
-            collector,
-            stops,
-            counters,
-            eval_every=int(cfg.eval_every),
-            checkpoints=self.checkpoints,
-            state=state,
-            seeds=n,
-            where=f"stage {self.stage} ({self.name})",
-            watch=watch,
-            progress=self.progress,
-            open_ended=can_stop_early(cfg),
-            seed_names=self.seeds,
-        )
+        where = f"stage {self.stage} ({self.name})"
+        loop = self.loop(collector, stops, counters, cfg, state, counters, where, watch)
         loop.register_op("batch", functools.partial(self._store, buffer, watch))
         loop.register_op("update", functools.partial(self._update, buffer, stops, watch))
-        loop.register_op(
-            "log", lambda batch, losses: self._log_batch(batch, losses, collector, stops.active())
-        )
+        loop.register_op("log", functools.partial(self._log_batch, collector, stops))
         loop.register_op("evaluate", functools.partial(self.evaluate, active=stops.active))
         if self.on_evaluate is not None:
             loop.register_op("evaluated", lambda ev: self.on_evaluate(collector.frames // n))
-        loop.register_op("checkpoint", lambda: self._record(counters, start))
         try:
             loop.train()
         except (NonFiniteError, NonFiniteValueError) as err:
@@ -236,10 +206,6 @@ class StageTrainer:
                 err, self.stage, self.name, learner, buffer.held(), stops.rows, self.seeds
             ) from err
         return [self._result(i, stops, collector, start, watch) for i in range(n)]
-
-    def _record(self, counters: LoopCounters, start: float) -> None:
-        counters.seconds = time.perf_counter() - start
-        counters.log = self.logs.position()
 
     def _store(self, buffer: SeedReplayBuffer, watch: Stopwatch, batch: TensorDictBase) -> None:
         with watch("collect"):
@@ -250,45 +216,17 @@ class StageTrainer:
     def _update(
         self, buffer: SeedReplayBuffer, stops: SeedEarlyStops, watch: Stopwatch, frames: int
     ) -> list[dict[str, torch.Tensor]]:
-        """The gradient steps of a batch, for the seeds that have not stopped (a stopped seed's
-        row gets no gradient; its stopped weights are restored at the end). One draw for all
-        of a batch's steps, split per step: on CPU the same indices as a draw per step (the
-        randint stream is the same) unless the update itself draws random numbers in between
-        (TD3's target smoothing); one storage read, not one per step."""
-        cfg, learner, n = self.cfg, self.learner, self.n
-        learner.anneal(frames)
-        losses: list[dict[str, torch.Tensor]] = []
-        if frames < cfg.init_random_frames:
-            return losses
-        steps = int(cfg.updates_per_batch)
-        draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
+        """The seeds that have not stopped take their gradient steps."""
+        self.learner.anneal(frames)
+        if frames < self.cfg.init_random_frames:
+            return []
         active = stops.active()
-        rows = None if len(active) == n else torch.tensor(active, device=learner.device)
-        for _ in range(draws):
-            with watch("sample"):
-                drawn = buffer.sample(int(cfg.batch_size) * per_draw, rows)
-                if learner.seeds is None:  # an ordinary learner reads [batch] samples
-                    drawn = drawn[0]
-                samples = drawn.split(int(cfg.batch_size), dim=-1)
-            for sample in samples:
-                with watch("update"), update_rows(rows):
-                    keep_threads()
-                    losses.append(per_seed_metrics(learner.update(sample), rows, n))
-        learner.check_finite()
-        return losses
+        rows = None if len(active) == self.n else torch.tensor(active, device=self.learner.device)
+        return gradient_steps(self.learner, buffer, self.cfg, rows, watch)
 
     def evaluate(self, frames: int, active: Callable[[], list[int]] | None = None) -> Evaluation:
-        """Greedy episodes from the evaluation env's starts, for each seed (the ``active`` ones
-        log theirs under ``eval/stage_<k>/``).
-
-        ``success_rate``: episodes that leave the stage or end the task solved
-        (:func:`~torchrl_stages.evaluate.ended_well`: terminated, or the env's success flag)
-        before the time limit. ``value_error``: ``|V(s_0) - G|`` between the stage's value
-        estimate at the start and the discounted return the greedy policy actually got, reduced
-        over the starts by ``cfg.value_error_reduce`` (mean or max), a check that the values
-        handed to the previous stage have converged. ``discounted_return``: the mean of those
-        returns, the stage's objective.
-        """
+        """Greedy episodes from the evaluation env's starts for each seed (the ``active`` ones
+        logged): success, value error ``|V(s_0) - G|`` and mean discounted return G."""
         cfg, n = self.cfg, self.n
         max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
         summaries = evaluate_greedy(
@@ -300,52 +238,31 @@ class StageTrainer:
             cfg.value_error_reduce,
             groups=n,
         )
-        for i in active() if active is not None else range(n):
-            self.logs[i](
-                {metric_name("eval", STAGE, self.stage, k): v for k, v in summaries[i].items()},
-                frames,
-            )
-        return Evaluation(
-            [s["success_rate"] for s in summaries],
-            [s["value_error"] for s in summaries],
-            [s["discounted_return"] for s in summaries],
-            [frames] * n,
-            [self.learner.num_updates] * n,
-        )
+        seeds = active() if active is not None else range(n)
+        steps, updates = [frames] * n, [self.learner.num_updates] * n
+        return self.log_evaluation(summaries, STAGE, self.stage, seeds, steps, steps, updates)
 
     def _log_batch(
-        self, batch: TensorDictBase, losses: list[dict], collector, active: list[int]
+        self, collector: StageCollector, stops: SeedEarlyStops, batch: TensorDictBase, losses
     ) -> None:
-        if self.logs.silent:
-            return
-        n, frames = self.n, collector.frames // self.n
-        episodes = MetricsLog.episodes_by_row(batch.reshape(n, -1))
-        means = loss_means(losses)
-        for i in active:
-            metrics = {**episodes[i], **{k: v[i] for k, v in means.items()}}
-            metrics["updates"] = self.learner.num_updates
-            named = {metric_name("train", STAGE, self.stage, k): v for k, v in metrics.items()}
-            self.logs[i](named, frames)
+        updates = [{self.stage: self.learner.num_updates}] * self.n
+        steps = [collector.frames // self.n] * self.n
+        self.log_batch(
+            batch, STAGE, self.stage, {self.stage: losses}, updates, stops.active(), steps
+        )
 
     def _result(
         self, i: int, stops: SeedEarlyStops, collector, start: float, watch: Stopwatch
     ) -> tuple[Learner, StageResult]:
-        """Seed ``i``'s learner (its weights put back: those it stopped with, or its best) and
-        result."""
-        at, early = stops.stopped_at[i], stops.monitors[i]
-        restored = stops.finish(i)
-        success, value_error = early.final
+        """Seed ``i``'s learner (with the weights it stopped with, or its best) and result."""
+        at, ended = stops.stopped_at[i], stops.finish(i)
         result = StageResult(
             self.stage,
             collector.frames // self.n if at is None else at["frames"],
             self.learner.num_updates if at is None else at["updates"],
             time.perf_counter() - start if at is None else at["seconds"],
-            success,
-            value_error,
-            early.stopped,
-            restored,
-            dict(watch.seconds),
-            early.final_return,
+            timing=dict(watch.seconds),
+            **ended,
         )
         if self.learner.seeds is None:
             return self.learner, result

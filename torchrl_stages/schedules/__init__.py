@@ -1,9 +1,5 @@
 """Schedules: how a task's stages are trained, one module each, registered by name
-(``schedule=<name>``): :mod:`~torchrl_stages.schedules.backward` (stage by stage, the last one
-first), :mod:`~torchrl_stages.schedules.joint` (every stage at once, the paper's Algorithm 1)
-and :mod:`~torchrl_stages.schedules.flat` (one learner, no stages). A schedule of your own: a
-:class:`Schedule` subclass decorated with :func:`register_schedule`; every module here is
-imported with the package, so a schedule is its module and its ``conf/schedule/<name>.yaml``."""
+(``schedule=<name>``); every module here is imported with the package."""
 
 import importlib
 import pkgutil
@@ -13,13 +9,14 @@ from torchrl_stages.schedules.base import (
     SCHEDULES,
     Probe,
     Schedule,
+    SeedRuns,
     StageKeeper,
     Trained,
     get_schedule,
     register_schedule,
 )
-from torchrl_stages.schedules.flat import FlatSchedule, flat_config, train_flat
-from torchrl_stages.schedules.joint import JointSchedule, JointTrainer
+from torchrl_stages.schedules.flat import train_flat
+from torchrl_stages.schedules.joint import JointTrainer
 
 for _module in pkgutil.iter_modules(__path__):  # each schedule module registers itself
     importlib.import_module(f"{__name__}.{_module.name}")
@@ -27,14 +24,12 @@ for _module in pkgutil.iter_modules(__path__):  # each schedule module registers
 __all__ = [
     "SCHEDULES",
     "BackwardSchedule",
-    "FlatSchedule",
-    "JointSchedule",
     "JointTrainer",
     "Probe",
     "Schedule",
+    "SeedRuns",
     "StageKeeper",
     "Trained",
-    "flat_config",
     "get_schedule",
     "register_schedule",
     "train_backward",

@@ -1,12 +1,6 @@
-"""What a schedule is: how a task's stages are trained, one module each, known by name.
-
-A :class:`Schedule` trains a task's learners (:meth:`Schedule.train`) and says what its runs
-look like on disk and on resume: which stages a finished one freezes, which checkpoints a
-restarted stage drops, which stage file holds each stage's learner. It keeps its stages in a
-:class:`StageKeeper` that the caller passes down (a run directory,
-:class:`~torchrl_stages.runs.keeper.RunKeeper`, or nothing): the schedule never calls back into
-the code that runs it.
-"""
+"""What a schedule is (:class:`Schedule`), what it is given to train several seeds at once
+(:class:`SeedRuns`), where it keeps their stages (:class:`StageKeeper`) and what it returns
+(:class:`Trained`)."""
 
 from __future__ import annotations
 
@@ -19,39 +13,24 @@ from omegaconf import DictConfig
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError
 from torchrl_stages.learners import Learner
+from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 
-__all__ = [
-    "SCHEDULES",
-    "begin_loop",
-    "finished_for_every_seed",
-    "Probe",
-    "Schedule",
-    "StageKeeper",
-    "Trained",
-    "get_schedule",
-    "register_schedule",
-]
-
-#: ``probe(learners, frames)``: follows the whole task during training (see ``eval.probe``);
-#: called at every evaluation of the stage that holds the whole-task starts, with the
-#: learners as they are and the frames collected so far over all stages
+#: ``probe(learners, frames)``: follows the whole task at every evaluation of the stage that
+#: holds the whole-task starts (``eval.probe``), with the frames so far over all stages
 Probe = Callable[[list[Learner], int], None]
 
 
 class StageKeeper(Protocol):
-    """Where a schedule keeps its stages (a run directory:
-    :class:`~torchrl_stages.runs.keeper.RunKeeper`): finished ones, checkpoints of the one in
-    progress, and what else a schedule needs to resume (``keep`` / ``kept``)."""
+    """Where a schedule keeps a seed's stages (a run directory's
+    :class:`~torchrl_stages.runs.keeper.RunKeeper`)."""
 
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
         """The stage if it was already trained (a resumed run), else ``None``."""
 
     def begin(self, scope: int | str) -> None:
-        """A loop (``scope``: a stage's index, or a name such as ``"joint"`` for a loop over
-        every stage) starts afresh: the logs are rewound to where it starts (a resumed run
-        drops the rows of an attempt that was interrupted)."""
+        """Loop ``scope`` starts afresh: the logs are rewound to where it starts."""
 
     def save(self, stage: int, learner: Learner, result: StageResult) -> None:
         """Keeps a stage that just finished."""
@@ -68,17 +47,77 @@ class StageKeeper(Protocol):
 
 @dataclass
 class Trained:
-    """What a schedule returns: one learner and one result per stage (a flat learner: the same
-    learner in every stage, one result), and what else ``eval.json``'s ``training`` records."""
+    """What a schedule returns for a seed: one learner and one result per stage (a flat
+    learner: the same learner in every stage, one result), and what else ``eval.json``'s
+    ``training`` records."""
 
     learners: list[Learner]
     results: list[StageResult]
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass
+class SeedRuns:
+    """The seeds a schedule trains at once (:meth:`Schedule.train`'s arguments): each one's
+    keeper (``None``: keeps nothing) and log, the checkpoints of a loop scope (one state for all
+    the seeds), and how the loops run (``probe``: one seed)."""
+
+    schedule: str
+    seeds: list[int]
+    keepers: Sequence[StageKeeper | None] | None = None
+    logs: Sequence[MetricsLog] | None = None
+    checkpoints: Callable[[int | str], StageCheckpoints] | None = None
+    progress: bool = False
+    probe: Probe | None = None
+    compile: str = "off"
+
+    def __post_init__(self) -> None:
+        n = len(self.seeds)
+        self.keepers = list(self.keepers) if self.keepers is not None else [None] * n
+        self.logs = list(self.logs) if self.logs is not None else [MetricsLog(None)] * n
+
+    def finished(self, stage: int) -> list[tuple[Learner, StageResult]] | None:
+        """Each seed's finished ``stage`` when every keeper has it, ``None`` when none has."""
+        done = [keeper.finished(stage) if keeper is not None else None for keeper in self.keepers]
+        if all(d is None for d in done):
+            return None
+        missing = [s for s, d in zip(self.seeds, done, strict=True) if d is None]
+        if missing:
+            raise RuntimeError(
+                f"stage {stage}: finished for some seeds but not for seeds {missing}; Fix: resume "
+                f"those seeds' run directories one by one (stages-train schedule={self.schedule} "
+                "seed=<s> resume=true hydra.run.dir=<its directory>)"
+            )
+        return done
+
+    def begin(self, scope: int | str) -> StageCheckpoints | None:
+        """The checkpoints of loop ``scope``; without one to go on from, each keeper starts the
+        loop afresh."""
+        scoped = self.checkpoints(scope) if self.checkpoints is not None else None
+        if scoped is None or scoped.latest() is None:
+            for keeper in self.keepers:
+                if keeper is not None:
+                    keeper.begin(scope)
+        return scoped
+
+    def keep(
+        self,
+        stage: int,
+        trained: list[tuple[Learner, StageResult]],
+        checkpoints: StageCheckpoints | None,
+    ) -> list[tuple[Learner, StageResult]]:
+        """Keeps each seed's ``trained`` stage; its ``checkpoints``, which it supersedes, go."""
+        for keeper, (learner, result) in zip(self.keepers, trained, strict=True):
+            if keeper is not None:
+                keeper.save(stage, learner, result)
+        if checkpoints is not None:
+            checkpoints.clear()
+        return trained
+
+
 class Schedule:
-    """How a task's stages are trained. A schedule is one module: a subclass with a ``name``,
-    registered with :func:`register_schedule`, selected by ``schedule=<name>``.
+    """How a task's stages are trained: a subclass with a ``name``, registered with
+    :func:`register_schedule`, selected by ``schedule=<name>``.
 
     Examples:
         >>> sorted(SCHEDULES)
@@ -88,28 +127,24 @@ class Schedule:
     """
 
     name: ClassVar[str]
-    #: whether a stage is trained until its own early stop (a stage that did not meet it is
-    #: warned about)
+    #: whether a stage trains until its own early stop (one that did not meet it is warned about)
     stage_early_stop: ClassVar[bool] = True
-    #: whether a stage is determined by its own config and the stages after it alone, so that
-    #: a finished one can be reused by another run (``stage_store``, ``init_from``)
+    #: whether a finished stage can be reused by another run (``stage_store``, ``init_from``)
     reuses_stages: ClassVar[bool] = False
     #: whether :meth:`train` trains several seeds in one process (``seeds=[...]``)
     stacks_seeds: ClassVar[bool] = False
 
     def train(self, task: StagedTask, seeds: Sequence[int] = (0,), **kwargs: Any) -> list[Trained]:
-        """Trains (what is left of) ``task``'s stages for every seed of ``seeds`` at once
-        (several: their networks stacked, see :mod:`torchrl_stages.stage`); one
-        :class:`Trained` per seed. ``kwargs``: ``keepers`` and ``logs`` (one per seed: where
-        each seed's stages are kept and its metrics logged), ``checkpoints`` (a checkpoint
-        scope (:meth:`checkpoint_scope`) -> its
-        :class:`~torchrl_stages.checkpoint.StageCheckpoints`, one state for all the seeds),
-        ``progress``, ``probe`` (one seed) and ``compile``."""
+        """Trains (what is left of) ``task``'s stages for every seed of ``seeds`` at once; one
+        :class:`Trained` per seed. ``kwargs``: the fields of :class:`SeedRuns`."""
+        return self.run(task, SeedRuns(self.name, list(seeds), **kwargs))
+
+    def run(self, task: StagedTask, runs: SeedRuns) -> list[Trained]:
+        """What :meth:`train` does, for a schedule of its own."""
         raise NotImplementedError
 
     def frozen_stages(self, finished: set[int], num_stages: int) -> set[int]:
-        """The stages whose config a resumed run may not change, given the ``finished`` ones:
-        those a finished stage depends on (by default every stage once one has finished)."""
+        """The stages whose config a resumed run may not change, given the ``finished`` ones."""
         return set(range(num_stages)) if finished else set()
 
     def checkpoint_scope(self, stage: int) -> int | str:
@@ -129,39 +164,6 @@ class Schedule:
 
     def validate_task(self, cfg: DictConfig, task: StagedTask) -> None:
         """Checks the built task (:class:`ConfigError`)."""
-
-
-def finished_for_every_seed(
-    keepers: Sequence[StageKeeper | None], seeds: Sequence[int], stage: int, resume: str
-) -> list[tuple[Learner, StageResult]] | None:
-    """Each seed's finished ``stage`` (``keeper.finished(stage)``) when every seed's keeper has
-    it, ``None`` when none has; a ``RuntimeError`` naming the seeds and the fix (``resume``: the
-    command that resumes one seed's run directory) when only some have."""
-    done = [keeper.finished(stage) if keeper is not None else None for keeper in keepers]
-    if all(d is None for d in done):
-        return None
-    missing = [s for s, d in zip(seeds, done, strict=True) if d is None]
-    if missing:
-        raise RuntimeError(
-            f"stage {stage}: finished for some seeds but not for seeds {missing}; Fix: resume "
-            f"those seeds' run directories one by one ({resume})"
-        )
-    return done
-
-
-def begin_loop(
-    keepers: Sequence[StageKeeper | None],
-    checkpoints: Callable[[int | str], StageCheckpoints] | None,
-    scope: int | str,
-) -> StageCheckpoints | None:
-    """The checkpoints of the loop ``scope`` (none without ``checkpoints``); without one to go
-    on from, each seed's keeper starts the loop afresh (:meth:`StageKeeper.begin`)."""
-    scoped = checkpoints(scope) if checkpoints is not None else None
-    if scoped is None or scoped.latest() is None:
-        for keeper in keepers:
-            if keeper is not None:
-                keeper.begin(scope)
-    return scoped
 
 
 #: registered schedules by name

@@ -3,26 +3,14 @@ baseline)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Sequence
 
 from omegaconf import DictConfig
 from torchrl.envs import EnvBase
 
-from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import check
 from torchrl_stages.learners import Learner, make_learner
-from torchrl_stages.metrics import MetricsLog
-from torchrl_stages.schedules.backward import keep_stage
-from torchrl_stages.schedules.base import (
-    Probe,
-    Schedule,
-    StageKeeper,
-    Trained,
-    begin_loop,
-    finished_for_every_seed,
-    register_schedule,
-)
+from torchrl_stages.schedules.base import Schedule, SeedRuns, Trained, register_schedule
 from torchrl_stages.seeding import EVAL_OFFSET, seeded, stage_seed
 from torchrl_stages.stage import StageTrainer
 from torchrl_stages.task import StagedTask
@@ -36,27 +24,12 @@ def flat_config(task: StagedTask) -> DictConfig:
     return cfg
 
 
-def train_flat(
-    task: StagedTask,
-    seeds: Sequence[int] = (0,),
-    *,
-    keepers: Sequence[StageKeeper | None] | None = None,
-    logs: Sequence[MetricsLog] | None = None,
-    checkpoints: Callable[[int | str], StageCheckpoints] | None = None,
-    progress: bool = False,
-    probe: Probe | None = None,
-    compile: str = "off",
-) -> list[Trained]:
-    """One learner over the whole task, no stages (the paper's end-to-end baseline), for every
-    seed of ``seeds`` at once.
-
-    It has stage 0's algorithm and hyper-parameters and the sum of the stages' budgets, starts
-    from the task's own starts, and discounts every transition with the gamma of its stage
-    (:class:`~torchrl_stages.transforms.StageDiscount`), so it optimizes the objective the
-    stacked learners do. Its evaluations are whole-task episodes. Each seed's
-    :class:`~torchrl_stages.schedules.Trained` holds its learner once per stage (it acts
-    everywhere) and its one result; ``keepers``, ``logs``, ``checkpoints`` and ``probe`` as in
-    :func:`~torchrl_stages.schedules.backward.train_backward`.
+def train_flat(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
+    """One learner over the whole task for every seed of ``seeds`` at once (``kwargs``: those
+    of :meth:`Schedule.train <torchrl_stages.schedules.Schedule.train>`): stage 0's config with
+    the stages' budgets summed, every transition discounted with its stage's gamma
+    (:class:`~torchrl_stages.transforms.StageDiscount`), whole-task episodes. Each seed's
+    :class:`Trained` holds its learner once per stage and its one result.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -73,67 +46,20 @@ def train_flat(
         >>> run.learners[0] is run.learners[1], run.results[0].frames  # doctest: +SKIP
         (True, 512)
     """
-    n = len(seeds)
-    keepers = list(keepers) if keepers is not None else [None] * n
-    resume = "stages-train schedule=flat seed=<s> resume=true hydra.run.dir=<its directory>"
-    done = finished_for_every_seed(keepers, seeds, 0, resume)
-    if done is None:
-        cfg, specs = flat_config(task), task.specs(0)
-
-        def make(seeds: int | None = None) -> Learner:
-            return make_learner(cfg, specs, compile, task.device, seeds=seeds)
-
-        learner, (env, eval_env) = seeded(
-            make, seeds, 0, lambda: flat_envs(task, cfg, seeds[0], copies=n)
-        )
-        on_evaluate = None
-        if probe is not None:
-
-            def on_evaluate(frames: int) -> None:
-                probe([learner] * task.num_stages, frames)
-
-        trainer = StageTrainer(
-            0,
-            learner,
-            env,
-            eval_env,
-            cfg,
-            logs=logs,
-            make_learner=make,
-            name="flat",
-            progress=progress,
-            seeds=seeds,
-            checkpoints=begin_loop(keepers, checkpoints, 0),
-            on_evaluate=on_evaluate,
-            **stage_discounts(task, cfg),
-        )
-        done = keep_stage(trainer, keepers)
-    return [Trained([learner] * task.num_stages, [result]) for learner, result in done]
+    return FlatSchedule().train(task, seeds, **kwargs)
 
 
 def flat_envs(
     task: StagedTask, cfg: DictConfig, seed: int, copies: int = 1
 ) -> tuple[EnvBase, EnvBase]:
     """The flat learner's training env (the task's own starts) and evaluation env (every
-    whole-task start, else ``eval_episodes``), ``copies`` of each (one per seed of a stacked
-    learner), seeded as a flat run's are (:mod:`~torchrl_stages.seeding`, stage 0)."""
+    whole-task start, else ``eval_episodes``), ``copies`` of each, seeded as stage 0's."""
     env = task.task_env(int(cfg.num_envs), start_stage=None, train=True, copies=copies)
     env.set_seed(stage_seed(seed, 0))
     episodes = None if task.start_states(None) is not None else int(cfg.eval_episodes)
     eval_env = task.task_env(episodes, copies=copies)
     eval_env.set_seed(stage_seed(seed, 0) + EVAL_OFFSET)
     return env, eval_env
-
-
-def stage_discounts(task: StagedTask, cfg: DictConfig) -> dict[str, Any]:
-    """The stage trainer's arguments that discount each transition with its stage's gamma
-    (:class:`~torchrl_stages.transforms.StageDiscount`), in training and in evaluations."""
-    gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
-    return {
-        "gammas": gammas,
-        "postproc": StageDiscount(gammas, float(cfg.gamma)),
-        "extra_keys": ["steps_to_next_obs"],
-    }
 
 
 @register_schedule
@@ -144,8 +70,45 @@ class FlatSchedule(Schedule):
     name = "flat"
     stacks_seeds = True
 
-    def train(self, task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-        return train_flat(task, seeds, **kwargs)
+    def run(self, task: StagedTask, runs: SeedRuns) -> list[Trained]:
+        done = runs.finished(0)
+        if done is None:
+            seeds, n = runs.seeds, len(runs.seeds)
+            cfg, specs = flat_config(task), task.specs(0)
+
+            def make(seeds: int | None = None) -> Learner:
+                return make_learner(cfg, specs, runs.compile, task.device, seeds=seeds)
+
+            learner, (env, eval_env) = seeded(
+                make, seeds, 0, lambda: flat_envs(task, cfg, seeds[0], copies=n)
+            )
+            on_evaluate = None
+            if runs.probe is not None:
+
+                def on_evaluate(frames: int) -> None:
+                    runs.probe([learner] * task.num_stages, frames)
+
+            gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
+            checkpoints = runs.begin(0)
+            trainer = StageTrainer(
+                0,
+                learner,
+                env,
+                eval_env,
+                cfg,
+                logs=runs.logs,
+                make_learner=make,
+                name="flat",
+                progress=runs.progress,
+                seeds=seeds,
+                checkpoints=checkpoints,
+                on_evaluate=on_evaluate,
+                gammas=gammas,
+                postproc=StageDiscount(gammas, float(cfg.gamma)),
+                extra_keys=["steps_to_next_obs"],
+            )
+            done = runs.keep(0, trainer.train(), checkpoints)
+        return [Trained([learner] * task.num_stages, [result]) for learner, result in done]
 
     def checkpoint_scope(self, stage: int) -> int:
         return 0
