@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
@@ -51,6 +52,14 @@ def draw_until(
 def episode_path(rollout: TensorDictBase, key: str, i: int, steps: int) -> torch.Tensor:
     """``rollout[key]`` along row ``i``'s first episode of ``steps`` steps: ``[steps + 1, ...]``."""
     return torch.cat([rollout[key][i, :1], rollout["next", key][i, :steps]])
+
+
+def stage_segments(xy: np.ndarray, stages: np.ndarray, k: int) -> list[np.ndarray]:
+    """The pieces of a path ``xy [T+1, 2]`` whose steps start in stage ``k`` (``stages [T+1]``),
+    each with the point where its last step ends."""
+    idx = np.flatnonzero(stages[:-1] == k)
+    runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)
+    return [xy[run[0] : run[-1] + 2] for run in runs if len(run)]
 
 
 class StageStarts:

@@ -15,13 +15,13 @@ __all__ = ["plot_grid_trajectories", "plot_value_map"]
 
 
 def _stage_boundaries(ax: Axes, n_cols: int, stage_width: int, color: str = "k") -> None:
-    """Dashed vertical lines between stages (cell edges lie at half-integers)."""
+    """Dashed lines between stages (cell edges lie at half-integers)."""
     for edge in range(stage_width, n_cols, stage_width):
         ax.axvline(edge - 0.5, color=color, linestyle="--", linewidth=1.5)
 
 
 def _mark_target(ax: Axes, target: tuple[int, int], color: str = "gold") -> None:
-    """Star on the target cell, given as (row, col)."""
+    """A star on the target cell ``(row, col)``."""
     row, col = target
     ax.plot(
         col,
@@ -46,11 +46,8 @@ def plot_grid_trajectories(
     title: str = "",
     labels: Sequence[str] | None = None,
 ) -> Path:
-    """Draw greedy trajectories, each a sequence of (row, col) cells, over the grid.
-
-    Row 0 is at the top and column 0 at the left. Each path starts with a ``^`` marker; the
-    target gets a star. With ``labels`` (one per path) a legend is added. Returns the PNG path.
-    """
+    """Paths of ``(row, col)`` cells over the grid (row 0 at the top), each starting at a ``^``,
+    with a legend of ``labels`` (one per path) when given."""
     if labels is not None and len(labels) != len(paths):
         raise ValueError(f"got {len(labels)} labels for {len(paths)} paths")
     fig = Figure(figsize=(6.5, 6.5))
@@ -103,10 +100,7 @@ def plot_value_map(
     out: str | Path,
     title: str = "",
 ) -> Path:
-    """Heat map of a (size, size) state-value array, row 0 at the top; returns the PNG path.
-
-    Non-finite entries (e.g. unvisited cells) are left blank.
-    """
+    """Heat map of a ``(size, size)`` value array, row 0 at the top; non-finite entries blank."""
     arr = np.asarray(values, dtype=float)
     if arr.ndim != 2:
         raise ValueError(f"values must be 2-D (rows, cols), got shape {arr.shape}")
