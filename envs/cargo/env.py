@@ -51,16 +51,13 @@ def load_obstacle_map(path: str | Path | None = None) -> torch.Tensor:
 class CargoEnv(StageStarts, EnvBase):
     """Robots carrying a cargo across an obstacle map to a target, one robot per stage.
 
-    Positions ``(x, y)`` are continuous, in robot radii ``a`` (one map cell per ``a``). The
-    line ``x = W / 2`` splits the map: ``robots[0]`` drives the cargo left of it (stage 0),
-    ``robots[1]`` once it has crossed (stage 1, for good). Per step, with Gaussian noise: the
-    ``"slider"`` moves ``step_length`` ahead and turns by ``max_turn * a`` (``a in [-1, 1]``);
-    the ``"propelled"`` robot moves ``step_length`` ahead when ``a = 1``, its heading only
-    diffuses. A move whose segment touches an obstacle or leaves the map is rejected (the turn
-    still happens). Within ``success_radius`` of ``target``: reward 1 and ``terminated``. The
-    networks read ``"window"`` (the map around the robot in its frame, heading up, uint8
-    ``[*B, 1, w, w]``) and ``"target"`` (its offset in that frame, over ``W / 2``).
-    ``docs/tasks/cargo.md`` has the details.
+    Positions are continuous, in robot radii (one map cell each). ``robots[0]`` drives the
+    cargo left of the line ``x = W / 2`` (stage 0), ``robots[1]`` once it has crossed it (stage
+    1, for good): the ``"slider"`` moves ahead and turns by ``max_turn * a``, the
+    ``"propelled"`` robot moves ahead when ``a = 1``; both with Gaussian noise. A move that
+    touches an obstacle or leaves the map is rejected. Within ``success_radius`` of ``target``:
+    reward 1 and ``terminated``. The networks read ``"window"`` (the map around the robot,
+    heading up) and ``"target"`` (in the robot's frame). ``docs/tasks/cargo.md`` has the details.
 
     Examples:
         >>> import torch

@@ -13,12 +13,7 @@ from torchrl.envs import EnvBase
 
 from .._common import StageStarts, draw_until
 
-__all__ = [
-    "ManipulatorEnv",
-    "forward_kinematics",
-    "inverse_kinematics",
-    "wrap_angle",
-]
+__all__ = ["ManipulatorEnv", "forward_kinematics", "inverse_kinematics", "wrap_angle"]
 
 REACH = 2.0  # L1 + L2: radius of the reachable disk
 MIN_RADIUS = 1e-3  # fine-stage starts closer than this to the base are rejected (IK singularity)
@@ -88,16 +83,13 @@ def _per_stage(name: str, value: Sequence[float]) -> tuple[float, ...]:
 class ManipulatorEnv(StageStarts, EnvBase):
     """Two-link planar arm (links of length 1) steering its effector onto a target.
 
-    The state is the pair of joint angles; the action ``a in [-1, 1]^2`` moves them by
-    ``u_max[stage] * a``. Stage 0 (coarse) holds until the effector-target distance ``d`` drops
-    below ``switch_distance``; then stage 1 (fine) for the rest of the episode.
-    ``d <= success_distance`` gives reward 1 and ``terminated``. The observation, float32
-    ``[*B, 6]``, is elbow, effector and ``(target - effector) / scales[stage]``; the env writes
-    its stage as ``"stage"``. One value per stage in ``u_max`` and ``scales`` makes a
-    single-stage task. ``start_stage=1`` draws effector positions area-uniform within
-    ``switch_distance`` of the target (not solved), with a random elbow; else uniform angles
-    with ``d >= switch_distance``. ``random_target`` draws a target per reset in the disk of
-    radius 2.
+    The action ``a in [-1, 1]^2`` moves the joint angles by ``u_max[stage] * a``. Stage 0
+    (coarse) lasts until the effector-target distance ``d`` drops below ``switch_distance``,
+    stage 1 (fine) the rest of the episode; ``d <= success_distance`` gives reward 1 and
+    ``terminated``. The observation ``[*B, 6]`` is elbow, effector and ``(target - effector) /
+    scales[stage]``; the env writes ``"stage"``. One value per stage in ``u_max`` and ``scales``
+    makes a single-stage task. ``start_stage=1`` starts within ``switch_distance`` of the target;
+    ``random_target`` draws a target per reset. ``docs/tasks/manipulator.md`` has the details.
 
     Examples:
         >>> import torch
