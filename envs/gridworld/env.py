@@ -92,7 +92,15 @@ class GridWorldEnv(StageStarts, EnvBase):
         self.size, self.num_stages = int(size), int(num_stages)
         self.stage_start_rows = _check_rows(self.size, stage_start_rows)
         self.target = _check_grid(self.size, self.num_stages, target)
-        self.stage_width = self.size // self.num_stages
+        self.stage_width = w = self.size // self.num_stages
+        first, end = self.stage_start_rows or (0, self.size)
+        self._stage_starts = []  # each stage's start cells, row-major, the target left out
+        for k in range(self.num_stages):
+            rows, cols = torch.meshgrid(
+                torch.arange(first, end), torch.arange(k * w, (k + 1) * w), indexing="ij"
+            )
+            cells = torch.stack([rows.reshape(-1), cols.reshape(-1)], -1)
+            self._stage_starts.append(cells[(cells != torch.tensor(self.target)).any(-1)])
         bs, dev = self.batch_size, self.device
         self._n = bs.numel()
         self.observation_spec = Composite(
@@ -140,21 +148,11 @@ class GridWorldEnv(StageStarts, EnvBase):
 
     def _sample_starts(self) -> torch.Tensor:
         """Flat start cells (``row * size + col``), one per element."""
-        n, dev, w = self._n, self.device, self.stage_width
-        if self._start_stage is not None and self.stage_start_rows is not None:
-            cells = self._stage_cells(self._start_stage)
-            idx = torch.randint(len(cells), (n,), device=dev, generator=self.rng)
-            return cells.to(dev)[idx, 0] * self.size + cells.to(dev)[idx, 1]
+        n, dev = self._n, self.device
         if self._start_stage is not None:
-            c0 = self._start_stage * w
-            tr, tc = self.target
-            has_target = c0 <= tc < c0 + w
-            idx = torch.randint(
-                self.size * w - int(has_target), (n,), device=dev, generator=self.rng
-            )
-            if has_target:  # skip the target: uniform over the other cells of the strip
-                idx = idx + (idx >= tr * w + (tc - c0)).long()
-            return (idx // w) * self.size + c0 + idx % w
+            cells = self._stage_starts[self._start_stage].to(dev)
+            idx = torch.randint(len(cells), (n,), device=dev, generator=self.rng)
+            return cells[idx, 0] * self.size + cells[idx, 1]
         if self._start_cell is not None:
             return self._start_cell
         return torch.randint(self.size, (n,), device=dev, generator=self.rng) * self.size
@@ -174,19 +172,8 @@ class GridWorldEnv(StageStarts, EnvBase):
             cells = torch.stack([rows, torch.zeros_like(rows)], -1)
             cells = cells[(cells != torch.tensor(self.target)).any(-1)]
         else:
-            check_start_stage(stage, self.num_stages)
-            cells = self._stage_cells(stage)
+            cells = self._stage_starts[check_start_stage(stage, self.num_stages)]
         return {"batch_size": (len(cells),), "start_cell": cells, "start_stage": None}
-
-    def _stage_cells(self, stage: int) -> torch.Tensor:
-        """The ``(row, col)`` start cells of ``stage``, row-major, the target left out."""
-        w = self.stage_width
-        first, end = self.stage_start_rows or (0, self.size)
-        rows, cols = torch.meshgrid(
-            torch.arange(first, end), torch.arange(stage * w, (stage + 1) * w), indexing="ij"
-        )
-        cells = torch.stack([rows.reshape(-1), cols.reshape(-1)], -1)
-        return cells[(cells != torch.tensor(self.target)).any(-1)]
 
     def observation_of(self, cells: torch.Tensor) -> torch.Tensor:
         """The observation of cells ``[..., 2]``, the inverse of :meth:`cells_of`."""

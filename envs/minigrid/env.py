@@ -293,16 +293,9 @@ class StagedMiniGrid(gymnasium.Wrapper):
         faces (the object there and its state)."""
         level = self.env.unwrapped
         front = level.grid.get(*level.front_pos)
-        door = (
-            (front.is_open, front.is_locked) if front is not None and front.type == "door" else ()
-        )
-        return (
-            tuple(int(v) for v in level.agent_pos),
-            int(level.agent_dir),
-            id(level.carrying),
-            id(front),
-            door,
-        )
+        door = (front.is_open, front.is_locked) if getattr(front, "type", None) == "door" else ()
+        position = tuple(int(v) for v in level.agent_pos)
+        return position, int(level.agent_dir), id(level.carrying), id(front), door
 
     def step(self, action):
         before = self._state() if self.no_op_reward else None
