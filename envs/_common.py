@@ -1,4 +1,4 @@
-"""What the torch-native multi-stage envs share: specs, resets, step flags, seeding, state."""
+"""What the tasks share: the torch-native envs' mixin and start draws, episode paths, segments."""
 
 from __future__ import annotations
 

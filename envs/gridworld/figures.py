@@ -24,15 +24,7 @@ def _mark_target(ax: Axes, target: tuple[int, int], color: str = "gold") -> None
     """A star on the target cell ``(row, col)``."""
     row, col = target
     ax.plot(
-        col,
-        row,
-        marker="*",
-        markersize=18,
-        color=color,
-        markeredgecolor="k",
-        linestyle="none",
-        label="target",
-        zorder=5,
+        col, row, "*", markersize=18, color=color, markeredgecolor="k", label="target", zorder=5
     )
 
 
@@ -57,9 +49,8 @@ def plot_grid_trajectories(
     ax.set_yticks(ticks, minor=True)
     ax.grid(which="minor", color="0.85", linewidth=0.5)
     ax.tick_params(which="minor", length=0)
-    ax.set_xlim(-0.5, size - 0.5)
-    ax.set_ylim(size - 0.5, -0.5)  # inverted: row 0 at the top
-    ax.set_aspect("equal")
+    ax.set(xlim=(-0.5, size - 0.5), ylim=(size - 0.5, -0.5), aspect="equal")  # row 0 on top
+    ax.set(xlabel="column", ylabel="row")
     _stage_boundaries(ax, size, stage_width)
     for k, start in enumerate(range(0, size, stage_width)):
         centre = start + (min(start + stage_width, size) - start - 1) / 2
@@ -71,19 +62,9 @@ def plot_grid_trajectories(
             continue
         label = labels[i] if labels is not None else None
         ax.plot(cells[:, 1], cells[:, 0], color=colors[i], linewidth=2, alpha=0.85, label=label)
-        ax.plot(
-            cells[0, 1],
-            cells[0, 0],
-            marker="^",
-            markersize=10,
-            color=colors[i],
-            markeredgecolor="k",
-            linestyle="none",
-            zorder=4,
-        )
+        first = cells[0, 1], cells[0, 0]
+        ax.plot(*first, "^", markersize=10, color=colors[i], markeredgecolor="k", zorder=4)
     _mark_target(ax, target)
-    ax.set_xlabel("column")
-    ax.set_ylabel("row")
     if title:
         ax.set_title(title, pad=22)
     if labels is not None and len(paths) > 0:
@@ -113,8 +94,7 @@ def plot_value_map(
     _stage_boundaries(ax, arr.shape[1], stage_width, color="w")
     if target is not None:
         _mark_target(ax, target, color="red")
-    ax.set_xlabel("column")
-    ax.set_ylabel("row")
+    ax.set(xlabel="column", ylabel="row")
     if title:
         ax.set_title(title)
     fig.tight_layout()
