@@ -15,6 +15,8 @@ import torch
 
 from torchrl_stages.gym_env import GymStageEnv
 
+from .._common import check_start_stage
+
 __all__ = [
     "ACTIONS",
     "DOORS",
@@ -136,9 +138,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
         super().__init__(env)
         family = _family(env.spec.id if env.spec is not None else type(env.unwrapped).__name__)
         _skip_level_image(env.unwrapped)
-        if start_stage is not None and not 0 <= int(start_stage) < self.num_stages:
-            raise ValueError(f"start_stage={start_stage}: MiniGrid levels have stages 0, 1, 2")
-        self.start_stage = start_stage
+        self.start_stage = check_start_stage(start_stage, self.num_stages)
         self.actions = _actions(family, actions, env.unwrapped.actions)
         self._level_actions = [int(env.unwrapped.actions[name]) for name in self.actions]
         self.action_space = gymnasium.spaces.Discrete(len(self.actions))
@@ -256,26 +256,12 @@ class StagedMiniGrid(gymnasium.Wrapper):
                 blocked.append(float(not inside or (cell is not None and not cell.can_overlap())))
                 if self.view_doors:
                     doors.append(float(cell is not None and cell.type == "door"))
-        direction = np.eye(4, dtype=np.float32)[level.agent_dir]
+        agent = [ax / size, ay / size, *np.eye(4)[level.agent_dir]]
         carrying = level.carrying
-        return np.array(
-            [
-                ax / size,
-                ay / size,
-                *direction,
-                float(carrying is self.key),
-                float(carrying is not None and carrying is self.target),
-                float(self.door.is_open),
-                float(self.door.is_locked),
-                *offset(self.key),
-                *offset(self.door),
-                *offset(self.target),
-                *kinds,
-                *blocked,
-                *doors,
-            ],
-            np.float32,
-        )
+        load = [carrying is self.key, carrying is not None and carrying is self.target]
+        door = [self.door.is_open, self.door.is_locked]
+        offsets = [*offset(self.key), *offset(self.door), *offset(self.target)]
+        return np.array([*agent, *load, *door, *offsets, *kinds, *blocked, *doors], np.float32)
 
     def _obs(self) -> dict[str, np.ndarray]:
         return {"observation": self._features(), "stage": np.array([self.stage], np.int64)}
