@@ -37,8 +37,7 @@ def draw_until(
     pending: torch.Tensor,
     what: str,
 ) -> torch.Tensor:
-    """``current`` with its ``pending`` rows replaced by draws that are acceptable, where
-    ``draw()`` gives candidates for every row and whether each is acceptable."""
+    """``current`` with its ``pending`` rows replaced by ok draws of ``draw() -> (rows, ok)``."""
     for _ in range(MAX_ATTEMPTS):
         candidates, ok = draw()
         take = pending & ok
@@ -78,8 +77,7 @@ class StageStarts:
     _dynamic_state: tuple[str, ...] = ()
 
     def _init_state(self, max_steps: int, **buffers: torch.Tensor | None) -> None:
-        """Sets ``max_steps``, the reward and done specs, and the buffers, ``_steps`` among them
-        (non-persistent: they follow ``env.to(device)`` and stay out of ``state_dict``)."""
+        """Sets ``max_steps``, the reward and done specs, and buffers kept out of state_dict."""
         check_positive(max_steps=max_steps)
         self.max_steps = int(max_steps)
         bs, dev = self.batch_size, self.device
@@ -116,8 +114,7 @@ class StageStarts:
         return {"done": zeros, "terminated": zeros.clone(), "truncated": zeros.clone()}
 
     def _step_flags(self, solved: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Counts a step: reward 1 and ``terminated`` where ``solved`` (bool ``[n]``),
-        ``truncated`` after ``max_steps`` steps."""
+        """Counts a step: reward 1 and ``terminated`` where ``solved``, then the time limit."""
         self._steps.add_(1)
         terminated = solved.reshape(*self.batch_size, 1)
         truncated = (self._steps >= self.max_steps).reshape(*self.batch_size, 1)

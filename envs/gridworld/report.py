@@ -84,8 +84,7 @@ def path_from_origin(task: StagedTask, policy: StackedPolicy) -> dict[str, Any]:
 
 
 def value_map_errors(task: StagedTask, learners: Sequence[Learner]) -> tuple[np.ndarray, dict]:
-    """The merged value map and its largest and mean error against the optimal values
-    (Proposition 1), the terminal target left out."""
+    """The merged value map and its largest and mean error off the target (Proposition 1)."""
     env = task.base_env(1)
     values = merged_value_map(task, learners)
     optimal = gridworld_optimal_values(
@@ -101,8 +100,7 @@ def value_map_errors(task: StagedTask, learners: Sequence[Learner]) -> tuple[np.
 
 
 def probe(task: StagedTask, learners: Sequence[Learner]) -> dict[str, float]:
-    """Followed during training: whether the greedy path from (0, 0) is optimal, and the
-    merged value map's largest error."""
+    """Whether the greedy path from (0, 0) is optimal, and the value map's largest error."""
     policy = StackedPolicy([learner.policy for learner in learners])
     _, errors = value_map_errors(task, learners)
     return {

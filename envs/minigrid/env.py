@@ -183,8 +183,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
         return 1 if level.carrying is self.key else 0
 
     def _reachable(self) -> list[tuple[int, int]]:
-        """The cells the agent can stand on and walk to (through doors it can open): free
-        cells and open doorways."""
+        """The free cells and open doorways the agent can walk to, through doors it can open."""
         level = self.env.unwrapped
         start = tuple(int(v) for v in level.agent_pos)
         seen, queue, cells = {start}, deque([start]), []
@@ -275,8 +274,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
         return self._obs(), info
 
     def _state(self) -> tuple:
-        """What an action can change: the agent's cell, direction and load, and the cell it
-        faces (the object there and its state)."""
+        """What an action can change: the agent's cell, direction and load, and what it faces."""
         level = self.env.unwrapped
         front = level.grid.get(*level.front_pos)
         door = (front.is_open, front.is_locked) if getattr(front, "type", None) == "door" else ()
