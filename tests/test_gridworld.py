@@ -1,7 +1,5 @@
 """Tests for the multi-stage grid world and its dynamic-programming solution."""
 
-import doctest
-
 import pytest
 import torch
 from tensordict import TensorDict
@@ -299,13 +297,3 @@ def test_measure_throughput_is_frames_over_elapsed_time(monkeypatch):
     monkeypatch.setattr(torchrl_stages.envs.gridworld.env, "time", FakeTime)
     assert measure_throughput(64, steps=10) == pytest.approx(10 * 64 / 2.5)
     assert next(ticks, None) is None  # exactly two readings: before and after the timed steps
-
-
-def test_docstring_examples():
-    finder = doctest.DocTestFinder()
-    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS)
-    tests = finder.find(GridWorldEnv, "GridWorldEnv", globs={})
-    assert tests and any(t.examples for t in tests)
-    for t in tests:
-        runner.run(t)
-    assert runner.failures == 0

@@ -1,6 +1,5 @@
 """Tests for the two-stage precision manipulator env."""
 
-import doctest
 import math
 
 import pytest
@@ -386,15 +385,3 @@ def test_stage_transform_reads_env_stage():
     for row in range(64):
         switched = episode[row][transition[row]]
         assert len(switched) == len(set(switched.tolist()))
-
-
-def test_docstring_examples():
-    import torchrl_stages.envs.manipulator.env as module
-
-    finder = doctest.DocTestFinder()
-    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS)
-    tests = finder.find(module, globs={})
-    assert sum(len(t.examples) for t in tests) >= 10
-    for t in tests:
-        runner.run(t)
-    assert runner.failures == 0

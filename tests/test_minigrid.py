@@ -280,6 +280,8 @@ def test_stage_names_and_levels_without_the_stages_are_refused():
         MiniGridEnv("MiniGrid-Empty-5x5-v0", batch_size=(1,))
     with pytest.raises(ValueError, match=r"Fix: pick one"):  # never imports a module it names
         MiniGridEnv("os:MiniGrid-DoorKey-5x5-v0", batch_size=(1,))
+    with pytest.raises(ValueError, match=r"start_stage=3 is out of range"):
+        StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), start_stage=3)
 
 
 def test_the_vector_env_restarts_finished_copies_inside_their_stage():

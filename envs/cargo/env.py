@@ -12,23 +12,21 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from .._common import StageStarts, sparse_reward_and_done_specs
+from .._common import StageStarts, check_positive, draw_until
 from ..manipulator.env import wrap_angle
 
 __all__ = ["CargoEnv", "ROBOTS", "load_obstacle_map"]
 
 #: robot kinds and what their action entry ``(kind, "action")`` is
 ROBOTS = ("slider", "propelled")
-MAX_ATTEMPTS = 100  # bound on the vectorized rejection-sampling loop of the starts
 SEGMENT_SAMPLES = 16  # points checked along each move (spacing < 0.25 cell for moves < 4 a)
 
 
 def load_obstacle_map(path: str | Path | None = None) -> torch.Tensor:
-    """An obstacle map as a bool tensor ``[H, W]``, indexed ``[y, x]`` (row 0 is ``y = 0``).
+    """An obstacle map, bool ``[H, W]`` indexed ``[y, x]``; ``None``: the shipped map.
 
-    The text format has one line per row, top row (largest ``y``) first: ``#`` for an obstacle
-    cell, ``.`` for a free one; lines starting with ``;`` are comments. ``None`` loads the map
-    shipped with the package (``envs/cargo/data/cargo_map.txt``, 50 x 70).
+    The text has one line per row, top row (largest ``y``) first: ``#`` an obstacle cell, ``.``
+    a free one; lines starting with ``;`` are comments.
 
     Examples:
         >>> from torchrl_stages.envs import load_obstacle_map
@@ -53,55 +51,13 @@ def load_obstacle_map(path: str | Path | None = None) -> torch.Tensor:
 class CargoEnv(StageStarts, EnvBase):
     """Robots carrying a cargo across an obstacle map to a target, one robot per stage.
 
-    Positions ``(x, y)`` are continuous, in units of the robot radius ``a`` (one map cell per
-    ``a``); the robot is a point for collisions. The map is split by the vertical stage line
-    ``x = W / 2``: stage 0 (left half) is driven by ``robots[0]``, stage 1 (right half) by
-    ``robots[1]``. Stages never go back: once the cargo has crossed the line, the second robot
-    keeps it even if noise pushes it back over the line. Per control step (Euler-Maruyama):
-
-    * ``"slider"``: constant speed, continuous turning rate ``w = max_turn * a``, ``a`` in
-      ``[-1, 1]`` (action ``("slider", "action")``, ``Bounded [*B, 1]``):
-      ``x += L cos(theta) + n_x``, ``y += L sin(theta) + n_y``, ``theta += w + n_theta``.
-    * ``"propelled"``: orientation only diffuses; binary propulsion ``v in {0, L}`` (action
-      ``("propelled", "action")``, ``Categorical(2)``, ``[*B]``):
-      ``x += v cos(theta) + n_x``, ``y += v sin(theta) + n_y``, ``theta += n_theta``.
-
-    ``L = step_length``, ``n_x, n_y ~ N(0, translational_noise^2)``, ``n_theta ~
-    N(0, rotational_noise^2)``. A move is rejected when one of 16 evenly spaced points of its
-    segment (end point included, under 0.25 cell apart) lies on an obstacle cell or off the map:
-    the position stays, the rotation still happens. No move passes through an obstacle; one may
-    clip the corner of an obstacle cell. Each element applies the action
-    of its stage's robot; a missing action entry counts as zeros. Reaching within
-    ``success_radius`` of ``target`` gives reward 1 and ``terminated``; after ``max_steps``
-    steps an element is ``truncated``.
-
-    Observation entries (the networks read ``"window"`` and ``"target"``):
-
-    * ``"window"``: ``uint8 [*B, 1, w, w]``, the obstacle map (off-map counts as obstacle) in
-      the robot's frame, one cell per pixel: the robot sits at the center, heading up (row 0 is
-      farthest ahead), its left on the left.
-    * ``"target"``: ``float32 [*B, 2]``, the target in the robot's frame (ahead, left),
-      divided by ``W / 2``.
-    * ``"position"`` ``[*B, 2]`` and ``"heading"`` ``[*B, 1]``: the state, for plots and tests.
-    * ``"stage"``: ``int64 [*B, 1]``, so :class:`~torchrl_stages.transforms.StageTransform`
-      is used with ``stage_fn=None``.
-
-    Args:
-        batch_size: batch shape of the env; any shape, e.g. ``()``, ``(64,)``, ``(2, 3)``.
-
-    Keyword Args:
-        robots: one robot kind per stage: ``("slider", "propelled")`` is the paper's task;
-            one robot (e.g. ``("propelled",)``) makes a single-stage baseline over the whole map
-            with the same starts.
-        map_file: obstacle map (see :func:`load_obstacle_map`); ``None``: the shipped map.
-        target: target position ``(x, y)``, a free point right of the stage line.
-        success_radius, step_length, translational_noise, rotational_noise: in ``a`` (and rad).
-        max_turn: the slider's largest turn per step (rad).
-        window: side of the observation window, in cells.
-        max_steps: per-element time limit.
-        start_stage: ``None`` or ``0``: uniform free positions in the left half (whole-task
-            starts); ``1``: in the right half. Headings are uniform.
-        device: torch device.
+    Positions are continuous, in robot radii (one map cell each). ``robots[0]`` drives the
+    cargo left of the line ``x = W / 2`` (stage 0), ``robots[1]`` once it has crossed it (stage
+    1, for good): the ``"slider"`` moves ahead and turns by ``max_turn * a``, the
+    ``"propelled"`` robot moves ahead when ``a = 1``; both with Gaussian noise. A move that
+    touches an obstacle or leaves the map is rejected. Within ``success_radius`` of ``target``:
+    reward 1 and ``terminated``. The networks read ``"window"`` (the map around the robot,
+    heading up) and ``"target"`` (in the robot's frame). ``docs/tasks/cargo.md`` has the details.
 
     Examples:
         >>> import torch
@@ -116,9 +72,8 @@ class CargoEnv(StageStarts, EnvBase):
         [1, 1, 1]
     """
 
-    stage_fn = None  # the env tracks its stage itself: StageTransform(None, n) reads "stage"
-
-    _dynamic_state = ("_pos", "_theta", "_stage", "_steps")  # what a step changes (see StageStarts)
+    stage_fn = None  # the env writes "stage": StageTransform(None, n) reads it
+    _dynamic_state = ("_pos", "_theta", "_stage", "_steps")
 
     def __init__(
         self,
@@ -150,46 +105,17 @@ class CargoEnv(StageStarts, EnvBase):
         self.target = tuple(float(v) for v in target)
         if len(self.target) != 2 or not self.target[0] >= self.stage_line:
             raise ValueError(f"target must be a point (x, y) right of x = {self.stage_line}.")
-        for name, value in (
-            ("success_radius", success_radius),
-            ("step_length", step_length),
-            ("max_turn", max_turn),
-        ):
-            if not value > 0:
-                raise ValueError(f"{name} must be positive, got {value}.")
+        check_positive(
+            success_radius=success_radius, step_length=step_length, max_turn=max_turn, window=window
+        )
         if translational_noise < 0 or rotational_noise < 0:
             raise ValueError("translational_noise and rotational_noise must be >= 0.")
-        if window <= 0 or max_steps <= 0:
-            raise ValueError(f"window and max_steps must be positive, got {window}, {max_steps}.")
         self.success_radius, self.step_length = float(success_radius), float(step_length)
         self.translational_noise = float(translational_noise)
         self.rotational_noise = float(rotational_noise)
-        self.max_turn, self.window, self.max_steps = float(max_turn), int(window), int(max_steps)
-        self._make_specs()
-        dev, f32, n = self.device, torch.float32, self._n
-        centers = (self.window - 1) / 2.0 - torch.arange(self.window, dtype=f32)
-        ahead, left = torch.meshgrid(centers, centers, indexing="ij")  # row i ahead, column j left
-        buffers = {  # non-persistent buffers: follow env.to(device), stay out of state_dict
-            "_occupancy": occupancy.to(dev),
-            "_offsets": torch.stack([ahead, left], -1).reshape(-1, 2).to(dev),  # [w*w, 2]
-            "_target": torch.tensor(self.target, dtype=f32, device=dev),
-            "_is_slider": torch.tensor([r == "slider" for r in self.robots], device=dev),
-            "_pos": torch.zeros(n, 2, dtype=f32, device=dev),
-            "_theta": torch.zeros(n, dtype=f32, device=dev),
-            "_stage": torch.zeros(n, dtype=torch.int64, device=dev),
-            "_steps": torch.zeros(n, dtype=torch.int64, device=dev),
-        }
-        for name, buf in buffers.items():
-            self.register_buffer(name, buf, persistent=False)
-        if self.blocked(self._target.unsqueeze(0)).item():
-            raise ValueError(f"target {self.target} lies on an obstacle or off the map.")
-        self.rng = None
-        self.start_stage = start_stage
-
-    def _make_specs(self) -> None:
-        bs, dev, f32 = self.batch_size, self.device, torch.float32
-        self._n = bs.numel()
-        w = self.window
+        self.max_turn, self.window = float(max_turn), int(window)
+        bs, dev, f32, w = self.batch_size, self.device, torch.float32, self.window
+        self._n = n = bs.numel()
         self.observation_spec = Composite(
             window=Binary(shape=(*bs, 1, w, w), dtype=torch.uint8, device=dev),
             target=Unbounded(shape=(*bs, 2), dtype=f32, device=dev),
@@ -206,9 +132,22 @@ class CargoEnv(StageStarts, EnvBase):
             {r: Composite(action=actions[r], shape=bs) for r in dict.fromkeys(self.robots)},
             shape=bs,
         )
-        self.reward_spec, self.done_spec = sparse_reward_and_done_specs(bs, dev)
+        centers = (w - 1) / 2.0 - torch.arange(w, dtype=f32)
+        ahead, left = torch.meshgrid(centers, centers, indexing="ij")  # row i ahead, column j left
+        self._init_state(
+            max_steps,
+            _occupancy=occupancy.to(dev),
+            _offsets=torch.stack([ahead, left], -1).reshape(-1, 2).to(dev),  # [w*w, 2]
+            _target=torch.tensor(self.target, dtype=f32, device=dev),
+            _is_slider=torch.tensor([r == "slider" for r in self.robots], device=dev),
+            _pos=torch.zeros(n, 2, dtype=f32, device=dev),
+            _theta=torch.zeros(n, dtype=f32, device=dev),
+            _stage=torch.zeros(n, dtype=torch.int64, device=dev),
+        )
+        if self.blocked(self._target.unsqueeze(0)).item():
+            raise ValueError(f"target {self.target} lies on an obstacle or off the map.")
+        self.start_stage = start_stage
 
-    # ------------------------------------------------------------------ geometry
     @property
     def occupancy(self) -> torch.Tensor:
         """The obstacle map, bool ``[H, W]`` indexed ``[y, x]``."""
@@ -252,42 +191,28 @@ class CargoEnv(StageStarts, EnvBase):
             device=self.device,
         )
 
-    # ------------------------------------------------------------------ start distribution
     def _sample_starts(self, pending: torch.Tensor) -> None:
-        """Draws positions and headings for the ``pending`` elements (in place)."""
+        """Draws positions and headings for the ``pending`` elements."""
         k = self._start_stage or 0
-        n, dev, mask = self._n, self.device, pending.clone()
-        for _ in range(MAX_ATTEMPTS):
-            u = torch.rand(n, 2, device=dev, generator=self.rng)
-            cand = torch.stack(
-                [(k + u[:, 0]) * self.stage_line, u[:, 1] * self.height], -1
-            )  # uniform in stage k's half
-            far = (cand - self._target).norm(dim=-1) > self.success_radius
-            take = pending & far & ~self.blocked(cand)
-            self._pos.copy_(torch.where(take.unsqueeze(-1), cand, self._pos))
-            pending = pending & ~take
-            if not pending.any():
-                break
-        else:
-            raise RuntimeError(f"could not draw free start positions in {MAX_ATTEMPTS} attempts.")
-        theta = math.pi - 2.0 * math.pi * torch.rand(n, device=dev, generator=self.rng)
-        self._theta.copy_(torch.where(mask, theta, self._theta))
 
-    # ------------------------------------------------------------------ EnvBase API
-    def _flags(self) -> dict[str, torch.Tensor]:
-        zeros = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
-        return {"done": zeros, "terminated": zeros.clone(), "truncated": zeros.clone()}
+        def draw() -> tuple[torch.Tensor, torch.Tensor]:
+            u = torch.rand(self._n, 2, device=self.device, generator=self.rng)
+            cand = torch.stack([(k + u[:, 0]) * self.stage_line, u[:, 1] * self.height], -1)
+            far = (cand - self._target).norm(dim=-1) > self.success_radius
+            return cand, far & ~self.blocked(cand)
+
+        self._pos.copy_(draw_until(draw, self._pos, pending, "free start positions"))
+        theta = math.pi - 2.0 * math.pi * torch.rand(
+            self._n, device=self.device, generator=self.rng
+        )
+        self._theta.copy_(torch.where(pending, theta, self._theta))
 
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
-        reset = tensordict.get("_reset", None) if tensordict is not None else None
-        if reset is None:
-            mask = torch.ones(self._n, dtype=torch.bool, device=self.device)
-        else:
-            mask = reset.reshape(self._n)
+        mask = self._reset_mask(tensordict)
         self._sample_starts(mask)
         self._stage.masked_fill_(mask, self._start_stage or 0)
         self._steps.masked_fill_(mask, 0)
-        return self._observe(**self._flags())
+        return self._observe(**self._reset_flags())
 
     def _action(self, tensordict: TensorDictBase, robot: str) -> torch.Tensor:
         value = tensordict.get((robot, "action"), None)
@@ -311,17 +236,8 @@ class CargoEnv(StageStarts, EnvBase):
         if self.num_stages > 1:
             crossed = self._pos[:, 0] >= self.stage_line
             self._stage.copy_(torch.where(crossed, 1, self._stage))
-        self._steps.add_(1)
-        bs = self.batch_size
-        d = (self._pos - self._target).norm(dim=-1)
-        terminated = (d <= self.success_radius).reshape(*bs, 1)
-        truncated = (self._steps >= self.max_steps).reshape(*bs, 1)
-        return self._observe(
-            reward=terminated.to(torch.float32),
-            done=terminated | truncated,
-            terminated=terminated,
-            truncated=truncated,
-        )
+        solved = (self._pos - self._target).norm(dim=-1) <= self.success_radius
+        return self._observe(**self._step_flags(solved))
 
     def stage_observation_keys(self, stage: int) -> list[str]:
         """Network inputs of every stage: the obstacle window and the target."""
@@ -331,7 +247,6 @@ class CargoEnv(StageStarts, EnvBase):
         """The action entry of ``stage``'s robot, e.g. ``("slider", "action")``."""
         return (self.robots[stage], "action")
 
-    # ------------------------------------------------------------------ state access
     def set_state(
         self,
         position: Sequence[float] | Sequence[Sequence[float]] | torch.Tensor,
@@ -357,4 +272,4 @@ class CargoEnv(StageStarts, EnvBase):
                 raise ValueError(f"stage must be in [0, {self.num_stages}), got {stage}.")
             self._stage.fill_(stage)
         self._steps.zero_()
-        return self._observe(**self._flags())
+        return self._observe(**self._reset_flags())

@@ -10,6 +10,8 @@ from matplotlib.figure import Figure
 
 from torchrl_stages.plots import circle, save_figure
 
+from .._common import stage_segments
+
 __all__ = ["ROBOT_COLORS", "plot_cargo_figure"]
 
 
@@ -27,12 +29,8 @@ def plot_cargo_figure(
     out: str | Path,
     title: str = "",
 ) -> Path:
-    """The cargo-transport panel (paper's Fig. 3): obstacle map, stage line, target and example
-    trajectories, each segment colored by the robot carrying the cargo.
-
-    ``occupancy`` is the ``[H, W]`` obstacle map indexed ``[y, x]``; each trajectory is
-    ``(positions [T+1, 2], stages [T+1])``.
-    """
+    """The obstacle map ``[H, W]`` (indexed ``[y, x]``), stage line, target and trajectories
+    ``(positions [T+1, 2], stages [T+1])``, each step colored by the robot carrying the cargo."""
     height, width = occupancy.shape
     fig = Figure(figsize=(9, 6.8))
     ax = fig.subplots()
@@ -44,12 +42,8 @@ def plot_cargo_figure(
     for positions, stages in trajectories:
         xy, stage = np.asarray(positions), np.asarray(stages)
         for k, robot in enumerate(robots):
-            # segments that start in stage k (their end point may already be in stage k + 1)
-            idx = np.flatnonzero(stage[:-1] == k)
-            for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
-                if len(run):
-                    seg = xy[run[0] : run[-1] + 2]
-                    ax.plot(seg[:, 0], seg[:, 1], color=ROBOT_COLORS.get(robot), linewidth=1.4)
+            for seg in stage_segments(xy, stage, k):
+                ax.plot(seg[:, 0], seg[:, 1], color=ROBOT_COLORS.get(robot), linewidth=1.4)
         ax.plot(xy[0, 0], xy[0, 1], marker="o", color="k", markersize=5)
     for robot in robots:
         ax.plot([], [], color=ROBOT_COLORS.get(robot), label=f"{robot} robot")

@@ -6,27 +6,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import torch
-from tensordict import TensorDictBase
-
 from torchrl_stages.evaluate import TaskEvaluation
 from torchrl_stages.learners import Learner
 from torchrl_stages.task import StagedTask
 
+from .._common import episode_path
+
 EXAMPLES = 8  # trajectories drawn in cargo.png
-
-
-def trajectories(
-    rollout: TensorDictBase, length: torch.Tensor, count: int
-) -> list[tuple[list, list]]:
-    """``(positions [T+1, 2], stages [T+1])`` of the first ``count`` rows' first episodes."""
-    out = []
-    for i in range(min(count, len(length))):
-        n = int(length[i])
-        positions = torch.cat([rollout["position"][i, :1], rollout["next", "position"][i, :n]])
-        stages = torch.cat([rollout["stage"][i, :1], rollout["next", "stage"][i, :n]])
-        out.append((positions.tolist(), stages.squeeze(-1).tolist()))
-    return out
 
 
 def report(
@@ -36,16 +22,24 @@ def report(
     run_dir: Path,
     plots: bool = True,
 ) -> dict[str, Any]:
-    """The robots of each stage for ``eval.json`` (the steps each one carried the cargo are the
-    evaluation's ``mean_steps_per_stage``), and the Fig. 3 panel ``cargo.png`` when ``plots``."""
+    """The robots of each stage (the steps each carried the cargo are the evaluation's
+    ``mean_steps_per_stage``), and the Fig. 3 panel ``cargo.png`` when ``plots``."""
     env = task.base_env(1)
     if plots:
         from .figures import plot_cargo_figure
 
+        rollout, length = evaluation.rollout, evaluation.stats.length.tolist()
+        trajectories = [
+            (
+                episode_path(rollout, "position", i, n).tolist(),
+                episode_path(rollout, "stage", i, n).squeeze(-1).tolist(),
+            )
+            for i, n in enumerate(length[:EXAMPLES])
+        ]
         success = evaluation.stats.success.float().mean().item()
         plot_cargo_figure(
             env.occupancy.cpu().numpy(),
-            trajectories(evaluation.rollout, evaluation.stats.length, EXAMPLES),
+            trajectories,
             robots=env.robots,
             stage_line=env.stage_line,
             target=env.target,

@@ -15,24 +15,16 @@ __all__ = ["plot_grid_trajectories", "plot_value_map"]
 
 
 def _stage_boundaries(ax: Axes, n_cols: int, stage_width: int, color: str = "k") -> None:
-    """Dashed vertical lines between stages (cell edges lie at half-integers)."""
+    """Dashed lines between stages (cell edges lie at half-integers)."""
     for edge in range(stage_width, n_cols, stage_width):
         ax.axvline(edge - 0.5, color=color, linestyle="--", linewidth=1.5)
 
 
 def _mark_target(ax: Axes, target: tuple[int, int], color: str = "gold") -> None:
-    """Star on the target cell, given as (row, col)."""
+    """A star on the target cell ``(row, col)``."""
     row, col = target
     ax.plot(
-        col,
-        row,
-        marker="*",
-        markersize=18,
-        color=color,
-        markeredgecolor="k",
-        linestyle="none",
-        label="target",
-        zorder=5,
+        col, row, "*", markersize=18, color=color, markeredgecolor="k", label="target", zorder=5
     )
 
 
@@ -46,11 +38,8 @@ def plot_grid_trajectories(
     title: str = "",
     labels: Sequence[str] | None = None,
 ) -> Path:
-    """Draw greedy trajectories, each a sequence of (row, col) cells, over the grid.
-
-    Row 0 is at the top and column 0 at the left. Each path starts with a ``^`` marker; the
-    target gets a star. With ``labels`` (one per path) a legend is added. Returns the PNG path.
-    """
+    """Paths of ``(row, col)`` cells over the grid (row 0 at the top), each starting at a ``^``,
+    with a legend of ``labels`` (one per path) when given."""
     if labels is not None and len(labels) != len(paths):
         raise ValueError(f"got {len(labels)} labels for {len(paths)} paths")
     fig = Figure(figsize=(6.5, 6.5))
@@ -60,9 +49,8 @@ def plot_grid_trajectories(
     ax.set_yticks(ticks, minor=True)
     ax.grid(which="minor", color="0.85", linewidth=0.5)
     ax.tick_params(which="minor", length=0)
-    ax.set_xlim(-0.5, size - 0.5)
-    ax.set_ylim(size - 0.5, -0.5)  # inverted: row 0 at the top
-    ax.set_aspect("equal")
+    ax.set(xlim=(-0.5, size - 0.5), ylim=(size - 0.5, -0.5), aspect="equal")  # row 0 on top
+    ax.set(xlabel="column", ylabel="row")
     _stage_boundaries(ax, size, stage_width)
     for k, start in enumerate(range(0, size, stage_width)):
         centre = start + (min(start + stage_width, size) - start - 1) / 2
@@ -74,19 +62,9 @@ def plot_grid_trajectories(
             continue
         label = labels[i] if labels is not None else None
         ax.plot(cells[:, 1], cells[:, 0], color=colors[i], linewidth=2, alpha=0.85, label=label)
-        ax.plot(
-            cells[0, 1],
-            cells[0, 0],
-            marker="^",
-            markersize=10,
-            color=colors[i],
-            markeredgecolor="k",
-            linestyle="none",
-            zorder=4,
-        )
+        first = cells[0, 1], cells[0, 0]
+        ax.plot(*first, "^", markersize=10, color=colors[i], markeredgecolor="k", zorder=4)
     _mark_target(ax, target)
-    ax.set_xlabel("column")
-    ax.set_ylabel("row")
     if title:
         ax.set_title(title, pad=22)
     if labels is not None and len(paths) > 0:
@@ -103,10 +81,7 @@ def plot_value_map(
     out: str | Path,
     title: str = "",
 ) -> Path:
-    """Heat map of a (size, size) state-value array, row 0 at the top; returns the PNG path.
-
-    Non-finite entries (e.g. unvisited cells) are left blank.
-    """
+    """Heat map of a ``(size, size)`` value array, row 0 at the top; non-finite entries blank."""
     arr = np.asarray(values, dtype=float)
     if arr.ndim != 2:
         raise ValueError(f"values must be 2-D (rows, cols), got shape {arr.shape}")
@@ -119,8 +94,7 @@ def plot_value_map(
     _stage_boundaries(ax, arr.shape[1], stage_width, color="w")
     if target is not None:
         _mark_target(ax, target, color="red")
-    ax.set_xlabel("column")
-    ax.set_ylabel("row")
+    ax.set(xlabel="column", ylabel="row")
     if title:
         ax.set_title(title)
     fig.tight_layout()

@@ -1,6 +1,5 @@
-"""Grid-world report: the greedy path from (0, 0), the merged value map against dynamic
-programming, and the paper's Fig. 2 panels. Every size the env accepts works: starts, target and
-strip width come from the env."""
+"""Grid-world report: the greedy path from (0, 0) and the merged value map against dynamic
+programming, and the paper's Fig. 2 panels."""
 
 from __future__ import annotations
 
@@ -17,6 +16,7 @@ from torchrl_stages.learners import Learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.task import StagedTask
 
+from .._common import episode_path
 from .env import gridworld_optimal_values, gridworld_shortest_steps
 
 
@@ -24,10 +24,8 @@ def greedy_path(task: StagedTask, policy: StackedPolicy, start: Sequence[int]) -
     """Cells visited by the greedy stacked policy from ``start`` until its episode ends."""
     env = task.task_env(1, start_cell=tuple(start), start_stage=None)
     stats, rollout = evaluate_policy(env, policy, env.base_env.max_steps)
-    n = int(stats.length[0])
-    cells = env.base_env.cells_of(rollout["observation"][0, :n])
-    last = env.base_env.cells_of(rollout["next", "observation"][0, n - 1 : n])
-    return torch.cat([cells, last]).tolist()
+    observations = episode_path(rollout, "observation", 0, int(stats.length[0]))
+    return env.base_env.cells_of(observations).tolist()
 
 
 def vertical_moves_per_stage(
@@ -62,9 +60,8 @@ def _gammas(task: StagedTask) -> list[float]:
 
 
 def path_from_origin(task: StagedTask, policy: StackedPolicy) -> dict[str, Any]:
-    """The greedy path from ``(0, 0)``: its cells, steps, the shortest steps, whether its
-    discounted return is the optimal value of ``(0, 0)`` (dynamic programming), and its
-    vertical moves per stage."""
+    """The greedy path from ``(0, 0)``: its cells and steps against the fewest, whether its
+    discounted return is the optimal value, and its vertical moves per stage."""
     env = task.base_env(1)
     size, width, n, target = env.size, env.stage_width, env.num_stages, env.target
     gammas = _gammas(task)
@@ -87,15 +84,14 @@ def path_from_origin(task: StagedTask, policy: StackedPolicy) -> dict[str, Any]:
 
 
 def value_map_errors(task: StagedTask, learners: Sequence[Learner]) -> tuple[np.ndarray, dict]:
-    """The merged value map and its largest and mean error against the exact optimal values
-    (Proposition 1; the terminal target cell is left out)."""
+    """The merged value map and its largest and mean error off the target (Proposition 1)."""
     env = task.base_env(1)
     values = merged_value_map(task, learners)
     optimal = gridworld_optimal_values(
         _gammas(task), size=env.size, num_stages=env.num_stages, target=env.target
     )
     free = np.ones_like(optimal, dtype=bool)
-    free[env.target] = False  # the target is terminal: no value is learned there
+    free[env.target] = False
     error = np.abs(values - optimal)[free]
     return values, {
         "value_map_max_abs_error": float(error.max()),
@@ -104,8 +100,7 @@ def value_map_errors(task: StagedTask, learners: Sequence[Learner]) -> tuple[np.
 
 
 def probe(task: StagedTask, learners: Sequence[Learner]) -> dict[str, float]:
-    """What a benchmark follows during training: whether the greedy path from (0, 0) is
-    optimal, and the merged value map's largest error."""
+    """Whether the greedy path from (0, 0) is optimal, and the value map's largest error."""
     policy = StackedPolicy([learner.policy for learner in learners])
     _, errors = value_map_errors(task, learners)
     return {
@@ -121,12 +116,8 @@ def report(
     run_dir: Path,
     plots: bool = True,
 ) -> dict[str, Any]:
-    """Grid-world metrics for ``eval.json`` (and the Fig. 2 panels when ``plots``).
-
-    The whole-task evaluation already covers every column-0 start; this adds the greedy path
-    from ``(0, 0)`` against the shortest one, its vertical moves per stage, and the merged
-    value map's error against the exact optimal values (Proposition 1).
-    """
+    """The greedy path from (0, 0) and the value map's error (the Fig. 2 panels when
+    ``plots``); the whole-task evaluation covers every column-0 start."""
     env = task.base_env(1)
     size, width, target = env.size, env.stage_width, env.target
     policy = StackedPolicy([learner.policy for learner in learners])

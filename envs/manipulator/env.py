@@ -1,40 +1,33 @@
-"""Two-link precision manipulator (batched, torch-native): a coarse and a fine control stage."""
+"""The two-link precision manipulator (batched, torch-native): a coarse, then a fine stage."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from functools import partial
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from .._common import StageStarts, sparse_reward_and_done_specs
+from .._common import StageStarts, draw_until
 
-__all__ = [
-    "ManipulatorEnv",
-    "forward_kinematics",
-    "inverse_kinematics",
-    "wrap_angle",
-]
+__all__ = ["ManipulatorEnv", "forward_kinematics", "inverse_kinematics", "wrap_angle"]
 
 REACH = 2.0  # L1 + L2: radius of the reachable disk
 MIN_RADIUS = 1e-3  # fine-stage starts closer than this to the base are rejected (IK singularity)
-MAX_ATTEMPTS = 100  # bound on the vectorized rejection-sampling loop
 
 
 def wrap_angle(theta: torch.Tensor) -> torch.Tensor:
-    """Wraps angles to ``(-pi, pi]`` (elementwise, any shape, keeps the dtype)."""
+    """Angles wrapped to ``(-pi, pi]``."""
     wrapped = math.pi - torch.remainder(math.pi - theta, 2.0 * math.pi)
     return torch.where(wrapped <= -math.pi, wrapped + 2.0 * math.pi, wrapped)
 
 
 def forward_kinematics(theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Elbow and effector positions ``([..., 2], [..., 2])`` of joint angles ``theta [..., 2]``.
-
-    Both links have length 1: ``elbow = (cos t1, sin t1)`` and
-    ``effector = elbow + (cos(t1 + t2), sin(t1 + t2))``.
+    """Elbow and effector positions ``([..., 2], [..., 2])`` of joint angles ``[..., 2]``
+    (links of length 1).
 
     Examples:
         >>> import math, torch
@@ -51,13 +44,10 @@ def forward_kinematics(theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
 
 
 def inverse_kinematics(points: torch.Tensor, elbow_up: bool | torch.Tensor = True) -> torch.Tensor:
-    """Joint angles ``[..., 2]`` (wrapped to ``(-pi, pi]``) placing the effector at ``points``.
+    """Joint angles ``[..., 2]`` placing the effector at ``points [..., 2]``.
 
-    ``elbow_up`` (a bool, or a bool tensor broadcastable to ``points.shape[:-1]``) picks the
-    solution with ``theta2 <= 0``, whose elbow lies counter-clockwise of the base-to-effector
-    line; ``False`` picks the mirrored one (``theta2 >= 0``). Points outside the reachable annulus
-    ``|p| <= 2`` are not rejected: the elbow cosine is clamped (the arm points at them, fully
-    stretched). The point ``(0, 0)`` is singular (any ``theta1`` with ``theta2 = pi``).
+    ``elbow_up`` (a bool or a bool tensor) picks the solution with ``theta2 <= 0``, else
+    ``theta2 >= 0``. A point farther than 2 gets the arm stretched towards it.
 
     Examples:
         >>> import torch
@@ -93,39 +83,13 @@ def _per_stage(name: str, value: Sequence[float]) -> tuple[float, ...]:
 class ManipulatorEnv(StageStarts, EnvBase):
     """Two-link planar arm (links of length 1) steering its effector onto a target.
 
-    The state is the pair of joint angles ``theta`` (wrapped to ``(-pi, pi]`` after every step);
-    the action ``a in [-1, 1]^2`` (``Bounded``, clamped) moves them by ``u_max[stage] * a``,
-    where ``stage`` is the element's stage *before* the step. Stage 0 (coarse) holds while the
-    effector-target distance ``d >= switch_distance``; the step that brings ``d`` below it moves
-    the element to stage 1 (fine) for the rest of its episode, even if ``d`` grows again.
-    ``d <= success_distance`` gives reward 1 and ``terminated=True``; after ``max_steps`` steps
-    an element is ``truncated``.
-
-    The observation (float32, ``[*B, 6]``) is ``(x1, y1, x2, y2, (target - effector) /
-    scales[stage])``: elbow, effector and the scaled target offset, scaled for the stage of the
-    state it describes (on the switching step the next observation is already fine-scaled). The
-    env writes its stage as ``"stage"`` (int64 ``[*B, 1]``, in the observation spec), so
-    :class:`~torchrl_stages.transforms.StageTransform` is used with ``stage_fn=None``.
-    Partial resets through ``"_reset"`` are supported.
-
-    Args:
-        batch_size: batch shape of the env; any shape, e.g. ``()``, ``(64,)``, ``(2, 3)``.
-
-    Keyword Args:
-        target: fixed target ``(x, y)`` (``|target| <= 2``), used unless ``random_target``.
-        random_target: draw a new target per element at every reset, area-uniform in the
-            reachable disk of radius 2 (the current ones are in :attr:`targets`).
-        u_max: joint step per unit action, ``(coarse, fine)``.
-        scales: divisor of the target offset in the observation, ``(coarse, fine)``.
-        switch_distance: distance below which the fine stage starts.
-        success_distance: distance at or below which the task is solved.
-        max_steps: per-element time limit.
-        start_stage: ``None`` or ``0``: whole-task starts, joint angles uniform on
-            ``(-pi, pi]^2`` conditioned on ``d >= switch_distance``. ``1``: fine-stage starts,
-            an effector position area-uniform in the disk of radius ``switch_distance`` around
-            the target (restricted to ``1e-3 <= |p| <= 2`` and ``d > success_distance``, so no
-            start is already solved), reached by inverse kinematics with a random elbow.
-        device: torch device.
+    The action ``a in [-1, 1]^2`` moves the joint angles by ``u_max[stage] * a``. Stage 0
+    (coarse) lasts until the effector-target distance ``d`` drops below ``switch_distance``,
+    stage 1 (fine) the rest of the episode; ``d <= success_distance`` gives reward 1 and
+    ``terminated``. The observation ``[*B, 6]`` is elbow, effector and ``(target - effector) /
+    scales[stage]``; the env writes ``"stage"``. One value per stage in ``u_max`` and ``scales``
+    makes a single-stage task. ``start_stage=1`` starts within ``switch_distance`` of the target;
+    ``random_target`` draws a target per reset. ``docs/tasks/manipulator.md`` has the details.
 
     Examples:
         >>> import torch
@@ -140,18 +104,10 @@ class ManipulatorEnv(StageStarts, EnvBase):
         >>> delta = wrap_angle(env.theta - theta)  # the fine stage moves by 0.05 per unit action
         >>> torch.allclose(delta, torch.tensor([0.05, 0.0]).expand(4, 2), atol=1e-6)
         True
-        >>> td["next", "observation"].shape, td["next", "stage"].dtype
-        (torch.Size([4, 6]), torch.int64)
     """
 
-    stage_fn = None  # the env tracks its stage itself: StageTransform(None, 2) reads "stage"
-
-    _dynamic_state = (
-        "_theta",
-        "_target",
-        "_stage",
-        "_steps",
-    )  # what a step changes (see StageStarts)
+    stage_fn = None  # the env writes "stage": StageTransform(None, n) reads it
+    _dynamic_state = ("_theta", "_target", "_stage", "_steps")
 
     def __init__(
         self,
@@ -177,8 +133,6 @@ class ManipulatorEnv(StageStarts, EnvBase):
         self.scales = _per_stage("scales", scales)
         if len(self.u_max) != len(self.scales):
             raise ValueError(f"u_max {u_max!r} and scales {scales!r} must have the same length.")
-        # Two stages (coarse, fine); one value each makes a single-stage baseline task that
-        # never switches (same starts, reward and observation layout).
         self.num_stages = len(self.u_max)
         self.switch_distance = float(switch_distance)
         self.success_distance = float(success_distance)
@@ -187,9 +141,6 @@ class ManipulatorEnv(StageStarts, EnvBase):
                 "need 0 < success_distance < switch_distance, got "
                 f"success_distance={success_distance}, switch_distance={switch_distance}."
             )
-        if max_steps <= 0:
-            raise ValueError(f"max_steps must be positive, got {max_steps}.")
-        self.max_steps = int(max_steps)
         bs, dev, f32 = self.batch_size, self.device, torch.float32
         self._n = n = bs.numel()
         self.observation_spec = Composite(
@@ -198,21 +149,16 @@ class ManipulatorEnv(StageStarts, EnvBase):
             shape=bs,
         )
         self.action_spec = Bounded(-1.0, 1.0, shape=(*bs, 2), dtype=f32, device=dev)
-        self.reward_spec, self.done_spec = sparse_reward_and_done_specs(bs, dev)
-        buffers = {  # non-persistent buffers: follow env.to(device), stay out of state_dict
-            "_u_max_t": torch.tensor(self.u_max, dtype=f32, device=dev),
-            "_scales_t": torch.tensor(self.scales, dtype=f32, device=dev),
-            "_theta": torch.zeros(n, 2, dtype=f32, device=dev),  # flat internal state
-            "_target": torch.tensor(tgt, dtype=f32, device=dev).expand(n, 2).clone(),
-            "_stage": torch.zeros(n, dtype=torch.int64, device=dev),
-            "_steps": torch.zeros(n, dtype=torch.int64, device=dev),
-        }
-        for name, buf in buffers.items():
-            self.register_buffer(name, buf, persistent=False)
-        self.rng = None
+        self._init_state(
+            max_steps,
+            _u_max_t=torch.tensor(self.u_max, dtype=f32, device=dev),
+            _scales_t=torch.tensor(self.scales, dtype=f32, device=dev),
+            _theta=torch.zeros(n, 2, dtype=f32, device=dev),
+            _target=torch.tensor(tgt, dtype=f32, device=dev).expand(n, 2).clone(),
+            _stage=torch.zeros(n, dtype=torch.int64, device=dev),
+        )
         self.start_stage = start_stage
 
-    # ------------------------------------------------------------------ start distribution
     def _rand(self, *shape: int) -> torch.Tensor:
         return torch.rand(shape, device=self.device, generator=self.rng)
 
@@ -240,91 +186,48 @@ class ManipulatorEnv(StageStarts, EnvBase):
         d = (targets - forward_kinematics(theta)[1]).norm(dim=-1)
         return theta, d >= self.switch_distance
 
-    def _sample_starts(self, targets: torch.Tensor, pending: torch.Tensor) -> torch.Tensor:
-        """Start angles for the ``pending`` elements (the others keep their current angles)."""
-        theta = self._theta.clone()
-        for _ in range(MAX_ATTEMPTS):
-            cand, ok = self._candidates(targets)
-            take = pending & ok
-            theta = torch.where(take.unsqueeze(-1), cand, theta)
-            pending = pending & ~take
-            if not pending.any():
-                return theta
-        raise RuntimeError(
-            f"could not draw start states in {MAX_ATTEMPTS} attempts (start_stage="
-            f"{self._start_stage}); is the target reachable and switch_distance sensible?"
-        )
-
-    # ------------------------------------------------------------------ EnvBase API
     def observation_of(
         self, theta: torch.Tensor, target: torch.Tensor, stage: torch.Tensor
     ) -> torch.Tensor:
-        """The observation ``[..., 6]`` of joint angles ``theta [..., 2]`` reaching for
-        ``target [..., 2]`` in ``stage`` (int64 ``[...]``): elbow, effector and the target
-        offset divided by the stage's scale."""
+        """The observation ``[..., 6]`` of joint angles ``[..., 2]`` reaching for ``target``
+        ``[..., 2]`` in ``stage`` (int64 ``[...]``)."""
         elbow, eff = forward_kinematics(theta)
         diff = (target - eff) / self._scales_t[stage].unsqueeze(-1)
         return torch.cat([elbow, eff, diff], -1)
 
-    def _observe(self) -> TensorDict:
-        """Observation and stage of the current internal state (reset-style TensorDict)."""
+    def _observe(self, **flags: torch.Tensor) -> TensorDict:
         bs = self.batch_size
-        zeros = torch.zeros((*bs, 1), dtype=torch.bool, device=self.device)
-        observation = self.observation_of(self._theta, self._target, self._stage)
         return TensorDict(
-            observation=observation.reshape(*bs, 6),
+            observation=self.observation_of(self._theta, self._target, self._stage).reshape(*bs, 6),
             stage=self._stage.reshape(*bs, 1).clone(),
-            done=zeros,
-            terminated=zeros.clone(),
-            truncated=zeros.clone(),
+            **flags,
             batch_size=bs,
             device=self.device,
         )
 
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
-        reset = tensordict.get("_reset", None) if tensordict is not None else None
-        if reset is None:
-            mask = torch.ones(self._n, dtype=torch.bool, device=self.device)
-        else:
-            mask = reset.reshape(self._n)
+        mask = self._reset_mask(tensordict)
         targets = torch.where(mask.unsqueeze(-1), self._sample_targets(), self._target)
-        self._theta.copy_(self._sample_starts(targets, mask))
+        what = f"start states (start_stage={self._start_stage}; is switch_distance sensible?)"
+        self._theta.copy_(draw_until(partial(self._candidates, targets), self._theta, mask, what))
         self._target.copy_(targets)
         self._stage.masked_fill_(mask, 1 if self._start_stage == 1 else 0)
         self._steps.masked_fill_(mask, 0)
-        return self._observe()
+        return self._observe(**self._reset_flags())
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        # hot path: a handful of vectorized ops, no spec checks, state updated in place
         action = tensordict.get("action").reshape(self._n, 2).to(self._theta.dtype)
         step = self._u_max_t[self._stage].unsqueeze(-1) * action.clamp(-1.0, 1.0)
         self._theta.copy_(wrap_angle(self._theta + step))
-        elbow, eff = forward_kinematics(self._theta)
-        offset = self._target - eff
-        d = offset.norm(dim=-1)
+        d = self._distance()
         if self.num_stages > 1:
             self._stage.copy_(torch.where(d < self.switch_distance, 1, self._stage))
-        self._steps.add_(1)
-        bs = self.batch_size
-        terminated = (d <= self.success_distance).reshape(*bs, 1)
-        truncated = (self._steps >= self.max_steps).reshape(*bs, 1)
-        diff = offset / self._scales_t[self._stage].unsqueeze(-1)
-        return TensorDict(
-            observation=torch.cat([elbow, eff, diff], -1).reshape(*bs, 6),
-            stage=self._stage.reshape(*bs, 1).clone(),
-            reward=terminated.to(torch.float32),
-            done=terminated | truncated,
-            terminated=terminated,
-            truncated=truncated,
-            batch_size=bs,
-            device=self.device,
-        )
+        return self._observe(**self._step_flags(d <= self.success_distance))
 
     def stage_observation_keys(self, stage: int) -> list[str]:
         """Network inputs of every stage: only ``"observation"`` (``"stage"`` is a tag)."""
         return ["observation"]
 
-    # ------------------------------------------------------------------ state access
     def set_state(
         self,
         theta: Sequence[float] | torch.Tensor,
@@ -332,36 +235,28 @@ class ManipulatorEnv(StageStarts, EnvBase):
         target: Sequence[float] | torch.Tensor | None = None,
         stage: int | torch.Tensor | None = None,
     ) -> TensorDictBase:
-        """Puts every element in a given state, like a reset (step counters restart at 0).
+        """Puts every element in a given state, like a reset; returns the reset's TensorDict.
 
-        ``theta`` (and ``target``) are a pair or one per element (``[*B, 2]``); ``target``
-        defaults to the current targets. ``stage`` defaults to 0 where ``d >= switch_distance``
-        and 1 elsewhere. Returns the matching reset-style TensorDict (observation, stage, flags),
-        ready for ``td["action"] = ...; env.step(td)``.
+        ``theta`` and ``target`` are a pair or one per element (``[*B, 2]``); ``target``
+        defaults to the current targets, ``stage`` to the stage of the distance.
         """
-        self._theta.copy_(wrap_angle(self._per_element("theta", theta)))
+        self._theta.copy_(wrap_angle(self._pairs("theta", theta, self._theta.dtype)))
         if target is not None:
-            self._target.copy_(self._per_element("target", target))
+            self._target.copy_(self._pairs("target", target, self._theta.dtype))
         if stage is None:
-            d = (self._target - forward_kinematics(self._theta)[1]).norm(dim=-1)
-            self._stage.copy_((d < self.switch_distance).long() * (self.num_stages - 1))
+            self._stage.copy_(
+                (self._distance() < self.switch_distance).long() * (self.num_stages - 1)
+            )
         else:
             stage = torch.as_tensor(stage, dtype=torch.int64, device=self.device)
             if ((stage < 0) | (stage >= self.num_stages)).any():
                 raise ValueError(f"stage must be in [0, {self.num_stages}), got {stage.tolist()}.")
             self._stage.copy_(stage.expand(*self.batch_size, 1).reshape(self._n))
         self._steps.zero_()
-        return self._observe()
+        return self._observe(**self._reset_flags())
 
-    def _per_element(self, name: str, value: Sequence[float] | torch.Tensor) -> torch.Tensor:
-        v = torch.as_tensor(value, dtype=self._theta.dtype, device=self.device)
-        if v.shape == (2,):
-            return v.expand(self._n, 2)
-        if v.shape == (*self.batch_size, 2):
-            return v.reshape(self._n, 2)
-        raise ValueError(
-            f"{name} must be a pair or have shape {[*self.batch_size, 2]}, got {list(v.shape)}."
-        )
+    def _distance(self) -> torch.Tensor:
+        return (self._target - forward_kinematics(self._theta)[1]).norm(dim=-1)
 
     @property
     def theta(self) -> torch.Tensor:
@@ -370,12 +265,12 @@ class ManipulatorEnv(StageStarts, EnvBase):
 
     @property
     def targets(self) -> torch.Tensor:
-        """Current per-element targets, ``[*B, 2]`` (a copy)."""
+        """Current targets, ``[*B, 2]`` (a copy)."""
         return self._target.reshape(*self.batch_size, 2).clone()
 
     @property
     def stage(self) -> torch.Tensor:
-        """Current stage per element, int64 ``[*B, 1]`` (a copy)."""
+        """Current stages, int64 ``[*B, 1]`` (a copy)."""
         return self._stage.reshape(*self.batch_size, 1).clone()
 
     @property
@@ -386,5 +281,4 @@ class ManipulatorEnv(StageStarts, EnvBase):
     @property
     def distance(self) -> torch.Tensor:
         """Current effector-target distances, ``[*B, 1]``."""
-        d = (self._target - forward_kinematics(self._theta)[1]).norm(dim=-1)
-        return d.reshape(*self.batch_size, 1)
+        return self._distance().reshape(*self.batch_size, 1)

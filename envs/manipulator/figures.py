@@ -22,11 +22,8 @@ def plot_arm_figure(
     switch_distance: float,
     out: str | Path,
 ) -> Path:
-    """The manipulator panel (paper's Fig. 4(b)): effector paths and the fine stage's value.
-
-    ``fine_values`` is an ``n x n`` map of effector positions within ``half_width`` of the
-    target (x along columns, y along rows, y increasing upwards).
-    """
+    """Effector paths, and the fine stage's value ``fine_values``, an ``n x n`` map of effector
+    positions within ``half_width`` of the target (x along columns, y upwards)."""
     fig = Figure(figsize=(12, 5.5))
     ax_paths, ax_value = fig.subplots(1, 2)
     ax_paths.add_patch(circle((0.0, 0.0), 2.0, "0.6", ":"))

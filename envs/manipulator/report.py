@@ -14,14 +14,14 @@ from torchrl_stages.evaluate import TaskEvaluation
 from torchrl_stages.learners import Learner
 from torchrl_stages.task import StagedTask
 
+from .._common import episode_path
 from .env import inverse_kinematics
 
 EXAMPLES = 8  # effector paths drawn in manipulator.png
 
 
 def final_distances(final: TensorDictBase, scales: Sequence[float]) -> torch.Tensor:
-    """Effector-target distance where each episode ended, from its last observation (the
-    observation's target offset is divided by the scale of the stage it is in)."""
+    """Effector-target distance where each episode ended, from its last observation."""
     obs, stage = final["observation"], final["stage"].reshape(-1)
     scale = torch.as_tensor(scales, dtype=obs.dtype, device=obs.device)[stage]
     return obs[:, 4:6].norm(dim=-1) * scale
@@ -51,8 +51,7 @@ def report(
     run_dir: Path,
     plots: bool = True,
 ) -> dict[str, Any]:
-    """Manipulator metrics for ``eval.json`` (and the Fig. 4(b) panel when ``plots``), from
-    the run's whole-task evaluation."""
+    """The final distances' percentiles, and the Fig. 4(b) panel when ``plots``."""
     env = task.base_env(1)
     dist = final_distances(evaluation.final, list(env.scales))
     q = torch.tensor([0.5, 0.9, 0.99], device=dist.device)
@@ -60,13 +59,9 @@ def report(
     if plots and not env.random_target and len(learners) == 2:
         from .figures import plot_arm_figure
 
-        rollout, length = evaluation.rollout, evaluation.stats.length
-        count = min(EXAMPLES, rollout.shape[0])
         effector_paths = [
-            torch.cat(
-                [rollout["observation"][i, :1, 2:4], rollout["next", "observation"][i, :n, 2:4]]
-            ).tolist()
-            for i, n in enumerate(length[:count].tolist())
+            episode_path(evaluation.rollout, "observation", i, n)[:, 2:4].tolist()
+            for i, n in enumerate(evaluation.stats.length[:EXAMPLES].tolist())
         ]
         half = 2.0 * float(env.switch_distance)
         target = list(env.target)

@@ -1,16 +1,6 @@
-"""MiniGrid's multi-stage levels as tasks: the key, the locked door, then the goal.
-
-`MiniGrid <https://minigrid.farama.org>`_ (Farama's package, the ``minigrid`` extra) has levels
-that run through the same three stages: pick up the key (stage 0), open the locked door with it
-(stage 1), then reach the goal or pick up the object behind the door (stage 2). Every level of
-the DoorKey (``MiniGrid-DoorKey-5x5-v0`` to ``-16x16``), KeyCorridor (``MiniGrid-KeyCorridorS3R1``
-to ``S6R3``) and UnlockPickup families is one, chosen by its gymnasium id.
-
-:class:`StagedMiniGrid` (a gymnasium wrapper) supplies what the task needs from the level's
-state: the stage (monotone: dropping the key does not undo stage 1), an observation suited to
-small networks (:data:`FEATURES`), and episodes that start inside stage k. :class:`MiniGridEnv`
-steps its copies as one gymnasium vector env (:class:`~torchrl_stages.GymStageEnv`).
-"""
+"""MiniGrid's levels with a key, a locked door and a goal (DoorKey, KeyCorridor, UnlockPickup)
+as 3-stage tasks: the gymnasium wrapper :class:`StagedMiniGrid` and the batched
+:class:`MiniGridEnv`. ``docs/tasks/minigrid.md`` says what each choice is for."""
 
 from __future__ import annotations
 
@@ -25,6 +15,8 @@ import torch
 
 from torchrl_stages.gym_env import GymStageEnv
 
+from .._common import check_start_stage
+
 __all__ = [
     "ACTIONS",
     "DOORS",
@@ -37,19 +29,14 @@ __all__ = [
     "stage_names",
 ]
 
-#: the level families with these three stages (the start of their gymnasium ids) and what
-#: their last stage heads for
+#: the level families (the start of their ids) and what their last stage heads for
 FAMILIES = {
     "MiniGrid-DoorKey-": "goal",
     "MiniGrid-KeyCorridor": "ball",
     "MiniGrid-UnlockPickup-": "box",
 }
-#: the actions each family's levels can use (MiniGrid's names): ``done`` does nothing in any of
-#: them, and ``drop`` is needed only where the key must be put down to pick up the target.
-#: An action no level needs still costs exploration: a random walk that carries the key drops
-#: it every seventh step on average, and then has to find it again before the door opens
-#: (docs/tasks/minigrid.md: on DoorKey-16x16, 1% of 256-step random walks that start with the key
-#: open the door with ``drop`` among the actions, 10% without it)
+#: the actions each family's levels need (``done`` never does anything; ``drop`` only where the
+#: key must be put down to pick up the target): an action no level needs costs exploration
 ACTIONS = {
     "MiniGrid-DoorKey-": ("left", "right", "forward", "pickup", "toggle"),
     "MiniGrid-KeyCorridor": ("left", "right", "forward", "pickup", "drop", "toggle"),
@@ -68,10 +55,8 @@ FEATURES = (
     "front_target", "front_other",
     *(f"blocked_{dx}_{dy}" for dy in range(-VIEW, VIEW + 1) for dx in range(-VIEW, VIEW + 1)),
 )  # fmt: skip
-#: the features ``view_doors=True`` appends: which of the cells around the agent are doors
-#: (open or closed). In ``blocked_*`` a closed door looks like a wall; KeyCorridor's side rooms
-#: are joined to the corridor and to each other by doors, and the key's room is reached
-#: through one of them
+#: the features ``view_doors=True`` appends: which cells around the agent are doors (in
+#: ``blocked_*`` a closed door looks like a wall)
 DOORS = tuple(f"door_{dx}_{dy}" for dy in range(-VIEW, VIEW + 1) for dx in range(-VIEW, VIEW + 1))
 
 
@@ -87,77 +72,47 @@ def import_minigrid() -> Any:
     return minigrid
 
 
-def stage_names(env_id: str) -> list[str]:
-    """The stages of a level: ``["key", "door", <goal, ball or box>]``.
-
-    Examples:
-        >>> stage_names("MiniGrid-KeyCorridorS3R3-v0")
-        ['key', 'door', 'ball']
-    """
-    _check_id(env_id)
-    return ["key", "door", next(t for f, t in FAMILIES.items() if env_id.startswith(f))]
-
-
-def level_actions(env_id: str) -> tuple[str, ...]:
-    """The actions a level's tasks use by default (:data:`ACTIONS`).
-
-    Examples:
-        >>> level_actions("MiniGrid-DoorKey-16x16-v0")
-        ('left', 'right', 'forward', 'pickup', 'toggle')
-    """
-    _check_id(env_id)
-    return next(a for f, a in ACTIONS.items() if env_id.startswith(f))
-
-
-def _check_id(env_id: str) -> None:
+def _family(env_id: str) -> str:
     if ":" in env_id or not env_id.startswith(tuple(FAMILIES)):
         raise ValueError(
             f"env_id={env_id!r} is not a MiniGrid level with a key, a locked door and a goal. "
             f"Fix: pick one of the {', '.join(f + '*' for f in FAMILIES)} ids (task=gym takes "
             "any other gymnasium env with a stage function of yours)"
         )
+    return next(f for f in FAMILIES if env_id.startswith(f))
+
+
+def stage_names(env_id: str) -> list[str]:
+    """The stages of a level.
+
+    Examples:
+        >>> stage_names("MiniGrid-KeyCorridorS3R3-v0")
+        ['key', 'door', 'ball']
+    """
+    return ["key", "door", FAMILIES[_family(env_id)]]
+
+
+def level_actions(env_id: str) -> tuple[str, ...]:
+    """The actions a level's tasks use by default.
+
+    Examples:
+        >>> level_actions("MiniGrid-DoorKey-16x16-v0")
+        ('left', 'right', 'forward', 'pickup', 'toggle')
+    """
+    return ACTIONS[_family(env_id)]
 
 
 class StagedMiniGrid(gymnasium.Wrapper):
     """A MiniGrid level as a 3-stage task: its stage, features and stage-k starts.
 
-    * **Stages**: 0 until the agent first carries the key, 1 until the locked door is open,
-      then 2 (never lower: dropping the key or closing the door keeps the stage).
-    * **Observation**: ``{"observation": float32 [len(FEATURES)], "stage": int64 [1]}``: where
-      the agent is and faces, what it carries, the door's state, the offsets to the key, the
-      door and the target (goal, ball or box), the cell it faces and which of the cells around
-      it are blocked. The level's layout varies by seed; the offsets make a policy of them
-      carry over between layouts.
-    * **Reward**: 1 on success (the level's own, ``1 - 0.9 t / T``, depends on the step count,
-      which is not part of the state; each stage's discount makes the policy fast).
-    * **Termination**: the level's own, on success only (an evaluation counts every episode
-      that terminates as solved). UnlockPickup's box does not open: in the level, toggling it
-      replaces it by its (empty) contents, and the level can no longer be solved; here the
-      toggle changes nothing. No optimal policy toggles the box, so none changes. Left
-      breakable, the episode went on in states that look like those next to the box (its
-      offset stays where it was) and are worth nothing: they took the learner of the box
-      stage to 0-14% success in 300 000 frames, where a random walk from its starts succeeds
-      18% of the time.
-    * **Actions**: ``actions`` (MiniGrid's names, e.g. ``("left", "right", "forward")``):
-      action ``i`` of the wrapper is ``actions[i]`` of the level; default: the family's
-      (:data:`ACTIONS`), every action its levels can need. ``"all"``: the level's seven.
-    * **Starts**: ``start_stage=k`` starts inside stage k (the backward schedule's reverse
-      curriculum): the level as the seed lays it out, with the key carried (k >= 1) and the
-      door open (k = 2), every other door open or closed at random, the agent on a uniformly
-      drawn free cell or open doorway it can reach, facing a drawn direction. Stage 0 is drawn
-      the same way on levels with rooms behind unlocked doors (KeyCorridor: the level's own start
-      is the corridor, the key is in a side room); on DoorKey and UnlockPickup the level's own
-      start already is a uniform cell of the key's room, and is kept. ``None``: the level's
-      own start.
-    * **view_doors**: append :data:`DOORS` to the observation, where the doors around the agent
-      are (a closed door is as blocked as a wall).
-    * **no_op_reward**: the reward of an action that changes nothing (forward into a wall,
-      pickup with nothing to pick up, toggle on a wall; a turn never), 0 by default. At 0 such
-      a step is worth ``gamma V(s)``, within ``(1 - gamma) V(s)`` of the best action: small
-      Q-value errors make it the greedy one, and a greedy policy that takes it once takes it
-      again until the step limit. A negative reward widens that gap by its size, and no
-      optimal policy changes: a step that changes nothing is never part of one (it only
-      delays the reward). Exploration is untouched (the episode goes on).
+    The stage is 0 until the agent first carries the key, 1 until the locked door is open,
+    then 2, and never goes back. The observation is ``{"observation": float32 [len(features)],
+    "stage": int64 [1]}`` (:data:`FEATURES`, plus :data:`DOORS` with ``view_doors``); the
+    reward is 1 on success (plus ``no_op_reward`` for an action that changes nothing); episodes
+    terminate on success only, and UnlockPickup's box cannot be broken. ``actions`` (MiniGrid's
+    names, ``"all"``, or ``None``: :data:`ACTIONS`) are the wrapper's actions, in order.
+    ``start_stage=k`` starts inside stage k: key carried (k >= 1), door open (k = 2), the other
+    doors open at random, the agent on a drawn reachable cell.
 
     Examples:
         >>> env = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), start_stage=2)
@@ -181,18 +136,14 @@ class StagedMiniGrid(gymnasium.Wrapper):
         no_op_reward: float = 0.0,
     ) -> None:
         super().__init__(env)
-        level = env.spec.id if env.spec is not None else type(env.unwrapped).__name__
-        _check_id(level)
+        family = _family(env.spec.id if env.spec is not None else type(env.unwrapped).__name__)
         _skip_level_image(env.unwrapped)
-        if start_stage is not None and not 0 <= int(start_stage) < self.num_stages:
-            raise ValueError(f"start_stage={start_stage}: MiniGrid levels have stages 0, 1, 2")
-        self.start_stage = start_stage
-        self.actions = _actions(level, actions, env.unwrapped.actions)
+        self.start_stage = check_start_stage(start_stage, self.num_stages)
+        self.actions = _actions(family, actions, env.unwrapped.actions)
         self._level_actions = [int(env.unwrapped.actions[name]) for name in self.actions]
         self.action_space = gymnasium.spaces.Discrete(len(self.actions))
         self.view_doors = bool(view_doors)
         self.no_op_reward = float(no_op_reward)
-        #: the names of the observation's features, in order
         self.features = FEATURES + (DOORS if self.view_doors else ())
         self.observation_space = gymnasium.spaces.Dict(
             observation=gymnasium.spaces.Box(-1.0, 1.0, (len(self.features),), np.float32),
@@ -204,7 +155,6 @@ class StagedMiniGrid(gymnasium.Wrapper):
         """The wrapper's index of the level's action ``name``."""
         return self.actions.index(name)
 
-    # ------------------------------------------------------------------ the level's objects
     def _objects(self) -> None:
         """Finds the key, the locked door and the target of the level just generated."""
         level = self.env.unwrapped
@@ -224,7 +174,7 @@ class StagedMiniGrid(gymnasium.Wrapper):
         if getattr(level, "obj", None) is not None:  # KeyCorridor, UnlockPickup
             self.target = level.obj
         if self.target is not None and self.target.type == "box":
-            self.target.toggle = _keep_closed  # (this box; see the class's Termination)
+            self.target.toggle = _keep_closed  # breaking the box would make the level unsolvable
 
     def _progress(self) -> int:
         level = self.env.unwrapped
@@ -232,10 +182,8 @@ class StagedMiniGrid(gymnasium.Wrapper):
             return 2
         return 1 if level.carrying is self.key else 0
 
-    # ------------------------------------------------------------------ starts
     def _reachable(self) -> list[tuple[int, int]]:
-        """The cells the agent can stand on and walk to (through doors it can open): free
-        cells and open doorways."""
+        """The free cells and open doorways the agent can walk to, through doors it can open."""
         level = self.env.unwrapped
         start = tuple(int(v) for v in level.agent_pos)
         seen, queue, cells = {start}, deque([start]), []
@@ -261,22 +209,19 @@ class StagedMiniGrid(gymnasium.Wrapper):
             level.carrying = self.key
         if stage >= 2:  # the door is open
             self.door.is_locked, self.door.is_open = False, True
-        # the other doors (KeyCorridor's rooms) as an earlier stage may have left them: each
-        # open or closed; the agent stands on a free cell or in an open doorway (where it is
-        # when it has just taken a key from a one-cell room)
+        # the other doors (KeyCorridor's rooms) open or closed, as an earlier stage may leave them
         for obj in level.grid.grid:
             if (
                 obj is not None
                 and obj.type == "door"
-                and obj is not self.door
                 and not obj.is_locked
+                and obj is not self.door
             ):
                 obj.is_open = bool(self.np_random.integers(2))
         cells = self._reachable()
         level.agent_pos = np.array(cells[int(self.np_random.integers(len(cells)))])
         level.agent_dir = int(self.np_random.integers(4))
 
-    # ------------------------------------------------------------------ observation
     def _features(self) -> np.ndarray:
         level = self.env.unwrapped
         size = float(max(level.width, level.height))
@@ -310,31 +255,16 @@ class StagedMiniGrid(gymnasium.Wrapper):
                 blocked.append(float(not inside or (cell is not None and not cell.can_overlap())))
                 if self.view_doors:
                     doors.append(float(cell is not None and cell.type == "door"))
-        direction = np.eye(4, dtype=np.float32)[level.agent_dir]
+        agent = [ax / size, ay / size, *np.eye(4)[level.agent_dir]]
         carrying = level.carrying
-        return np.array(
-            [
-                ax / size,
-                ay / size,
-                *direction,
-                float(carrying is self.key),
-                float(carrying is not None and carrying is self.target),
-                float(self.door.is_open),
-                float(self.door.is_locked),
-                *offset(self.key),
-                *offset(self.door),
-                *offset(self.target),
-                *kinds,
-                *blocked,
-                *doors,
-            ],
-            np.float32,
-        )
+        load = [carrying is self.key, carrying is not None and carrying is self.target]
+        door = [self.door.is_open, self.door.is_locked]
+        offsets = [*offset(self.key), *offset(self.door), *offset(self.target)]
+        return np.array([*agent, *load, *door, *offsets, *kinds, *blocked, *doors], np.float32)
 
     def _obs(self) -> dict[str, np.ndarray]:
         return {"observation": self._features(), "stage": np.array([self.stage], np.int64)}
 
-    # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         _, info = self.env.reset(seed=seed, options=options)
         self._objects()
@@ -344,20 +274,12 @@ class StagedMiniGrid(gymnasium.Wrapper):
         return self._obs(), info
 
     def _state(self) -> tuple:
-        """What an action can change: the agent's cell, direction and load, and the cell it
-        faces (the object there and its state)."""
+        """What an action can change: the agent's cell, direction and load, and what it faces."""
         level = self.env.unwrapped
         front = level.grid.get(*level.front_pos)
-        door = (
-            (front.is_open, front.is_locked) if front is not None and front.type == "door" else ()
-        )
-        return (
-            tuple(int(v) for v in level.agent_pos),
-            int(level.agent_dir),
-            id(level.carrying),
-            id(front),
-            door,
-        )
+        door = (front.is_open, front.is_locked) if getattr(front, "type", None) == "door" else ()
+        position = tuple(int(v) for v in level.agent_pos)
+        return position, int(level.agent_dir), id(level.carrying), id(front), door
 
     def step(self, action):
         before = self._state() if self.no_op_reward else None
@@ -370,11 +292,8 @@ class StagedMiniGrid(gymnasium.Wrapper):
 
 
 def _skip_level_image(level: Any) -> None:
-    """Stops ``level`` from drawing its own observation, the agent's 7x7 view as an image,
-    which this wrapper's features replace: drawing it (rotating and masking the view) was about
-    three quarters of a step with 64 copies in a vector env. Its ``gen_obs`` now returns a
-    blank image of the same space (what the env checker and the vector env see); the level's
-    state, its RNG and every step's result are as before."""
+    """Makes ``level`` return a blank image of the same space for its own 7x7 view, which the
+    features replace: drawing it was three quarters of a step. Its states are unchanged."""
     space = level.observation_space["image"]
 
     def gen_obs() -> dict[str, Any]:
@@ -389,38 +308,24 @@ def _keep_closed(env: Any, pos: Any) -> bool:
     return False
 
 
-def _actions(level: str, actions: Sequence[str] | str | None, enum: Any) -> tuple[str, ...]:
+def _actions(family: str, actions: Sequence[str] | str | None, enum: Any) -> tuple[str, ...]:
     if actions is None:
-        return level_actions(level)
+        return ACTIONS[family]
     names = [a.name for a in enum]
     chosen = tuple(names) if actions == "all" else tuple(str(a) for a in actions)
     unknown = [a for a in chosen if a not in names]
     if unknown or not chosen or len(set(chosen)) != len(chosen):
         raise ValueError(
             f"actions={list(chosen)}: not a list of distinct MiniGrid actions. Fix: name some "
-            f"of {', '.join(names)} once each (or 'all'; null: {', '.join(level_actions(level))})"
+            f"of {', '.join(names)} once each (or 'all'; null: {', '.join(ACTIONS[family])})"
         )
     return chosen
 
 
 class MiniGridEnv(GymStageEnv):
     """A MiniGrid level (``env_id``) as a batched 3-stage TorchRL env: ``batch_size[0]`` copies
-    of :class:`StagedMiniGrid` in a gymnasium vector env.
-
-    Args:
-        env_id: a DoorKey, KeyCorridor or UnlockPickup id, e.g. ``"MiniGrid-DoorKey-8x8-v0"``.
-
-    Keyword Args:
-        vectorize: ``"sync"`` (default) or ``"async"`` (worker processes).
-        batch_size: ``(n,)``: the number of copies.
-        device: where the TensorDicts live.
-        start_stage: ``None`` (the level's own start) or k: start inside stage k.
-        actions: the level's actions the agent uses (:class:`StagedMiniGrid`; ``None``: the
-            family's default, :data:`ACTIONS`; ``"all"``: all seven).
-        view_doors: append where the doors around the agent are to the observation
-            (:data:`DOORS`).
-        no_op_reward: the reward of an action that changes nothing (:class:`StagedMiniGrid`).
-        **kwargs: the level's own constructor keys (e.g. ``max_steps``).
+    of :class:`StagedMiniGrid` (its keys) in a ``"sync"`` or ``"async"`` gymnasium vector env;
+    ``**kwargs`` go to the level (e.g. ``max_steps``).
 
     Examples:
         >>> env = MiniGridEnv("MiniGrid-DoorKey-5x5-v0", batch_size=(4,), start_stage=1)
@@ -444,7 +349,7 @@ class MiniGridEnv(GymStageEnv):
         **kwargs: Any,
     ) -> None:
         import_minigrid()
-        _check_id(env_id)
+        _family(env_id)
         wrapper = functools.partial(
             StagedMiniGrid,
             start_stage=start_stage,

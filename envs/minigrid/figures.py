@@ -1,5 +1,4 @@
-"""The MiniGrid task's figure: a level with the greedy stacked policy's path, one color per
-stage."""
+"""The MiniGrid task's figure: a level with the greedy stacked policy's path, colored by stage."""
 
 from __future__ import annotations
 
@@ -10,6 +9,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from torchrl_stages.plots import save_figure
+
+from .._common import stage_segments
 
 __all__ = ["STAGE_COLORS", "plot_level"]
 
@@ -27,19 +28,15 @@ def plot_level(
     title: str = "",
 ) -> Path:
     """The level's picture ``frame`` (``[H, W, 3]``, ``tile`` pixels per cell) with the path
-    through ``positions`` (grid cells ``[T+1, 2]``), each step colored by the stage of the
-    state it starts from (``stages`` ``[T+1]``), and a star where each stage ends."""
+    through the cells ``positions [T+1, 2]``, colored by stage, and a star where each ends."""
     xy = (np.asarray(positions, dtype=float) + 0.5) * tile
     stage = np.asarray(stages)
     fig = Figure(figsize=(6, 6 * frame.shape[0] / frame.shape[1] + 0.4))
     ax = fig.subplots()
     ax.imshow(frame)
     for k, name in enumerate(stage_names):
-        idx = np.flatnonzero(stage[:-1] == k)
-        for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
-            if len(run):
-                seg = xy[run[0] : run[-1] + 2]
-                ax.plot(seg[:, 0], seg[:, 1], color=STAGE_COLORS[k % 3], linewidth=3, alpha=0.85)
+        for seg in stage_segments(xy, stage, k):
+            ax.plot(seg[:, 0], seg[:, 1], color=STAGE_COLORS[k % 3], linewidth=3, alpha=0.85)
         ax.plot([], [], color=STAGE_COLORS[k % 3], linewidth=3, label=f"stage {k}: {name}")
     ax.plot(*xy[0], marker="o", color="white", markeredgecolor="k", markersize=9)
     for t in np.flatnonzero(np.diff(stage)) + 1:  # where each stage ends (key, door)

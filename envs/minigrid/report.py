@@ -21,8 +21,8 @@ FIGURE_SEED = 0  # the layout drawn in minigrid.png
 
 @torch.no_grad()
 def greedy_episode(task: StagedTask, learners: Sequence[Learner], seed: int):
-    """One greedy whole-task episode on the layout of ``seed``: the cells it visits, the stage
-    of each, whether it succeeded and the level's picture at its start."""
+    """One greedy whole-task episode on the layout of ``seed``: its cells, the stage of each,
+    whether it succeeded and the level's picture at its start."""
     env = task.task_env(1, vectorize="sync")
     try:
         env.set_seed(seed)
