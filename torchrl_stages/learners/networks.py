@@ -1,4 +1,4 @@
-"""Network builders shared by the learners (stacked for seeds inside
+"""Network builders of the learners (stacked for seeds inside
 :func:`~torchrl_stages.learners.stacking.stacked_networks`)."""
 
 from __future__ import annotations
@@ -16,11 +16,8 @@ from torchrl_stages.learners.stacking import stack_for_seeds
 
 
 class FourierFeatures(nn.Module):
-    """``x -> [x, sin(2^k pi x), cos(2^k pi x)]`` for ``k < num_octaves`` (per input feature).
-
-    Low-dimensional coordinate inputs (a grid cell, a joint angle) make plain MLPs smooth at the
-    scale of one cell; the encoding lets a small network represent sharp changes, such as a
-    move that is blocked at a wall but not one cell before it.
+    """``x -> [x, sin(2^k pi x), cos(2^k pi x)]`` for ``k < num_octaves``: lets a small MLP
+    represent sharp changes of low-dimensional coordinates (a wall one grid cell away).
 
     Examples:
         >>> FourierFeatures(2)(torch.zeros(3, 2)).shape
@@ -45,10 +42,7 @@ Shape = tuple[int, ...]
 
 @dataclass(frozen=True)
 class ConvSpec:
-    """Layers of the CNN applied to image inputs ``(C, H, W)``: one entry per conv layer.
-
-    Each layer is ``Conv2d(kernel, stride, padding=kernel // 2)`` + ReLU; the output is flattened.
-    """
+    """The CNN of image inputs: per layer ``Conv2d(kernel, stride, padding=kernel // 2)`` + ReLU."""
 
     channels: tuple[int, ...] = (16, 32)
     kernels: tuple[int, ...] = (3, 3)
@@ -56,8 +50,7 @@ class ConvSpec:
 
 
 class ConvEncoder(nn.Module):
-    """A small CNN over ``[*batch, C, H, W]`` images (any dtype, e.g. uint8 occupancy windows),
-    flattened to ``[*batch, out_features]``.
+    """A CNN over ``[*batch, C, H, W]`` images of any dtype, flattened to ``[*batch, features]``.
 
     Examples:
         >>> ConvEncoder((1, 10, 10), ConvSpec())(torch.zeros(4, 7, 1, 10, 10)).shape
@@ -85,12 +78,8 @@ class ConvEncoder(nn.Module):
 
 
 class InputEncoder(nn.Module):
-    """Features of a network's inputs: CNN features of each image input, concatenated with the
-    vector inputs (after :class:`FourierFeatures` when ``fourier > 0``).
-
-    Args:
-        inputs: unbatched shape of each input, in call order: ``(C, H, W)`` images, ``(d,)``
-            vectors.
+    """CNN features of each image input ``(C, H, W)``, then the vector inputs ``(d,)`` (through
+    :class:`FourierFeatures` when ``fourier > 0``); ``inputs``: their shapes in call order.
 
     Examples:
         >>> enc = InputEncoder([(1, 10, 10), (2,)], cnn=ConvSpec(channels=(4,), kernels=(3,),
@@ -152,11 +141,7 @@ class _Encoded(nn.Module):
 
 
 class SharedEncoderCritic(nn.Module):
-    """``Q(s, a) = body([encoder(s), a])``, over an input encoder shared with the actor.
-
-    The encoder (e.g. the CNN of an image observation) is the actor's own module: features are
-    laid out as in a critic with its own :class:`InputEncoder` (encoder features, then the
-    action), only the encoder is not duplicated.
+    """``Q(s, a) = body([encoder(s), a])`` over the actor's own input encoder.
 
     Examples:
         >>> enc = InputEncoder([(1, 10, 10), (2,)], cnn=ConvSpec(channels=(4,), kernels=(3,),
@@ -175,24 +160,9 @@ class SharedEncoderCritic(nn.Module):
             MLP(in_features=encoder.out_features + action_dim, out_features=1, num_cells=num_cells)
         )
 
-    def head(self, features: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """``Q`` from the encoder's ``features`` of ``s`` and the action."""
-        return self.body(torch.cat([features, action], -1))
-
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         *obs, action = inputs
-        return self.head(self.encoder(*obs), action)
-
-
-def _encoder(
-    inputs: int | Sequence[Shape], fourier: int, cnn: ConvSpec | None
-) -> tuple[nn.Module | None, int]:
-    """The input encoder (``None``: raw concatenated vectors) and its number of features."""
-    shapes = [(inputs,)] if isinstance(inputs, int) else [tuple(s) for s in inputs]
-    if fourier <= 0 and all(len(s) == 1 for s in shapes):
-        return None, sum(s[0] for s in shapes)
-    encoder = InputEncoder(shapes, fourier=fourier, cnn=cnn)
-    return encoder, encoder.out_features
+        return self.body(torch.cat([self.encoder(*obs), action], -1))
 
 
 def mlp(
@@ -201,43 +171,34 @@ def mlp(
     num_cells: list[int],
     fourier: int = 0,
     cnn: ConvSpec | None = None,
-) -> nn.Module:
-    """An MLP over the inputs: ``inputs`` is a vector size, or the shape of each input (see
-    :class:`InputEncoder`: images go through a CNN, vectors optionally through Fourier features).
-    """
-    encoder, width = _encoder(inputs, fourier, cnn)
-    body = MLP(in_features=width, out_features=out_features, num_cells=num_cells)
-    return stack_for_seeds(body if encoder is None else _Encoded(encoder, body))
-
-
-def qvalue_net(
-    inputs: int | Sequence[Shape],
-    num_actions: int,
-    num_cells: list[int],
     *,
     dueling: bool = False,
-    fourier: int = 0,
-    cnn: ConvSpec | None = None,
 ) -> nn.Module:
-    """Q-values of every action: an MLP, or a dueling one (``Q = V + A - mean(A)``, the last
-    hidden width feeding separate value and advantage heads). ``inputs`` as in :func:`mlp`."""
+    """An MLP over ``inputs``, a vector size or each input's shape (:class:`InputEncoder`);
+    ``dueling``: ``Q = V + A - mean(A)``, the last hidden width feeding the two heads."""
+    shapes = [(inputs,)] if isinstance(inputs, int) else [tuple(s) for s in inputs]
+    encoder = None
+    width = sum(s[0] for s in shapes)
+    if fourier > 0 or any(len(s) != 1 for s in shapes):
+        encoder = InputEncoder(shapes, fourier=fourier, cnn=cnn)
+        width = encoder.out_features
     if not dueling:
-        return mlp(inputs, num_actions, num_cells, fourier, cnn)
-    encoder, width_in = _encoder(inputs, fourier, cnn)
-    *trunk, width = num_cells
-    net = DuelingMlpDQNet(
-        num_actions,
-        mlp_kwargs_feature={
-            "in_features": width_in,
-            "num_cells": trunk,
-            "out_features": width,
-            "activation_class": nn.ReLU,
-        },
-        mlp_kwargs_output={
-            "in_features": width,
-            "num_cells": width,
-            "depth": 1,
-            "activation_class": nn.ReLU,
-        },
-    )
+        net = MLP(in_features=width, out_features=out_features, num_cells=num_cells)
+    else:
+        *trunk, hidden = num_cells
+        net = DuelingMlpDQNet(
+            out_features,
+            mlp_kwargs_feature={
+                "in_features": width,
+                "num_cells": trunk,
+                "out_features": hidden,
+                "activation_class": nn.ReLU,
+            },
+            mlp_kwargs_output={
+                "in_features": hidden,
+                "num_cells": hidden,
+                "depth": 1,
+                "activation_class": nn.ReLU,
+            },
+        )
     return stack_for_seeds(net if encoder is None else _Encoded(encoder, net))

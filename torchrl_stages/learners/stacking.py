@@ -1,17 +1,7 @@
-"""Seed-stacked learners: the networks of N seeds' learners in one set of tensors.
+"""Seed-stacked learners: N seeds' networks in one set of tensors, inputs laid out seed-major.
 
-A learner built inside :func:`stacked_networks` (``make_learner(..., seeds=N)``) has every
-``nn.Linear`` of the networks :mod:`~torchrl_stages.learners.networks` builds replaced by a
-:class:`StackedLinear`: one weight ``[N, out, in]``, seed ``i``'s layer in row ``i`` (and every
-``nn.Conv2d`` of a CNN by a :class:`StackedConv2d`, one grouped convolution). Its inputs
-are laid out seed-major (``[N * M, ...]`` or ``[N, M, ...]``: seed ``i``'s elements first come
-seed ``i - 1``'s), so everything between two layers (activations, the dueling head's mean, the
-Fourier features) runs on all seeds unchanged, and one ``baddbmm`` per layer replaces N
-matrix products. Adam, the soft target update and every elementwise step then act on each seed
-alone; the learners reduce their losses with :meth:`~torchrl_stages.learners.Learner.batch_mean`
-(one loss per seed), and :meth:`~torchrl_stages.learners.Learner._step` clips each seed's
-gradient by its own norm. :func:`stack_learners` loads N ordinary learners into a stacked one,
-:func:`unstack_learner` takes seed ``i`` back out.
+Inside :func:`stacked_networks` every ``nn.Linear`` (``nn.Conv2d``) of a built network becomes a
+:class:`StackedLinear` (:class:`StackedConv2d`) holding seed ``i``'s layer in row ``i``.
 """
 
 from __future__ import annotations
@@ -19,33 +9,20 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
-from typing import Any, Protocol
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 
-
-class Learner(Protocol):
-    """What this module reads of a :class:`~torchrl_stages.learners.Learner` (it is written
-    against this protocol, so that the learners' base module can import it without a cycle)."""
-
-    cfg: Any
-    specs: Any
-    seeds: int | None
-    num_updates: int
-
-    def state_dict(self) -> dict[str, torch.Tensor]: ...
-
-    def load_state_dict(self, state: dict[str, torch.Tensor]) -> Any: ...
-
+if TYPE_CHECKING:
+    from torchrl_stages.learners.base import Learner
 
 _SEEDS: ContextVar[int | None] = ContextVar("torchrl_stages_seeds", default=None)
 _ROWS: ContextVar[torch.Tensor | None] = ContextVar("torchrl_stages_seed_rows", default=None)
 
 
 class _StackedLayer(nn.Module):
-    """What the stacked layers share: ``weight`` and ``bias`` stacked from ``num_seeds``
-    ordinary layers (row ``i``: seed ``i``'s), read for the seeds computed now."""
+    """``weight`` and ``bias`` stacked from ordinary layers, row ``i`` seed ``i``'s."""
 
     def _stack(self, layers: Sequence[nn.Module]) -> None:
         self.weight = nn.Parameter(torch.stack([layer.weight.detach() for layer in layers]))
@@ -56,7 +33,6 @@ class _StackedLayer(nn.Module):
         return self.weight.shape[0]
 
     def _rows(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``weight`` and ``bias`` of the seeds computed now (:func:`update_rows`)."""
         rows = _ROWS.get()
         if rows is None:
             return self.weight, self.bias
@@ -64,12 +40,8 @@ class _StackedLayer(nn.Module):
 
 
 class StackedLinear(_StackedLayer):
-    """``num_seeds`` independent ``nn.Linear(in_features, out_features)`` layers in one module.
-
-    ``weight`` is ``[num_seeds, out, in]`` and ``bias`` ``[num_seeds, out]`` (row ``i``: seed
-    ``i``'s layer, initialized as ``nn.Linear`` initializes). The input's leading dimensions are
-    seed-major: ``[num_seeds * M, in]``, ``[num_seeds, M, in]`` or any shape whose elements are
-    grouped by seed in that order; the output has the input's leading dimensions.
+    """``num_seeds`` ``nn.Linear`` layers in one ``baddbmm``: ``weight`` ``[num_seeds, out, in]``;
+    inputs seed-major (``[num_seeds * M, in]`` or ``[num_seeds, M, in]``).
 
     Examples:
         >>> layer = StackedLinear(3, 2, num_seeds=4)
@@ -98,13 +70,8 @@ class StackedLinear(_StackedLayer):
 
 
 class StackedConv2d(_StackedLayer):
-    """``num_seeds`` independent ``nn.Conv2d`` layers (no dilation, one group, zero padding) in
-    one module: one grouped convolution, seed ``i``'s channels in group ``i``.
-
-    ``weight`` is ``[num_seeds, out, in, kh, kw]`` and ``bias`` ``[num_seeds, out]`` (row
-    ``i``: seed ``i``'s layer, initialized as ``nn.Conv2d`` initializes). The input's leading
-    dimensions are seed-major, as for :class:`StackedLinear`: ``[num_seeds * M, C, H, W]``
-    or ``[num_seeds, M, C, H, W]``; the output has the input's leading dimensions.
+    """``num_seeds`` plain ``nn.Conv2d`` layers as one grouped convolution, seed ``i``'s channels
+    in group ``i``; inputs seed-major, as for :class:`StackedLinear`.
 
     Examples:
         >>> layer = StackedConv2d(1, 4, 3, stride=2, padding=1, num_seeds=3)
@@ -159,8 +126,7 @@ class StackedConv2d(_StackedLayer):
 
 
 def _stacked(name: str, layer: nn.Module, n: int) -> nn.Module | None:
-    """The stacked twin of ``layer`` for ``n`` seeds (``None``: not a layer that stacks);
-    ``TypeError`` for a stackable kind with options the twin does not have."""
+    """The stacked twin of ``layer`` for ``n`` seeds (``None``: not a layer that stacks)."""
     if type(layer) is nn.Linear:
         if layer.bias is None:
             raise TypeError(f"{name}: a Linear without bias cannot be stacked for seeds")
@@ -196,8 +162,7 @@ def current_seeds() -> int | None:
 
 @contextmanager
 def stacked_networks(num_seeds: int | None) -> Iterator[None]:
-    """Networks built inside (by :mod:`~torchrl_stages.learners.networks`) are stacked for
-    ``num_seeds`` seeds (:func:`stack_for_seeds`); ``None``: as usual.
+    """Networks built inside are stacked for ``num_seeds`` seeds (``None``: not stacked).
 
     Examples:
         >>> from torchrl_stages.learners.networks import mlp
@@ -214,16 +179,13 @@ def stacked_networks(num_seeds: int | None) -> Iterator[None]:
 
 
 def current_rows() -> torch.Tensor | None:
-    """The seeds (row indices) stacked layers compute now (:func:`update_rows`); ``None``: all."""
     return _ROWS.get()
 
 
 @contextmanager
 def update_rows(rows: torch.Tensor | None) -> Iterator[None]:
-    """Inside, every :class:`StackedLinear` computes only the seeds ``rows`` (a 1-D index
-    tensor; ``None``: all of them): inputs hold ``len(rows)`` seeds' elements, and the
-    gradients of the other seeds' rows are zero. A stage of many seeds updates only the seeds
-    that have not stopped this way, at the cost of those alone.
+    """Inside, stacked layers compute only the seeds ``rows`` (1-D indices; ``None``: all), the
+    others' gradients zero: a stage updates only its seeds that have not stopped.
 
     Examples:
         >>> layer = StackedLinear(3, 2, num_seeds=4)
@@ -244,16 +206,14 @@ def update_rows(rows: torch.Tensor | None) -> Iterator[None]:
 
 
 def seed_rows(values: torch.Tensor) -> torch.Tensor:
-    """``values`` held one per seed (``[N, ...]``) for the seeds computed now
-    (:func:`update_rows`); a scalar (an ordinary learner's) as it is."""
+    """``values`` held one per seed (``[N, ...]``) for the seeds computed now; a scalar as is."""
     rows = _ROWS.get()
     return values if rows is None or values.ndim == 0 else values[rows]
 
 
 def per_seed(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """``values`` (one per seed computed now, ``[n]``) shaped to broadcast against ``like``,
-    whose leading dimensions are seed-major (``[n, ...]`` or ``[n * M, ...]``); a scalar (an
-    ordinary learner's) as it is.
+    """``values`` (one per seed computed now, ``[n]``) shaped to broadcast against the
+    seed-major ``like`` (``[n, ...]`` or ``[n * M, ...]``); a scalar as it is.
 
     Examples:
         >>> alpha = torch.tensor([1.0, 10.0])
@@ -269,10 +229,8 @@ def per_seed(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 
 
 def stack_for_seeds(module: nn.Module) -> nn.Module:
-    """``module`` with each ``nn.Linear`` replaced by a :class:`StackedLinear` and each
-    ``nn.Conv2d`` by a :class:`StackedConv2d` for the seeds of :func:`stacked_networks`
-    (unchanged outside it). Raises ``TypeError`` for a module that holds parameters of another
-    kind, which cannot be stacked."""
+    """``module`` with its layers stacked for the seeds of :func:`stacked_networks`; raises
+    ``TypeError`` for parameters of another kind."""
     n = current_seeds()
     if n is None:
         return module
@@ -296,11 +254,8 @@ def stack_for_seeds(module: nn.Module) -> nn.Module:
 
 
 def seed_axes(learner: Learner) -> dict[str, int | None]:
-    """The axis that indexes the seeds in each ``state_dict`` entry of the seed-stacked
-    ``learner``: 0 for a network's layers (``[N, out, in]``), 1 for the copies a loss module
-    stacks itself (twin critics: ``[2, N, out, in]``), ``None`` for an entry the seeds share
-    (an exploration schedule). Read off two small twins of it built for 1 and 2 seeds (global
-    generators left as they were), once per learner.
+    """The seeds' axis of each ``state_dict`` entry of a seed-stacked ``learner`` (``None``:
+    shared by the seeds), read off twins built for 1 and 2 seeds (generators left as they were).
 
     Examples:
         >>> from torchrl.data import Bounded
@@ -333,8 +288,7 @@ def seed_axes(learner: Learner) -> dict[str, int | None]:
 def _seed_rows(
     stacked: Learner, stacked_state: dict[str, torch.Tensor], plain: dict[str, torch.Tensor]
 ) -> dict[str, int | None]:
-    """:func:`seed_axes` of ``stacked``, its ``state_dict`` checked against an ordinary
-    learner's: every entry is the ordinary one with the seeds' axis inserted, or the same."""
+    """:func:`seed_axes` of ``stacked``, its entries checked against an ordinary learner's."""
     if stacked_state.keys() != plain.keys():
         raise ValueError("the stacked and the ordinary learner have different entries")
     axes, n = seed_axes(stacked), int(stacked.seeds or 0)
@@ -352,9 +306,8 @@ def _seed_rows(
 
 
 def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
-    """Loads ``learners`` (one per seed, ordinary) into ``stacked`` (their seed-stacked twin),
-    seed ``i`` into row ``i``; returns ``stacked``. Entries shared by all seeds are taken from
-    the first learner."""
+    """Loads ordinary ``learners`` into their seed-stacked twin, seed ``i`` into row ``i``
+    (shared entries from the first); returns ``stacked``."""
     states = [learner.state_dict() for learner in learners]
     own = stacked.state_dict()
     if len(learners) != stacked.seeds:
@@ -371,8 +324,7 @@ def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
 
 
 def unstack_learner(stacked: Learner, seed: int, learner: Learner) -> Learner:
-    """Loads row ``seed`` of the seed-stacked ``stacked`` into the ordinary ``learner`` (built
-    with the same config and specs); returns ``learner``."""
+    """Loads row ``seed`` of ``stacked`` into the ordinary ``learner``; returns ``learner``."""
     state, own = stacked.state_dict(), learner.state_dict()
     axes = _seed_rows(stacked, state, own)
     learner.load_state_dict(
