@@ -19,10 +19,9 @@ from torchrl_stages.learners.base import (
     check_loss_function,
     register_algorithm,
 )
-from torchrl_stages.learners.entropy import EntropyRegularized
-from torchrl_stages.learners.ops import FusedSoftUpdate, distance, stacked_calls, td0_target
+from torchrl_stages.learners.entropy import EntropyRegularized, soft_value
+from torchrl_stages.learners.ops import FusedSoftUpdate, distance, stacked_calls, taken, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
-from torchrl_stages.values import with_params
 
 
 @dataclass
@@ -147,11 +146,8 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
             soft = next_q.min(0).values - self.alpha(next_probs) * _log_probs(next_probs)
             target = td0_target(batch, (next_probs * soft).sum(-1, keepdim=True), self.cfg.gamma)
         q = torch.stack(stacked_calls(critic, critics["module"], *obs))
-        action = batch.get(self.specs.action_key)
-        if isinstance(self.specs.action_spec, OneHot):
-            chosen = (q * action.to(q.dtype)).sum(-1, keepdim=True)
-        else:
-            chosen = q.gather(-1, action.reshape(1, *q.shape[1:-1], 1).expand(*q.shape[:-1], 1))
+        one_hot = isinstance(self.specs.action_spec, OneHot)
+        chosen = taken(q, batch.get(self.specs.action_key), one_hot, lead=1)
         distances = distance(chosen, target.expand_as(chosen), self.cfg.loss_function)
         loss_q = self.batch_mean(distances.sum(0))
         dist = torch.distributions.Categorical(logits=actor(*obs))
@@ -162,20 +158,10 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
 
     @classmethod
     def value_from_loss(cls, loss: DiscreteSACLoss, live: bool = False) -> TensorDictModuleBase:
-        """:class:`DiscreteSoftValue` of a ``DiscreteSACLoss``'s target critics, its actor a
-        ``ProbabilisticActor`` over a ``TensorDictModule`` writing logits."""
-        network = loss.actor_network[0]
-        actor = with_params(
-            network.module, loss.actor_network_params["module", "0", "module"], live=live
-        )
+        """:class:`DiscreteSoftValue` of a ``DiscreteSACLoss``'s target critics."""
         critics = loss.target_qvalue_network_params["module"]
-        module = DiscreteSoftValue(
-            actor,
-            loss.qvalue_network.module,
-            critics if live else critics.detach().clone(),
-            loss.log_alpha if live else loss.log_alpha.detach().clone(),
-        )
-        return TensorDictModule(module, in_keys=list(network.in_keys), out_keys=["state_value"])
+        critic = loss.qvalue_network.module
+        return soft_value(DiscreteSoftValue, loss, loss.actor_network, critic, critics, live)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         return self.value_from_loss(self.loss, live=live)

@@ -19,7 +19,13 @@ from torchrl_stages.learners.base import (
     check_loss_function,
     register_algorithm,
 )
-from torchrl_stages.learners.ops import FusedSoftUpdate, distance, linear_schedule, td0_target
+from torchrl_stages.learners.ops import (
+    FusedSoftUpdate,
+    distance,
+    linear_schedule,
+    taken,
+    td0_target,
+)
 from torchrl_stages.values import QMaxValue, with_params
 
 
@@ -127,13 +133,8 @@ class DQNLearner(Learner):
         ``alpha (max_b Q_target(s, b) - Q_target(s, a))``."""
         obs = self.inputs(batch)
         action = batch.get(self.specs.action_key)
-
-        def taken(values: torch.Tensor) -> torch.Tensor:  # the values of the actions taken
-            if isinstance(self.specs.action_spec, OneHot):
-                return (values * action.to(values.dtype)).sum(-1, keepdim=True)
-            return values.gather(-1, action.reshape(*values.shape[:-1], 1))
-
-        pred = taken(self.q_module(*obs))
+        one_hot = isinstance(self.specs.action_spec, OneHot)
+        pred = taken(self.q_module(*obs), action, one_hot)
         with torch.no_grad():
             next_obs = self.inputs(batch, nxt=True)
             q_next = self._target_q(*next_obs)
@@ -144,7 +145,7 @@ class DQNLearner(Learner):
             target = td0_target(batch, next_value, self.cfg.gamma)
             if self.cfg.advantage_learning:
                 q_target = self._target_q(*obs)
-                gap = q_target.max(-1, keepdim=True).values - taken(q_target)
+                gap = q_target.max(-1, keepdim=True).values - taken(q_target, action, one_hot)
                 target = target - self.cfg.advantage_learning * gap
         return self.batch_mean(distance(pred, target, self.cfg.loss_function))
 

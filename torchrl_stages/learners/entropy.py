@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
 from torch import nn
 
 from torchrl_stages.config import StageChecks
 from torchrl_stages.learners.stacking import per_seed, seed_rows
+from torchrl_stages.values import with_params
 
 
 class EntropyRegularized:
@@ -52,3 +54,19 @@ class EntropyRegularized:
 
     def anneal_exploration(self, frames: int) -> None:
         """Nothing to anneal: the entropy coefficient is learned."""
+
+
+def soft_value(module: type[nn.Module], loss, actor, critic, critics, live: bool, *args):
+    """``module`` (a soft value) as a ``TensorDictModule`` over ``actor``'s observations, with
+    ``loss``'s actor parameters, the stacked ``critics`` of ``critic`` and its ``log_alpha``
+    (read in place with ``live``, else copies)."""
+    network = actor[0]
+    params = loss.actor_network_params["module", "0", "module"]
+    value = module(
+        with_params(network.module, params, live=live),
+        critic,
+        critics if live else critics.detach().clone(),
+        loss.log_alpha if live else loss.log_alpha.detach().clone(),
+        *args,
+    )
+    return TensorDictModule(value, in_keys=list(network.in_keys), out_keys=["state_value"])

@@ -1,5 +1,4 @@
-"""Network builders of the learners (stacked for seeds inside
-:func:`~torchrl_stages.learners.stacking.stacked_networks`)."""
+"""Network builders of the learners, stacked for seeds inside :func:`.stacked_networks`."""
 
 from __future__ import annotations
 
@@ -116,11 +115,9 @@ class Chain(nn.Sequential):
     """``nn.Sequential`` whose first module takes several inputs (e.g. an image and a vector).
 
     Examples:
-        >>> from tensordict.nn import NormalParamExtractor
-        >>> loc, scale = Chain(InputEncoder([(2,), (2,)]), NormalParamExtractor())(
-        ...     torch.zeros(3, 2), torch.ones(3, 2))
-        >>> loc.shape, scale.shape
-        (torch.Size([3, 2]), torch.Size([3, 2]))
+        >>> net = Chain(InputEncoder([(2,), (1,)]), nn.Linear(3, 1))
+        >>> net(torch.ones(4, 2), torch.ones(4, 1)).shape
+        torch.Size([4, 1])
     """
 
     def forward(self, *inputs: torch.Tensor):
@@ -144,13 +141,9 @@ class SharedEncoderCritic(nn.Module):
     """``Q(s, a) = body([encoder(s), a])`` over the actor's own input encoder.
 
     Examples:
-        >>> enc = InputEncoder([(1, 10, 10), (2,)], cnn=ConvSpec(channels=(4,), kernels=(3,),
-        ...                    strides=(2,)))
-        >>> critic = SharedEncoderCritic(enc, action_dim=1, num_cells=[32])
-        >>> critic(torch.zeros(5, 1, 10, 10), torch.zeros(5, 2), torch.zeros(5, 1)).shape
+        >>> critic = SharedEncoderCritic(InputEncoder([(2,)], fourier=1), 1, num_cells=[32])
+        >>> critic(torch.zeros(5, 2), torch.zeros(5, 1)).shape
         torch.Size([5, 1])
-        >>> critic.encoder is enc
-        True
     """
 
     def __init__(self, encoder: nn.Module, action_dim: int, num_cells: list[int]) -> None:

@@ -10,11 +10,7 @@ import torch.nn.functional as F
 from tensordict import TensorDictBase
 from torch import nn
 from torch.func import functional_call
-from torch.optim.optimizer import (
-    ParamsT,
-    _global_optimizer_post_hooks,
-    _global_optimizer_pre_hooks,
-)
+from torch.optim.optimizer import ParamsT, _global_optimizer_post_hooks, _global_optimizer_pre_hooks
 from torchrl.objectives import SoftUpdate
 
 
@@ -23,18 +19,11 @@ class FusedSoftUpdate(SoftUpdate):
     ``torch._foreach_lerp_`` over all parameter pairs.
 
     Examples:
-        >>> import torch
         >>> from torchrl.modules import QValueActor
         >>> from torchrl.objectives import DQNLoss
-        >>> loss = DQNLoss(QValueActor(torch.nn.Linear(3, 2), action_space="categorical"),
-        ...                delay_value=True, action_space="categorical")
-        >>> updater = FusedSoftUpdate(loss, tau=0.5)
-        >>> with torch.no_grad():
-        ...     _ = loss.value_network_params["module", "0", "module", "bias"].fill_(1.0)
-        ...     _ = loss.target_value_network_params["module", "0", "module", "bias"].fill_(0.0)
-        >>> updater.step()
-        >>> loss.target_value_network_params["module", "0", "module", "bias"].tolist()
-        [0.5, 0.5]
+        >>> net = QValueActor(nn.Linear(3, 2), action_space="categorical")
+        >>> loss = DQNLoss(net, delay_value=True, action_space="categorical")
+        >>> FusedSoftUpdate(loss, tau=0.5).step()
     """
 
     _pairs: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
@@ -61,15 +50,10 @@ class FusedAdam(torch.optim.Adam):
     either class.
 
     Examples:
-        >>> import torch
-        >>> net = torch.nn.Linear(3, 1)
+        >>> net = nn.Linear(3, 1)
         >>> optimizer = FusedAdam(net.parameters(), lr=1e-2)
-        >>> for _ in range(2):
-        ...     net(torch.ones(4, 3)).sum().backward()
-        ...     optimizer.direct_step()  # the first step is Adam.step's: it creates the state
-        ...     optimizer.zero_grad()
-        >>> int(optimizer.state[net.bias]["step"])
-        2
+        >>> net(torch.ones(4, 3)).sum().backward()
+        >>> optimizer.direct_step()
     """
 
     def __init__(self, params: ParamsT, lr: float = 1e-3, **kwargs: Any) -> None:
@@ -187,6 +171,15 @@ def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tens
         functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
         for i in range(params.batch_size[0])
     ]
+
+
+def taken(values: torch.Tensor, action: torch.Tensor, one_hot: bool, lead: int = 0):
+    """The values (``[..., num_actions]``) of the actions taken (one-hot or indices), ``[..., 1]``;
+    ``lead``: leading dimensions of ``values`` that ``action`` lacks (twin critics)."""
+    if one_hot:
+        return (values * action.to(values.dtype)).sum(-1, keepdim=True)
+    index = action.reshape(*values.shape[lead:-1], 1).expand(*values.shape[:-1], 1)
+    return values.gather(-1, index)
 
 
 def detached_copy(loss: torch.Tensor) -> torch.Tensor:

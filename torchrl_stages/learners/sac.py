@@ -16,11 +16,10 @@ from torchrl.objectives import SACLoss
 from torchrl_stages.config import StageChecks
 from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
 from torchrl_stages.learners.base import register_algorithm
-from torchrl_stages.learners.entropy import EntropyRegularized
+from torchrl_stages.learners.entropy import EntropyRegularized, soft_value
 from torchrl_stages.learners.networks import Chain
 from torchrl_stages.learners.ops import distance, stacked_calls, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
-from torchrl_stages.values import with_params
 
 
 @dataclass
@@ -184,27 +183,13 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
     def value_from_loss(cls, loss: SACLoss, live: bool = False) -> TensorDictModuleBase:
         """:class:`SoftValue` (16 actions per state) of a ``SACLoss``'s target critics."""
         critics = loss.target_qvalue_network_params["module"]
-        return _soft_value(loss, loss.actor_network, loss.qvalue_network.module, critics, 16, live)
+        critic, kwargs = loss.qvalue_network.module, loss.actor_network[1].distribution_kwargs
+        return soft_value(SoftValue, loss, loss.actor_network, critic, critics, live, kwargs, 16)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
-        """:class:`SoftValue`, the actor and ``alpha`` as they are; with a shared encoder the
-        critics read the target one."""
+        """:class:`SoftValue`; with a shared encoder the critics read the target one."""
         critics = self.with_target_encoder(self.loss.target_qvalue_network_params)["module"]
-        samples = self.cfg.value_samples
-        return _soft_value(self.loss, self.actor, self.critic_module, critics, samples, live)
-
-
-def _soft_value(loss: SACLoss, actor, critic: nn.Module, critics, samples: int, live: bool):
-    """:class:`SoftValue` over ``actor``'s observations, with ``loss``'s actor parameters and
-    entropy coefficient (read in place with ``live``, else copies)."""
-    network = actor[0]
-    params = loss.actor_network_params["module", "0", "module"]
-    module = SoftValue(
-        with_params(network.module, params, live=live),
-        critic,
-        critics if live else critics.detach().clone(),
-        loss.log_alpha if live else loss.log_alpha.detach().clone(),
-        actor[1].distribution_kwargs,
-        samples,
-    )
-    return TensorDictModule(module, in_keys=list(network.in_keys), out_keys=["state_value"])
+        kwargs, samples = self.actor[1].distribution_kwargs, self.cfg.value_samples
+        return soft_value(
+            SoftValue, self.loss, self.actor, self.critic_module, critics, live, kwargs, samples
+        )
