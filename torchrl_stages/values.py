@@ -32,7 +32,6 @@ class QMaxValue(TensorDictModuleBase):
     bit for bit, without the TensorDict overhead on every env step that leaves a stage.
 
     Examples:
-        >>> from tensordict.nn import TensorDictModule
         >>> q = TensorDictModule(lambda obs: obs * 2, ["observation"], ["action_value"])
         >>> v = QMaxValue(q)
         >>> v(TensorDict(observation=torch.tensor([[1.0, 3.0]]), batch_size=[1]))["state_value"]
@@ -85,15 +84,12 @@ class ActorCriticValue(TensorDictModuleBase):
     ``value_key``.
 
     Examples:
-        >>> from tensordict.nn import TensorDictModule
         >>> actor = TensorDictModule(lambda o: -o, ["observation"], ["action"])
-        >>> q1 = TensorDictModule(lambda o, a: (o - a).sum(-1, True), ["observation", "action"],
-        ...                       ["state_action_value"])
-        >>> q2 = TensorDictModule(lambda o, a: o.sum(-1, True), ["observation", "action"],
-        ...                       ["state_action_value"])
-        >>> v = ActorCriticValue(actor, [q1, q2])
-        >>> v(TensorDict(observation=torch.tensor([[1.0]]), batch_size=[1]))["state_value"]
-        tensor([[1.]])
+        >>> q = TensorDictModule(lambda o, a: o - a, ["observation", "action"],
+        ...                      ["state_action_value"])
+        >>> v = ActorCriticValue(actor, [q, q])
+        >>> v(TensorDict(observation=torch.ones(1, 1), batch_size=[1]))["state_value"]
+        tensor([[2.]])
     """
 
     def __init__(

@@ -75,19 +75,7 @@ ALGORITHMS: dict[str, type[Learner]] = {}
 def register_algorithm(cls: type[Learner]) -> type[Learner]:
     """Class decorator: makes a :class:`Learner` subclass the algorithm ``cls.algo`` of the
     CLI (``algo@task.stages.<stage>=<name>``), the config store and validation; its
-    :attr:`Learner.Config` is the schema of its stages' keys.
-
-    Examples:
-        >>> from dataclasses import dataclass
-        >>> @dataclass
-        ... class NoopConfig(StageConfig):
-        ...     algo: str = "noop"
-        >>> @register_algorithm
-        ... class Noop(Learner):
-        ...     algo, Config = "noop", NoopConfig
-        >>> ALGORITHMS.pop("noop") is Noop
-        True
-    """
+    :attr:`Learner.Config` is the schema of its stages' keys."""
     name = cls.algo
     if not name or not isinstance(cls.Config, type) or cls.Config.algo != name:
         raise TypeError(
