@@ -9,7 +9,6 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
-from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
 from torchrl.objectives import ValueEstimators
@@ -148,18 +147,6 @@ class ActorCriticLearner(Learner):
         """The (target) actor network's output on :meth:`features`."""
         net = self._target_actor if target else self.actor_module
         return (net.body if self.shared_encoder else net)(*features)
-
-    def q(self, critic: nn.Module, features, action, detached: bool = False) -> torch.Tensor:
-        """``Q(s, a)`` of ``critic`` (online or target) on :meth:`features`, its parameters
-        detached with ``detached``."""
-        inputs = (*features, action)
-        if self.shared_encoder:
-            critic, inputs = critic.body, (torch.cat(inputs, -1),)
-        if not detached:
-            return critic(*inputs)
-        return functional_call(
-            critic, {n: p.detach() for n, p in critic.named_parameters()}, inputs
-        )
 
     def critic_values(self, params: TensorDictBase, features, action) -> list[torch.Tensor]:
         """``Q_i(s, a)`` of each critic of the stacked loss ``params`` on :meth:`features`."""

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
+from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
 
@@ -60,6 +62,18 @@ class DDPGLearner(DeterministicActorCriticLearner):
             self.critic_module, target_critic.get("module"), live=True
         )
         self._losses = self.compiled(self._plain_losses)
+
+    def q(self, critic: nn.Module, features, action, detached: bool = False) -> torch.Tensor:
+        """``Q(s, a)`` of ``critic`` (online or target) on :meth:`features`, its parameters
+        detached with ``detached``."""
+        inputs = (*features, action)
+        if self.shared_encoder:
+            critic, inputs = critic.body, (torch.cat(inputs, -1),)
+        if not detached:
+            return critic(*inputs)
+        return functional_call(
+            critic, {n: p.detach() for n, p in critic.named_parameters()}, inputs
+        )
 
     def _plain_losses(self, batch: TensorDictBase):
         """``DDPGLoss`` on plain tensors: the actor's ``-Q(s, mu(s))`` (the critic and a shared

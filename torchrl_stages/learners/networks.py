@@ -27,9 +27,6 @@ class FourierFeatures(nn.Module):
         super().__init__()
         self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(num_octaves), persistent=False)
 
-    def out_features(self, in_features: int) -> int:
-        return in_features * (1 + 2 * len(self.freqs))
-
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         x = torch.cat(inputs, -1)
         angles = (x.unsqueeze(-1) * self.freqs).flatten(-2)
@@ -98,9 +95,8 @@ class InputEncoder(nn.Module):
         self.convs = nn.ModuleList(ConvEncoder(s, cnn) for s in inputs if len(s) == 3)
         vector_dim = sum(s[0] for s in inputs if len(s) == 1)
         self.fourier = FourierFeatures(fourier) if fourier > 0 and vector_dim else None
-        self.out_features = sum(conv.out_features for conv in self.convs) + (
-            self.fourier.out_features(vector_dim) if self.fourier is not None else vector_dim
-        )
+        vector_features = vector_dim * (1 + 2 * fourier) if self.fourier else vector_dim
+        self.out_features = sum(conv.out_features for conv in self.convs) + vector_features
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         images = iter(self.convs)

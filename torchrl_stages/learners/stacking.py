@@ -243,38 +243,16 @@ def seed_axes(learner: Learner) -> dict[str, int | None]:
     return axes
 
 
-def _seed_rows(
-    stacked: Learner, stacked_state: dict[str, torch.Tensor], plain: dict[str, torch.Tensor]
-) -> dict[str, int | None]:
-    """:func:`seed_axes` of ``stacked``, its entries checked against an ordinary learner's."""
-    if stacked_state.keys() != plain.keys():
-        raise ValueError("the stacked and the ordinary learner have different entries")
-    axes, n = seed_axes(stacked), int(stacked.seeds or 0)
-    for key, value in stacked_state.items():
-        other, axis = plain[key], axes.get(key)
-        shape = tuple(other.shape)
-        if axis is not None:
-            shape = (*shape[:axis], n, *shape[axis:])
-        if tuple(value.shape) != shape:
-            raise ValueError(
-                f"{key}: shape {tuple(value.shape)} where {shape} (the ordinary learner's "
-                f"{tuple(other.shape)}, the seeds on axis {axis}) was expected"
-            )
-    return axes
-
-
 def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
     """Loads ordinary ``learners`` into their seed-stacked twin, seed ``i`` into row ``i``
     (shared entries from the first); returns ``stacked``."""
-    states = [learner.state_dict() for learner in learners]
-    own = stacked.state_dict()
     if len(learners) != stacked.seeds:
         raise ValueError(f"{len(learners)} learners for {stacked.seeds} seeds")
-    axes = _seed_rows(stacked, own, states[0])
+    states, axes = [learner.state_dict() for learner in learners], seed_axes(stacked)
     stacked.load_state_dict(
         {
             k: states[0][k] if axes[k] is None else torch.stack([s[k] for s in states], axes[k])
-            for k in own
+            for k in stacked.state_dict()
         }
     )
     stacked.num_updates = max(learner.num_updates for learner in learners)
@@ -283,12 +261,11 @@ def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
 
 def unstack_learner(stacked: Learner, seed: int, learner: Learner) -> Learner:
     """Loads row ``seed`` of ``stacked`` into the ordinary ``learner``; returns ``learner``."""
-    state, own = stacked.state_dict(), learner.state_dict()
-    axes = _seed_rows(stacked, state, own)
+    axes = seed_axes(stacked)
     learner.load_state_dict(
         {
             k: v.clone() if axes[k] is None else v.select(axes[k], seed).clone()
-            for k, v in state.items()
+            for k, v in stacked.state_dict().items()
         }
     )
     learner.num_updates = stacked.num_updates
