@@ -242,9 +242,9 @@ def test_sac_value_is_a_fixed_function_of_the_state_and_the_soft_value():
         dist = learner._dist(learner.actor_module(obs["observation"]))
         action, log_prob = dist.rsample((4096,)), None
         log_prob = dist.log_prob(action)
-        critics = loss.target_qvalue_network_params["module"]
         obs_k = obs["observation"].expand(4096, 5, 3)
-        q = torch.stack(learner.critic_values(critics, obs_k, action)).amin(0)
+        critics = loss.target_qvalue_network_params
+        q = torch.stack(learner.critic_values(critics, [obs_k], action)).amin(0)
         expected = (q - loss.log_alpha.exp() * log_prob.unsqueeze(-1)).mean(0)
     torch.testing.assert_close(first, expected, rtol=0.05, atol=0.05)
 

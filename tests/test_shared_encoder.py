@@ -127,7 +127,7 @@ def test_value_loss_is_td3s_on_the_shared_encoders():
     for p in params:
         p.grad = None
     torch.manual_seed(5)
-    shared = learner._shared_value_loss(data.clone())
+    shared = learner._plain_value_loss(data.clone())
     shared.backward()
     torch.testing.assert_close(shared, reference)
     for p, grad in zip(params, expected, strict=True):
@@ -145,7 +145,7 @@ def test_actor_loss_trains_the_actor_head_only():
     body = list(learner.actor_module.body.parameters())
     expected = [p.grad.clone() for p in body]
     learner.zero_grad(set_to_none=True)
-    actor, penalty = learner._shared_actor_loss(data.clone())
+    actor, penalty = learner._plain_actor_loss(data.clone())
     (actor + penalty).backward()
     torch.testing.assert_close(actor, reference)
     for p, grad in zip(body, expected, strict=True):
@@ -221,7 +221,7 @@ def test_ddpg_losses_on_the_shared_encoder():
     params = list(learner.actor_module.parameters()) + list(learner.critic_module.body.parameters())
     expected = [p.grad.clone() for p in params]
     learner.zero_grad(set_to_none=True)
-    actor, value, penalty = learner._shared_losses(data.clone())
+    actor, value, penalty = learner._plain_losses(data.clone())
     (actor + value + penalty).backward()
     torch.testing.assert_close(actor, loss_actor)
     torch.testing.assert_close(value, loss_value)
@@ -277,7 +277,7 @@ def test_sac_losses_on_the_shared_encoder():
     learner.zero_grad(set_to_none=True)
     loss.log_alpha.grad = None
     torch.manual_seed(5)
-    got = learner._shared_losses(data.clone())
+    got = learner._plain_losses(data.clone())
     sum(got).backward()
     for value, want in zip(got, (loss_actor, loss_q, loss_alpha), strict=True):
         torch.testing.assert_close(value, want)

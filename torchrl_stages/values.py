@@ -1,9 +1,5 @@
-"""State-value adapters: how a trained stage hands V(s) to the stage before it.
-
-Each adapter is a TensorDict module that reads the stage's observation keys and writes
-``"state_value"`` (shape ``[*batch, 1]``). :class:`~torchrl_stages.transforms.StageTransform`
-freezes the adapter it is given and runs it on the first state of the next stage.
-"""
+"""State-value adapters: TensorDict modules that write a trained stage's ``V(s)`` as
+``"state_value"`` (``[*batch, 1]``) for the stage before it."""
 
 from __future__ import annotations
 
@@ -19,11 +15,8 @@ from torchrl.modules import QValueActor
 
 
 def with_params(module: nn.Module, params: TensorDictBase, *, live: bool = False) -> nn.Module:
-    """A deep copy of ``module`` holding ``params`` (e.g. a loss module's target parameters).
-
-    With ``live`` the copy reads ``params`` themselves (no copy of their values, no gradients):
-    it follows them as they are updated in place, e.g. by a target-network updater.
-    """
+    """A deep copy of ``module`` holding a copy of ``params``; with ``live`` it reads ``params``
+    themselves (no gradients) and follows their in-place updates, e.g. a target updater's."""
     module = copy.deepcopy(module)
     if not live:
         TensorDict.from_module(module).data.update_(params.data)
@@ -32,32 +25,13 @@ def with_params(module: nn.Module, params: TensorDictBase, *, live: bool = False
     return module.requires_grad_(False).eval()
 
 
-def _unique(keys: Sequence[NestedKey]) -> list[NestedKey]:
-    out: list[NestedKey] = []
-    for key in keys:
-        if key not in out:
-            out.append(key)
-    return out
-
-
 class QMaxValue(TensorDictModuleBase):
-    """``V(s) = max_a Q(s, a)`` of a discrete Q-value network (DQN).
+    """``V(s) = max_a Q(s, a)`` of a module writing ``action_value_key`` (DQN).
 
-    On a ``QValueActor`` (what DQN learners build) it calls the actor's network on the input
-    tensors directly, without the TensorDict modules around it: the same Q-values, bit for bit,
-    for a fraction of the overhead (the value runs on every env step that leaves a stage).
-
-    Args:
-        qvalue_net: a module writing ``action_value_key`` (e.g. a ``QValueActor``).
-
-    Keyword Args:
-        action_value_key: where ``qvalue_net`` writes the Q-values of all actions.
-        out_key: where the state value is written.
+    On a ``QValueActor`` it calls the Q-network on the input tensors directly: the same values
+    bit for bit, without the TensorDict overhead on every env step that leaves a stage.
 
     Examples:
-        >>> import torch
-        >>> from tensordict import TensorDict
-        >>> from tensordict.nn import TensorDictModule
         >>> q = TensorDictModule(lambda obs: obs * 2, ["observation"], ["action_value"])
         >>> v = QMaxValue(q)
         >>> v(TensorDict(observation=torch.tensor([[1.0, 3.0]]), batch_size=[1]))["state_value"]
@@ -88,9 +62,7 @@ class QMaxValue(TensorDictModuleBase):
         return tensordict
 
     def _network(self) -> TensorDictModule | None:
-        """The plain ``TensorDictModule`` that writes a ``QValueActor``'s action values, when
-        calling its ``module`` on the input tensors is all it does (``None``: run the whole
-        ``qvalue_net``)."""
+        """A ``QValueActor``'s plain network module, when calling it is all the actor does."""
         net = self.qvalue_net
         if not isinstance(net, QValueActor):
             return None
@@ -106,28 +78,18 @@ class QMaxValue(TensorDictModuleBase):
 
 
 class ActorCriticValue(TensorDictModuleBase):
-    """``V(s) = min_i Q_i(s, mu(s))`` over one critic (DDPG) or several (TD3's twin critics).
+    """``V(s) = min_i Q_i(s, mu(s))`` over one critic (DDPG) or several (TD3's twins).
 
-    Args:
-        actor: deterministic actor writing the action its critics read (no exploration noise).
-        critics: one or more modules reading the actor's output and writing ``value_key``.
-
-    Keyword Args:
-        value_key: the critics' output key.
-        out_key: where the state value is written.
+    ``actor`` writes the action (no exploration noise) that the ``critics`` read; they write
+    ``value_key``.
 
     Examples:
-        >>> import torch
-        >>> from tensordict import TensorDict
-        >>> from tensordict.nn import TensorDictModule
         >>> actor = TensorDictModule(lambda o: -o, ["observation"], ["action"])
-        >>> q1 = TensorDictModule(lambda o, a: (o - a).sum(-1, True), ["observation", "action"],
-        ...                       ["state_action_value"])
-        >>> q2 = TensorDictModule(lambda o, a: o.sum(-1, True), ["observation", "action"],
-        ...                       ["state_action_value"])
-        >>> v = ActorCriticValue(actor, [q1, q2])
-        >>> v(TensorDict(observation=torch.tensor([[1.0]]), batch_size=[1]))["state_value"]
-        tensor([[1.]])
+        >>> q = TensorDictModule(lambda o, a: o - a, ["observation", "action"],
+        ...                      ["state_action_value"])
+        >>> v = ActorCriticValue(actor, [q, q])
+        >>> v(TensorDict(observation=torch.ones(1, 1), batch_size=[1]))["state_value"]
+        tensor([[2.]])
     """
 
     def __init__(
@@ -144,9 +106,8 @@ class ActorCriticValue(TensorDictModuleBase):
         self.actor = actor
         self.critics = nn.ModuleList(critics)
         self.value_key = value_key
-        produced = set(actor.out_keys)
-        critic_keys = [k for c in critics for k in c.in_keys if k not in produced]
-        self.in_keys = _unique([*actor.in_keys, *critic_keys])
+        critic_keys = [k for c in critics for k in c.in_keys if k not in actor.out_keys]
+        self.in_keys = list(dict.fromkeys([*actor.in_keys, *critic_keys]))
         self.out_keys = [out_key]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

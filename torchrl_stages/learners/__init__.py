@@ -1,12 +1,5 @@
-"""Per-stage learners: one module per algorithm, each registered in :data:`ALGORITHMS`.
-
-An algorithm is one module of this package holding its config dataclass, its
-:class:`Learner` subclass (accepted action spaces, checks, stage value, learning-rate keys)
-and its ``@register_algorithm``; every module here is imported on import, so adding a file
-(plus its ``conf/algo/<name>.yaml``) is all an algorithm takes. A learner class of your own
-package trains a stage without registering: ``task.stages.<stage>.learner._target_`` (see
-:func:`learner_class`).
-"""
+"""Per-stage learners: one module per algorithm, each registering itself in :data:`ALGORITHMS`
+on import; a learner class of your own trains a stage through ``learner._target_``."""
 
 import contextlib
 import importlib
@@ -20,7 +13,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config import ConfigError
 from torchrl_stages.learners.base import ALGORITHMS, Learner, StageSpecs, register_algorithm
-from torchrl_stages.learners.ops import FusedAdam
 from torchrl_stages.learners.stacking import stacked_networks
 
 for _module in pkgutil.iter_modules(__path__):  # each algorithm module registers itself
@@ -33,9 +25,8 @@ def _field(cfg: Any, name: str) -> Any:
 
 
 def learner_class(cfg: Any) -> type[Learner]:
-    """The learner class of a stage config: the one ``cfg.learner._target_`` names (a class
-    of your own, imported here), else the registered algorithm ``cfg.algo``. Raises
-    :class:`~torchrl_stages.config.ConfigError` naming the key and the fix.
+    """The class ``cfg.learner._target_`` names (a learner of your own), else the registered
+    algorithm ``cfg.algo``.
 
     Examples:
         >>> learner_class({"algo": "dqn"}).algo
@@ -79,13 +70,9 @@ def make_learner(
     *,
     seeds: int | None = None,
 ) -> Learner:
-    """Builds the learner of stage config ``cfg`` (:func:`learner_class`; a ``learner`` node's
-    other keys are its keyword arguments); ``compile``: ``torch.compile`` mode of its update's
-    loss (``off``, ``default``, ``reduce-overhead``...); ``device``: where every tensor it
-    builds lives (networks, targets, bounds; default: torch's default device), the device of
-    the envs it acts in. ``seeds``: a learner of ``seeds`` seeds stacked in one
-    (:mod:`~torchrl_stages.learners.stacking`), for algorithms that declare
-    :attr:`~Learner.stacks_seeds`."""
+    """The learner of stage config ``cfg`` (a ``learner`` node's other keys are its keyword
+    arguments), its tensors on ``device``; ``compile``: the ``torch.compile`` mode of its
+    losses; ``seeds``: that many seeds stacked in one learner (:mod:`.stacking`)."""
     cls = learner_class(cfg)
     if seeds is not None and not cls.stacks_seeds:
         stacked = ", ".join(n for n, c in ALGORITHMS.items() if c.stacks_seeds)
@@ -105,7 +92,6 @@ def make_learner(
 
 __all__ = [
     "ALGORITHMS",
-    "FusedAdam",
     "Learner",
     "StageSpecs",
     "learner_class",

@@ -1,10 +1,5 @@
-"""What the actor-critic algorithms share: their keys and their learner bases.
-
-:class:`ActorCriticLearner` holds an actor, a ``Q(s, a)`` critic (twin ones through the torchrl
-loss module that keeps the parameters), optionally one input encoder shared by both, the
-optimizers and the soft target updater; :class:`DeterministicActorCriticLearner` adds a
-deterministic tanh actor with Gaussian exploration.
-"""
+"""What the actor-critic learners (DDPG, TD3, SAC) share: an actor, ``Q(s, a)`` critics kept
+by the torchrl loss module, optionally one input encoder for both, optimizers and targets."""
 
 from __future__ import annotations
 
@@ -16,13 +11,13 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequ
 from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
-from torchrl.objectives import LossModule, ValueEstimators
+from torchrl.objectives import ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
 from torchrl_stages.learners.base import Learner, StageSpecs, check_loss_function
-from torchrl_stages.learners.networks import SharedEncoderCritic, mlp
+from torchrl_stages.learners.networks import SharedEncoderCritic
 from torchrl_stages.learners.ops import FusedSoftUpdate, linear_schedule, stacked_calls
-from torchrl_stages.values import with_params
+from torchrl_stages.values import ActorCriticValue, with_params
 
 SATURATION = 2.0  # pre-tanh magnitude beyond which `saturation_penalty` applies (tanh(2) = 0.96)
 
@@ -55,44 +50,43 @@ class DeterministicActorCriticConfig(ActorCriticConfig):
 
 
 class ActorCriticLearner(Learner):
-    """An actor and a ``Q(s, a)`` critic; subclasses pick the actor, exploration and loss.
+    """An actor and ``Q(s, a)`` critics, the parameters in the torchrl loss module.
 
-    Subclasses implement :meth:`make_actor`, :meth:`make_loss`, :meth:`make_losses` and
-    :meth:`update`; this class builds the actor network, the critic, the value estimator,
-    the optimizers and the soft target updater, and shares an input encoder when asked.
+    Subclasses build the policy around the actor network (``make_actor(net, spec)``), the loss
+    module (``make_loss(cfg, spec)``) and the update's loss functions (``make_losses()``).
     """
 
     action_spaces = ("continuous",)
     lr_keys = ("lr", "actor_lr")
     #: where the actor network's parameters sit in the loss module's actor parameters
     ACTOR_PATH: tuple[str, ...] = ("module", "0", "module")
-    #: the loss module's name of its critic (``qvalue_network``: twin critics)
-    CRITIC = "qvalue_network"
+    CRITIC = "qvalue_network"  #: the loss module's name of its critic (twin critics)
+    ACTOR_OUTPUTS = 1  #: the actor network's outputs per action dimension
 
     def __init__(self, cfg: ActorCriticConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
         spec = specs.action_spec
         action_dim = spec.shape[-1]
-        inputs, cells, fourier = specs.input_shapes, list(cfg.num_cells), cfg.fourier_features
-        actor_net = mlp(inputs, self.actor_outputs(action_dim), cells, fourier, self.cnn)
+        actor_net = self.network(self.ACTOR_OUTPUTS * action_dim)
         self.__dict__["_actor_net"] = actor_net  # a sub-module of self.actor, not a second one
         self.actor = self.make_actor(actor_net, spec)
-        # the critics read the actor's encoder when it is shared (and there is one to share)
         self.shared_encoder = bool(cfg.shared_encoder) and hasattr(actor_net, "encoder")
         self.critic = ValueOperator(
-            SharedEncoderCritic(actor_net.encoder, action_dim, cells)
+            SharedEncoderCritic(actor_net.encoder, action_dim, list(cfg.num_cells))
             if self.shared_encoder
-            else mlp([*inputs, (action_dim,)], 1, cells, fourier, self.cnn),
+            else self.network(1, (action_dim,)),
             in_keys=[*specs.observation_keys, specs.action_key],
             out_keys=["state_action_value"],
         )
         self.policy = self.actor
         self.exploration_policy = self.make_exploration()
         self.loss = self.make_loss(cfg, spec)
+        if self.shared_encoder:  # the critics read the (target) actor's encoder, not copies
+            for name in (f"{self.CRITIC}_params", f"target_{self.CRITIC}_params"):
+                del self.loss._modules[name]["module", "encoder"]  # _modules: no updater warning
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
         self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
-        # the losses' networks: tensors in and out, the target actor reading the loss module's
-        # target parameters (kept out of the module tree: no second copy in state_dict)
+        # the target actor reads the loss's target parameters (not a second state_dict copy)
         if self.loss.target_actor_network_params is not None:
             target_actor = self.loss.target_actor_network_params.get(self.ACTOR_PATH)
             self.__dict__["_target_actor"] = with_params(actor_net, target_actor, live=True)
@@ -103,16 +97,7 @@ class ActorCriticLearner(Learner):
         }
         self.make_losses()
 
-    def actor_outputs(self, action_dim: int) -> int:
-        """How many numbers the actor network outputs per state."""
-        return action_dim
-
-    def make_actor(self, actor_net: nn.Module, spec: TensorSpec) -> TensorDictModuleBase:
-        """The policy module around the actor network (greedy in deterministic mode)."""
-        raise NotImplementedError
-
     def make_exploration(self) -> TensorDictModuleBase:
-        """The policy the collector runs."""
         return self.actor
 
     @classmethod
@@ -122,8 +107,7 @@ class ActorCriticLearner(Learner):
 
     @property
     def actor_module(self) -> nn.Module:
-        """The actor network: observation tensors in, its outputs (e.g. the pre-tanh action)
-        out."""
+        """The actor network: observation tensors in, e.g. the pre-tanh action out."""
         return self._actor_net
 
     @property
@@ -131,19 +115,10 @@ class ActorCriticLearner(Learner):
         """The critic network: observation and action tensors in, ``Q(s, a)`` out."""
         return self.critic.module
 
-    def drop_critic_encoder_copies(self, loss: LossModule, critic: str) -> None:
-        """With a shared encoder, removes the loss module's copies of it from the ``critic``
-        parameters and their targets: torchrl keeps them as views without gradient (and target
-        copies its updater does not move); the critics read the (target) actor's encoder."""
-        if self.shared_encoder:
-            for name in (f"{critic}_params", f"target_{critic}_params"):
-                del loss._modules[name]["module", "encoder"]  # _modules: no updater warning yet
-
-    def split_parameters(
-        self, actor: TensorDictBase, critic: TensorDictBase
-    ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """The (actor, critic) optimizers' parameters: a shared encoder goes to the critic's."""
-        actor, critic = actor.flatten_keys("."), critic.flatten_keys(".")
+        actor = self.loss.actor_network_params.flatten_keys(".")
+        critic = getattr(self.loss, f"{self.CRITIC}_params").flatten_keys(".")
         if not self.shared_encoder:
             return list(actor.values()), list(critic.values())
         encoder = [k for k in actor.keys() if ".encoder." in f".{k}"]
@@ -153,8 +128,7 @@ class ActorCriticLearner(Learner):
         )
 
     def with_target_encoder(self, critic_params: TensorDictBase) -> TensorDictBase:
-        """Target critic parameters, with a shared encoder the target actor's (for modules
-        that run the whole critic, such as the stage value)."""
+        """Target critic parameters, with a shared encoder the target actor's."""
         if not self.shared_encoder:
             return critic_params
         encoder = self.loss.target_actor_network_params[(*self.ACTOR_PATH, "encoder")]
@@ -162,39 +136,30 @@ class ActorCriticLearner(Learner):
         out.set(("module", "encoder"), encoder.expand(critic_params.shape))
         return out
 
-    def critic_values(self, params, *inputs: torch.Tensor, module=None) -> list[torch.Tensor]:
-        """``Q_i(inputs)`` of every critic in the stacked ``params`` (``[num_critics, ...]``),
-        through ``module`` (default: the whole critic)."""
-        return stacked_calls(self.critic_module if module is None else module, params, *inputs)
+    def features(self, obs: list[torch.Tensor], target: bool = False) -> list[torch.Tensor]:
+        """What the actor and critic heads read: the shared encoder's features of ``obs`` (the
+        target actor's encoder with ``target``), else ``obs`` themselves."""
+        if not self.shared_encoder:
+            return obs
+        return [(self._target_actor if target else self.actor_module).encoder(*obs)]
 
-    def head_values(self, params, features: torch.Tensor, action: torch.Tensor) -> list:
-        """``Q_i`` of every critic head in the stacked ``params`` on shared-encoder features."""
-        x = torch.cat([features, action], -1)
-        return self.critic_values(params, x, module=self.critic_module.body)
+    def actor_head(self, features: list[torch.Tensor], target: bool = False) -> torch.Tensor:
+        """The (target) actor network's output on :meth:`features`."""
+        net = self._target_actor if target else self.actor_module
+        return (net.body if self.shared_encoder else net)(*features)
 
-    def make_loss(self, cfg: ActorCriticConfig, spec: TensorSpec) -> LossModule:
-        raise NotImplementedError
-
-    def make_losses(self) -> None:
-        """Sets up the loss functions the update runs: what the torchrl loss module computes,
-        on plain tensors."""
-        raise NotImplementedError
-
-    def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """The loss module's trainable (actor, critic) parameters."""
-        critic = getattr(self.loss, f"{self.CRITIC}_params")
-        return self.split_parameters(self.loss.actor_network_params, critic)
-
-    def with_action_key(self, loss: LossModule) -> LossModule:
-        """``loss`` reading the stage's action entry, without copies of a shared encoder."""
-        loss.set_keys(action=self.specs.action_key)
-        self.drop_critic_encoder_copies(loss, self.CRITIC)
-        return loss
+    def critic_values(self, params: TensorDictBase, features, action) -> list[torch.Tensor]:
+        """``Q_i(s, a)`` of each critic of the stacked loss ``params`` on :meth:`features`."""
+        inputs = (*features, action)
+        if self.shared_encoder:
+            body = self.critic_module.body
+            return stacked_calls(body, params["module", "body"], torch.cat(inputs, -1))
+        return stacked_calls(self.critic_module, params["module"], *inputs)
 
 
 class DeterministicActorCriticLearner(ActorCriticLearner):
-    """A deterministic actor (MLP + tanh squashing into the action bounds) with Gaussian
-    exploration noise, and the saturation penalty that keeps it out of the tanh's flat ends."""
+    """A tanh actor into the action bounds with Gaussian exploration noise, and the saturation
+    penalty that keeps it out of the tanh's flat ends (DDPG, TD3)."""
 
     def __init__(
         self, cfg: DeterministicActorCriticConfig, specs: StageSpecs, *, compile: str = "off"
@@ -245,3 +210,23 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
         self.noise.sigma.fill_(
             linear_schedule(cfg.sigma_init, cfg.sigma_end, frames, cfg.annealing_frames)
         )
+
+    @classmethod
+    def value_from_loss(cls, loss, live: bool = False) -> TensorDictModuleBase:
+        """``min_i Q_i,target(s, mu_target(s))`` of the loss's target networks."""
+        critics = getattr(loss, f"target_{cls.CRITIC}_params")
+        return _value(loss, loss.actor_network, getattr(loss, cls.CRITIC), critics, live)
+
+    def value(self, live: bool = False) -> TensorDictModuleBase:
+        critics = self.with_target_encoder(getattr(self.loss, f"target_{self.CRITIC}_params"))
+        return _value(self.loss, self.actor, self.critic, critics, live)
+
+
+def _value(loss, actor, critic, critics: TensorDictBase, live: bool) -> ActorCriticValue:
+    """:class:`ActorCriticValue` of ``actor`` and ``critic`` with the target parameters, one
+    critic per row of ``critics`` (stacked twins) or one."""
+    rows = [critics[i] for i in range(critics.shape[0])] if critics.batch_dims else [critics]
+    return ActorCriticValue(
+        with_params(actor, loss.target_actor_network_params, live=live),
+        [with_params(critic, params, live=live) for params in rows],
+    )

@@ -1,4 +1,4 @@
-"""What every per-stage learner provides to the shared stage-training loop."""
+"""The learner interface: what every per-stage learner provides to the stage-training loops."""
 
 from __future__ import annotations
 
@@ -14,10 +14,11 @@ from torch import nn
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
 
 from torchrl_stages.config import StageChecks, StageConfig, as_dataclass
-from torchrl_stages.learners.networks import ConvSpec
+from torchrl_stages.learners.networks import ConvSpec, mlp
 from torchrl_stages.learners.ops import (
     FusedAdam,
     clip_seed_grads,
+    detached_copy,
     linear_schedule,
     seed_grad_norms,
     total_grad_norm,
@@ -29,13 +30,8 @@ from torchrl_stages.learners.stacking import current_rows, current_seeds, seed_a
 class StageSpecs:
     """The slice of an env a stage learner is built from.
 
-    Attributes:
-        observation_keys: the entries its networks read.
-        observation_dim: the summed size of the vector entries (concatenated).
-        action_key: the entry its policy writes.
-        action_spec: the unbatched spec of that entry.
-        observation_shapes: unbatched shape of each observation entry, ``(d,)`` for vectors and
-            ``(C, H, W)`` for images (which go through a CNN); ``None``: all are vectors.
+    ``observation_dim`` is the summed size of the vector entries; ``observation_shapes`` the
+    unbatched shape of each entry, ``(d,)`` or ``(C, H, W)`` for images (``None``: all vectors).
     """
 
     observation_keys: list[NestedKey]
@@ -52,14 +48,6 @@ class StageSpecs:
         return [tuple(s) for s in self.observation_shapes]
 
 
-def is_discrete(spec: TensorSpec) -> bool:
-    return isinstance(spec, (Categorical, OneHot))
-
-
-def is_continuous(spec: TensorSpec) -> bool:
-    return isinstance(spec, Bounded) and spec.dtype.is_floating_point
-
-
 class NonFiniteError(FloatingPointError):
     """A learner's loss, gradient or parameter is NaN or infinite (the stage diverged)."""
 
@@ -72,7 +60,6 @@ LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
 
 
 def check_loss_function(checks: StageChecks) -> None:
-    """A stage's ``loss_function`` is one :func:`distance` knows."""
     checks(
         checks.cfg["loss_function"] in LOSS_FUNCTIONS,
         "loss_function",
@@ -81,27 +68,14 @@ def check_loss_function(checks: StageChecks) -> None:
     )
 
 
+#: every algorithm by its name in configs (``algo: <name>``), filled by :func:`register_algorithm`
 ALGORITHMS: dict[str, type[Learner]] = {}
 
 
 def register_algorithm(cls: type[Learner]) -> type[Learner]:
-    """Class decorator: makes a :class:`Learner` subclass an algorithm known by its
-    :attr:`Learner.algo` name to the CLI (``algo@task.stages.<stage>=<name>``), the config
-    store, validation, the help text and the value adapters. Its :attr:`Learner.Config` is the
-    schema of its stages' keys.
-
-    Examples:
-        >>> from dataclasses import dataclass
-        >>> from torchrl_stages.config import StageConfig
-        >>> @dataclass
-        ... class NoopConfig(StageConfig):
-        ...     algo: str = "noop"
-        >>> @register_algorithm
-        ... class Noop(Learner):
-        ...     algo, Config = "noop", NoopConfig
-        >>> ALGORITHMS.pop("noop") is Noop
-        True
-    """
+    """Class decorator: makes a :class:`Learner` subclass the algorithm ``cls.algo`` of the
+    CLI (``algo@task.stages.<stage>=<name>``), the config store and validation; its
+    :attr:`Learner.Config` is the schema of its stages' keys."""
     name = cls.algo
     if not name or not isinstance(cls.Config, type) or cls.Config.algo != name:
         raise TypeError(
@@ -115,11 +89,10 @@ def register_algorithm(cls: type[Learner]) -> type[Learner]:
 
 
 def action_space_kind(spec: TensorSpec) -> str:
-    """``"discrete"`` (Categorical, OneHot), ``"continuous"`` (bounded float) or the spec's
-    class name."""
-    if is_discrete(spec):
+    """``"discrete"``, ``"continuous"`` (bounded float) or the spec's class name."""
+    if isinstance(spec, (Categorical, OneHot)):
         return "discrete"
-    if is_continuous(spec):
+    if isinstance(spec, Bounded) and spec.dtype.is_floating_point:
         return "continuous"
     return type(spec).__name__
 
@@ -127,38 +100,21 @@ def action_space_kind(spec: TensorSpec) -> str:
 class Learner(nn.Module, ABC):
     """One stage's algorithm: networks, exploration, loss, optimizers and target updater.
 
-    An algorithm is one module of :mod:`torchrl_stages.learners`: a subclass that names itself
-    (:attr:`algo`), declares its config dataclass (:attr:`Config`), the action spaces it
-    accepts (:attr:`action_spaces`), its learning-rate keys (:attr:`lr_keys`) and its own
-    validation (:meth:`validate`), builds its networks from a
-    :class:`~torchrl_stages.config.StageConfig` and :class:`StageSpecs`, implements
-    :meth:`update`, :meth:`anneal_exploration` and :meth:`value` (the ``V(s)`` it hands to the
-    stage before it), and is registered with :func:`register_algorithm`. The loops in
-    :mod:`torchrl_stages.stage` and :mod:`torchrl_stages.schedules.joint` only talk to this
-    interface.
-
-    Attributes:
-        policy: the greedy (deterministic) policy, used for evaluation and the stacked policy.
-        exploration_policy: the policy the collector runs (policy + exploration module).
-        optimizers: named optimizers, saved with checkpoints.
+    A subclass sets the class attributes below, builds its networks from a
+    :class:`~torchrl_stages.config.StageConfig` and :class:`StageSpecs`, sets ``policy``
+    (greedy), ``exploration_policy`` (what the collector runs) and ``optimizers`` (saved with
+    checkpoints), and implements :meth:`update`, :meth:`anneal_exploration` and :meth:`value`.
     """
 
-    #: the algorithm's name in configs (``algo: <name>``)
-    algo: str = ""
-    #: the schema of its stages' keys
-    Config: type[StageConfig] = StageConfig
-    #: the action spaces it acts in (:func:`action_space_kind`)
-    action_spaces: tuple[str, ...] = ()
-    #: its learning-rate keys (what a diverged stage's error message suggests lowering)
-    lr_keys: tuple[str, ...] = ("lr",)
-    #: the torchrl loss module whose target networks :meth:`value_from_loss` reads
-    torchrl_loss: type | None = None
-    #: whether :meth:`update` draws from torch's global generator (a target policy's smoothing
-    #: noise); if not, the stage loop samples all of a batch's minibatches in one draw
+    algo: str = ""  #: the algorithm's name in configs
+    Config: type[StageConfig] = StageConfig  #: the schema of its stages' keys
+    action_spaces: tuple[str, ...] = ()  #: the kinds it acts in (:func:`action_space_kind`)
+    lr_keys: tuple[str, ...] = ("lr",)  #: what a diverged stage's message suggests lowering
+    torchrl_loss: type | None = None  #: the loss module :meth:`value_from_loss` reads
+    #: whether :meth:`update` draws from torch's global generator; if not, the stage loop
+    #: samples all of a batch's minibatches in one draw
     update_draws_random: bool = False
-    #: whether it trains seed-stacked (:mod:`~torchrl_stages.learners.stacking`): every
-    #: network from :mod:`~torchrl_stages.learners.networks` and every loss reduced with
-    #: :meth:`batch_mean`
+    #: whether it trains seed-stacked: networks from :mod:`.networks`, losses :meth:`batch_mean`
     stacks_seeds: bool = False
 
     def __init__(self, cfg: StageConfig, specs: StageSpecs, *, compile: str = "off") -> None:
@@ -171,13 +127,10 @@ class Learner(nn.Module, ABC):
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.grad_norms: dict[str, torch.Tensor] = {}  # of the last update, per optimizer
         self.num_updates = 0
-        #: seeds its networks are stacked for (``make_learner(..., seeds=N)``); ``None``: one
-        self.seeds: int | None = current_seeds()
+        self.seeds: int | None = current_seeds()  # seeds its networks stack; None: one
 
     def batch_mean(self, x: torch.Tensor) -> torch.Tensor:
-        """The mean of a loss term over its batch: a scalar, or one per seed (``[N]``) for a
-        seed-stacked learner, whose batches are ``[N, B, ...]`` (``[len(rows), B, ...]`` for
-        the seeds of :func:`~torchrl_stages.learners.stacking.update_rows`)."""
+        """The mean over the batch: a scalar, or one per seed (``[N]``) when seed-stacked."""
         if self.seeds is None:
             return x.mean()
         rows = current_rows()
@@ -185,9 +138,7 @@ class Learner(nn.Module, ABC):
 
     @property
     def replay_keys(self) -> list[NestedKey]:
-        """The entries of a transition its update reads, what a stage's replay buffer keeps:
-        the observations, the action, and ``next``'s observations, reward, ``done`` and
-        ``terminated``."""
+        """The entries of a transition its update reads, what a stage's replay buffer keeps."""
         obs = list(self.specs.observation_keys)
         following = [("next", k) if isinstance(k, str) else ("next", *k) for k in obs]
         done = [("next", "reward"), ("next", "done"), ("next", "terminated")]
@@ -195,14 +146,20 @@ class Learner(nn.Module, ABC):
 
     @property
     def device(self) -> torch.device:
-        """Where the networks live (``make_learner``'s ``device``): replay batches go there."""
         return next(self.parameters()).device
 
-    @property
-    def cnn(self) -> ConvSpec:
-        """The CNN applied to image observations, from ``cfg.cnn_*``."""
+    def network(self, out_features: int, *extra_inputs: tuple[int, ...], dueling: bool = False):
+        """A network from the observations (then ``extra_inputs``) to ``out_features``, shaped
+        by ``cfg``'s ``num_cells``, ``fourier_features`` and ``cnn_*``."""
         cfg = self.cfg
-        return ConvSpec(tuple(cfg.cnn_channels), tuple(cfg.cnn_kernels), tuple(cfg.cnn_strides))
+        return mlp(
+            [*self.specs.input_shapes, *extra_inputs],
+            out_features,
+            list(cfg.num_cells),
+            cfg.fourier_features,
+            ConvSpec(tuple(cfg.cnn_channels), tuple(cfg.cnn_kernels), tuple(cfg.cnn_strides)),
+            dueling=dueling,
+        )
 
     @classmethod
     def check_action_spec(cls, spec: TensorSpec) -> str | None:
@@ -218,19 +175,16 @@ class Learner(nn.Module, ABC):
 
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
-        """The algorithm's own checks of a stage's keys, beyond every stage's (raise
-        :class:`~torchrl_stages.config.ConfigError` through ``checks``)."""
+        """The algorithm's own checks of a stage's keys, beyond every stage's."""
 
     @classmethod
     def value_from_loss(cls, loss: Any, live: bool = False) -> TensorDictModuleBase:
-        """``V(s)`` from the target networks of a :attr:`torchrl_loss` of this algorithm (see
-        :func:`torchrl_stages.loss_value.value_from_loss`)."""
+        """``V(s)`` from the target networks of a :attr:`torchrl_loss` of this algorithm."""
         raise NotImplementedError(f"{cls.algo} has no value from a torchrl loss")
 
     @abstractmethod
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        """One gradient step on a replay batch, target update included; returns the losses
-        (:func:`detached_copy`: detached copies)."""
+        """One gradient step on a replay batch, target update included; the detached losses."""
 
     def inputs(self, batch: TensorDictBase, nxt: bool = False) -> list[torch.Tensor]:
         """The network inputs of a batch (of its ``"next"`` states with ``nxt``), in order."""
@@ -238,22 +192,17 @@ class Learner(nn.Module, ABC):
         return [td.get(key) for key in self.specs.observation_keys]
 
     def compiled(self, fn):
-        """``fn`` (an update's loss function) through ``torch.compile`` unless
-        :attr:`compile_mode` is ``"off"``; ``"reduce-overhead"`` uses CUDA graphs on a GPU."""
+        """``fn`` through ``torch.compile`` unless :attr:`compile_mode` is ``"off"``."""
         if self.compile_mode == "off":
             return fn
         return torch.compile(fn, mode=None if self.compile_mode == "default" else self.compile_mode)
 
     def adam(self, params, lr: float) -> torch.optim.Adam:
-        """Adam over ``params``, fused (:class:`FusedAdam`) when ``cfg.fused_adam``."""
-        if self.cfg.fused_adam:
-            return FusedAdam(params, lr=lr)
-        return torch.optim.Adam(params, lr=lr)
+        return FusedAdam(params, lr=lr) if self.cfg.fused_adam else torch.optim.Adam(params, lr=lr)
 
     def anneal(self, frames: int) -> None:
-        """Sets the schedules for ``frames`` collected frames: exploration noise and the
-        learning rates (linear decay to ``cfg.lr_end_factor`` of their start over ``cfg.frames``).
-        """
+        """Sets exploration and learning rates (linear to ``cfg.lr_end_factor`` of their start
+        over ``cfg.frames``) for ``frames`` collected frames."""
         factor = linear_schedule(1.0, float(self.cfg.lr_end_factor), frames, int(self.cfg.frames))
         for optimizer in self.optimizers.values():
             for group in optimizer.param_groups:
@@ -266,12 +215,8 @@ class Learner(nn.Module, ABC):
 
     @abstractmethod
     def value(self, live: bool = False) -> TensorDictModuleBase:
-        """This stage's state-value module ``V(s)`` from its target networks.
-
-        By default a copy of their current values (an env transform freezes it further, see
-        :func:`torchrl_stages.transforms.freeze`); with ``live`` it reads the target networks
-        themselves and follows their updates (the joint schedule's replay-buffer transforms).
-        """
+        """This stage's ``V(s)`` module from its target networks: a copy of their values, or
+        with ``live`` the networks themselves, following their updates (the joint schedule)."""
 
     def _check_losses(self, **losses: torch.Tensor) -> None:
         """Raises :class:`NonFiniteError` naming the first loss that is NaN or infinite."""
@@ -279,13 +224,21 @@ class Learner(nn.Module, ABC):
             if not bool(torch.isfinite(value).all()):
                 raise NonFiniteError(name, self.num_updates + 1)
 
+    def _apply(self, losses: dict[str, torch.Tensor], total, *names: str, targets=True) -> dict:
+        """Checks ``losses``, steps ``total`` (:meth:`_step`) and, with ``targets``, the target
+        networks; returns copies of ``losses`` that outlive the update (``detached_copy``)."""
+        self._check_losses(**losses)
+        self._step(total, *names)
+        if targets:
+            self.target_updater.step()
+        return {name: detached_copy(loss) for name, loss in losses.items()}
+
     def _step(self, loss: torch.Tensor, *names: str) -> None:
         """Backward ``loss`` and step the named optimizers (all when none are named).
 
-        Each optimizer's gradient is clipped to ``cfg.max_grad_norm`` when set; its norm before
-        clipping is kept in :attr:`grad_norms`, and a non-finite one raises
-        :class:`NonFiniteError` before any parameter changes. A seed-stacked learner's ``loss``
-        holds one loss per seed; each seed's gradient has its own norm and clipping.
+        Each optimizer's gradient (each seed's, when stacked) is clipped to
+        ``cfg.max_grad_norm`` when set; its norm before clipping goes to :attr:`grad_norms`,
+        and a non-finite one raises :class:`NonFiniteError` before any parameter changes.
         """
         names = names or tuple(self.optimizers)
         max_norm = self.cfg.max_grad_norm
@@ -314,8 +267,7 @@ class Learner(nn.Module, ABC):
             optimizer.zero_grad(set_to_none=True)
 
     def _seed_axes_of(self, name: str, params: list[torch.Tensor]) -> list[int]:
-        """The seeds' axis in each of ``params`` (optimizer ``name``'s) that has a gradient, in
-        a seed-stacked learner; the axes are read once per optimizer."""
+        """The seeds' axis of each of optimizer ``name``'s ``params`` that has a gradient."""
         cache = self.__dict__.setdefault("_optimizer_seed_axes", {})
         if name not in cache:
             names = {id(p): n for n, p in self.named_parameters(remove_duplicate=False)}
@@ -334,10 +286,8 @@ class Learner(nn.Module, ABC):
         return out
 
     def check_finite(self) -> None:
-        """Raises :class:`NonFiniteError` if a parameter or buffer (targets included) is NaN or
-        infinite."""
-        # one check over every tensor at once (the stage loop calls this after every batch);
-        # the state_dict walk below only runs to name the culprit
+        """Raises :class:`NonFiniteError` if a parameter or buffer is NaN or infinite."""
+        # one check over every tensor at once; the state_dict walk only names the culprit
         tensors = [
             t.reshape(-1) for t in (*self.parameters(), *self.buffers()) if t.is_floating_point()
         ]

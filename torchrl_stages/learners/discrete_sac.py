@@ -1,4 +1,4 @@
-"""Discrete SAC for discrete-action stages: its config, learner, checks and soft stage value."""
+"""Discrete SAC for discrete-action stages, and its exact soft stage value."""
 
 from __future__ import annotations
 
@@ -19,11 +19,9 @@ from torchrl_stages.learners.base import (
     check_loss_function,
     register_algorithm,
 )
-from torchrl_stages.learners.entropy import EntropyRegularized
-from torchrl_stages.learners.networks import mlp
-from torchrl_stages.learners.ops import FusedSoftUpdate, distance, stacked_calls, td0_target
+from torchrl_stages.learners.entropy import EntropyRegularized, soft_value
+from torchrl_stages.learners.ops import FusedSoftUpdate, distance, stacked_calls, taken, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
-from torchrl_stages.values import with_params
 
 
 @dataclass
@@ -51,16 +49,9 @@ def _log_probs(probs: torch.Tensor) -> torch.Tensor:
 
 
 class DiscreteSoftValue(nn.Module):
-    """``V(s) = sum_a pi(a|s) (min_i Q_i(s, a) - alpha log pi(a|s))``: the exact soft value
-    of discrete SAC's critic targets.
-
-    Args:
-        actor: the actor network (observations in, logits out).
-        critic: the critic network (observations in, every action's value out).
-        critic_params: the stacked parameters of the twin critics (``[num_critics, ...]``).
-        log_alpha: the entropy coefficient's log (a tensor it reads at every call; one per
-            seed, ``[N]``, for seed-stacked networks, whose observations are seed-major).
-    """
+    """``V(s) = sum_a pi(a|s) (min_i Q_i(s, a) - alpha log pi(a|s))``, the soft value of
+    discrete SAC's critic targets; ``actor`` maps observations to logits, ``critic`` to every
+    action's value (``critic_params``: the twins' stacked parameters)."""
 
     def __init__(self, actor: nn.Module, critic: nn.Module, critic_params, log_alpha) -> None:
         super().__init__()
@@ -77,18 +68,12 @@ class DiscreteSoftValue(nn.Module):
 
 @register_algorithm
 class DiscreteSACLearner(EntropyRegularized, Learner):
-    """Discrete SAC for one stage: a categorical actor sampled for exploration (its most likely
-    action is the greedy policy), twin critics of every action's value, and the entropy
-    coefficient tuned so that the policy's entropy tracks ``target_entropy_weight`` of the
-    uniform one's. Its parameters live in torchrl's ``DiscreteSACLoss``; its update runs
-    :meth:`_plain_losses`, what that module computes on plain tensors
-    (``tests/test_losses.py`` pins the two equal). The stage value is the exact soft value
-    :class:`DiscreteSoftValue`.
+    """Discrete SAC for one stage: a sampled categorical actor (its most likely action the
+    greedy policy), twin critics of every action's value and a tuned entropy coefficient, the
+    parameters in torchrl's ``DiscreteSACLoss``, its update on :meth:`_plain_losses`.
 
     Examples:
         >>> from torchrl.data import Categorical
-        >>> from torchrl_stages.learners import StageSpecs
-        >>> from torchrl_stages.learners.discrete_sac import DiscreteSACConfig, DiscreteSACLearner
         >>> specs = StageSpecs(["observation"], 2, "action", Categorical(4))
         >>> learner = DiscreteSACLearner(DiscreteSACConfig(), specs)
         >>> sorted(learner.optimizers), learner.value().out_keys
@@ -105,10 +90,10 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
         super().__init__(cfg, specs, compile=compile)
         spec = specs.action_spec
         num_actions = spec.space.n
-        inputs, cells, fourier = specs.input_shapes, list(cfg.num_cells), cfg.fourier_features
-        actor_net = mlp(inputs, num_actions, cells, fourier, self.cnn)
         self.actor = ProbabilisticActor(
-            TensorDictModule(actor_net, in_keys=specs.observation_keys, out_keys=["logits"]),
+            TensorDictModule(
+                self.network(num_actions), in_keys=specs.observation_keys, out_keys=["logits"]
+            ),
             in_keys=["logits"],
             out_keys=[specs.action_key],
             spec=spec,
@@ -117,9 +102,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
             ),
         )
         self.critic = ValueOperator(
-            mlp(inputs, num_actions, cells, fourier, self.cnn),
-            in_keys=specs.observation_keys,
-            out_keys=["action_value"],
+            self.network(num_actions), in_keys=specs.observation_keys, out_keys=["action_value"]
         )
         self.policy = self.exploration_policy = self.actor
         self.loss = DiscreteSACLoss(
@@ -151,69 +134,34 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
         cls.validate_entropy(checks)
         checks.fraction("target_entropy_weight")
 
-    @property
-    def actor_module(self) -> nn.Module:
-        """The actor network: observation tensors in, one logit per action out."""
-        return self.actor[0].module
-
-    @property
-    def critic_module(self) -> nn.Module:
-        """The critic network: observation tensors in, one value per action out."""
-        return self.critic.module
-
-    def _chosen(self, q: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Each critic's value of the action taken (``[num_critics, B, 1]``)."""
-        if isinstance(self.specs.action_spec, OneHot):
-            return (q * action.to(q.dtype)).sum(-1, keepdim=True)
-        index = action.reshape(1, *q.shape[1:-1], 1).expand(*q.shape[:-1], 1)
-        return q.gather(-1, index)
-
     def _plain_losses(self, batch: TensorDictBase):
-        """What ``DiscreteSACLoss`` computes, on plain tensors: every critic against
-        ``r + gamma (1 - terminated) V_target(s')`` (summed over the twins), the actor's
-        ``sum_a pi (alpha log pi - min_i Q_i)`` and the entropy coefficient's loss."""
+        """``DiscreteSACLoss`` on plain tensors: the actor's, the critics' (summed over the
+        twins) and the entropy coefficient's losses."""
+        actor, critic = self.actor[0].module, self.critic.module
         obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
         critics, targets = self.loss.qvalue_network_params, self.loss.target_qvalue_network_params
         with torch.no_grad():
-            next_probs = torch.distributions.Categorical(logits=self.actor_module(*next_obs)).probs
-            next_q = torch.stack(stacked_calls(self.critic_module, targets["module"], *next_obs))
+            next_probs = torch.distributions.Categorical(logits=actor(*next_obs)).probs
+            next_q = torch.stack(stacked_calls(critic, targets["module"], *next_obs))
             soft = next_q.min(0).values - self.alpha(next_probs) * _log_probs(next_probs)
-            target = td0_target(
-                batch.get("next"),
-                (next_probs * soft).sum(-1, keepdim=True),
-                float(self.cfg.gamma),
-                batch.get("steps_to_next_obs", None),
-            )
-        q = torch.stack(stacked_calls(self.critic_module, critics["module"], *obs))
-        chosen = self._chosen(q, batch.get(self.specs.action_key))
+            target = td0_target(batch, (next_probs * soft).sum(-1, keepdim=True), self.cfg.gamma)
+        q = torch.stack(stacked_calls(critic, critics["module"], *obs))
+        one_hot = isinstance(self.specs.action_spec, OneHot)
+        chosen = taken(q, batch.get(self.specs.action_key), one_hot, lead=1)
         distances = distance(chosen, target.expand_as(chosen), self.cfg.loss_function)
         loss_q = self.batch_mean(distances.sum(0))
-        dist = torch.distributions.Categorical(logits=self.actor_module(*obs))
+        dist = torch.distributions.Categorical(logits=actor(*obs))
         probs, log_probs = dist.probs, dist.logits
-        detached = critics["module"].detach()
-        min_q = torch.stack(stacked_calls(self.critic_module, detached, *obs)).min(0).values
+        min_q = torch.stack(stacked_calls(critic, critics["module"].detach(), *obs)).min(0).values
         loss_actor = self.batch_mean((probs * (self.alpha(probs) * log_probs - min_q)).sum(-1))
         return loss_actor, loss_q, self.alpha_loss((log_probs * probs).sum(-1))
 
     @classmethod
     def value_from_loss(cls, loss: DiscreteSACLoss, live: bool = False) -> TensorDictModuleBase:
-        """The exact soft value (:class:`DiscreteSoftValue`) of a ``DiscreteSACLoss`` with
-        target critics, its actor a ``ProbabilisticActor`` over a ``TensorDictModule``
-        writing logits."""
-        network = loss.actor_network[0]
-        actor = with_params(
-            network.module, loss.actor_network_params["module", "0", "module"], live=live
-        )
+        """:class:`DiscreteSoftValue` of a ``DiscreteSACLoss``'s target critics."""
         critics = loss.target_qvalue_network_params["module"]
-        module = DiscreteSoftValue(
-            actor,
-            loss.qvalue_network.module,
-            critics if live else critics.detach().clone(),
-            loss.log_alpha if live else loss.log_alpha.detach().clone(),
-        )
-        return TensorDictModule(module, in_keys=list(network.in_keys), out_keys=["state_value"])
+        critic = loss.qvalue_network.module
+        return soft_value(DiscreteSoftValue, loss, loss.actor_network, critic, critics, live)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
-        """``sum_a pi(a|s) (min_i Q_i,target(s, a) - alpha log pi(a|s))``, the actor and
-        ``alpha`` as they are."""
         return self.value_from_loss(self.loss, live=live)

@@ -1,4 +1,4 @@
-"""DQN (double, dueling) for discrete-action stages: its config, learner, checks and value."""
+"""DQN (double, dueling, advantage learning) for discrete-action stages."""
 
 from __future__ import annotations
 
@@ -19,12 +19,11 @@ from torchrl_stages.learners.base import (
     check_loss_function,
     register_algorithm,
 )
-from torchrl_stages.learners.networks import qvalue_net
 from torchrl_stages.learners.ops import (
     FusedSoftUpdate,
-    detached_copy,
     distance,
     linear_schedule,
+    taken,
     td0_target,
 )
 from torchrl_stages.values import QMaxValue, with_params
@@ -53,20 +52,13 @@ class DQNConfig(StageConfig):
 
 @register_algorithm
 class DQNLearner(Learner):
-    """DQN (optionally double DQN) for one stage.
-
-    Its parameters and their target copies live in torchrl's ``DQNLoss`` (built as torchrl
-    builds them); its update runs :meth:`_plain_loss`, what that loss module computes on plain
-    tensors, 2-5 times cheaper on small networks (``tests/test_losses.py`` pins the two equal,
-    gradients included).
+    """DQN for one stage: its parameters and targets in torchrl's ``DQNLoss``, its update on
+    :meth:`_plain_loss`, what that loss computes on plain tensors (``tests/test_losses.py``).
 
     Examples:
         >>> from torchrl.data import Categorical
-        >>> from torchrl_stages.learners import StageSpecs
-        >>> from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
         >>> specs = StageSpecs(["observation"], 2, "action", Categorical(4))
-        >>> learner = DQNLearner(DQNConfig(gamma=0.9), specs)
-        >>> learner.value().out_keys
+        >>> DQNLearner(DQNConfig(gamma=0.9), specs).value().out_keys
         ['state_value']
     """
 
@@ -80,14 +72,7 @@ class DQNLearner(Learner):
         super().__init__(cfg, specs, compile=compile)
         spec = specs.action_spec
         self.qnet = QValueActor(
-            qvalue_net(
-                specs.input_shapes,
-                spec.space.n,
-                list(cfg.num_cells),
-                dueling=cfg.dueling,
-                fourier=cfg.fourier_features,
-                cnn=self.cnn,
-            ),
+            self.network(spec.space.n, dueling=cfg.dueling),
             in_keys=specs.observation_keys,
             spec=spec,
             action_key=specs.action_key,
@@ -112,15 +97,14 @@ class DQNLearner(Learner):
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
         self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
         self.optimizers = {"qvalue": self.adam(self.loss.parameters(), cfg.lr)}
-        # the loss's networks: tensors in, Q-values out (no TensorDict); the target one reads
-        # the loss module's target parameters (not a sub-module: no second copy in state_dict)
+        # the target network reads the loss's target parameters (not a second state_dict copy)
         target = self.loss.target_value_network_params.get(("module", "0", "module"))
         self.__dict__["_target_q"] = with_params(self.q_module, target, live=True)
         self._loss_fn = self.compiled(self._plain_loss)
 
     @property
     def q_module(self) -> nn.Module:
-        """The online Q-network (observation tensors in, one Q-value per action out)."""
+        """The online Q-network: observation tensors in, one Q-value per action out."""
         return self.qnet.module[0].module
 
     @classmethod
@@ -139,26 +123,18 @@ class DQNLearner(Learner):
 
     @classmethod
     def value_from_loss(cls, loss: DQNLoss, live: bool = False) -> TensorDictModuleBase:
-        """``max_a Q_target(s, a)`` of a ``DQNLoss`` with target networks."""
+        """``max_a Q_target(s, a)``."""
         return QMaxValue(
             with_params(loss.value_network, loss.target_value_network_params, live=live)
         )
 
     def _plain_loss(self, batch: TensorDictBase) -> torch.Tensor:
-        """What ``DQNLoss`` computes, on plain tensors: ``(Q(s, a) - y)`` under the loss
-        function, ``y = r + gamma (1 - terminated) Q_target(s', a')`` with ``a'`` the online
-        argmax (double DQN) or the target's own (DQN); with ``advantage_learning`` (alpha > 0)
-        ``y - alpha (max_b Q_target(s, b) - Q_target(s, a))``."""
+        """``DQNLoss`` on plain tensors; with ``advantage_learning`` (alpha) the target less
+        ``alpha (max_b Q_target(s, b) - Q_target(s, a))``."""
         obs = self.inputs(batch)
-        q = self.q_module(*obs)
         action = batch.get(self.specs.action_key)
-
-        def taken(values: torch.Tensor) -> torch.Tensor:  # the values of the actions taken
-            if isinstance(self.specs.action_spec, OneHot):
-                return (values * action.to(values.dtype)).sum(-1, keepdim=True)
-            return values.gather(-1, action.reshape(*values.shape[:-1], 1))
-
-        pred = taken(q)
+        one_hot = isinstance(self.specs.action_spec, OneHot)
+        pred = taken(self.q_module(*obs), action, one_hot)
         with torch.no_grad():
             next_obs = self.inputs(batch, nxt=True)
             q_next = self._target_q(*next_obs)
@@ -166,25 +142,18 @@ class DQNLearner(Learner):
                 next_value = q_next.gather(-1, self.q_module(*next_obs).argmax(-1, keepdim=True))
             else:
                 next_value = q_next.max(-1, keepdim=True).values
-            target = td0_target(
-                batch.get("next"),
-                next_value,
-                float(self.cfg.gamma),
-                batch.get("steps_to_next_obs", None),
-            )
+            target = td0_target(batch, next_value, self.cfg.gamma)
             if self.cfg.advantage_learning:
                 q_target = self._target_q(*obs)
-                gap = q_target.max(-1, keepdim=True).values - taken(q_target)
+                gap = q_target.max(-1, keepdim=True).values - taken(q_target, action, one_hot)
                 target = target - self.cfg.advantage_learning * gap
         return self.batch_mean(distance(pred, target, self.cfg.loss_function))
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss = self._loss_fn(batch)
-        self._check_losses(loss=loss)
-        self._step(loss)
-        self.target_updater.step()
+        out = self._apply({"loss": loss}, loss)
         self.num_updates += 1
-        return {"loss": detached_copy(loss), "grad_norm": self.grad_norms["qvalue"]}
+        return {**out, "grad_norm": self.grad_norms["qvalue"]}
 
     def anneal_exploration(self, frames: int) -> None:
         cfg = self.cfg
@@ -193,5 +162,4 @@ class DQNLearner(Learner):
         )
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
-        """``max_a Q_target(s, a)``."""
         return self.value_from_loss(self.loss, live=live)

@@ -1,43 +1,36 @@
-"""What the maximum-entropy learners share: one step on their three losses and a learned
-entropy coefficient ``alpha`` instead of an exploration schedule."""
+"""What the maximum-entropy learners (SAC, discrete SAC) share: a learned entropy coefficient."""
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
 from torch import nn
 
 from torchrl_stages.config import StageChecks
-from torchrl_stages.learners.ops import detached_copy
 from torchrl_stages.learners.stacking import per_seed, seed_rows
+from torchrl_stages.values import with_params
 
 
 class EntropyRegularized:
-    """A mixin for :class:`~torchrl_stages.learners.Learner` subclasses whose ``loss`` module
-    has a ``log_alpha`` parameter and whose ``_losses(batch)`` returns the actor's, the
-    critics' and the entropy coefficient's losses, all stepped together (their gradients do
-    not overlap: the actor's loss reads the critics detached, the coefficient's the
-    log-probabilities). Stacked for seeds, ``log_alpha`` holds one coefficient per seed
-    (``[N]``, :meth:`stack_alpha`)."""
+    """A :class:`~torchrl_stages.learners.Learner` mixin: its ``loss`` has a ``log_alpha``
+    (one per seed when stacked) and ``_losses(batch)`` returns the actor's, the critics' and
+    ``alpha``'s losses, stepped together (their gradients do not overlap)."""
 
     lr_keys = ("lr", "actor_lr", "alpha_lr")
 
     def stack_alpha(self) -> None:
-        """Gives a seed-stacked learner one entropy coefficient per seed (``log_alpha``:
-        ``[N]``, each the config's ``alpha_init``); an ordinary learner keeps its scalar."""
+        """Gives a seed-stacked learner one ``log_alpha`` per seed (``[N]``)."""
         if self.seeds is not None:
             log_alpha = self.loss.log_alpha.detach()
             self.loss.log_alpha = nn.Parameter(log_alpha.expand(self.seeds).clone())
 
     def alpha(self, like: torch.Tensor) -> torch.Tensor:
-        """The entropy coefficient, detached, shaped to broadcast against ``like`` (a batch's
-        per-sample term, seed-major when stacked: each seed's own coefficient)."""
+        """The entropy coefficient, detached, shaped to broadcast against ``like``."""
         return per_seed(seed_rows(self.loss.log_alpha).detach().exp(), like)
 
     def alpha_loss(self, log_prob: torch.Tensor) -> torch.Tensor:
-        """``-log_alpha (log pi + target_entropy)`` over the batch (one per seed when
-        stacked), ``log_prob`` the policy's log-probabilities (their expectation for a
-        discrete policy)."""
+        """``-log_alpha (log pi + target_entropy)`` over the batch."""
         entropy_gap = log_prob.detach() + self.loss.target_entropy
         log_alpha = per_seed(seed_rows(self.loss.log_alpha), entropy_gap)
         return self.batch_mean(-log_alpha * entropy_gap)
@@ -49,14 +42,11 @@ class EntropyRegularized:
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_actor, loss_q, loss_alpha = self._losses(batch)
-        self._check_losses(loss_actor=loss_actor, loss_qvalue=loss_q, loss_alpha=loss_alpha)
-        self._step(loss_actor + loss_q + loss_alpha)
-        self.target_updater.step()
+        losses = {"loss_actor": loss_actor, "loss_qvalue": loss_q, "loss_alpha": loss_alpha}
+        out = self._apply(losses, loss_actor + loss_q + loss_alpha)
         self.num_updates += 1
         return {
-            "loss_actor": detached_copy(loss_actor),
-            "loss_qvalue": detached_copy(loss_q),
-            "loss_alpha": detached_copy(loss_alpha),
+            **out,
             "alpha": seed_rows(self.loss.log_alpha).detach().exp().clone(),
             "grad_norm_actor": self.grad_norms["actor"],
             "grad_norm_critic": self.grad_norms["critic"],
@@ -64,3 +54,19 @@ class EntropyRegularized:
 
     def anneal_exploration(self, frames: int) -> None:
         """Nothing to anneal: the entropy coefficient is learned."""
+
+
+def soft_value(module: type[nn.Module], loss, actor, critic, critics, live: bool, *args):
+    """``module`` (a soft value) as a ``TensorDictModule`` over ``actor``'s observations, with
+    ``loss``'s actor parameters, the stacked ``critics`` of ``critic`` and its ``log_alpha``
+    (read in place with ``live``, else copies)."""
+    network = actor[0]
+    params = loss.actor_network_params["module", "0", "module"]
+    value = module(
+        with_params(network.module, params, live=live),
+        critic,
+        critics if live else critics.detach().clone(),
+        loss.log_alpha if live else loss.log_alpha.detach().clone(),
+        *args,
+    )
+    return TensorDictModule(value, in_keys=list(network.in_keys), out_keys=["state_value"])

@@ -1,5 +1,4 @@
-"""Network builders shared by the learners (stacked for seeds inside
-:func:`~torchrl_stages.learners.stacking.stacked_networks`)."""
+"""Network builders of the learners, stacked for seeds inside :func:`.stacked_networks`."""
 
 from __future__ import annotations
 
@@ -16,11 +15,8 @@ from torchrl_stages.learners.stacking import stack_for_seeds
 
 
 class FourierFeatures(nn.Module):
-    """``x -> [x, sin(2^k pi x), cos(2^k pi x)]`` for ``k < num_octaves`` (per input feature).
-
-    Low-dimensional coordinate inputs (a grid cell, a joint angle) make plain MLPs smooth at the
-    scale of one cell; the encoding lets a small network represent sharp changes, such as a
-    move that is blocked at a wall but not one cell before it.
+    """``x -> [x, sin(2^k pi x), cos(2^k pi x)]`` for ``k < num_octaves``: lets a small MLP
+    represent sharp changes of low-dimensional coordinates (a wall one grid cell away).
 
     Examples:
         >>> FourierFeatures(2)(torch.zeros(3, 2)).shape
@@ -30,9 +26,6 @@ class FourierFeatures(nn.Module):
     def __init__(self, num_octaves: int) -> None:
         super().__init__()
         self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(num_octaves), persistent=False)
-
-    def out_features(self, in_features: int) -> int:
-        return in_features * (1 + 2 * len(self.freqs))
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         x = torch.cat(inputs, -1)
@@ -45,10 +38,7 @@ Shape = tuple[int, ...]
 
 @dataclass(frozen=True)
 class ConvSpec:
-    """Layers of the CNN applied to image inputs ``(C, H, W)``: one entry per conv layer.
-
-    Each layer is ``Conv2d(kernel, stride, padding=kernel // 2)`` + ReLU; the output is flattened.
-    """
+    """The CNN of image inputs: per layer ``Conv2d(kernel, stride, padding=kernel // 2)`` + ReLU."""
 
     channels: tuple[int, ...] = (16, 32)
     kernels: tuple[int, ...] = (3, 3)
@@ -56,8 +46,7 @@ class ConvSpec:
 
 
 class ConvEncoder(nn.Module):
-    """A small CNN over ``[*batch, C, H, W]`` images (any dtype, e.g. uint8 occupancy windows),
-    flattened to ``[*batch, out_features]``.
+    """A CNN over ``[*batch, C, H, W]`` images of any dtype, flattened to ``[*batch, features]``.
 
     Examples:
         >>> ConvEncoder((1, 10, 10), ConvSpec())(torch.zeros(4, 7, 1, 10, 10)).shape
@@ -85,12 +74,8 @@ class ConvEncoder(nn.Module):
 
 
 class InputEncoder(nn.Module):
-    """Features of a network's inputs: CNN features of each image input, concatenated with the
-    vector inputs (after :class:`FourierFeatures` when ``fourier > 0``).
-
-    Args:
-        inputs: unbatched shape of each input, in call order: ``(C, H, W)`` images, ``(d,)``
-            vectors.
+    """CNN features of each image input ``(C, H, W)``, then the vector inputs ``(d,)`` (through
+    :class:`FourierFeatures` when ``fourier > 0``); ``inputs``: their shapes in call order.
 
     Examples:
         >>> enc = InputEncoder([(1, 10, 10), (2,)], cnn=ConvSpec(channels=(4,), kernels=(3,),
@@ -110,9 +95,8 @@ class InputEncoder(nn.Module):
         self.convs = nn.ModuleList(ConvEncoder(s, cnn) for s in inputs if len(s) == 3)
         vector_dim = sum(s[0] for s in inputs if len(s) == 1)
         self.fourier = FourierFeatures(fourier) if fourier > 0 and vector_dim else None
-        self.out_features = sum(conv.out_features for conv in self.convs) + (
-            self.fourier.out_features(vector_dim) if self.fourier is not None else vector_dim
-        )
+        vector_features = vector_dim * (1 + 2 * fourier) if self.fourier else vector_dim
+        self.out_features = sum(conv.out_features for conv in self.convs) + vector_features
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         images = iter(self.convs)
@@ -127,11 +111,9 @@ class Chain(nn.Sequential):
     """``nn.Sequential`` whose first module takes several inputs (e.g. an image and a vector).
 
     Examples:
-        >>> from tensordict.nn import NormalParamExtractor
-        >>> loc, scale = Chain(InputEncoder([(2,), (2,)]), NormalParamExtractor())(
-        ...     torch.zeros(3, 2), torch.ones(3, 2))
-        >>> loc.shape, scale.shape
-        (torch.Size([3, 2]), torch.Size([3, 2]))
+        >>> net = Chain(InputEncoder([(2,), (1,)]), nn.Linear(3, 1))
+        >>> net(torch.ones(4, 2), torch.ones(4, 1)).shape
+        torch.Size([4, 1])
     """
 
     def forward(self, *inputs: torch.Tensor):
@@ -152,20 +134,12 @@ class _Encoded(nn.Module):
 
 
 class SharedEncoderCritic(nn.Module):
-    """``Q(s, a) = body([encoder(s), a])``, over an input encoder shared with the actor.
-
-    The encoder (e.g. the CNN of an image observation) is the actor's own module: features are
-    laid out as in a critic with its own :class:`InputEncoder` (encoder features, then the
-    action), only the encoder is not duplicated.
+    """``Q(s, a) = body([encoder(s), a])`` over the actor's own input encoder.
 
     Examples:
-        >>> enc = InputEncoder([(1, 10, 10), (2,)], cnn=ConvSpec(channels=(4,), kernels=(3,),
-        ...                    strides=(2,)))
-        >>> critic = SharedEncoderCritic(enc, action_dim=1, num_cells=[32])
-        >>> critic(torch.zeros(5, 1, 10, 10), torch.zeros(5, 2), torch.zeros(5, 1)).shape
+        >>> critic = SharedEncoderCritic(InputEncoder([(2,)], fourier=1), 1, num_cells=[32])
+        >>> critic(torch.zeros(5, 2), torch.zeros(5, 1)).shape
         torch.Size([5, 1])
-        >>> critic.encoder is enc
-        True
     """
 
     def __init__(self, encoder: nn.Module, action_dim: int, num_cells: list[int]) -> None:
@@ -175,24 +149,9 @@ class SharedEncoderCritic(nn.Module):
             MLP(in_features=encoder.out_features + action_dim, out_features=1, num_cells=num_cells)
         )
 
-    def head(self, features: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """``Q`` from the encoder's ``features`` of ``s`` and the action."""
-        return self.body(torch.cat([features, action], -1))
-
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         *obs, action = inputs
-        return self.head(self.encoder(*obs), action)
-
-
-def _encoder(
-    inputs: int | Sequence[Shape], fourier: int, cnn: ConvSpec | None
-) -> tuple[nn.Module | None, int]:
-    """The input encoder (``None``: raw concatenated vectors) and its number of features."""
-    shapes = [(inputs,)] if isinstance(inputs, int) else [tuple(s) for s in inputs]
-    if fourier <= 0 and all(len(s) == 1 for s in shapes):
-        return None, sum(s[0] for s in shapes)
-    encoder = InputEncoder(shapes, fourier=fourier, cnn=cnn)
-    return encoder, encoder.out_features
+        return self.body(torch.cat([self.encoder(*obs), action], -1))
 
 
 def mlp(
@@ -201,43 +160,34 @@ def mlp(
     num_cells: list[int],
     fourier: int = 0,
     cnn: ConvSpec | None = None,
-) -> nn.Module:
-    """An MLP over the inputs: ``inputs`` is a vector size, or the shape of each input (see
-    :class:`InputEncoder`: images go through a CNN, vectors optionally through Fourier features).
-    """
-    encoder, width = _encoder(inputs, fourier, cnn)
-    body = MLP(in_features=width, out_features=out_features, num_cells=num_cells)
-    return stack_for_seeds(body if encoder is None else _Encoded(encoder, body))
-
-
-def qvalue_net(
-    inputs: int | Sequence[Shape],
-    num_actions: int,
-    num_cells: list[int],
     *,
     dueling: bool = False,
-    fourier: int = 0,
-    cnn: ConvSpec | None = None,
 ) -> nn.Module:
-    """Q-values of every action: an MLP, or a dueling one (``Q = V + A - mean(A)``, the last
-    hidden width feeding separate value and advantage heads). ``inputs`` as in :func:`mlp`."""
+    """An MLP over ``inputs``, a vector size or each input's shape (:class:`InputEncoder`);
+    ``dueling``: ``Q = V + A - mean(A)``, the last hidden width feeding the two heads."""
+    shapes = [(inputs,)] if isinstance(inputs, int) else [tuple(s) for s in inputs]
+    encoder = None
+    width = sum(s[0] for s in shapes)
+    if fourier > 0 or any(len(s) != 1 for s in shapes):
+        encoder = InputEncoder(shapes, fourier=fourier, cnn=cnn)
+        width = encoder.out_features
     if not dueling:
-        return mlp(inputs, num_actions, num_cells, fourier, cnn)
-    encoder, width_in = _encoder(inputs, fourier, cnn)
-    *trunk, width = num_cells
-    net = DuelingMlpDQNet(
-        num_actions,
-        mlp_kwargs_feature={
-            "in_features": width_in,
-            "num_cells": trunk,
-            "out_features": width,
-            "activation_class": nn.ReLU,
-        },
-        mlp_kwargs_output={
-            "in_features": width,
-            "num_cells": width,
-            "depth": 1,
-            "activation_class": nn.ReLU,
-        },
-    )
+        net = MLP(in_features=width, out_features=out_features, num_cells=num_cells)
+    else:
+        *trunk, hidden = num_cells
+        net = DuelingMlpDQNet(
+            out_features,
+            mlp_kwargs_feature={
+                "in_features": width,
+                "num_cells": trunk,
+                "out_features": hidden,
+                "activation_class": nn.ReLU,
+            },
+            mlp_kwargs_output={
+                "in_features": hidden,
+                "num_cells": hidden,
+                "depth": 1,
+                "activation_class": nn.ReLU,
+            },
+        )
     return stack_for_seeds(net if encoder is None else _Encoded(encoder, net))

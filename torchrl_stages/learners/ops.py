@@ -1,6 +1,4 @@
-"""The optimizer and loss operations the algorithms share: a fused soft target update and Adam
-step, gradient norms and clipping (per seed of a seed-stacked learner), TD(0) targets, the
-regression distances, and the small helpers of an update."""
+"""The optimizer and loss operations the algorithms share."""
 
 from __future__ import annotations
 
@@ -12,31 +10,20 @@ import torch.nn.functional as F
 from tensordict import TensorDictBase
 from torch import nn
 from torch.func import functional_call
-from torch.optim.optimizer import (
-    ParamsT,
-    _global_optimizer_post_hooks,
-    _global_optimizer_pre_hooks,
-)
+from torch.optim.optimizer import ParamsT, _global_optimizer_post_hooks, _global_optimizer_pre_hooks
 from torchrl.objectives import SoftUpdate
 
 
 class FusedSoftUpdate(SoftUpdate):
-    """torchrl's ``SoftUpdate`` (``target <- target + tau (online - target)``) in one fused
-    ``torch._foreach_lerp_`` over all parameter pairs, instead of a TensorDict walk per call.
+    """torchrl's ``SoftUpdate`` (``target += tau (online - target)``) as one fused
+    ``torch._foreach_lerp_`` over all parameter pairs.
 
     Examples:
-        >>> import torch
         >>> from torchrl.modules import QValueActor
         >>> from torchrl.objectives import DQNLoss
-        >>> loss = DQNLoss(QValueActor(torch.nn.Linear(3, 2), action_space="categorical"),
-        ...                delay_value=True, action_space="categorical")
-        >>> updater = FusedSoftUpdate(loss, tau=0.5)
-        >>> with torch.no_grad():
-        ...     _ = loss.value_network_params["module", "0", "module", "bias"].fill_(1.0)
-        ...     _ = loss.target_value_network_params["module", "0", "module", "bias"].fill_(0.0)
-        >>> updater.step()
-        >>> loss.target_value_network_params["module", "0", "module", "bias"].tolist()
-        [0.5, 0.5]
+        >>> net = QValueActor(nn.Linear(3, 2), action_space="categorical")
+        >>> loss = DQNLoss(net, delay_value=True, action_space="categorical")
+        >>> FusedSoftUpdate(loss, tau=0.5).step()
     """
 
     _pairs: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
@@ -57,35 +44,24 @@ class FusedSoftUpdate(SoftUpdate):
 
 
 class FusedAdam(torch.optim.Adam):
-    """torch's ``Adam(fused=True)`` with :meth:`direct_step`: one direct call of its kernel.
-
-    ``Adam.step`` with ``fused=True`` ends in ``torch._fused_adam_`` over the parameters that
-    have a gradient; on the way it runs optimizer hooks, a profiler annotation and a grouping
-    of the tensors by device and dtype, Python that costs more than the kernel itself on small
-    networks. When none of that applies (no hooks, fused groups, every parameter with a gradient
-    and optimizer state, one device and dtype, a float learning rate, plain Adam)
-    :meth:`direct_step` makes the same kernel call with the same arguments, so the update is the
-    same bit for bit; otherwise it runs ``step``, which is ``Adam.step``. The state is
-    ``Adam``'s: checkpoints load into either class (a non-fused Adam's state turns ``fused``
-    off, and ``Adam.step`` then steps as that Adam would).
+    """torch's ``Adam(fused=True)`` with :meth:`direct_step`: the same ``torch._fused_adam_``
+    call as ``step``, bit for bit, without its hooks, profiling and grouping (Python that costs
+    more than the kernel on small networks). Its state is ``Adam``'s: checkpoints load into
+    either class.
 
     Examples:
-        >>> import torch
-        >>> net = torch.nn.Linear(3, 1)
+        >>> net = nn.Linear(3, 1)
         >>> optimizer = FusedAdam(net.parameters(), lr=1e-2)
-        >>> for _ in range(2):
-        ...     net(torch.ones(4, 3)).sum().backward()
-        ...     optimizer.direct_step()  # the first step is Adam.step's: it creates the state
-        ...     optimizer.zero_grad()
-        >>> int(optimizer.state[net.bias]["step"])
-        2
+        >>> net(torch.ones(4, 3)).sum().backward()
+        >>> optimizer.direct_step()
     """
 
     def __init__(self, params: ParamsT, lr: float = 1e-3, **kwargs: Any) -> None:
         super().__init__(params, lr=lr, fused=True, **kwargs)
 
     def _direct(self) -> bool:
-        """Whether :meth:`direct_step` can call the kernel itself (see the class docstring)."""
+        """Whether :meth:`direct_step` is ``step``'s kernel call: no hooks, fused plain Adam
+        with a float lr, every parameter with a gradient and state, one device and dtype."""
         # the hook registries are torch's own (private, stable in the pinned torch 2.13)
         if self._optimizer_step_pre_hooks or self._optimizer_step_post_hooks:
             return False
@@ -107,7 +83,6 @@ class FusedAdam(torch.optim.Adam):
 
     @torch.no_grad()
     def direct_step(self) -> None:
-        """``self.step()``, by a direct call of the fused kernel where that is the same."""
         if not self._direct():
             self.step()
             return
@@ -139,9 +114,8 @@ class FusedAdam(torch.optim.Adam):
 
 
 def total_grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
-    """``torch.nn.utils.get_total_norm(grads)`` (the 2-norm of all gradients): for plain
-    tensors on one CPU or CUDA device and dtype the same two ops (``torch._foreach_norm``, then
-    the norm of the norms) without its grouping of the tensors; otherwise torch's function."""
+    """``torch.nn.utils.get_total_norm(grads)``, without its grouping of plain tensors on one
+    CPU or CUDA device and dtype."""
     kinds = {(g.device, g.dtype) for g in grads}
     plain = all(type(g) is torch.Tensor and g.device.type in ("cpu", "cuda") for g in grads)
     if len(kinds) != 1 or not plain:
@@ -149,12 +123,8 @@ def total_grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
     return torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
 
 
-def seed_grad_norms(
-    grads: list[torch.Tensor], num_seeds: int, axes: Sequence[int] | None = None
-) -> torch.Tensor:
-    """The 2-norm of each seed's gradients (``[num_seeds]``) over seed-stacked gradients, the
-    seeds on axis ``axes[i]`` of ``grads[i]`` (default: 0)."""
-    axes = axes if axes is not None else [0] * len(grads)
+def seed_grad_norms(grads: list[torch.Tensor], num_seeds: int, axes: Sequence[int]) -> torch.Tensor:
+    """The 2-norm of each seed's gradients (``[num_seeds]``), seeds on axis ``axes[i]``."""
     per_tensor = torch.stack(
         [
             g.movedim(a, 0).reshape(num_seeds, -1).norm(dim=1)
@@ -165,27 +135,21 @@ def seed_grad_norms(
 
 
 def clip_seed_grads(
-    grads: list[torch.Tensor],
-    max_norm: float,
-    norms: torch.Tensor,
-    axes: Sequence[int] | None = None,
+    grads: list[torch.Tensor], max_norm: float, norms: torch.Tensor, axes: Sequence[int]
 ) -> None:
-    """Scales each seed's gradients to at most ``max_norm`` (``norms``: their norms; the seeds
-    on axis ``axes[i]`` of ``grads[i]``, default 0), as ``torch.nn.utils.clip_grads_with_norm_``
-    does for one set of parameters."""
+    """``torch.nn.utils.clip_grads_with_norm_`` for each seed's gradients."""
     coef = (max_norm / (norms + 1e-6)).clamp(max=1.0)
-    axes = axes if axes is not None else [0] * len(grads)
     for g, a in zip(grads, axes, strict=True):
         shape = [1] * g.ndim
         shape[a] = -1
         g.mul_(coef.view(shape))
 
 
-def td0_target(
-    next_td: TensorDictBase, next_value: torch.Tensor, gamma: float, steps: torch.Tensor | None
-) -> torch.Tensor:
-    """``r + gamma^steps * (1 - terminated) * V(s')``, torchrl's TD(0) estimate (``[B, 1]``)."""
+def td0_target(batch: TensorDictBase, next_value: torch.Tensor, gamma: float) -> torch.Tensor:
+    """``r + gamma^steps (1 - terminated) V(s')``, torchrl's TD(0) estimate (``[B, 1]``)."""
+    next_td, steps = batch.get("next"), batch.get("steps_to_next_obs", None)
     reward = next_td.get("reward")
+    gamma = float(gamma)
     discount = gamma if steps is None else gamma ** steps.view_as(reward)
     alive = (~next_td.get("terminated")).to(reward.dtype)
     return reward + discount * alive * next_value
@@ -201,8 +165,7 @@ def distance(pred: torch.Tensor, target: torch.Tensor, loss_function: str) -> to
 
 
 def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tensor) -> list:
-    """``module(*inputs)`` once per parameter set of the stacked ``params``
-    (``[num_nets, ...]``, e.g. twin critics), through ``torch.func.functional_call``."""
+    """``module(*inputs)`` with each parameter set of the stacked ``params`` (twin critics)."""
     flat = dict(params.flatten_keys(".").items())
     return [
         functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
@@ -210,11 +173,18 @@ def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tens
     ]
 
 
+def taken(values: torch.Tensor, action: torch.Tensor, one_hot: bool, lead: int = 0):
+    """The values (``[..., num_actions]``) of the actions taken (one-hot or indices), ``[..., 1]``;
+    ``lead``: leading dimensions of ``values`` that ``action`` lacks (twin critics)."""
+    if one_hot:
+        return (values * action.to(values.dtype)).sum(-1, keepdim=True)
+    index = action.reshape(*values.shape[lead:-1], 1).expand(*values.shape[:-1], 1)
+    return values.gather(-1, index)
+
+
 def detached_copy(loss: torch.Tensor) -> torch.Tensor:
-    """A detached copy of ``loss`` that outlives the update (what :meth:`Learner.update`
-    returns): under ``compile=reduce-overhead`` the loss is a CUDA graph's static output, which
-    the graph's next replay overwrites, so the losses a stage logs after its batch of updates
-    must not be views of it."""
+    """A copy of ``loss`` that outlives the update: under ``compile=reduce-overhead`` the loss
+    is a CUDA graph's output, which the graph's next replay overwrites."""
     return loss.detach().clone()
 
 
@@ -223,6 +193,3 @@ def linear_schedule(start: float, end: float, frames: int, horizon: int) -> floa
     if horizon <= 0:
         return end
     return end + (start - end) * max(0.0, 1.0 - frames / horizon)
-
-
-#: every algorithm by its name in configs (``algo: <name>``), filled by :func:`register_algorithm`

@@ -1,4 +1,4 @@
-"""SAC for continuous-action stages: its config, learner, checks and soft stage value."""
+"""SAC for continuous-action stages, and its soft stage value."""
 
 from __future__ import annotations
 
@@ -16,11 +16,10 @@ from torchrl.objectives import SACLoss
 from torchrl_stages.config import StageChecks
 from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
 from torchrl_stages.learners.base import register_algorithm
-from torchrl_stages.learners.entropy import EntropyRegularized
+from torchrl_stages.learners.entropy import EntropyRegularized, soft_value
 from torchrl_stages.learners.networks import Chain
 from torchrl_stages.learners.ops import distance, stacked_calls, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
-from torchrl_stages.values import with_params
 
 
 @dataclass
@@ -41,21 +40,12 @@ class SACConfig(ActorCriticConfig):
 
 
 class SoftValue(nn.Module):
-    """``V(s) = E_{a ~ pi(s)}[min_i Q_i(s, a) - alpha log pi(a|s)]``, the soft value SAC's
-    critic targets use, as the mean over ``samples`` actions drawn with fixed noise (a seeded
-    generator of its own: ``V`` is a function of ``s``, and the global one is left alone).
+    """``V(s) = E_{a ~ pi(s)}[min_i Q_i(s, a) - alpha log pi(a|s)]``, SAC's soft value, as the
+    mean over ``samples`` actions of fixed noise (a generator of its own: ``V`` is a function
+    of ``s``). Seed-stacked, each seed's block of states gets that same noise.
 
-    Seed-stacked (``log_alpha`` one per seed, ``[N]``), its observations are seed-major and
-    each seed's block of states gets the same noise, that of an ordinary learner's ``V`` on
-    that block alone.
-
-    Args:
-        actor: the actor network and its ``NormalParamExtractor`` (observations in,
-            ``(loc, scale)`` out).
-        critic: the critic network (observations and action in, ``Q`` out).
-        critic_params: the stacked parameters of the twin critics (``[num_critics, ...]``).
-        log_alpha: the entropy coefficient's log (a tensor it reads at every call).
-        dist_kwargs: the ``TanhNormal``'s bounds.
+    ``actor`` maps observations to ``(loc, scale)``; ``critic_params`` are the twin critics'
+    stacked parameters; ``log_alpha`` is read at every call; ``dist_kwargs`` the bounds.
     """
 
     def __init__(self, actor, critic, critic_params, log_alpha, dist_kwargs, samples) -> None:
@@ -92,17 +82,13 @@ class SoftValue(nn.Module):
 
 @register_algorithm
 class SACLearner(EntropyRegularized, ActorCriticLearner):
-    """SAC for one stage: a tanh-Gaussian actor sampled for exploration (its mean is the greedy
-    policy), twin critics, and the entropy coefficient ``alpha`` tuned so that the policy's
-    entropy tracks ``target_entropy``. Its parameters live in torchrl's ``SACLoss`` (built as
-    torchrl builds them); its update runs :meth:`_plain_losses`, what that module computes on
-    plain tensors (``tests/test_losses.py`` pins the two equal, gradients included). The stage
-    value is the soft value :class:`SoftValue`.
+    """SAC for one stage: a tanh-Gaussian actor (its mean the greedy policy), twin critics and
+    a tuned entropy coefficient, the parameters in torchrl's ``SACLoss`` (version 2), its update
+    on :meth:`_plain_losses`, what that loss computes on plain tensors.
 
     Examples:
         >>> from torchrl.data import Bounded
         >>> from torchrl_stages.learners import StageSpecs
-        >>> from torchrl_stages.learners.sac import SACConfig, SACLearner
         >>> specs = StageSpecs(["observation"], 3, "action", Bounded(-1.0, 1.0, shape=(2,)))
         >>> learner = SACLearner(SACConfig(), specs)
         >>> sorted(learner.optimizers), learner.value().out_keys
@@ -115,6 +101,7 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
     update_draws_random = True  # its actions are sampled
     stacks_seeds = True
     ACTOR_PATH = ("module", "0", "module", "0")
+    ACTOR_OUTPUTS = 2  # the location and (pre-softplus) scale
 
     def __init__(self, cfg: SACConfig, specs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
@@ -127,9 +114,6 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         super().validate(checks)
         cls.validate_entropy(checks)
         checks.positive("value_samples", 16)
-
-    def actor_outputs(self, action_dim: int) -> int:
-        return 2 * action_dim  # the location and (pre-softplus) scale of each dimension
 
     def make_actor(self, actor_net: nn.Module, spec: TensorSpec) -> TensorDictModuleBase:
         keys = self.specs
@@ -147,8 +131,7 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         )
 
     def make_loss(self, cfg: SACConfig, spec: TensorSpec) -> SACLoss:
-        # a shared encoder needs a target copy of it (the target actor's, as in TD3): the
-        # target critics read s' through it
+        # a shared encoder needs a target copy (the target actor's) for the target critics
         loss = SACLoss(
             self.actor,
             self.critic,
@@ -161,106 +144,52 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
             delay_qvalue=True,
             separate_losses=self.shared_encoder,
         )
-        return self.with_action_key(loss)
+        loss.set_keys(action=self.specs.action_key)
+        return loss
 
     def make_losses(self) -> None:
-        losses = self._shared_losses if self.shared_encoder else self._plain_losses
-        self._losses = self.compiled(losses)
+        self._losses = self.compiled(self._plain_losses)
 
     def _dist(self, out: torch.Tensor) -> TanhNormal:
         """The policy's distribution from the actor network's output."""
         loc, scale = self.actor[0].module[1](out)  # its NormalParamExtractor
         return TanhNormal(loc, scale, **self.actor[1].distribution_kwargs)
 
-    def _soft_target(
-        self, batch: TensorDictBase, next_q: list[torch.Tensor], next_log_prob: torch.Tensor
-    ) -> torch.Tensor:
-        """``r + gamma (1 - terminated) min_i (Q_i,target(s', a') - alpha log pi(a'|s'))``."""
-        next_log_prob = next_log_prob.unsqueeze(-1)
-        soft = torch.stack(next_q) - self.alpha(next_log_prob) * next_log_prob
-        return td0_target(
-            batch.get("next"),
-            soft.min(0).values,
-            float(self.cfg.gamma),
-            batch.get("steps_to_next_obs", None),
-        )
-
-    def _critic_and_alpha_losses(self, preds, target, q_actor, log_prob):
-        """The critics' loss (summed over the twins), the actor's ``alpha log pi - min_i Q_i``
-        and the entropy coefficient's ``-log_alpha (log pi + target_entropy)``."""
-        preds = torch.stack(preds)
+    def _plain_losses(self, batch: TensorDictBase):
+        """``SACLoss`` (version 2) on plain tensors, its two draws in its order (the next
+        actions, then the actor's); a shared encoder is trained by the critics' loss alone."""
+        critics = self.loss.qvalue_network_params
+        with torch.no_grad():
+            next_obs = self.inputs(batch, nxt=True)
+            next_out = self.actor_head(self.features(next_obs))
+            next_action, next_log_prob = rsample_and_log_prob(self._dist(next_out))
+            next_features = self.features(next_obs, target=True)
+            targets = self.loss.target_qvalue_network_params
+            next_q = self.critic_values(targets, next_features, next_action)
+            next_log_prob = next_log_prob.unsqueeze(-1)
+            soft = torch.stack(next_q) - self.alpha(next_log_prob) * next_log_prob
+            target = td0_target(batch, soft.min(0).values, self.cfg.gamma)
+        features = self.features(self.inputs(batch))
+        preds = torch.stack(self.critic_values(critics, features, batch.get(self.specs.action_key)))
         distances = distance(preds, target.expand_as(preds), self.cfg.loss_function)
         loss_q = self.batch_mean(distances.sum(0))
-        q = torch.stack(q_actor).min(0).values.squeeze(-1)
-        loss_actor = self.batch_mean(self.alpha(log_prob) * log_prob - q)
+        features = [f.detach() for f in features]
+        action, log_prob = rsample_and_log_prob(self._dist(self.actor_head(features)))
+        q = torch.stack(self.critic_values(critics.detach(), features, action))
+        loss_actor = self.batch_mean(self.alpha(log_prob) * log_prob - q.min(0).values.squeeze(-1))
         return loss_actor, loss_q, self.alpha_loss(log_prob)
-
-    def _plain_losses(self, batch: TensorDictBase):
-        """What ``SACLoss`` computes (version 2, no value network), on plain tensors, its two
-        draws in its order: the next actions for the critics' target, then the actor's."""
-        obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
-        critics, targets = self.loss.qvalue_network_params, self.loss.target_qvalue_network_params
-        with torch.no_grad():
-            next_action, next_log_prob = rsample_and_log_prob(
-                self._dist(self.actor_module(*next_obs))
-            )
-            next_q = self.critic_values(targets["module"], *next_obs, next_action)
-            target = self._soft_target(batch, next_q, next_log_prob)
-        preds = self.critic_values(critics["module"], *obs, batch.get(self.specs.action_key))
-        action, log_prob = rsample_and_log_prob(self._dist(self.actor_module(*obs)))
-        q_actor = self.critic_values(critics["module"].detach(), *obs, action)
-        return self._critic_and_alpha_losses(preds, target, q_actor, log_prob)
-
-    def _shared_losses(self, batch: TensorDictBase):
-        """:meth:`_plain_losses` with one encoder: ``s`` is encoded once by the trained encoder
-        (trained by the critics' loss; the actor reads its features detached), ``s'`` by the
-        trained one for the actor and by the target one for the target critics."""
-        obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
-        encoder, actor_head = self.actor_module.encoder, self.actor_module.body
-        heads = self.loss.qvalue_network_params["module", "body"]
-        with torch.no_grad():
-            next_action, next_log_prob = rsample_and_log_prob(
-                self._dist(actor_head(encoder(*next_obs)))
-            )
-            target_features = self._target_actor.encoder(*next_obs)
-            target_heads = self.loss.target_qvalue_network_params["module", "body"]
-            next_q = self.head_values(target_heads, target_features, next_action)
-            target = self._soft_target(batch, next_q, next_log_prob)
-        features = encoder(*obs)
-        preds = self.head_values(heads, features, batch.get(self.specs.action_key))
-        features = features.detach()
-        action, log_prob = rsample_and_log_prob(self._dist(actor_head(features)))
-        q_actor = self.head_values(heads.detach(), features, action)
-        return self._critic_and_alpha_losses(preds, target, q_actor, log_prob)
 
     @classmethod
     def value_from_loss(cls, loss: SACLoss, live: bool = False) -> TensorDictModuleBase:
-        """The soft value (:class:`SoftValue`, 16 actions per state) of a ``SACLoss``
-        (version 2) with target critics, its actor a ``ProbabilisticActor`` over a
-        ``TensorDictModule`` writing ``loc`` and ``scale``."""
+        """:class:`SoftValue` (16 actions per state) of a ``SACLoss``'s target critics."""
         critics = loss.target_qvalue_network_params["module"]
-        return _soft_value(loss, loss.actor_network, loss.qvalue_network.module, critics, 16, live)
+        critic, kwargs = loss.qvalue_network.module, loss.actor_network[1].distribution_kwargs
+        return soft_value(SoftValue, loss, loss.actor_network, critic, critics, live, kwargs, 16)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
-        """``E_a[min_i Q_i,target(s, a) - alpha log pi(a|s)]`` (:class:`SoftValue`), the
-        actor and ``alpha`` as they are; with a shared encoder the critics read the target one."""
+        """:class:`SoftValue`; with a shared encoder the critics read the target one."""
         critics = self.with_target_encoder(self.loss.target_qvalue_network_params)["module"]
-        samples = self.cfg.value_samples
-        return _soft_value(self.loss, self.actor, self.critic_module, critics, samples, live)
-
-
-def _soft_value(loss: SACLoss, actor, critic: nn.Module, critics, samples: int, live: bool):
-    """:class:`SoftValue` as a ``TensorDictModule`` over ``actor``'s observations: the actor's
-    network with ``loss``'s actor parameters, ``critic`` with the stacked ``critics``, and
-    ``loss``'s entropy coefficient (read in place with ``live``, else copies)."""
-    network = actor[0]
-    params = loss.actor_network_params["module", "0", "module"]
-    module = SoftValue(
-        with_params(network.module, params, live=live),
-        critic,
-        critics if live else critics.detach().clone(),
-        loss.log_alpha if live else loss.log_alpha.detach().clone(),
-        actor[1].distribution_kwargs,
-        samples,
-    )
-    return TensorDictModule(module, in_keys=list(network.in_keys), out_keys=["state_value"])
+        kwargs, samples = self.actor[1].distribution_kwargs, self.cfg.value_samples
+        return soft_value(
+            SoftValue, self.loss, self.actor, self.critic_module, critics, live, kwargs, samples
+        )

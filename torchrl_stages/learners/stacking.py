@@ -1,89 +1,59 @@
-"""Seed-stacked learners: the networks of N seeds' learners in one set of tensors.
+"""Seed-stacked learners: N seeds' networks in one set of tensors, inputs laid out seed-major.
 
-A learner built inside :func:`stacked_networks` (``make_learner(..., seeds=N)``) has every
-``nn.Linear`` of the networks :mod:`~torchrl_stages.learners.networks` builds replaced by a
-:class:`StackedLinear`: one weight ``[N, out, in]``, seed ``i``'s layer in row ``i`` (and every
-``nn.Conv2d`` of a CNN by a :class:`StackedConv2d`, one grouped convolution). Its inputs
-are laid out seed-major (``[N * M, ...]`` or ``[N, M, ...]``: seed ``i``'s elements first come
-seed ``i - 1``'s), so everything between two layers (activations, the dueling head's mean, the
-Fourier features) runs on all seeds unchanged, and one ``baddbmm`` per layer replaces N
-matrix products. Adam, the soft target update and every elementwise step then act on each seed
-alone; the learners reduce their losses with :meth:`~torchrl_stages.learners.Learner.batch_mean`
-(one loss per seed), and :meth:`~torchrl_stages.learners.Learner._step` clips each seed's
-gradient by its own norm. :func:`stack_learners` loads N ordinary learners into a stacked one,
-:func:`unstack_learner` takes seed ``i`` back out.
+Inside :func:`stacked_networks` every ``nn.Linear`` (``nn.Conv2d``) of a built network becomes a
+:class:`StackedLinear` (:class:`StackedConv2d`) holding seed ``i``'s layer in row ``i``.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from contextvars import ContextVar
-from typing import Any, Protocol
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 
-
-class Learner(Protocol):
-    """What this module reads of a :class:`~torchrl_stages.learners.Learner` (it is written
-    against this protocol, so that the learners' base module can import it without a cycle)."""
-
-    cfg: Any
-    specs: Any
-    seeds: int | None
-    num_updates: int
-
-    def state_dict(self) -> dict[str, torch.Tensor]: ...
-
-    def load_state_dict(self, state: dict[str, torch.Tensor]) -> Any: ...
-
+if TYPE_CHECKING:
+    from torchrl_stages.learners.base import Learner
 
 _SEEDS: ContextVar[int | None] = ContextVar("torchrl_stages_seeds", default=None)
 _ROWS: ContextVar[torch.Tensor | None] = ContextVar("torchrl_stages_seed_rows", default=None)
 
 
 class _StackedLayer(nn.Module):
-    """What the stacked layers share: ``weight`` and ``bias`` stacked from ``num_seeds``
-    ordinary layers (row ``i``: seed ``i``'s), read for the seeds computed now."""
+    """``num_seeds`` freshly initialized twins of ``layer``, their ``weight`` and ``bias``
+    stacked (row ``i``: seed ``i``'s), read for the seeds computed now (:func:`update_rows`)."""
 
-    def _stack(self, layers: Sequence[nn.Module]) -> None:
-        self.weight = nn.Parameter(torch.stack([layer.weight.detach() for layer in layers]))
-        self.bias = nn.Parameter(torch.stack([layer.bias.detach() for layer in layers]))
-
-    @property
-    def num_seeds(self) -> int:
-        return self.weight.shape[0]
+    def __init__(self, layer: nn.Module, num_seeds: int) -> None:
+        super().__init__()
+        twins = [copy.deepcopy(layer) for _ in range(num_seeds)]
+        for twin in twins:
+            twin.reset_parameters()  # the draws of building it anew
+        self.weight = nn.Parameter(torch.stack([twin.weight.detach() for twin in twins]))
+        self.bias = nn.Parameter(torch.stack([twin.bias.detach() for twin in twins]))
 
     def _rows(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``weight`` and ``bias`` of the seeds computed now (:func:`update_rows`)."""
         rows = _ROWS.get()
         if rows is None:
             return self.weight, self.bias
         return self.weight[rows], self.bias[rows]
 
+    def extra_repr(self) -> str:
+        return f"weight={tuple(self.weight.shape)}"
+
 
 class StackedLinear(_StackedLayer):
-    """``num_seeds`` independent ``nn.Linear(in_features, out_features)`` layers in one module.
-
-    ``weight`` is ``[num_seeds, out, in]`` and ``bias`` ``[num_seeds, out]`` (row ``i``: seed
-    ``i``'s layer, initialized as ``nn.Linear`` initializes). The input's leading dimensions are
-    seed-major: ``[num_seeds * M, in]``, ``[num_seeds, M, in]`` or any shape whose elements are
-    grouped by seed in that order; the output has the input's leading dimensions.
+    """``nn.Linear`` for ``num_seeds`` seeds in one ``baddbmm``, the input's leading dimensions
+    seed-major (``[num_seeds * M, in]`` or ``[num_seeds, M, in]``).
 
     Examples:
-        >>> layer = StackedLinear(3, 2, num_seeds=4)
-        >>> layer(torch.zeros(4 * 5, 3)).shape, layer(torch.zeros(4, 5, 3)).shape
-        (torch.Size([20, 2]), torch.Size([4, 5, 2]))
+        >>> layer = StackedLinear(nn.Linear(3, 2), num_seeds=4)
         >>> x = torch.randn(4, 5, 3)
         >>> torch.allclose(layer(x)[1], x[1] @ layer.weight[1].T + layer.bias[1], atol=1e-6)
         True
     """
-
-    def __init__(self, in_features: int, out_features: int, *, num_seeds: int) -> None:
-        super().__init__()
-        self.in_features, self.out_features = in_features, out_features
-        self._stack([nn.Linear(in_features, out_features) for _ in range(num_seeds)])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         weight, bias = self._rows()
@@ -93,47 +63,22 @@ class StackedLinear(_StackedLayer):
         )
         return out.reshape(*x.shape[:-1], out.shape[-1])
 
-    def extra_repr(self) -> str:
-        return f"in={self.in_features}, out={self.out_features}, num_seeds={self.num_seeds}"
-
 
 class StackedConv2d(_StackedLayer):
-    """``num_seeds`` independent ``nn.Conv2d`` layers (no dilation, one group, zero padding) in
-    one module: one grouped convolution, seed ``i``'s channels in group ``i``.
-
-    ``weight`` is ``[num_seeds, out, in, kh, kw]`` and ``bias`` ``[num_seeds, out]`` (row
-    ``i``: seed ``i``'s layer, initialized as ``nn.Conv2d`` initializes). The input's leading
-    dimensions are seed-major, as for :class:`StackedLinear`: ``[num_seeds * M, C, H, W]``
-    or ``[num_seeds, M, C, H, W]``; the output has the input's leading dimensions.
+    """``nn.Conv2d`` for ``num_seeds`` seeds as one grouped convolution (seed ``i``'s channels
+    in group ``i``), the input's leading dimensions seed-major.
 
     Examples:
-        >>> layer = StackedConv2d(1, 4, 3, stride=2, padding=1, num_seeds=3)
+        >>> layer = StackedConv2d(nn.Conv2d(1, 4, 3, stride=2, padding=1), num_seeds=3)
         >>> x = torch.randn(3 * 5, 1, 6, 6)
-        >>> layer(x).shape
-        torch.Size([15, 4, 3, 3])
         >>> one = torch.nn.functional.conv2d(x[5:10], layer.weight[1], layer.bias[1], 2, 1)
         >>> torch.allclose(layer(x)[5:10], one, atol=1e-6)
         True
     """
 
-    def __init__(
-        self,
-        in_channels: int,
-        out_channels: int,
-        kernel_size: int | tuple[int, int],
-        *,
-        stride: int | tuple[int, int] = 1,
-        padding: int | tuple[int, int] = 0,
-        num_seeds: int,
-    ) -> None:
-        super().__init__()
-        layers = [
-            nn.Conv2d(in_channels, out_channels, kernel_size, stride, padding)
-            for _ in range(num_seeds)
-        ]
-        self.in_channels, self.out_channels = in_channels, out_channels
-        self.stride, self.padding = layers[0].stride, layers[0].padding
-        self._stack(layers)
+    def __init__(self, layer: nn.Conv2d, num_seeds: int) -> None:
+        super().__init__(layer, num_seeds)
+        self.stride, self.padding = layer.stride, layer.padding
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         weight, bias = self._rows()
@@ -148,23 +93,16 @@ class StackedConv2d(_StackedLayer):
             self.padding,
             groups=n,
         )
-        out = out.reshape(out.shape[0], n, self.out_channels, *out.shape[-2:]).transpose(0, 1)
+        out = out.reshape(out.shape[0], n, weight.shape[1], *out.shape[-2:]).transpose(0, 1)
         return out.reshape(*x.shape[:-3], *out.shape[-3:])
-
-    def extra_repr(self) -> str:
-        return (
-            f"in={self.in_channels}, out={self.out_channels}, kernel={tuple(self.weight.shape[3:])}"
-            f", stride={self.stride}, padding={self.padding}, num_seeds={self.num_seeds}"
-        )
 
 
 def _stacked(name: str, layer: nn.Module, n: int) -> nn.Module | None:
-    """The stacked twin of ``layer`` for ``n`` seeds (``None``: not a layer that stacks);
-    ``TypeError`` for a stackable kind with options the twin does not have."""
+    """The stacked twin of ``layer`` for ``n`` seeds (``None``: not a layer that stacks)."""
     if type(layer) is nn.Linear:
         if layer.bias is None:
             raise TypeError(f"{name}: a Linear without bias cannot be stacked for seeds")
-        return StackedLinear(layer.in_features, layer.out_features, num_seeds=n)
+        return StackedLinear(layer, n)
     if type(layer) is nn.Conv2d:
         plain = (
             layer.bias is not None
@@ -178,14 +116,7 @@ def _stacked(name: str, layer: nn.Module, n: int) -> nn.Module | None:
                 f"{name}: only a Conv2d with bias, one group, no dilation and numeric zero "
                 "padding can be stacked for seeds"
             )
-        return StackedConv2d(
-            layer.in_channels,
-            layer.out_channels,
-            layer.kernel_size,
-            stride=layer.stride,
-            padding=layer.padding,
-            num_seeds=n,
-        )
+        return StackedConv2d(layer, n)
     return None
 
 
@@ -195,9 +126,16 @@ def current_seeds() -> int | None:
 
 
 @contextmanager
-def stacked_networks(num_seeds: int | None) -> Iterator[None]:
-    """Networks built inside (by :mod:`~torchrl_stages.learners.networks`) are stacked for
-    ``num_seeds`` seeds (:func:`stack_for_seeds`); ``None``: as usual.
+def _setting(var: ContextVar, value) -> Iterator[None]:
+    token = var.set(value)
+    try:
+        yield
+    finally:
+        var.reset(token)
+
+
+def stacked_networks(num_seeds: int | None) -> AbstractContextManager[None]:
+    """Networks built inside are stacked for ``num_seeds`` seeds (``None``: not stacked).
 
     Examples:
         >>> from torchrl_stages.learners.networks import mlp
@@ -206,54 +144,36 @@ def stacked_networks(num_seeds: int | None) -> Iterator[None]:
         >>> net(torch.zeros(3 * 7, 4)).shape, type(net[0]).__name__
         (torch.Size([21, 2]), 'StackedLinear')
     """
-    token = _SEEDS.set(num_seeds)
-    try:
-        yield
-    finally:
-        _SEEDS.reset(token)
+    return _setting(_SEEDS, num_seeds)
 
 
 def current_rows() -> torch.Tensor | None:
-    """The seeds (row indices) stacked layers compute now (:func:`update_rows`); ``None``: all."""
     return _ROWS.get()
 
 
-@contextmanager
-def update_rows(rows: torch.Tensor | None) -> Iterator[None]:
-    """Inside, every :class:`StackedLinear` computes only the seeds ``rows`` (a 1-D index
-    tensor; ``None``: all of them): inputs hold ``len(rows)`` seeds' elements, and the
-    gradients of the other seeds' rows are zero. A stage of many seeds updates only the seeds
-    that have not stopped this way, at the cost of those alone.
+def update_rows(rows: torch.Tensor | None) -> AbstractContextManager[None]:
+    """Inside, stacked layers compute only the seeds ``rows`` (1-D indices; ``None``: all), the
+    others' gradients zero: a stage updates only its seeds that have not stopped.
 
     Examples:
-        >>> layer = StackedLinear(3, 2, num_seeds=4)
-        >>> x = torch.randn(2, 5, 3)
+        >>> layer = StackedLinear(nn.Linear(3, 2), num_seeds=4)
         >>> with update_rows(torch.tensor([1, 3])):
-        ...     y = layer(x)
-        >>> torch.allclose(y[1], x[1] @ layer.weight[3].T + layer.bias[3], atol=1e-6)
-        True
-        >>> y.sum().backward()
+        ...     layer(torch.randn(2, 5, 3)).sum().backward()
         >>> layer.weight.grad[[0, 2]].abs().sum().item()
         0.0
     """
-    token = _ROWS.set(rows)
-    try:
-        yield
-    finally:
-        _ROWS.reset(token)
+    return _setting(_ROWS, rows)
 
 
 def seed_rows(values: torch.Tensor) -> torch.Tensor:
-    """``values`` held one per seed (``[N, ...]``) for the seeds computed now
-    (:func:`update_rows`); a scalar (an ordinary learner's) as it is."""
+    """``values`` held one per seed (``[N, ...]``) for the seeds computed now; a scalar as is."""
     rows = _ROWS.get()
     return values if rows is None or values.ndim == 0 else values[rows]
 
 
 def per_seed(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """``values`` (one per seed computed now, ``[n]``) shaped to broadcast against ``like``,
-    whose leading dimensions are seed-major (``[n, ...]`` or ``[n * M, ...]``); a scalar (an
-    ordinary learner's) as it is.
+    """``values`` (one per seed computed now, ``[n]``) shaped to broadcast against the
+    seed-major ``like`` (``[n, ...]`` or ``[n * M, ...]``); a scalar as it is.
 
     Examples:
         >>> alpha = torch.tensor([1.0, 10.0])
@@ -269,10 +189,8 @@ def per_seed(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 
 
 def stack_for_seeds(module: nn.Module) -> nn.Module:
-    """``module`` with each ``nn.Linear`` replaced by a :class:`StackedLinear` and each
-    ``nn.Conv2d`` by a :class:`StackedConv2d` for the seeds of :func:`stacked_networks`
-    (unchanged outside it). Raises ``TypeError`` for a module that holds parameters of another
-    kind, which cannot be stacked."""
+    """``module`` with its layers stacked for the seeds of :func:`stacked_networks`; raises
+    ``TypeError`` for parameters of another kind."""
     n = current_seeds()
     if n is None:
         return module
@@ -296,11 +214,8 @@ def stack_for_seeds(module: nn.Module) -> nn.Module:
 
 
 def seed_axes(learner: Learner) -> dict[str, int | None]:
-    """The axis that indexes the seeds in each ``state_dict`` entry of the seed-stacked
-    ``learner``: 0 for a network's layers (``[N, out, in]``), 1 for the copies a loss module
-    stacks itself (twin critics: ``[2, N, out, in]``), ``None`` for an entry the seeds share
-    (an exploration schedule). Read off two small twins of it built for 1 and 2 seeds (global
-    generators left as they were), once per learner.
+    """The seeds' axis of each ``state_dict`` entry of a seed-stacked ``learner`` (``None``:
+    shared by the seeds), read off twins built for 1 and 2 seeds (generators left as they were).
 
     Examples:
         >>> from torchrl.data import Bounded
@@ -310,8 +225,6 @@ def seed_axes(learner: Learner) -> dict[str, int | None]:
         >>> axes = seed_axes(make_learner(TD3Config(num_cells=[8]), specs, seeds=3))
         >>> axes["critic.module.0.weight"], axes["loss.qvalue_network_params.module.0.weight"]
         (0, 1)
-        >>> axes["noise.sigma"] is None
-        True
     """
     cached = learner.__dict__.get("_seed_axes")
     if cached is not None:
@@ -330,40 +243,16 @@ def seed_axes(learner: Learner) -> dict[str, int | None]:
     return axes
 
 
-def _seed_rows(
-    stacked: Learner, stacked_state: dict[str, torch.Tensor], plain: dict[str, torch.Tensor]
-) -> dict[str, int | None]:
-    """:func:`seed_axes` of ``stacked``, its ``state_dict`` checked against an ordinary
-    learner's: every entry is the ordinary one with the seeds' axis inserted, or the same."""
-    if stacked_state.keys() != plain.keys():
-        raise ValueError("the stacked and the ordinary learner have different entries")
-    axes, n = seed_axes(stacked), int(stacked.seeds or 0)
-    for key, value in stacked_state.items():
-        other, axis = plain[key], axes.get(key)
-        shape = tuple(other.shape)
-        if axis is not None:
-            shape = (*shape[:axis], n, *shape[axis:])
-        if tuple(value.shape) != shape:
-            raise ValueError(
-                f"{key}: shape {tuple(value.shape)} where {shape} (the ordinary learner's "
-                f"{tuple(other.shape)}, the seeds on axis {axis}) was expected"
-            )
-    return axes
-
-
 def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
-    """Loads ``learners`` (one per seed, ordinary) into ``stacked`` (their seed-stacked twin),
-    seed ``i`` into row ``i``; returns ``stacked``. Entries shared by all seeds are taken from
-    the first learner."""
-    states = [learner.state_dict() for learner in learners]
-    own = stacked.state_dict()
+    """Loads ordinary ``learners`` into their seed-stacked twin, seed ``i`` into row ``i``
+    (shared entries from the first); returns ``stacked``."""
     if len(learners) != stacked.seeds:
         raise ValueError(f"{len(learners)} learners for {stacked.seeds} seeds")
-    axes = _seed_rows(stacked, own, states[0])
+    states, axes = [learner.state_dict() for learner in learners], seed_axes(stacked)
     stacked.load_state_dict(
         {
             k: states[0][k] if axes[k] is None else torch.stack([s[k] for s in states], axes[k])
-            for k in own
+            for k in stacked.state_dict()
         }
     )
     stacked.num_updates = max(learner.num_updates for learner in learners)
@@ -371,14 +260,12 @@ def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
 
 
 def unstack_learner(stacked: Learner, seed: int, learner: Learner) -> Learner:
-    """Loads row ``seed`` of the seed-stacked ``stacked`` into the ordinary ``learner`` (built
-    with the same config and specs); returns ``learner``."""
-    state, own = stacked.state_dict(), learner.state_dict()
-    axes = _seed_rows(stacked, state, own)
+    """Loads row ``seed`` of ``stacked`` into the ordinary ``learner``; returns ``learner``."""
+    axes = seed_axes(stacked)
     learner.load_state_dict(
         {
             k: v.clone() if axes[k] is None else v.select(axes[k], seed).clone()
-            for k, v in state.items()
+            for k, v in stacked.state_dict().items()
         }
     )
     learner.num_updates = stacked.num_updates
