@@ -1,7 +1,5 @@
 """A sweep's figures: learning curves and final metrics per configuration, and performance
-profiles. They read :class:`~torchrl_stages.sweeps.jobs.Job` and
-:class:`~torchrl_stages.sweeps.stats.Aggregate` and draw on a matplotlib ``Figure`` (no pyplot
-state: safe in a Hydra callback)."""
+profiles, drawn on a matplotlib ``Figure`` (no pyplot state: safe in a Hydra callback)."""
 
 from __future__ import annotations
 
@@ -19,17 +17,14 @@ from torchrl_stages.metric_names import STAGE, TASK, MetricName, parse_metric
 from torchrl_stages.plots import save_figure
 from torchrl_stages.sweeps.jobs import Job, finite_float, result_metrics
 from torchrl_stages.sweeps.jobs import configs as configs_of
-from torchrl_stages.sweeps.stats import Aggregate, performance_profiles
-
-__all__ = ["plot_performance_profile", "plot_sweep_curves", "plot_sweep_final", "short_labels"]
+from torchrl_stages.sweeps.stats import Aggregate, _scores, performance_profiles
 
 #: characters per line of a legend label (the 7-inch performance profile, 8-point text)
 _LEGEND_WIDTH = 90
 
 
 def _curve(name: str) -> MetricName | None:
-    """A learning curve of the summary: the success of the whole-task probe, or of a loop's
-    evaluations (a stage's, a joint phase's, any schedule's loop)."""
+    """A learning curve of the summary: the success of the whole-task probe or of a loop."""
     parsed = parse_metric(name)
     if parsed is None or parsed.kind != "eval" or parsed.metric != "success_rate":
         return None
@@ -37,7 +32,7 @@ def _curve(name: str) -> MetricName | None:
 
 
 def short_labels(names: Sequence[str]) -> dict[str, str]:
-    """Each configuration without the overrides that every configuration shares.
+    """Each configuration without the overrides all of them share.
 
     Examples:
         >>> short_labels(["a=1 seed=0", "a=2 seed=0"])
@@ -70,7 +65,6 @@ def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
 
 def _curve_order(name: str) -> tuple[int, str, int]:
     curve = _curve(name)
-    assert curve is not None
     if curve.index is None:  # the whole task first, then stages, then other loops' phases
         return (0, "", 0)
     return (1 if curve.scope == STAGE else 2, curve.scope, curve.index)
@@ -78,7 +72,6 @@ def _curve_order(name: str) -> tuple[int, str, int]:
 
 def _curve_title(name: str) -> str:
     curve = _curve(name)
-    assert curve is not None
     if curve.index is None:
         return "whole task (eval.probe), frames of all stages"
     if curve.scope == STAGE:
@@ -87,21 +80,17 @@ def _curve_title(name: str) -> str:
 
 
 def _forward_fill(points: list[tuple[float, float]], grid: np.ndarray) -> np.ndarray:
-    """The value of the last evaluation at or before each grid step (NaN before the first);
-    a stage that stopped early keeps its last evaluation."""
-    steps = np.array([p[0] for p in points])
-    values = np.array([p[1] for p in points])
+    """The last evaluation at or before each grid step (NaN before the first)."""
+    steps, values = np.array(points).T
     idx = np.searchsorted(steps, grid, side="right") - 1
-    out = np.where(idx >= 0, values[np.clip(idx, 0, None)], np.nan)
-    return out
+    return np.where(idx >= 0, values[np.clip(idx, 0, None)], np.nan)
 
 
 def plot_sweep_curves(
     jobs: Sequence[Job], out: str | Path, labels: dict[str, str] | None = None
 ) -> Path | None:
-    """Evaluation success against frames, one panel per stage (and the whole-task probe), one
-    line per configuration: the mean over its seeds and a band from the lowest to the highest.
-    Returns ``None`` when no finished job has such curves."""
+    """Evaluation success against frames, a panel per stage (and the whole-task probe), a line
+    per configuration (mean over seeds, band min-max); ``None`` without such curves."""
     from matplotlib.figure import Figure
 
     per_job = {j.name: _read_curves(j.path / "metrics.csv") for j in jobs if j.status == "done"}
@@ -154,9 +143,8 @@ def plot_sweep_final(
     out: str | Path,
     labels: dict[str, str] | None = None,
 ) -> Path | None:
-    """The final whole-task metrics per configuration (one row each): every seed (dots), the
-    mean (bar) and its bootstrap 95% CI, for the success rate, the steps and the task's
-    headline metrics. Returns ``None`` when no job finished."""
+    """The final whole-task metrics per configuration: seeds, mean and its 95% CI; ``None``
+    when no job finished."""
     from matplotlib.figure import Figure
 
     done = [j for j in jobs if j.status == "done"]
@@ -173,9 +161,7 @@ def plot_sweep_final(
     ys = np.arange(len(configs))
     for ax, metric in zip(axes, metrics, strict=True):
         for y, config in zip(ys, configs, strict=True):
-            values = [
-                v for j in done if j.config == config and (v := j.metrics.get(metric)) is not None
-            ]
+            values = _scores(done, config, metric).ravel()
             agg = by_key.get((config, metric))
             color = f"C{y % 10}"
             if agg is not None and agg.mean is not None:
@@ -207,10 +193,8 @@ def plot_performance_profile(
     metric: str = "success_rate",
     seed: int = 0,
 ) -> Path | None:
-    """The performance profile of ``metric`` (rliable's score distribution): per
-    configuration, the fraction of its runs above each threshold in ``[0, 1]``, with its
-    stratified-bootstrap 95% band. Drawn here rather than with ``rliable.plot_utils``, which
-    imports pyplot. Returns ``None`` when no job finished."""
+    """The performance profile of ``metric`` per configuration with its 95% band (drawn here:
+    ``rliable.plot_utils`` imports pyplot); ``None`` when no job finished."""
     from matplotlib.figure import Figure
 
     taus = np.linspace(0.0, 1.0, 101)
@@ -218,8 +202,7 @@ def plot_performance_profile(
     if not profiles:
         return None
     labels = labels or short_labels(list(profiles))
-    # the legend goes below the plot, each label wrapped to the figure's width: long override
-    # lists neither hide the curves nor run off the figure's edge
+    # the legend below the plot, labels wrapped: long override lists hide no curve
     texts = [textwrap.fill(labels.get(c, c), _LEGEND_WIDTH) for c in profiles]
     lines = sum(t.count("\n") + 1 for t in texts)
     fig = Figure(figsize=(7.0, 4.2 + 0.17 * lines), layout="constrained")

@@ -1,10 +1,5 @@
-"""Reading a sweep's runs: the job directories under a sweep directory and what each one holds.
-
-A job directory has ``.hydra/overrides.yaml`` (the job's command-line overrides), ``eval.json``
-(a finished run) or ``status.json`` (a run that stopped) and ``metrics.csv``, whatever launched
-it (a trial of ``stages-tune`` is one too). Only these files are read (as data: nothing in them
-is run).
-"""
+"""The job directories of a sweep, whatever launched them, read as data: overrides, status and
+the numbers of ``eval.json``."""
 
 from __future__ import annotations
 
@@ -19,22 +14,8 @@ from typing import Any
 
 import yaml
 
-__all__ = [
-    "METRICS",
-    "STATUSES",
-    "Job",
-    "configs",
-    "find_jobs",
-    "finite_float",
-    "result_metrics",
-    "read_job",
-]
-
 #: the numbers every finished run has (``eval.json``); a task adds its headline metrics
 METRICS = ("success_rate", "mean_return", "mean_steps")
-#: the statuses of ``status.json``: how a run that did not finish ended (``pruned``: a
-#: ``stages-tune`` trial its pruner stopped at a stage evaluation)
-STATUSES = ("invalid", "interrupted", "diverged", "failed", "pruned")
 #: files that make a directory a job directory
 JOB_MARKERS = (".hydra/overrides.yaml", "eval.json", "status.json", "config.yaml")
 SEED = re.compile(r"^\+{0,2}seed=(?P<seed>.*)$")
@@ -42,10 +23,8 @@ SEED = re.compile(r"^\+{0,2}seed=(?P<seed>.*)$")
 
 @dataclass
 class Job:
-    """One job directory of a sweep, as read from its files (:func:`read_job`).
-
-    ``metrics`` holds :data:`METRICS` and the headline metrics of the run's task (the names
-    ``eval.json`` lists in ``headline_metrics``, e.g. the grid world's value error).
+    """One job directory of a sweep (:func:`read_job`); ``metrics`` holds :data:`METRICS` and
+    the task's headline metrics.
 
     Examples:
         >>> from pathlib import Path
@@ -58,7 +37,7 @@ class Job:
     name: str  # its path relative to the sweep directory
     overrides: list[str]
     seed: int | None
-    status: str  # done | incomplete | the status of status.json (STATUSES: failed, pruned, ...)
+    status: str  # done | incomplete | the status of status.json (failed, pruned, ...)
     reason: str | None = None
     metrics: dict[str, float | None] = field(default_factory=dict)
     train_seconds: float | None = None
@@ -72,7 +51,7 @@ class Job:
         return " ".join(rest) if rest else "(defaults)"
 
     def row(self, metrics: Iterable[str] = METRICS) -> dict[str, Any]:
-        """The job's ``summary.csv`` row, with a column per name of ``metrics``."""
+        """The job's ``summary.csv`` row."""
         return {
             "job": self.name,
             "config": self.config,
@@ -109,10 +88,8 @@ def _is_job(path: Path) -> bool:
 
 
 def find_jobs(sweep_dir: str | Path) -> list[Path]:
-    """The job directories under ``sweep_dir`` (any depth, e.g. Hydra's ``hydra.sweep.subdir``
-    set to nested folders), in natural order (``2`` before ``10``). Hidden folders (``.hydra``,
-    ``.submitit``) and a job's own sub-folders are not searched; ``sweep_dir`` itself counts
-    only when it holds no job below it (a single run directory).
+    """The job directories at any depth under ``sweep_dir`` (not in hidden folders or in a job),
+    in natural order; ``sweep_dir`` itself when it holds no job below it.
 
     Examples:
         >>> import tempfile, pathlib
@@ -146,7 +123,7 @@ def _read_json(path: Path) -> dict[str, Any] | None:
 
 
 def finite_float(value: Any) -> float | None:
-    """``value`` as a finite float; ``None`` for anything else (a run's files are data)."""
+    """``value`` as a finite float, else ``None``."""
     try:
         out = float(value)
     except (TypeError, ValueError):
@@ -181,7 +158,8 @@ def _read_seed(path: Path, overrides: list[str]) -> int | None:
 
 
 def _status(job: Job, eval_file: Path, status_file: Path) -> dict[str, Any] | None:
-    """Sets ``job.status`` and ``job.reason``; returns ``eval.json`` if the job finished."""
+    """Sets ``job.status`` and ``job.reason``; returns ``eval.json`` if the job finished (and
+    no newer ``status.json`` says otherwise)."""
     result = _read_json(eval_file) if eval_file.is_file() else None
     status = _read_json(status_file) if status_file.is_file() else None
     failed_later = (
@@ -205,12 +183,7 @@ def _status(job: Job, eval_file: Path, status_file: Path) -> dict[str, Any] | No
 
 
 def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
-    """One job directory: overrides, seed, status and the numbers of its ``eval.json``.
-
-    The status is ``done`` when ``eval.json`` exists (and no newer ``status.json``), the
-    ``status`` of ``status.json`` (:data:`STATUSES`: ``invalid``, ``interrupted``,
-    ``diverged``, ``failed``, ``pruned``) with its reason, else ``incomplete`` (still running,
-    or killed).
+    """One job directory: ``done``, the status of its ``status.json``, or ``incomplete``.
 
     Examples:
         >>> import json, tempfile, pathlib

@@ -13,8 +13,6 @@ from typing import Any
 from torchrl_stages.sweeps.jobs import Job, configs, result_metrics
 from torchrl_stages.sweeps.stats import REPS, Aggregate
 
-__all__ = ["markdown", "write_configs_csv", "write_jobs_csv"]
-
 
 def _fmt(value: Any, digits: int = 3) -> str:
     if value is None:
@@ -37,15 +35,14 @@ def _write_csv(path: Path, header: Sequence[str], rows: Iterable[dict[str, Any]]
 
 
 def write_jobs_csv(path: Path, jobs: Sequence[Job]) -> None:
-    """One row per job: overrides, status and reason, metrics, training seconds, frames and
-    updates."""
+    """``summary.csv``: a row per job (:meth:`~torchrl_stages.sweeps.jobs.Job.row`)."""
     metrics = result_metrics(jobs)
     header = list(Job(Path(), "", [], None, "").row(metrics))
     _write_csv(path, header, (job.row(metrics) for job in jobs))
 
 
 def write_configs_csv(path: Path, aggregates: Sequence[Aggregate]) -> None:
-    """One row per configuration and metric: :class:`~torchrl_stages.sweeps.stats.Aggregate`."""
+    """``summary_configs.csv``: a row per :class:`~torchrl_stages.sweeps.stats.Aggregate`."""
     _write_csv(path, [f.name for f in fields(Aggregate)], (vars(agg) for agg in aggregates))
 
 
