@@ -3,11 +3,12 @@ the numbers of ``eval.json``."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -114,12 +115,12 @@ def find_jobs(sweep_dir: str | Path) -> list[Path]:
     return sorted(jobs, key=lambda p: _natural_key(p.relative_to(root).as_posix()))
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
+def _read(path: Path, load: Callable[[str], Any] = yaml.safe_load) -> Any:
+    """What ``path`` holds; ``None`` when it is missing or damaged."""
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
+        return load(path.read_text())
+    except (OSError, ValueError, yaml.YAMLError):
         return None
-    return data if isinstance(data, dict) else None
 
 
 def finite_float(value: Any) -> float | None:
@@ -131,27 +132,14 @@ def finite_float(value: Any) -> float | None:
     return out if math.isfinite(out) else None
 
 
-def _read_overrides(path: Path) -> list[str]:
-    try:
-        overrides = yaml.safe_load((path / ".hydra" / "overrides.yaml").read_text())
-    except (OSError, yaml.YAMLError):
-        return []
-    return [str(o) for o in overrides] if isinstance(overrides, list) else []
-
-
 def _read_seed(path: Path, overrides: list[str]) -> int | None:
     for override in overrides:
-        match = SEED.match(override)
-        if match is not None:
-            try:
+        if match := SEED.match(override):
+            with contextlib.suppress(ValueError):
                 return int(match["seed"])
-            except ValueError:
-                return None
+            return None
     for name in ("config.yaml", ".hydra/config.yaml"):
-        try:
-            saved = yaml.safe_load((path / name).read_text())
-        except (OSError, yaml.YAMLError):
-            continue
+        saved = _read(path / name)
         if isinstance(saved, dict) and isinstance(saved.get("seed"), int):
             return saved["seed"]
     return None
@@ -160,26 +148,21 @@ def _read_seed(path: Path, overrides: list[str]) -> int | None:
 def _status(job: Job, eval_file: Path, status_file: Path) -> dict[str, Any] | None:
     """Sets ``job.status`` and ``job.reason``; returns ``eval.json`` if the job finished (and
     no newer ``status.json`` says otherwise)."""
-    result = _read_json(eval_file) if eval_file.is_file() else None
-    status = _read_json(status_file) if status_file.is_file() else None
-    failed_later = (
-        status is not None
-        and result is not None
-        and status_file.stat().st_mtime > eval_file.stat().st_mtime
-    )
-    if status is not None and (result is None or failed_later):
+    result, status = _read(eval_file, json.loads), _read(status_file, json.loads)
+    result = result if isinstance(result, dict) else None
+    if isinstance(status, dict) and (
+        result is None or status_file.stat().st_mtime > eval_file.stat().st_mtime
+    ):
         job.status = str(status.get("status") or "failed")
         job.reason = None if status.get("reason") is None else str(status["reason"])
         return None
     if result is not None:
         job.status = "done"
-        return result
-    job.reason = (
-        "eval.json is damaged"
-        if eval_file.is_file()
-        else "no eval.json nor status.json (still running, or killed)"
-    )
-    return None
+    elif eval_file.is_file():
+        job.reason = "eval.json is damaged"
+    else:
+        job.reason = "no eval.json nor status.json (still running, or killed)"
+    return result
 
 
 def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
@@ -198,7 +181,8 @@ def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
     path = Path(path)
     root = Path(sweep_dir) if sweep_dir is not None else path.parent
     name = path.relative_to(root).as_posix() if path != root else "."
-    overrides = _read_overrides(path)
+    overrides = _read(path / ".hydra" / "overrides.yaml")
+    overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
     job = Job(path, name, overrides, _read_seed(path, overrides), "incomplete")
     result = _status(job, path / "eval.json", path / "status.json")
     if result is None:
