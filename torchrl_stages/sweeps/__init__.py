@@ -34,22 +34,7 @@ class SweepSummary:
 
 def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0) -> SweepSummary:
     """Reads the jobs under ``sweep_dir`` and writes the summary there; ``seed`` seeds the
-    bootstrap.
-
-    Examples:
-        >>> import json, tempfile, pathlib
-        >>> sweep = pathlib.Path(tempfile.mkdtemp())
-        >>> for job, (seed, success) in enumerate([(0, 1.0), (1, 0.5)]):
-        ...     (sweep / f"{job}/.hydra").mkdir(parents=True)
-        ...     _ = (sweep / f"{job}/.hydra/overrides.yaml").write_text(f"- seed={seed}\\n")
-        ...     _ = (sweep / f"{job}/eval.json").write_text(json.dumps(
-        ...         {"success_rate": success, "mean_return": 1.0, "mean_steps": 10.0}))
-        >>> summary = summarize_sweep(sweep, plots=False)
-        >>> [job.status for job in summary.jobs], summary.aggregate("(defaults)").mean
-        (['done', 'done'], 0.75)
-        >>> sorted(summary.files)
-        ['summary.csv', 'summary.md', 'summary_configs.csv']
-    """
+    bootstrap."""
     root = Path(sweep_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"{root} is not a directory")

@@ -32,12 +32,7 @@ def _curve(name: str) -> MetricName | None:
 
 
 def short_labels(names: Sequence[str]) -> dict[str, str]:
-    """Each configuration without the overrides all of them share.
-
-    Examples:
-        >>> short_labels(["a=1 seed=0", "a=2 seed=0"])
-        {'a=1 seed=0': 'a=1', 'a=2 seed=0': 'a=2'}
-    """
+    """Each configuration without the overrides all of them share."""
     parts = {c: c.split(" ") if c != "(defaults)" else [] for c in names}
     common = set.intersection(*(set(p) for p in parts.values())) if parts else set()
     labels = {}

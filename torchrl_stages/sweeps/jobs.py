@@ -90,17 +90,7 @@ def _is_job(path: Path) -> bool:
 
 def find_jobs(sweep_dir: str | Path) -> list[Path]:
     """The job directories at any depth under ``sweep_dir`` (not in hidden folders or in a job),
-    in natural order; ``sweep_dir`` itself when it holds no job below it.
-
-    Examples:
-        >>> import tempfile, pathlib
-        >>> root = pathlib.Path(tempfile.mkdtemp())
-        >>> for job in ("0", "1", "10", "2"):
-        ...     (root / job).mkdir()
-        ...     _ = (root / job / "eval.json").write_text("{}")
-        >>> [p.name for p in find_jobs(root)]
-        ['0', '1', '2', '10']
-    """
+    in natural order; ``sweep_dir`` itself when it holds no job below it."""
     root = Path(sweep_dir)
     jobs: list[Path] = []
     for current, dirs, _files in os.walk(root):
@@ -166,18 +156,7 @@ def _status(job: Job, eval_file: Path, status_file: Path) -> dict[str, Any] | No
 
 
 def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
-    """One job directory: ``done``, the status of its ``status.json``, or ``incomplete``.
-
-    Examples:
-        >>> import json, tempfile, pathlib
-        >>> trial = pathlib.Path(tempfile.mkdtemp()) / "3"
-        >>> trial.mkdir()
-        >>> _ = (trial / "status.json").write_text(json.dumps(
-        ...     {"status": "pruned", "reason": "pruned at stage evaluation 2"}))
-        >>> job = read_job(trial)
-        >>> job.name, job.status, job.reason
-        ('3', 'pruned', 'pruned at stage evaluation 2')
-    """
+    """One job directory: ``done``, the status of its ``status.json``, or ``incomplete``."""
     path = Path(path)
     root = Path(sweep_dir) if sweep_dir is not None else path.parent
     name = path.relative_to(root).as_posix() if path != root else "."

@@ -30,15 +30,7 @@ def interval_estimates(
     scores: np.ndarray, func, seed: int = 0, reps: int = REPS
 ) -> tuple[np.ndarray, np.ndarray]:
     """``func(scores)`` and its stratified-bootstrap interval (``(2, len)``). rliable draws from
-    numpy's global generator (it ignores ``random_state``): seeded for the call, then restored.
-
-    Examples:
-        >>> import numpy as np
-        >>> mean = lambda s: np.array([s.mean()])
-        >>> point, interval = interval_estimates(np.array([[0.2], [0.4], [0.6]]), mean)
-        >>> point.round(3).tolist(), interval.shape, bool(interval[0, 0] < 0.4 < interval[1, 0])
-        ([0.4], (2, 1), True)
-    """
+    numpy's global generator (it ignores ``random_state``): seeded for the call, then restored."""
     from rliable import library as rly  # here: ~1 s of imports that training never needs
 
     state, absl = np.random.get_state(), logging.getLogger("absl")

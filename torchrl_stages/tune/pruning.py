@@ -1,5 +1,5 @@
-"""Optuna's side of a study: each stage evaluation reported to the trial and pruned on
-(:class:`TrialPruning`), the sampler and the pruner."""
+"""Optuna's side of a study: stage evaluations reported to the trial (:class:`TrialPruning`),
+the sampler and the pruner."""
 
 from __future__ import annotations
 
@@ -11,15 +11,10 @@ from torchrl_stages.loggers import StopRun
 from torchrl_stages.metric_names import is_loop_evaluation
 
 
-# ---------------------------------------------------------------------- pruning
 class TrialPruning:
-    """An observer of a run's metrics (:data:`torchrl_stages.loggers.Observer`) that reports
-    every stage evaluation's success rate to an Optuna ``trial`` and ends the run with
-    :class:`~torchrl_stages.loggers.StopRun` (``pruned``) when the trial should be pruned.
-
-    The step of a report is the evaluation's index in the run (0, 1, ...: the backward
-    schedule evaluates the last stage first). With ``direction="minimize"`` (the objective's)
-    it reports the failure rate ``1 - success``, so that lower is better there too.
+    """A run's :data:`~torchrl_stages.loggers.Observer` that reports each loop evaluation's
+    success rate to an Optuna ``trial`` (step: the evaluation's index in the run; the failure
+    rate when the objective is minimized) and raises ``StopRun("pruned")`` when it should stop.
 
     Examples:
         >>> class Trial:  # what it uses of an optuna.Trial
@@ -61,7 +56,7 @@ class TrialPruning:
 
 
 def make_sampler(name: str, seed: int) -> Any:
-    """The Optuna sampler ``tune.sampler`` names, seeded."""
+    """The seeded Optuna sampler ``tune.sampler`` names."""
     import optuna
 
     if name == "random":
@@ -70,8 +65,7 @@ def make_sampler(name: str, seed: int) -> Any:
 
 
 def make_pruner(tune: DictConfig, direction: str) -> Any:
-    """The Optuna pruner ``tune.pruner`` names, over the values :class:`TrialPruning`
-    reports (success rates; failure rates when the objective is minimized)."""
+    """The Optuna pruner ``tune.pruner`` names, over what :class:`TrialPruning` reports."""
     import optuna
 
     warmup = int(tune.warmup_steps)
