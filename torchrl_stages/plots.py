@@ -52,8 +52,7 @@ def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
 
 def _stage_panels(series: Series, names: Sequence[str] | None) -> list[tuple[str, list]]:
     """One stage's panels: each loss, the gradient norms, evaluations and episode return."""
-    metrics = {metric for (_, _, metric) in series if names is None or metric in names}
-    keys = [k for k in series if k[2] in metrics]
+    keys = [k for k in series if names is None or k[2] in names]
 
     def pick(kind: str, test) -> list[tuple[str, str, str]]:
         return sorted(k for k in keys if k[0] == kind and test(k[2]))

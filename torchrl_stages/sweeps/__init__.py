@@ -4,9 +4,13 @@ rliable) and figures. ``stages-train -m``, ``stages-tune`` and ``stages-report``
 
 from __future__ import annotations
 
+import csv
 import sys
-from dataclasses import dataclass
+from collections import Counter
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import Any
 
 from torchrl_stages.sweeps.figures import (
     plot_performance_profile,
@@ -14,9 +18,84 @@ from torchrl_stages.sweeps.figures import (
     plot_sweep_final,
     short_labels,
 )
-from torchrl_stages.sweeps.jobs import Job, configs, find_jobs, read_job
-from torchrl_stages.sweeps.stats import Aggregate, aggregate_jobs
-from torchrl_stages.sweeps.tables import markdown, write_configs_csv, write_jobs_csv
+from torchrl_stages.sweeps.jobs import Job, configs, find_jobs, read_job, result_metrics
+from torchrl_stages.sweeps.stats import REPS, Aggregate, aggregate_jobs
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def _cell(text: Any) -> str:
+    return _fmt(text).replace("|", "\\|").replace("\n", " ")
+
+
+def _write_csv(path: Path, header: Sequence[str], rows: Iterable[dict[str, Any]]) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(header))
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: "" if row.get(k) is None else row[k] for k in header})
+
+
+def write_jobs_csv(path: Path, jobs: Sequence[Job]) -> None:
+    """``summary.csv``: a row per job (:meth:`~torchrl_stages.sweeps.jobs.Job.row`)."""
+    metrics = result_metrics(jobs)
+    header = list(Job(Path(), "", [], None, "").row(metrics))
+    _write_csv(path, header, (job.row(metrics) for job in jobs))
+
+
+def write_configs_csv(path: Path, aggregates: Sequence[Aggregate]) -> None:
+    """``summary_configs.csv``: a row per :class:`~torchrl_stages.sweeps.stats.Aggregate`."""
+    _write_csv(path, [f.name for f in fields(Aggregate)], (vars(agg) for agg in aggregates))
+
+
+def _interval(low: float | None, high: float | None) -> str:
+    return "" if low is None else f"[{low:.3f}, {high:.3f}]"
+
+
+def markdown(
+    sweep_dir: Path, jobs: Sequence[Job], aggregates: Sequence[Aggregate], figures: Sequence[str]
+) -> str:
+    """``summary.md``: the per-configuration statistics, every job, and the figures."""
+    counts = Counter(job.status for job in jobs)
+    status = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
+    metrics = [m for m in result_metrics(jobs) if m != "mean_return"]
+    lines = [
+        f"# Sweep summary: {sweep_dir}",
+        "",
+        f"{len(jobs)} jobs ({status or 'none'}), {len(configs(jobs))} configurations "
+        "(a configuration: the overrides without `seed`).",
+        "",
+        "## Per configuration, across seeds",
+        "",
+        "Mean and interquartile mean (IQM: the middle half of the seeds) over the finished jobs, "
+        f"each with a stratified-bootstrap 95% confidence interval (rliable, {REPS} resamples, "
+        "seeded).",
+        "",
+        "| configuration | metric | finished | failed | mean | 95% CI | IQM | 95% CI |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for agg in aggregates:
+        lines.append(
+            f"| {_cell(agg.config)} | {agg.metric} | {agg.n} | {agg.failed} | {_fmt(agg.mean)} | "
+            f"{_interval(agg.ci_low, agg.ci_high)} | {_fmt(agg.iqm)} | "
+            f"{_interval(agg.iqm_low, agg.iqm_high)} |"
+        )
+    columns = ["job", "overrides", "status", *metrics, "train s", "frames", "reason"]
+    lines += ["", "## Jobs", "", "| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
+    for job in jobs:
+        values = [_fmt(job.metrics.get(m), 1 if m == "mean_steps" else 3) for m in metrics]
+        cells = [_cell(job.name), _cell(" ".join(job.overrides)), job.status, *values]
+        cells += [_fmt(job.train_seconds, 1), _fmt(job.frames), _cell(job.reason)]
+        lines.append("| " + " | ".join(cells) + " |")
+    if figures:
+        lines += ["", "## Figures", ""] + [f"![{name}]({name})" for name in figures]
+    return "\n".join(lines) + "\n"
 
 
 @dataclass

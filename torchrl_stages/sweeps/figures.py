@@ -98,13 +98,12 @@ def plot_sweep_curves(
     nrows = math.ceil(len(names) / ncols)
     fig = Figure(figsize=(5.2 * ncols, 3.6 * nrows + 0.6))
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    runs = {
+        c: [per_job[j.name] for j in jobs if j.config == c and j.name in per_job] for c in configs
+    }
     for ax, name in zip(axes, names, strict=False):
         for c, config in enumerate(configs):
-            seeds = [
-                per_job[j.name][name]
-                for j in jobs
-                if j.config == config and j.name in per_job and name in per_job[j.name]
-            ]
+            seeds = [curves[name] for curves in runs[config] if name in curves]
             if not seeds:
                 continue
             grid = np.unique(np.concatenate([[p[0] for p in s] for s in seeds]))
@@ -119,9 +118,7 @@ def plot_sweep_curves(
             if len(seeds) > 1:
                 ax.fill_between(grid, low, high, color=color, alpha=0.2, linewidth=0)
         ax.set_title(_curve_title(name), fontsize=10)
-        ax.set_xlabel("frames")
-        ax.set_ylabel("success rate")
-        ax.set_ylim(-0.05, 1.05)
+        ax.set(xlabel="frames", ylabel="success rate", ylim=(-0.05, 1.05))
         ax.grid(alpha=0.3)
     for ax in axes[len(names) :]:
         ax.set_visible(False)
@@ -136,7 +133,7 @@ def plot_sweep_final(
     jobs: Sequence[Job],
     aggregates: Sequence[Aggregate],
     out: str | Path,
-    labels: dict[str, str] | None = None,
+    labels: dict | None = None,
 ) -> Path | None:
     """The final whole-task metrics per configuration: seeds, mean and its 95% CI; ``None``
     when no job finished."""
@@ -161,14 +158,8 @@ def plot_sweep_final(
             color = f"C{y % 10}"
             if agg is not None and agg.mean is not None:
                 ax.barh(y, agg.mean, color=color, alpha=0.35, height=0.6)
-                ax.errorbar(
-                    agg.mean,
-                    y,
-                    xerr=[[agg.mean - agg.ci_low], [agg.ci_high - agg.mean]],
-                    color="k",
-                    capsize=4,
-                    linewidth=1.2,
-                )
+                xerr = [[agg.mean - agg.ci_low], [agg.ci_high - agg.mean]]
+                ax.errorbar(agg.mean, y, xerr=xerr, color="k", capsize=4, linewidth=1.2)
             ax.plot(values, [y] * len(values), "o", color=color, markeredgecolor="k", zorder=3)
         ax.set_yticks(ys, [labels.get(c, c) for c in configs] if ax is axes[0] else [""] * len(ys))
         ax.invert_yaxis()

@@ -1,6 +1,6 @@
 """An Optuna study whose trial ``n`` is the ``stages-train`` run of the command's overrides and
-the trial's values, in ``<study dir>/<n>/``; the study directory gets the sweep summary and
-``best.yaml``. Optuna is imported only when a study runs."""
+the trial's values, in ``<study dir>/<n>/``, pruned on its stage evaluations; the study directory
+gets the sweep summary and ``best.yaml``. Optuna is imported only when a study runs."""
 
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from torchrl_stages.config import (
 )
 from torchrl_stages.failures import EXIT_FAILED, DivergenceError, EnvError, one_line
 from torchrl_stages.loggers import StopRun
+from torchrl_stages.metric_names import is_loop_evaluation
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.evaluation import format_summary
@@ -32,7 +33,6 @@ from torchrl_stages.runs.experiment import Experiment, seed_dir
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.sweeps import summarize_or_say
 from torchrl_stages.tune.checks import check_settings, check_space, compose_error
-from torchrl_stages.tune.pruning import TrialPruning, make_pruner, make_sampler
 from torchrl_stages.tune.space import Compose, ParamSpec, hydra_value, search_space, train_overrides
 
 BEST_FILE = "best.yaml"
@@ -63,6 +63,72 @@ class StudyContext:
     overrides: list[str]
     compose: Compose
     hydra_cfg: DictConfig | None = None
+
+
+class TrialPruning:
+    """A run's :data:`~torchrl_stages.loggers.Observer` that reports each loop evaluation's
+    success rate to an Optuna ``trial`` (step: the evaluation's index in the run; the failure
+    rate when the objective is minimized) and raises ``StopRun("pruned")`` when it should stop.
+
+    Examples:
+        >>> class Trial:  # what it uses of an optuna.Trial
+        ...     reported = []
+        ...     def report(self, value, step):
+        ...         self.reported.append((step, value))
+        ...     def should_prune(self):
+        ...         return len(self.reported) >= 2
+        >>> trial = Trial()
+        >>> pruning = TrialPruning(trial)
+        >>> pruning({"eval/stage_4/success_rate": 0.5, "eval/stage_4/value_error": 0.1}, 512)
+        >>> pruning({"train/stage_4/loss": 0.2}, 768)  # not an evaluation
+        >>> pruning({"eval/stage_4/success_rate": 0.25}, 1024)
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.loggers.StopRun: pruned at stage evaluation 1 (...=0.25 at 1024 frames ...)
+        >>> trial.reported
+        [(0, 0.5), (1, 0.25)]
+    """
+
+    def __init__(self, trial: Any, direction: str = "maximize") -> None:
+        self.trial = trial
+        self.minimize = direction == "minimize"
+        self.evaluations = 0
+
+    def __call__(self, metrics: dict[str, float], step: int) -> None:
+        for name, value in metrics.items():
+            if not is_loop_evaluation(name):
+                continue
+            index, self.evaluations = self.evaluations, self.evaluations + 1
+            success = float(value)
+            self.trial.report(1.0 - success if self.minimize else success, index)
+            if self.trial.should_prune():
+                where = f"{name}={success:g} at {step} frames of the stage"
+                raise StopRun("pruned", f"pruned at stage evaluation {index} ({where})")
+
+
+def make_sampler(name: str, seed: int) -> Any:
+    """The seeded Optuna sampler ``tune.sampler`` names."""
+    import optuna
+
+    samplers = optuna.samplers
+    return (samplers.RandomSampler if name == "random" else samplers.TPESampler)(seed=seed)
+
+
+def make_pruner(tune: DictConfig, direction: str) -> Any:
+    """The Optuna pruner ``tune.pruner`` names, over what :class:`TrialPruning` reports."""
+    import optuna
+
+    warmup = int(tune.warmup_steps)
+    if tune.pruner == "median":
+        return optuna.pruners.MedianPruner(
+            n_startup_trials=int(tune.startup_trials), n_warmup_steps=warmup
+        )
+    if tune.pruner == "threshold":
+        below = float(tune.prune_below)
+        if direction == "minimize":  # failure rates reported: above 1 - below is pruned
+            return optuna.pruners.ThresholdPruner(upper=1.0 - below, n_warmup_steps=warmup)
+        return optuna.pruners.ThresholdPruner(lower=below, n_warmup_steps=warmup)
+    return optuna.pruners.NopPruner()
 
 
 def print_results(experiment: Experiment, results: list, run_dir: Path, cfg: DictConfig) -> float:
@@ -169,23 +235,14 @@ def _load_study(cfg: DictConfig, location: str) -> Any:
     study = optuna.create_study(
         storage=storage, study_name=name, direction=direction, load_if_exists=True
     )
-    theirs = study.direction.name.lower()
-    check(
-        theirs == direction,
-        "tune.study_name",
-        name,
-        f"the study in {tune.storage} was made to {theirs} the objective, "
-        f"objective.direction={direction}",
-        "name a new study (tune.study_name=...) or keep objective.direction as the study's",
-    )
-    metric = study.user_attrs.get("objective.metric")
-    check(
-        metric in (None, objective.metric),
-        "tune.study_name",
-        name,
-        f"the study in {tune.storage} optimizes objective.metric={metric}, not {objective.metric}",
-        "name a new study (tune.study_name=...) or keep the study's objective.metric",
-    )
+    theirs, metric = study.direction.name.lower(), study.user_attrs.get("objective.metric")
+    where = f"the study in {tune.storage}"
+    rule = f"{where} was made to {theirs} the objective, objective.direction={direction}"
+    fix = "name a new study (tune.study_name=...) or keep objective.direction as the study's"
+    check(theirs == direction, "tune.study_name", name, rule, fix)
+    rule = f"{where} optimizes objective.metric={metric}, not {objective.metric}"
+    fix = "name a new study (tune.study_name=...) or keep the study's objective.metric"
+    check(metric in (None, objective.metric), "tune.study_name", name, rule, fix)
     if metric is None:
         study.set_user_attr("objective.metric", str(objective.metric))
     seed = int(tune.seed) + len(study.get_trials(deepcopy=False))
