@@ -250,8 +250,7 @@ def evaluate(argv: list[str] | None = None) -> None:
             run.cfg.eval.episodes = args.episodes
         if args.no_plots:
             run.cfg.eval.plots = False
-        previous = directory.read_eval() or {}
-        training = previous.get("training")
+        training = (directory.read_eval() or {}).get("training")
         if not isinstance(training, dict):  # rebuilt from what the run directory keeps
             training = {**directory.training_time(), "stages": run.results}
         before = directory.listing()

@@ -108,7 +108,10 @@ class SweepSummary:
     files: dict[str, Path]
 
     def aggregate(self, config: str, metric: str = "success_rate") -> Aggregate:
-        return next(a for a in self.aggregates if (a.config, a.metric) == (config, metric))
+        for agg in self.aggregates:
+            if (agg.config, agg.metric) == (config, metric):
+                return agg
+        raise KeyError((config, metric))
 
 
 def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0) -> SweepSummary:
