@@ -17,7 +17,7 @@ from torchrl_stages.metric_names import STAGE, TASK, MetricName, parse_metric
 from torchrl_stages.plots import save_figure
 from torchrl_stages.sweeps.jobs import Job, finite_float, result_metrics
 from torchrl_stages.sweeps.jobs import configs as configs_of
-from torchrl_stages.sweeps.stats import Aggregate, _scores, performance_profiles
+from torchrl_stages.sweeps.stats import Aggregate, finished_scores, performance_profiles
 
 #: characters per line of a legend label (the 7-inch performance profile, 8-point text)
 _LEGEND_WIDTH = 90
@@ -153,7 +153,7 @@ def plot_sweep_final(
     ys = np.arange(len(configs))
     for ax, metric in zip(axes, metrics, strict=True):
         for y, config in zip(ys, configs, strict=True):
-            values = _scores(done, config, metric).ravel()
+            values = finished_scores(done, config, metric).ravel()
             agg = by_key.get((config, metric))
             color = f"C{y % 10}"
             if agg is not None and agg.mean is not None:

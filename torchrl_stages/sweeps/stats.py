@@ -16,7 +16,7 @@ REPS = 2000
 CONFIDENCE = 0.95
 
 
-def _scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray:
+def finished_scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray:
     """The finished runs' values as rliable's ``(runs, tasks)`` array, one task."""
     values = [
         v
@@ -85,7 +85,7 @@ def aggregate_jobs(
     for config in configs(jobs):
         failed = sum(j.status != "done" for j in jobs if j.config == config)
         for metric in result_metrics(jobs) if metrics is None else metrics:
-            scores = _scores(jobs, config, metric)
+            scores = finished_scores(jobs, config, metric)
             if scores.size == 0:
                 out.append(Aggregate(config, metric, 0, failed, *[None] * 6))
                 continue
@@ -111,7 +111,7 @@ def performance_profiles(
 
     out = {}
     for config in configs(jobs):
-        scores = _scores(jobs, config, metric)
+        scores = finished_scores(jobs, config, metric)
         if scores.size:
             out[config] = interval_estimates(scores, profile, seed)
     return out
