@@ -156,6 +156,16 @@ def test_read_job_status_and_numbers(sweep):
     assert killed.status == "incomplete" and "still running" in killed.reason
 
 
+def test_a_job_on_its_own_and_labels_without_shared_overrides(tmp_path):
+    from torchrl_stages.sweeps.figures import short_labels
+
+    trial = make_job(tmp_path, "3", [], status=("pruned", "pruned at stage evaluation 2"))
+    job = read_job(trial)  # named after its own folder
+    assert (job.name, job.status, job.reason) == ("3", "pruned", "pruned at stage evaluation 2")
+    labels = short_labels(["a=1 seed=0", "a=2 seed=0"])
+    assert labels == {"a=1 seed=0": "a=1", "a=2 seed=0": "a=2"}
+
+
 def test_summary_files(sweep):
     summary = summarize_sweep(sweep)
     assert set(summary.files) == {

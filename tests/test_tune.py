@@ -213,3 +213,24 @@ def test_a_bad_search_space_fails_before_any_training(tmp_path, params, message)
         with pytest.raises(ConfigError, match=message):
             run_study(cfg, context)
     assert list(tmp_path.iterdir()) == []  # no storage, no study directory
+
+
+def test_values_overrides_and_storage_as_written_on_the_command_line():
+    from torchrl_stages.tune.space import hydra_value, search_space, train_overrides
+    from torchrl_stages.tune.study import storage_location
+
+    values = [hydra_value(v) for v in (3, 0.001, True, None, "sac", "a b")]
+    assert values == ["3", "0.001", "true", "null", "sac", "'a b'"]
+    space = search_space(
+        {
+            "task.stages.s3.lr": {"low": 1e-4, "high": 1e-2, "log": True},
+            "task": {"stages": {"s2": {"gamma": {"choices": [0.9, 0.99]}}}},
+        }
+    )
+    kinds = [("task.stages.s3.lr", "float"), ("task.stages.s2.gamma", "categorical")]
+    assert [(p.name, p.kind) for p in space] == kinds
+    overrides = ["experiment=smoke", "tune.n_trials=4", "+tune.params={}", "tune=lr"]
+    assert train_overrides(overrides) == ["experiment=smoke"]
+    assert storage_location("sqlite:///study.db", "/runs") == "sqlite:////runs/study.db"
+    assert storage_location("study.log", "/runs") == "/runs/study.log"
+    assert storage_location("postgresql://host/optuna", "/runs") == "postgresql://host/optuna"

@@ -1,40 +1,29 @@
-"""Console scripts: ``stages-train`` (Hydra app), ``stages-tune`` (Hydra app),
-``stages-eval RUN_DIR``, ``stages-report SWEEP_DIR`` and ``stages-store ls|rm|prune DIR``, and
-the Hydra callback that summarizes a sweep.
-
-All are thin shells over the library: :class:`torchrl_stages.runs.experiment.Experiment` trains,
-:mod:`torchrl_stages.tune` runs an Optuna study of such runs,
-:func:`torchrl_stages.runs.loading.load_run` and :func:`torchrl_stages.runs.evaluation.evaluate_run`
-re-evaluate, :func:`torchrl_stages.sweeps.summarize_sweep` summarizes. Exit codes: 0 done,
-1 failed (the env or other code raised, or returned NaN), 2 invalid config, refused or
-damaged directory, or a file that cannot be written, 3 training diverged, 128 + N stopped by
-signal N with a checkpoint (143 SIGTERM, 130 SIGINT, 138 SIGUSR1).
-"""
+"""The console scripts (``stages-train``, ``-tune``, ``-eval``, ``-report``, ``-store``) and
+their Hydra callbacks. Exit codes: 0 done, 1 failed, 2 invalid config, refused directory or
+unwritable file, 3 diverged, 128 + N stopped by signal N with a checkpoint."""
 
 from __future__ import annotations
 
 import argparse
-import atexit
 import contextlib
 import io
-import logging
-import os
 import re
 import sys
 import time
 import traceback
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import hydra
 import torch
+from hydra._internal.utils import get_args_parser
 from hydra.core.hydra_config import HydraConfig
-from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from torchrl_stages.callbacks import RunDirCallback
 from torchrl_stages.checkpoint import CheckpointDamagedError
-from torchrl_stages.config import apply_all_stages, objective_value, stage_keys_set
+from torchrl_stages.config import apply_all_stages, stage_keys_set
 from torchrl_stages.failures import (
     EXIT_DIVERGED,
     EXIT_FAILED,
@@ -48,13 +37,14 @@ from torchrl_stages.hydra_configs import register_configs
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.evaluation import evaluate_run, format_summary
-from torchrl_stages.runs.experiment import Experiment, seed_dir
+from torchrl_stages.runs.experiment import Experiment
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.runs.loading import load_run
 from torchrl_stages.runs.seed_run import with_env_stages
 from torchrl_stages.runs.stage_store import SharedStageStore, StageEntry, StoreError
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.tune import StudyContext, StudyError, run_study
+from torchrl_stages.tune.study import print_results
 from torchrl_stages.validate import ConfigError, validate_sweeper
 
 
@@ -62,9 +52,13 @@ class JobFailed(RuntimeError):
     """A multirun job that failed; its directory's ``status.json`` says why."""
 
 
+def _exit(prog: str, message: str, code: int = EXIT_INVALID) -> NoReturn:
+    print(f"{prog}: {message}", file=sys.stderr)
+    sys.exit(code)
+
+
 def _hydra_files(cfg: DictConfig) -> dict[str, Any]:
-    """What Hydra writes to ``.hydra/`` (its ``output_subdir`` is off, see ``conf/config.yaml``):
-    the composed config, Hydra's config and the command-line overrides."""
+    """What Hydra would write to ``.hydra/`` (the run writes it: ``output_subdir`` is off)."""
     hydra_cfg = HydraConfig.get()
     return {
         "config.yaml": cfg,
@@ -73,77 +67,17 @@ def _hydra_files(cfg: DictConfig) -> dict[str, Any]:
     }
 
 
-def _fail(run_dir: Path, status: str, message: str, code: int, write_status: bool) -> None:
-    """Reports a failed job: one line on stderr (``write_status``: also ``status.json``); in a
-    multirun an exception, so the sweep goes on with the other jobs and exits non-zero. A
-    refused run (exit 2) takes away the directories Hydra made for it (:class:`RunDirCallback`).
-    """
-    print(f"stages-train: {message}", file=sys.stderr)
-    multirun = HydraConfig.get().mode == RunMode.MULTIRUN
-    if write_status:
-        RunDir(run_dir).write_status(status, message)
-    if multirun:
+def _fail(run_dir: Path, message: str, code: int, status: str | None = None) -> NoReturn:
+    """Reports a failed job in one line (and ``status.json`` with ``status``); in a multirun it
+    raises, so the sweep goes on; a refused run takes away the directories Hydra made for it."""
+    if HydraConfig.get().mode == RunMode.MULTIRUN:
+        print(f"stages-train: {message}", file=sys.stderr)
+        if status is not None:
+            RunDir(run_dir).write_status(status, message)
         raise JobFailed(f"{run_dir}: {message}")
     if code == EXIT_INVALID:
         RunDirCallback.remove_made(run_dir)
-    sys.exit(code)
-
-
-class RunDirCallback(Callback):
-    """Hydra callback (``hydra.callbacks.run_dir`` in ``conf/config.yaml``): before Hydra makes
-    ``hydra.run.dir`` (and the parents it lacks), notes which of them do not exist yet and what
-    the run directory holds, so that a refused run takes away what Hydra made for it and
-    nothing else (:meth:`remove_made`).
-
-    Examples:
-        >>> import tempfile
-        >>> from omegaconf import OmegaConf
-        >>> root = Path(tempfile.mkdtemp())
-        >>> run_dir = root / "outputs" / "run"
-        >>> RunDirCallback().on_run_start(OmegaConf.create({"hydra": {"run": {"dir": run_dir}}}))
-        >>> run_dir.mkdir(parents=True)  # what Hydra does next
-        >>> RunDirCallback.remove_made(run_dir)
-        >>> sorted(root.iterdir())  # outputs/ went with it; root/ was there before
-        []
-    """
-
-    run_dir: Path | None = None
-    #: the directories of the run directory's path that did not exist, deepest first
-    made: list[Path] = []
-    #: what the run directory held before the launch (when it existed)
-    held: frozenset[str] = frozenset()
-
-    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        cls = RunDirCallback
-        cls.run_dir, cls.made, cls.held = None, [], frozenset()
-        with contextlib.suppress(Exception):  # a path it cannot tell: nothing is removed
-            path = cls.run_dir = Path(os.path.abspath(str(config.hydra.run.dir)))
-            while not path.exists() and path != path.parent:
-                cls.made.append(path)
-                path = path.parent
-            if not cls.made:
-                cls.held = frozenset(os.listdir(cls.run_dir))
-
-    @classmethod
-    def remove_made(cls, run_dir: Path) -> None:
-        """Removes Hydra's log of this launch from ``run_dir`` (``<hydra.job.name>.log``, when
-        the launch made it), then ``run_dir`` and its parents that the launch made while they
-        are empty: a directory of the user's, and anything else in one, is kept as it is."""
-        if cls.run_dir is None or cls.run_dir != Path(os.path.abspath(run_dir)):
-            return
-        root = logging.getLogger()
-        for handler in list(root.handlers):
-            log = Path(getattr(handler, "baseFilename", ""))
-            if log.parent == cls.run_dir and log.name not in cls.held:
-                root.removeHandler(handler)
-                handler.close()
-                log.unlink(missing_ok=True)
-        for path in cls.made:
-            try:
-                path.rmdir()
-            except OSError:  # it holds something else
-                break
-        cls.run_dir, cls.made, cls.held = None, [], frozenset()
+    _exit("stages-train", message, code)
 
 
 @hydra.main(config_path="pkg://torchrl_stages.conf", config_name="config", version_base="1.3")
@@ -158,45 +92,39 @@ def _train_app(cfg: DictConfig) -> float:
         # seeds=[...]: several seeds in one process, one directory each
         experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
     except RunDirError as err:  # the directory holds another run (or process): touch nothing
-        _fail(run_dir, "refused", str(err), EXIT_INVALID, write_status=False)
+        _fail(run_dir, str(err), EXIT_INVALID)
     except ConfigError as err:
         if multirun:  # the job's own fresh directory: the sweep summary shows why
             RunDir(run_dir).write_hydra_files(_hydra_files(cfg))
-        _fail(run_dir, "invalid", f"invalid config: {err}", EXIT_INVALID, write_status=multirun)
+        _fail(run_dir, f"invalid config: {err}", EXIT_INVALID, status="invalid")
     except OSError as err:
-        _fail(run_dir, "refused", _cannot_write(err, run_dir), EXIT_INVALID, write_status=False)
+        _fail(run_dir, _cannot_write(err, run_dir), EXIT_INVALID)
     try:  # how a run that does not finish ended is in its status.json (Experiment.run)
         results = experiment.run()
     except Interrupted as err:
-        print(
-            f"stages-train: {err}; what it needs to continue is written. Fix: continue it with "
-            f"the same command and resume=true (hydra.run.dir={run_dir})",
-            file=sys.stderr,
-        )
-        sys.exit(err.exit_code)
+        fix = f"Fix: continue it with the same command and resume=true (hydra.run.dir={run_dir})"
+        _exit("stages-train", f"{err}; what it needs to continue is written. {fix}", err.exit_code)
     except DivergenceError as err:
-        _fail(run_dir, "diverged", str(err), EXIT_DIVERGED, write_status=False)
+        _fail(run_dir, str(err), EXIT_DIVERGED)
     except (RunDirError, CheckpointDamagedError) as err:
-        _fail(run_dir, "failed", str(err), EXIT_INVALID, write_status=False)
+        _fail(run_dir, str(err), EXIT_INVALID)
     except OSError as err:
-        _fail(run_dir, "failed", _cannot_write(err, run_dir), EXIT_INVALID, write_status=False)
+        _fail(run_dir, _cannot_write(err, run_dir), EXIT_INVALID)
     except (EnvError, SuccessKeyError) as err:
-        _fail(run_dir, "failed", str(err), EXIT_FAILED, write_status=False)
+        _fail(run_dir, str(err), EXIT_FAILED)
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
-        _fail(run_dir, "failed", one_line(err), EXIT_FAILED, write_status=False)
-    for seed, result in zip(experiment.seeds, results, strict=True):
-        print(format_summary(result, seed_dir(run_dir, seed) if experiment.stacked else run_dir))
+        _fail(run_dir, one_line(err), EXIT_FAILED)
+    objective = print_results(experiment, results, run_dir, cfg)  # over seeds: their mean
     if experiment.stacked:
         print(f"Seeds' summary: {run_dir}")  # what summarize_sweep wrote over them
         for path in sorted(run_dir.glob("summary*")):
             print(f"  {path.name}: {path}")
-    values = [objective_value(result, cfg) for result in results]
-    return sum(values) / len(values)  # several seeds: what a sweep over them optimizes
+    return objective
 
 
 def _cannot_write(err: OSError, run_dir: Path) -> str:
-    """One line for a file that could not be written (disk full, read-only, permissions)."""
+    """One line for a file that could not be written."""
     where = err.filename or run_dir
     return (
         f"cannot write {where}: {err.strerror or err}. Fix: free space on that disk or make it "
@@ -205,7 +133,7 @@ def _cannot_write(err: OSError, run_dir: Path) -> str:
 
 
 def train() -> None:
-    """``stages-train [OVERRIDES...]``: train a task with the backward schedule (Hydra CLI)."""
+    """``stages-train [OVERRIDES...]``: train a task (Hydra CLI)."""
     register_configs()
     if not _shows_config(sys.argv[1:]):
         _train_app()
@@ -221,28 +149,13 @@ def train() -> None:
 
 
 def _shows_config(args: list[str]) -> bool:
-    """Whether the command line asks Hydra for the job's config (``--cfg job|all``)."""
-    for index, arg in enumerate(args):
-        value = arg.split("=", 1)[1] if arg.startswith("--cfg=") else None
-        if arg in ("--cfg", "-c") and index + 1 < len(args):
-            value = args[index + 1]
-        if value in ("job", "all"):
-            return True
-    return False
+    """Whether the command line asks for the job's config (``--cfg job|all``)."""
+    return get_args_parser().parse_known_args(args)[0].cfg in ("job", "all")
 
 
 def with_template_stages(text: str) -> str:
-    """The YAML of a composed config (``stages-train --cfg job``), its ``task.stages`` made from
-    ``task.stage_template`` as a run makes them, from the env's ``num_stages``
-    (:func:`~torchrl_stages.runs.seed_run.with_env_stages`); where the env cannot be built (its
-    keys not set yet), the text with a comment on ``stages:`` saying so. Other text as given.
-
-    Examples:
-        >>> lines = ["task:", "  name: gym", "  stages: {}", "  stage_template:", "    algo: dqn"]
-        >>> text = chr(10).join(lines) + chr(10)  # no env to build: said where the stages are
-        >>> print(with_template_stages(text).splitlines()[2][:60])
-          stages: {}  # made from the env: s0, s1, ... for its num_s
-    """
+    """``--cfg job``'s YAML with ``task.stages`` made from ``task.stage_template`` as a run makes
+    them, or, where the env cannot be built, a comment on ``stages:`` saying why."""
     try:
         cfg = OmegaConf.create(text)
     except Exception:  # noqa: BLE001 - not one YAML document (--package, a value): as given
@@ -267,9 +180,8 @@ def with_template_stages(text: str) -> str:
 
 @hydra.main(config_path="pkg://torchrl_stages.conf", config_name="tune", version_base="1.3")
 def tune_app(cfg: DictConfig) -> None:
-    """``stages-tune [OVERRIDES...]`` (Hydra app; ``torchrl_stages.cli.tune`` registers the
-    schemas first). Exit codes: 0 done, 1 every trial failed, 2 invalid config or a study that
-    cannot go on, 128 + N stopped by signal N."""
+    """Exit codes: 0 done, 1 every trial failed, 2 invalid config or a study that cannot go on,
+    128 + N stopped by signal N."""
     hydra_cfg = HydraConfig.get()
 
     def compose(overrides: list[str]) -> DictConfig:
@@ -285,26 +197,18 @@ def tune_app(cfg: DictConfig) -> None:
     try:
         code = run_study(cfg, context)
     except ConfigError as err:
-        print(f"stages-tune: invalid config: {err}", file=sys.stderr)
-        sys.exit(EXIT_INVALID)
+        _exit("stages-tune", f"invalid config: {err}")
     except StudyError as err:
-        print(f"stages-tune: {err}", file=sys.stderr)
-        sys.exit(EXIT_INVALID)
+        _exit("stages-tune", str(err))
     except Interrupted as err:
-        print(
-            f"stages-tune: {err}; the trial is recorded as failed. Fix: run the same command "
-            "again to go on with the study",
-            file=sys.stderr,
-        )
-        sys.exit(err.exit_code)
+        fix = "Fix: run the same command again to go on with the study"
+        _exit("stages-tune", f"{err}; the trial is recorded as failed. {fix}", err.exit_code)
     if code:
-        print("stages-tune: every trial failed (their status.json say why)", file=sys.stderr)
-        sys.exit(code)
+        _exit("stages-tune", "every trial failed (their status.json say why)", code)
 
 
 def tune() -> None:
-    """``stages-tune [OVERRIDES...]``: tune hyper-parameters with Optuna, each trial a
-    ``stages-train`` run (Hydra CLI; :mod:`torchrl_stages.tune`)."""
+    """``stages-tune [OVERRIDES...]``: an Optuna study of ``stages-train`` runs (Hydra CLI)."""
     register_configs()
     tune_app()
 
@@ -346,8 +250,7 @@ def evaluate(argv: list[str] | None = None) -> None:
             run.cfg.eval.episodes = args.episodes
         if args.no_plots:
             run.cfg.eval.plots = False
-        previous = directory.read_eval() or {}
-        training = previous.get("training")
+        training = (directory.read_eval() or {}).get("training")
         if not isinstance(training, dict):  # rebuilt from what the run directory keeps
             training = {**directory.training_time(), "stages": run.results}
         before = directory.listing()
@@ -355,69 +258,13 @@ def evaluate(argv: list[str] | None = None) -> None:
         if directory.has_record():
             directory.claim_new(before)
     except RunDirError as err:
-        print(f"stages-eval: {err}", file=sys.stderr)
-        sys.exit(EXIT_INVALID)
+        _exit("stages-eval", str(err))
     except OSError as err:
-        print(f"stages-eval: {_cannot_write(err, args.run_dir)}", file=sys.stderr)
-        sys.exit(EXIT_INVALID)
+        _exit("stages-eval", _cannot_write(err, args.run_dir))
     finally:
         if lock is not None:
             lock.release()
     print(format_summary(result, args.run_dir))
-
-
-class SweepSummaryCallback(Callback):
-    """Hydra callback (``hydra.callbacks.sweep_summary`` in ``conf/config.yaml``): when a
-    multirun ends, writes the sweep's summary (:func:`torchrl_stages.sweeps.summarize_sweep`)
-    into ``hydra.sweep.dir``, also when a job failed (the sweep then exits non-zero, after the
-    summary). Before any job runs, it checks that a sweeper optimizing a direction of its own
-    (``hydra.sweeper.direction``) optimizes ``objective.direction``. Jobs may run anywhere
-    (submitit, Ray): the summary only reads the job directories in the sweep directory.
-
-    Examples:
-        >>> import tempfile
-        >>> from omegaconf import OmegaConf
-        >>> sweep = tempfile.mkdtemp()
-        >>> callback = SweepSummaryCallback(plots=False)
-        >>> cfg = OmegaConf.create({"hydra": {"sweep": {"dir": sweep}, "sweeper": {}},
-        ...                         "objective": {"metric": "success_rate",
-        ...                                       "direction": "maximize"}})
-        >>> callback.on_multirun_start(cfg)
-        >>> callback.on_multirun_end(cfg)  # no job here: nothing to summarize
-    """
-
-    def __init__(self, plots: bool = True) -> None:
-        self.plots = plots
-        self._sweep_dir: Path | None = None
-
-    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        try:
-            validate_sweeper(config.hydra.get("sweeper"), config)
-        except ConfigError as err:
-            print(f"stages-train: invalid config: {err}", file=sys.stderr)
-            sys.exit(EXIT_INVALID)
-        self._sweep_dir = Path(str(config.hydra.sweep.dir))
-        # a failed job makes Hydra's sweepers raise before on_multirun_end: summarize at exit
-        atexit.register(self._summarize)
-
-    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        atexit.unregister(self._summarize)
-        self._summarize()
-
-    def _summarize(self) -> None:
-        sweep_dir, self._sweep_dir = self._sweep_dir, None
-        if sweep_dir is None or not sweep_dir.is_dir() or not find_jobs(sweep_dir):
-            return
-        try:
-            summary = summarize_sweep(sweep_dir, plots=self.plots)
-        except Exception as err:  # a summary must never hide the sweep's own outcome
-            print(f"stages-train: no sweep summary ({type(err).__name__}: {err})", file=sys.stderr)
-            return
-        done = sum(job.status == "done" for job in summary.jobs)
-        print(
-            f"Sweep summary: {summary.files['summary.md']} ({done} of {len(summary.jobs)} jobs "
-            "finished)"
-        )
 
 
 def report(argv: list[str] | None = None) -> None:
@@ -436,16 +283,14 @@ def report(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     directory: Path = args.sweep_dir
     if not directory.is_dir():
-        print(f"stages-report: {directory} is not a directory", file=sys.stderr)
-        sys.exit(EXIT_INVALID)
+        _exit("stages-report", f"{directory} is not a directory")
     if not find_jobs(directory):
-        print(
-            f"stages-report: no job directory under {directory} (a job directory holds "
-            ".hydra/overrides.yaml, eval.json, status.json or config.yaml). Fix: pass the sweep "
-            "directory of a `stages-train -m` run (hydra.sweep.dir)",
-            file=sys.stderr,
+        _exit(
+            "stages-report",
+            f"no job directory under {directory} (a job directory holds .hydra/overrides.yaml, "
+            "eval.json, status.json or config.yaml). Fix: pass the sweep directory of a "
+            "`stages-train -m` run (hydra.sweep.dir)",
         )
-        sys.exit(EXIT_INVALID)
     summary = summarize_sweep(directory, plots=not args.no_plots, seed=args.seed)
     for agg in summary.aggregates:
         if agg.metric == "success_rate":
@@ -490,12 +335,11 @@ def stage_store(argv: list[str] | None = None) -> None:
     prune.add_argument("--dry-run", action="store_true", help="list what would be removed")
     args = parser.parse_args(argv)
     if not (args.store / "entries").is_dir():
-        print(
-            f"stages-store: {args.store} is not a stage store (no entries/ in it). Fix: pass the "
-            "directory given to stages-train as stage_store=DIR",
-            file=sys.stderr,
+        _exit(
+            "stages-store",
+            f"{args.store} is not a stage store (no entries/ in it). Fix: pass the directory "
+            "given to stages-train as stage_store=DIR",
         )
-        sys.exit(EXIT_INVALID)
     store = SharedStageStore(args.store)
     try:
         if args.command == "ls":
@@ -510,8 +354,7 @@ def stage_store(argv: list[str] | None = None) -> None:
                 print(f"{verb} {path}")
             print(f"{verb} {len(removed)} item(s)")
     except StoreError as err:
-        print(f"stages-store: {err}", file=sys.stderr)
-        sys.exit(EXIT_INVALID)
+        _exit("stages-store", str(err))
 
 
 def format_entries(entries: list[StageEntry]) -> str:

@@ -1,14 +1,5 @@
-"""Loggers: torchrl's, plus one tidy ``metrics.csv`` per run whichever backend is chosen.
-
-``metrics.csv`` (``name,step,value``) is the run directory's own record of every scalar: the
-learning curves (``learning_curves.png``) and sweep summaries read it. The ``csv`` backend writes
-it next to torchrl's per-tag files; every other backend (``tensorboard``, ``wandb``, ``mlflow``)
-and ``none`` get it through :class:`RunLogger`.
-
-Both loggers take ``observers`` (:data:`Observer`): code that watches a run's metrics as they
-are written (``stages-tune`` reports each stage evaluation to its Optuna trial) and may end the
-run by raising :class:`StopRun`. The training loops only log; they never know who watches.
-"""
+"""A run's logger: every scalar to the run's ``metrics.csv`` (which the learning curves and
+sweep summaries read) and to the torchrl backend ``logger.backend`` names, shown to observers."""
 
 from __future__ import annotations
 
@@ -23,16 +14,13 @@ from torchrl.record.loggers import CSVLogger, Logger, get_logger
 
 METRICS_HEADER = ["name", "step", "value"]
 
-#: ``observer(metrics, step)``: sees each group of scalars logged together (one stage
-#: evaluation's numbers, one batch's losses; :class:`~torchrl_stages.loop.MetricsLog`), once
-#: they are written to ``metrics.csv``; it may end the run by raising :class:`StopRun`
+#: ``observer(metrics, step)`` sees each group of scalars logged together, once written; it
+#: may end the run by raising :class:`StopRun`
 Observer = Callable[[dict[str, float], int], None]
 
 
 class StopRun(Exception):  # noqa: N818 - an outcome, not an error
-    """Raised by an :data:`Observer` to end a run early, as ``status`` (e.g. ``pruned``): the
-    run's ``status.json`` records the status and the reason
-    (:meth:`torchrl_stages.runs.experiment.Experiment.run`).
+    """Raised by an :data:`Observer` to end a run early; ``status.json`` records both strings.
 
     Examples:
         >>> err = StopRun("pruned", "stage 4's success rate 0.1 is below the median")
@@ -45,82 +33,10 @@ class StopRun(Exception):  # noqa: N818 - an outcome, not an error
         self.status = status
 
 
-class _Observed:
-    """What both loggers share: the observers and :meth:`notify`."""
-
-    observers: tuple[Observer, ...] = ()
-
-    def notify(self, metrics: dict[str, float], step: int) -> None:
-        """Shows a group of scalars just logged (at ``step``) to every observer."""
-        for observer in self.observers:
-            observer(metrics, step)
-
-
-class MetricsCSVLogger(_Observed, CSVLogger):
-    """torchrl's ``CSVLogger`` that also appends every scalar to one ``name,step,value`` file.
-
-    Names carry the namespace (``train/stage_3/loss``, ``eval/stage_3/success_rate``,
-    ``eval/final/success_rate``); ``step`` counts the frames of that stage.
-
-    Examples:
-        >>> import tempfile, pathlib
-        >>> d = pathlib.Path(tempfile.mkdtemp())
-        >>> logger = MetricsCSVLogger("csv", log_dir=str(d), metrics_file=d / "metrics.csv")
-        >>> logger.log_scalar("train/stage_0/loss", 0.5, step=10)
-        >>> (d / "metrics.csv").read_text().splitlines()
-        ['name,step,value', 'train/stage_0/loss,10,0.5']
-    """
-
-    def __init__(
-        self,
-        exp_name: str,
-        log_dir: str,
-        metrics_file: str | Path,
-        observers: Sequence[Observer] = (),
-    ) -> None:
-        super().__init__(exp_name=exp_name, log_dir=log_dir)
-        self.metrics_file = Path(metrics_file)
-        self.observers = tuple(observers)
-        if not self.metrics_file.exists():
-            self._append(["name", "step", "value"])
-
-    def _append(self, row: list) -> None:
-        # Open per row: nothing stays open, and a crashed run keeps every row written so far.
-        with self.metrics_file.open("a", newline="") as f:
-            csv.writer(f).writerow(row)
-
-    def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
-        super().log_scalar(name, value, step=step)
-        self._append([name, step, float(value)])
-
-    def _files(self) -> dict[str, Path]:
-        """The files this logger appends to, by path relative to the run directory."""
-        root = self.metrics_file.parent
-        files = [self.metrics_file, *sorted(Path(self.experiment.log_dir).rglob("*.csv"))]
-        return {f.relative_to(root).as_posix(): f for f in files}
-
-    def position(self) -> dict[str, int]:
-        """The size of every file this logger appends to (``metrics.csv`` and torchrl's
-        per-tag files), for :meth:`rewind`."""
-        return {name: f.stat().st_size for name, f in self._files().items() if f.is_file()}
-
-    def rewind(self, position: dict[str, int]) -> None:
-        """Truncates the files to a :meth:`position` (rows written after it are dropped; files
-        created after it are emptied), so a resumed run does not log anything twice."""
-        for name, f in self._files().items():
-            if f.is_file():
-                with f.open("r+b") as handle:
-                    handle.truncate(position.get(name, 0))
-        if self.metrics_file.stat().st_size == 0:
-            self._append(["name", "step", "value"])
-
-
-class RunLogger(_Observed, Logger):
-    """Appends every scalar to the run's ``metrics.csv`` and forwards every call to a torchrl
-    ``backend`` logger (``None``: no backend, ``logger=none``).
-
-    Like :class:`MetricsCSVLogger` it has :meth:`position` / :meth:`rewind` for resumed runs
-    (on ``metrics.csv``; a backend's own records are not rewound).
+class RunLogger(Logger):
+    """Appends every scalar to ``metrics_file`` and forwards every call to a torchrl
+    ``backend`` (``None``: none). :meth:`position` and :meth:`rewind` let a resumed run log
+    nothing twice (``metrics.csv`` and a ``CSVLogger`` backend's files).
 
     Examples:
         >>> import tempfile, pathlib
@@ -150,8 +66,14 @@ class RunLogger(_Observed, Logger):
         return None if self.backend is None else self.backend.experiment
 
     def _append(self, row: list) -> None:
-        with self.metrics_file.open("a", newline="") as f:  # nothing stays open
+        # opened per row: nothing stays open, and a crashed run keeps every row written
+        with self.metrics_file.open("a", newline="") as f:
             csv.writer(f).writerow(row)
+
+    def notify(self, metrics: dict[str, float], step: int) -> None:
+        """Shows a group of scalars just logged (at ``step``) to every observer."""
+        for observer in self.observers:
+            observer(metrics, step)
 
     def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
         self._append([name, step, float(value)])
@@ -173,33 +95,40 @@ class RunLogger(_Observed, Logger):
     def __repr__(self) -> str:
         return f"RunLogger({self.metrics_file}, backend={self.backend!r})"
 
+    def _files(self) -> dict[str, Path]:
+        """The files this logger appends to, by path relative to the run directory."""
+        root, files = self.metrics_file.parent, [self.metrics_file]
+        if isinstance(self.backend, CSVLogger):
+            files += sorted(Path(self.backend.experiment.log_dir).rglob("*.csv"))
+        return {f.relative_to(root).as_posix(): f for f in files}
+
     def position(self) -> dict[str, int]:
-        """The size of ``metrics.csv``, for :meth:`rewind`."""
-        return {self.metrics_file.name: self.metrics_file.stat().st_size}
+        """The size of every file this logger appends to, for :meth:`rewind`."""
+        return {name: f.stat().st_size for name, f in self._files().items() if f.is_file()}
 
     def rewind(self, position: dict[str, int]) -> None:
-        """Truncates ``metrics.csv`` to a :meth:`position` (a resumed run logs nothing twice)."""
-        with self.metrics_file.open("r+b") as handle:
-            handle.truncate(position.get(self.metrics_file.name, 0))
+        """Truncates the files to a :meth:`position` (files made after it are emptied)."""
+        for name, f in self._files().items():
+            if f.is_file():
+                with f.open("r+b") as handle:
+                    handle.truncate(position.get(name, 0))
         if self.metrics_file.stat().st_size == 0:
             self._append(METRICS_HEADER)
 
 
 def make_logger(cfg: DictConfig, run_dir: Path, observers: Sequence[Observer] = ()) -> Logger:
-    """The logger of ``cfg.logger`` writing inside ``run_dir``; every backend (``none``
-    included) also writes the run's ``metrics.csv``, and shows what it logs to ``observers``."""
+    """The :class:`RunLogger` of ``cfg.logger`` in ``run_dir``."""
     backend = cfg.logger.backend
-    metrics_file = run_dir / "metrics.csv"
     if backend == "none":
-        return RunLogger(metrics_file, observers=observers)
-    if backend == "csv":
-        return MetricsCSVLogger(
-            "csv", log_dir=str(run_dir), metrics_file=metrics_file, observers=observers
+        external = None
+    elif backend == "csv":
+        external = CSVLogger("csv", log_dir=str(run_dir))
+    else:
+        kwargs = {"project": cfg.logger.project} if backend == "wandb" else {}
+        external = get_logger(
+            backend,
+            logger_name=str(run_dir),
+            experiment_name=cfg.logger.exp_name,
+            wandb_kwargs=kwargs,
         )
-    kwargs = {}
-    if backend == "wandb":
-        kwargs = {"project": cfg.logger.project}
-    external = get_logger(
-        backend, logger_name=str(run_dir), experiment_name=cfg.logger.exp_name, wandb_kwargs=kwargs
-    )
-    return RunLogger(metrics_file, external, observers=observers)
+    return RunLogger(run_dir / "metrics.csv", external, observers=observers)

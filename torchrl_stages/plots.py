@@ -1,9 +1,5 @@
-"""Learning curves of a run, and what the tasks' own figures share (``save_figure``, ``circle``).
-
-Figures are built with :class:`matplotlib.figure.Figure` and written with ``savefig``, so no
-pyplot state and no backend switching is involved: importing this module leaves the user's
-matplotlib backend alone.
-"""
+"""A run's learning curves, and what the tasks' figures share. Figures are drawn on a
+:class:`matplotlib.figure.Figure`, never pyplot: the user's matplotlib backend is left alone."""
 
 from __future__ import annotations
 
@@ -19,15 +15,13 @@ if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn: it costs ev
     from matplotlib.figure import Figure
     from matplotlib.patches import Circle
 
-__all__ = ["DPI", "circle", "plot_learning_curves", "read_stage_metrics", "save_figure"]
-
 DPI = 120
 #: the size of one learning-curve panel with its labels, in inches (width, height)
 _PANEL = (3.6, 2.7)
 
 
 def save_figure(fig: Figure, out: str | Path) -> Path:
-    """Writes ``fig`` as PNG to ``out`` (creating parent folders); returns the path."""
+    """Writes ``fig`` as PNG to ``out`` (and its parent folders)."""
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=DPI, format="png")
@@ -40,8 +34,7 @@ Series = dict[tuple[str, str, str], list[tuple[float, float]]]  # (kind, scope, 
 
 
 def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
-    """``{stage: {(kind, scope, metric): [(step, value), ...]}}`` from a ``name,step,value``
-    CSV (rows not tied to a stage, e.g. ``eval/task/...``, are left out)."""
+    """A ``metrics.csv``'s rows of each stage (or joint phase) by stage index."""
     out: dict[int, Series] = defaultdict(lambda: defaultdict(list))
     with open(metrics_csv, newline="") as handle:
         for row in csv.DictReader(handle):
@@ -58,10 +51,8 @@ def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
 
 
 def _stage_panels(series: Series, names: Sequence[str] | None) -> list[tuple[str, list]]:
-    """The panels of one stage: every loss its learner logs (one each), its gradient norms,
-    the evaluations' success and value error, and the training episode return."""
-    metrics = {metric for (_, _, metric) in series if names is None or metric in names}
-    keys = [k for k in series if k[2] in metrics]
+    """One stage's panels: each loss, the gradient norms, evaluations and episode return."""
+    keys = [k for k in series if names is None or k[2] in names]
 
     def pick(kind: str, test) -> list[tuple[str, str, str]]:
         return sorted(k for k in keys if k[0] == kind and test(k[2]))
@@ -86,15 +77,9 @@ def _stage_panels(series: Series, names: Sequence[str] | None) -> list[tuple[str
 def plot_learning_curves(
     metrics_csv: str | Path, out: str | Path, names: Sequence[str] | None = None
 ) -> Path | None:
-    """Training curves of every stage: one row per stage, one panel per loss the stage's
-    learner logs (DQN ``loss``; DDPG ``loss_value``, ``loss_actor``; TD3 ``loss_qvalue``,
-    ``loss_actor``), its gradient norms (``grad_norm*``), the greedy evaluations' success rate
-    and value error, and the training episode return, against the frames of the stage.
-
-    Reads a ``name,step,value`` CSV (``train/stage_3/loss``, ``eval/stage_3/success_rate``;
-    the joint schedule's ``eval/joint_<k>/...`` phase evaluations go to row k, dashed).
-    ``names`` keeps only those metrics. Returns None when nothing matches.
-    """
+    """One row of panels per stage of a ``metrics.csv`` (:func:`_stage_panels`) against the
+    stage's frames; a joint phase's evaluations dashed in its stage's row. ``names`` keeps only
+    those metrics; ``None`` when nothing matches."""
     stages = read_stage_metrics(metrics_csv)
     rows = [(k, _stage_panels(stages[k], names)) for k in sorted(stages)]
     rows = [(k, panels) for k, panels in rows if panels]

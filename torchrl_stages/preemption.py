@@ -1,17 +1,6 @@
-"""Pre-emption: SIGTERM, SIGINT and SIGUSR1 end a run cleanly at the next safe point.
-
-Schedulers ask a job to stop before they kill it (SLURM and ``scancel`` send SIGTERM, or the
-signal of ``--signal``); a terminal sends SIGINT. Inside :func:`handle_signals` such a signal
-only records a request: the training loops finish the update in progress, write a checkpoint
-(whatever ``checkpoint_every`` says) and raise :class:`Interrupted`, which ``stages-train``
-turns into ``status.json`` (``interrupted``) and exit code ``128 + signal number``. The same
-command with ``resume=true`` then continues bitwise where the run stopped. A second signal
-gets the handler that was there before (the default: an immediate end), for a user who does
-not want to wait.
-
-A handler installed before (a launcher's, e.g. submitit's requeue on its pre-emption signal)
-is not lost: it runs once the block has ended on that signal, after the checkpoint is written.
-"""
+"""SIGTERM, SIGINT and SIGUSR1 end a run cleanly: the loops write a checkpoint at the next safe
+point and raise :class:`Interrupted` (exit code 128 + signal); ``resume=true`` continues bitwise.
+A second signal gets the previous handler; a launcher's handler runs once the state is saved."""
 
 from __future__ import annotations
 
@@ -20,19 +9,13 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-#: the signals that request a clean stop
 SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGUSR1)
 
 _requested: int | None = None
 
 
 class Interrupted(Exception):  # noqa: N818 - an outcome, not an error
-    """A run stopped on a signal after saving what it needs to resume.
-
-    Attributes:
-        signum: the signal's number.
-        where: what was interrupted, e.g. ``stage 1 (s1) at 1536 frames``.
-    """
+    """A run stopped on signal ``signum`` in ``where`` after saving what it needs to resume."""
 
     def __init__(self, signum: int, where: str) -> None:
         self.signum, self.where = int(signum), where
@@ -54,16 +37,14 @@ def requested() -> int | None:
 
 
 def stop_if_asked(where: str) -> None:
-    """Raises :class:`Interrupted` if a stop was requested (call it at a point where the
-    state needed to resume is on disk)."""
+    """Raises :class:`Interrupted` if a stop was requested (call it where the state is saved)."""
     if _requested is not None:
         raise Interrupted(_requested, where)
 
 
 @contextmanager
 def handle_signals() -> Iterator[None]:
-    """Records SIGTERM, SIGINT and SIGUSR1 as stop requests while the block runs (main
-    thread only; elsewhere the block runs with the handlers it has).
+    """Records :data:`SIGNALS` as stop requests in the block (main thread only).
 
     Examples:
         >>> import os, signal

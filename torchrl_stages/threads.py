@@ -1,11 +1,6 @@
-"""The run's torch thread count, held against anything that changes it.
-
-torchrl's batched envs call ``torch.set_num_threads`` when they close (also when one is
-garbage-collected in the middle of a stage), so a run asked for one thread could train with
-two. On a machine whose other cores are busy, a two-thread update then waits for a core at every
-operation: 10-40 times slower. Inside :func:`hold_threads` the training loops call
-:func:`keep_threads` at every batch and evaluation, which puts the count back.
-"""
+"""The run's torch thread count, held against torchrl's batched envs, which reset it when they
+close: a run asked for one thread would otherwise train with more, 10-40 times slower on a
+machine whose other cores are busy."""
 
 from __future__ import annotations
 
@@ -25,7 +20,7 @@ def keep_threads() -> None:
 
 @contextmanager
 def hold_threads(threads: int) -> Iterator[None]:
-    """Sets torch's intra-op threads to ``threads`` and holds them there while the block runs.
+    """Sets torch's intra-op threads and holds them there (:func:`keep_threads`) in the block.
 
     Examples:
         >>> with hold_threads(1):

@@ -1,32 +1,16 @@
-"""Sweep summaries: one table, statistics across seeds and figures for a directory of runs.
-
-A sweep directory holds one directory per job, whatever made it (Hydra's basic, joblib,
-submitit or Ray launcher, the trials of a ``stages-tune`` study, or runs copied together by
-hand).
-:func:`summarize_sweep` reads them (:mod:`~torchrl_stages.sweeps.jobs`), computes statistics
-across seeds on rliable (:mod:`~torchrl_stages.sweeps.stats`), and writes into the sweep
-directory the tables (:mod:`~torchrl_stages.sweeps.tables`) and figures
-(:mod:`~torchrl_stages.sweeps.figures`):
-
-* ``summary.csv``: one row per job (its overrides, status and failure reason, whole-task success
-  rate, mean return and steps, the task's headline metrics, training seconds, frames, updates);
-* ``summary_configs.csv`` and ``summary.md``: per configuration (the overrides without
-  ``seed``), across seeds, the mean and the interquartile mean of each metric, each with a
-  stratified-bootstrap 95% confidence interval (seeded: the same files give the same numbers);
-* ``summary_curves.png`` (learning curves per configuration: the mean over seeds and a band from
-  the lowest to the highest seed), ``summary_final.png`` (the final metrics per configuration:
-  each seed, the mean and its confidence interval) and ``summary_profile.png`` (the performance
-  profile of the success rate).
-
-``stages-train -m`` writes them when a sweep ends (:class:`torchrl_stages.cli.SweepSummaryCallback`,
-configured in ``hydra.callbacks``), ``stages-tune`` when a study's trials end
-(:mod:`torchrl_stages.tune`), ``stages-report DIR`` on demand.
-"""
+"""Sweep summaries of a directory of runs (any launcher's, a study's trials, or gathered by
+hand): ``summary.csv``, ``summary_configs.csv``, ``summary.md`` (statistics across seeds on
+rliable) and figures. ``stages-train -m``, ``stages-tune`` and ``stages-report`` write them."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import csv
+import sys
+from collections import Counter
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import Any
 
 from torchrl_stages.sweeps.figures import (
     plot_performance_profile,
@@ -34,37 +18,89 @@ from torchrl_stages.sweeps.figures import (
     plot_sweep_final,
     short_labels,
 )
-from torchrl_stages.sweeps.jobs import METRICS, Job, configs, find_jobs, read_job
-from torchrl_stages.sweeps.stats import Aggregate, aggregate_jobs, performance_profiles
-from torchrl_stages.sweeps.tables import markdown, write_configs_csv, write_jobs_csv
+from torchrl_stages.sweeps.jobs import Job, configs, find_jobs, read_job, result_metrics
+from torchrl_stages.sweeps.stats import REPS, Aggregate, aggregate_jobs
 
-__all__ = [
-    "METRICS",
-    "Aggregate",
-    "Job",
-    "SweepSummary",
-    "aggregate_jobs",
-    "find_jobs",
-    "performance_profiles",
-    "plot_performance_profile",
-    "plot_sweep_curves",
-    "plot_sweep_final",
-    "read_job",
-    "summarize_sweep",
-]
 
-SUMMARY_CSV = "summary.csv"
-CONFIGS_CSV = "summary_configs.csv"
-SUMMARY_MD = "summary.md"
-CURVES_PNG = "summary_curves.png"
-FINAL_PNG = "summary_final.png"
-PROFILE_PNG = "summary_profile.png"
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def _cell(text: Any) -> str:
+    return _fmt(text).replace("|", "\\|").replace("\n", " ")
+
+
+def _write_csv(path: Path, header: Sequence[str], rows: Iterable[dict[str, Any]]) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(header))
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: "" if row.get(k) is None else row[k] for k in header})
+
+
+def write_jobs_csv(path: Path, jobs: Sequence[Job]) -> None:
+    """``summary.csv``: a row per job (:meth:`~torchrl_stages.sweeps.jobs.Job.row`)."""
+    metrics = result_metrics(jobs)
+    header = list(Job(Path(), "", [], None, "").row(metrics))
+    _write_csv(path, header, (job.row(metrics) for job in jobs))
+
+
+def write_configs_csv(path: Path, aggregates: Sequence[Aggregate]) -> None:
+    """``summary_configs.csv``: a row per :class:`~torchrl_stages.sweeps.stats.Aggregate`."""
+    _write_csv(path, [f.name for f in fields(Aggregate)], (vars(agg) for agg in aggregates))
+
+
+def _interval(low: float | None, high: float | None) -> str:
+    return "" if low is None else f"[{low:.3f}, {high:.3f}]"
+
+
+def markdown(
+    sweep_dir: Path, jobs: Sequence[Job], aggregates: Sequence[Aggregate], figures: Sequence[str]
+) -> str:
+    """``summary.md``: the per-configuration statistics, every job, and the figures."""
+    counts = Counter(job.status for job in jobs)
+    status = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
+    metrics = [m for m in result_metrics(jobs) if m != "mean_return"]
+    lines = [
+        f"# Sweep summary: {sweep_dir}",
+        "",
+        f"{len(jobs)} jobs ({status or 'none'}), {len(configs(jobs))} configurations "
+        "(a configuration: the overrides without `seed`).",
+        "",
+        "## Per configuration, across seeds",
+        "",
+        "Mean and interquartile mean (IQM: the middle half of the seeds) over the finished jobs, "
+        f"each with a stratified-bootstrap 95% confidence interval (rliable, {REPS} resamples, "
+        "seeded).",
+        "",
+        "| configuration | metric | finished | failed | mean | 95% CI | IQM | 95% CI |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for agg in aggregates:
+        lines.append(
+            f"| {_cell(agg.config)} | {agg.metric} | {agg.n} | {agg.failed} | {_fmt(agg.mean)} | "
+            f"{_interval(agg.ci_low, agg.ci_high)} | {_fmt(agg.iqm)} | "
+            f"{_interval(agg.iqm_low, agg.iqm_high)} |"
+        )
+    columns = ["job", "overrides", "status", *metrics, "train s", "frames", "reason"]
+    lines += ["", "## Jobs", "", "| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
+    for job in jobs:
+        values = [_fmt(job.metrics.get(m), 1 if m == "mean_steps" else 3) for m in metrics]
+        cells = [_cell(job.name), _cell(" ".join(job.overrides)), job.status, *values]
+        cells += [_fmt(job.train_seconds, 1), _fmt(job.frames), _cell(job.reason)]
+        lines.append("| " + " | ".join(cells) + " |")
+    if figures:
+        lines += ["", "## Figures", ""] + [f"![{name}]({name})" for name in figures]
+    return "\n".join(lines) + "\n"
 
 
 @dataclass
 class SweepSummary:
-    """What :func:`summarize_sweep` found and wrote: the jobs, the aggregates and the files by
-    name (see :func:`summarize_sweep` for an example)."""
+    """What :func:`summarize_sweep` found and wrote: the jobs, the aggregates, the files."""
 
     sweep_dir: Path
     jobs: list[Job]
@@ -72,52 +108,52 @@ class SweepSummary:
     files: dict[str, Path]
 
     def aggregate(self, config: str, metric: str = "success_rate") -> Aggregate:
-        """The aggregate of ``metric`` for ``config``."""
         for agg in self.aggregates:
-            if agg.config == config and agg.metric == metric:
+            if (agg.config, agg.metric) == (config, metric):
                 return agg
         raise KeyError((config, metric))
 
 
 def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0) -> SweepSummary:
-    """Reads every job directory under ``sweep_dir`` and writes the sweep's summary there:
-    ``summary.csv``, ``summary_configs.csv``, ``summary.md`` and (``plots``) the figures
-    ``summary_curves.png``, ``summary_final.png`` and ``summary_profile.png``. ``seed`` seeds
-    the bootstrap.
-
-    Examples:
-        >>> import json, tempfile, pathlib
-        >>> sweep = pathlib.Path(tempfile.mkdtemp())
-        >>> for job, (seed, success) in enumerate([(0, 1.0), (1, 0.5)]):
-        ...     (sweep / f"{job}/.hydra").mkdir(parents=True)
-        ...     _ = (sweep / f"{job}/.hydra/overrides.yaml").write_text(f"- seed={seed}\\n")
-        ...     _ = (sweep / f"{job}/eval.json").write_text(json.dumps(
-        ...         {"success_rate": success, "mean_return": 1.0, "mean_steps": 10.0}))
-        >>> summary = summarize_sweep(sweep, plots=False)
-        >>> [job.status for job in summary.jobs], summary.aggregate("(defaults)").mean
-        (['done', 'done'], 0.75)
-        >>> sorted(summary.files)
-        ['summary.csv', 'summary.md', 'summary_configs.csv']
-    """
+    """Reads the jobs under ``sweep_dir`` and writes the summary there; ``seed`` seeds the
+    bootstrap."""
     root = Path(sweep_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"{root} is not a directory")
     jobs = [read_job(path, root) for path in find_jobs(root)]
     aggregates = aggregate_jobs(jobs, seed=seed)
-    summary = SweepSummary(root, jobs, aggregates, {})
-    write_jobs_csv(root / SUMMARY_CSV, jobs)
-    write_configs_csv(root / CONFIGS_CSV, aggregates)
-    summary.files.update({SUMMARY_CSV: root / SUMMARY_CSV, CONFIGS_CSV: root / CONFIGS_CSV})
+    files = {name: root / name for name in ("summary.csv", "summary_configs.csv")}
+    write_jobs_csv(files["summary.csv"], jobs)
+    write_configs_csv(files["summary_configs.csv"], aggregates)
+    figures = []
     if plots:
         labels = short_labels(configs(jobs))
         for name, made in (
-            (CURVES_PNG, plot_sweep_curves(jobs, root / CURVES_PNG, labels)),
-            (FINAL_PNG, plot_sweep_final(jobs, aggregates, root / FINAL_PNG, labels)),
-            (PROFILE_PNG, plot_performance_profile(jobs, root / PROFILE_PNG, labels, seed=seed)),
+            ("summary_curves.png", plot_sweep_curves(jobs, root / "summary_curves.png", labels)),
+            (
+                "summary_final.png",
+                plot_sweep_final(jobs, aggregates, root / "summary_final.png", labels),
+            ),
+            (
+                "summary_profile.png",
+                plot_performance_profile(jobs, root / "summary_profile.png", labels, seed=seed),
+            ),
         ):
             if made is not None:
-                summary.files[name] = made
-    figures = [name for name in (CURVES_PNG, FINAL_PNG, PROFILE_PNG) if name in summary.files]
-    (root / SUMMARY_MD).write_text(markdown(root, jobs, aggregates, figures))
-    summary.files[SUMMARY_MD] = root / SUMMARY_MD
-    return summary
+                files[name] = made
+                figures.append(name)
+    files["summary.md"] = root / "summary.md"
+    files["summary.md"].write_text(markdown(root, jobs, aggregates, figures))
+    return SweepSummary(root, jobs, aggregates, files)
+
+
+def summarize_or_say(sweep_dir: Path, plots: bool, failure: str) -> SweepSummary | None:
+    """:func:`summarize_sweep` where there are jobs; a failure is printed after ``failure``,
+    never raised: a summary must not hide the outcome of the runs."""
+    if not find_jobs(sweep_dir):
+        return None
+    try:
+        return summarize_sweep(sweep_dir, plots=plots)
+    except Exception as err:  # noqa: BLE001
+        print(f"{failure} ({type(err).__name__}: {err})", file=sys.stderr)
+        return None

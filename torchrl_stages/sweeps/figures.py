@@ -1,7 +1,5 @@
 """A sweep's figures: learning curves and final metrics per configuration, and performance
-profiles. They read :class:`~torchrl_stages.sweeps.jobs.Job` and
-:class:`~torchrl_stages.sweeps.stats.Aggregate` and draw on a matplotlib ``Figure`` (no pyplot
-state: safe in a Hydra callback)."""
+profiles, drawn on a matplotlib ``Figure`` (no pyplot state: safe in a Hydra callback)."""
 
 from __future__ import annotations
 
@@ -19,17 +17,14 @@ from torchrl_stages.metric_names import STAGE, TASK, MetricName, parse_metric
 from torchrl_stages.plots import save_figure
 from torchrl_stages.sweeps.jobs import Job, finite_float, result_metrics
 from torchrl_stages.sweeps.jobs import configs as configs_of
-from torchrl_stages.sweeps.stats import Aggregate, performance_profiles
-
-__all__ = ["plot_performance_profile", "plot_sweep_curves", "plot_sweep_final", "short_labels"]
+from torchrl_stages.sweeps.stats import Aggregate, finished_scores, performance_profiles
 
 #: characters per line of a legend label (the 7-inch performance profile, 8-point text)
 _LEGEND_WIDTH = 90
 
 
 def _curve(name: str) -> MetricName | None:
-    """A learning curve of the summary: the success of the whole-task probe, or of a loop's
-    evaluations (a stage's, a joint phase's, any schedule's loop)."""
+    """A learning curve of the summary: the success of the whole-task probe or of a loop."""
     parsed = parse_metric(name)
     if parsed is None or parsed.kind != "eval" or parsed.metric != "success_rate":
         return None
@@ -37,12 +32,7 @@ def _curve(name: str) -> MetricName | None:
 
 
 def short_labels(names: Sequence[str]) -> dict[str, str]:
-    """Each configuration without the overrides that every configuration shares.
-
-    Examples:
-        >>> short_labels(["a=1 seed=0", "a=2 seed=0"])
-        {'a=1 seed=0': 'a=1', 'a=2 seed=0': 'a=2'}
-    """
+    """Each configuration without the overrides all of them share."""
     parts = {c: c.split(" ") if c != "(defaults)" else [] for c in names}
     common = set.intersection(*(set(p) for p in parts.values())) if parts else set()
     labels = {}
@@ -70,7 +60,6 @@ def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
 
 def _curve_order(name: str) -> tuple[int, str, int]:
     curve = _curve(name)
-    assert curve is not None
     if curve.index is None:  # the whole task first, then stages, then other loops' phases
         return (0, "", 0)
     return (1 if curve.scope == STAGE else 2, curve.scope, curve.index)
@@ -78,7 +67,6 @@ def _curve_order(name: str) -> tuple[int, str, int]:
 
 def _curve_title(name: str) -> str:
     curve = _curve(name)
-    assert curve is not None
     if curve.index is None:
         return "whole task (eval.probe), frames of all stages"
     if curve.scope == STAGE:
@@ -87,21 +75,17 @@ def _curve_title(name: str) -> str:
 
 
 def _forward_fill(points: list[tuple[float, float]], grid: np.ndarray) -> np.ndarray:
-    """The value of the last evaluation at or before each grid step (NaN before the first);
-    a stage that stopped early keeps its last evaluation."""
-    steps = np.array([p[0] for p in points])
-    values = np.array([p[1] for p in points])
+    """The last evaluation at or before each grid step (NaN before the first)."""
+    steps, values = np.array(points).T
     idx = np.searchsorted(steps, grid, side="right") - 1
-    out = np.where(idx >= 0, values[np.clip(idx, 0, None)], np.nan)
-    return out
+    return np.where(idx >= 0, values[np.clip(idx, 0, None)], np.nan)
 
 
 def plot_sweep_curves(
     jobs: Sequence[Job], out: str | Path, labels: dict[str, str] | None = None
 ) -> Path | None:
-    """Evaluation success against frames, one panel per stage (and the whole-task probe), one
-    line per configuration: the mean over its seeds and a band from the lowest to the highest.
-    Returns ``None`` when no finished job has such curves."""
+    """Evaluation success against frames, a panel per stage (and the whole-task probe), a line
+    per configuration (mean over seeds, band min-max); ``None`` without such curves."""
     from matplotlib.figure import Figure
 
     per_job = {j.name: _read_curves(j.path / "metrics.csv") for j in jobs if j.status == "done"}
@@ -114,13 +98,12 @@ def plot_sweep_curves(
     nrows = math.ceil(len(names) / ncols)
     fig = Figure(figsize=(5.2 * ncols, 3.6 * nrows + 0.6))
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    runs = {
+        c: [per_job[j.name] for j in jobs if j.config == c and j.name in per_job] for c in configs
+    }
     for ax, name in zip(axes, names, strict=False):
         for c, config in enumerate(configs):
-            seeds = [
-                per_job[j.name][name]
-                for j in jobs
-                if j.config == config and j.name in per_job and name in per_job[j.name]
-            ]
+            seeds = [curves[name] for curves in runs[config] if name in curves]
             if not seeds:
                 continue
             grid = np.unique(np.concatenate([[p[0] for p in s] for s in seeds]))
@@ -135,9 +118,7 @@ def plot_sweep_curves(
             if len(seeds) > 1:
                 ax.fill_between(grid, low, high, color=color, alpha=0.2, linewidth=0)
         ax.set_title(_curve_title(name), fontsize=10)
-        ax.set_xlabel("frames")
-        ax.set_ylabel("success rate")
-        ax.set_ylim(-0.05, 1.05)
+        ax.set(xlabel="frames", ylabel="success rate", ylim=(-0.05, 1.05))
         ax.grid(alpha=0.3)
     for ax in axes[len(names) :]:
         ax.set_visible(False)
@@ -152,11 +133,10 @@ def plot_sweep_final(
     jobs: Sequence[Job],
     aggregates: Sequence[Aggregate],
     out: str | Path,
-    labels: dict[str, str] | None = None,
+    labels: dict | None = None,
 ) -> Path | None:
-    """The final whole-task metrics per configuration (one row each): every seed (dots), the
-    mean (bar) and its bootstrap 95% CI, for the success rate, the steps and the task's
-    headline metrics. Returns ``None`` when no job finished."""
+    """The final whole-task metrics per configuration: seeds, mean and its 95% CI; ``None``
+    when no job finished."""
     from matplotlib.figure import Figure
 
     done = [j for j in jobs if j.status == "done"]
@@ -173,21 +153,13 @@ def plot_sweep_final(
     ys = np.arange(len(configs))
     for ax, metric in zip(axes, metrics, strict=True):
         for y, config in zip(ys, configs, strict=True):
-            values = [
-                v for j in done if j.config == config and (v := j.metrics.get(metric)) is not None
-            ]
+            values = finished_scores(done, config, metric).ravel()
             agg = by_key.get((config, metric))
             color = f"C{y % 10}"
             if agg is not None and agg.mean is not None:
                 ax.barh(y, agg.mean, color=color, alpha=0.35, height=0.6)
-                ax.errorbar(
-                    agg.mean,
-                    y,
-                    xerr=[[agg.mean - agg.ci_low], [agg.ci_high - agg.mean]],
-                    color="k",
-                    capsize=4,
-                    linewidth=1.2,
-                )
+                xerr = [[agg.mean - agg.ci_low], [agg.ci_high - agg.mean]]
+                ax.errorbar(agg.mean, y, xerr=xerr, color="k", capsize=4, linewidth=1.2)
             ax.plot(values, [y] * len(values), "o", color=color, markeredgecolor="k", zorder=3)
         ax.set_yticks(ys, [labels.get(c, c) for c in configs] if ax is axes[0] else [""] * len(ys))
         ax.invert_yaxis()
@@ -207,10 +179,8 @@ def plot_performance_profile(
     metric: str = "success_rate",
     seed: int = 0,
 ) -> Path | None:
-    """The performance profile of ``metric`` (rliable's score distribution): per
-    configuration, the fraction of its runs above each threshold in ``[0, 1]``, with its
-    stratified-bootstrap 95% band. Drawn here rather than with ``rliable.plot_utils``, which
-    imports pyplot. Returns ``None`` when no job finished."""
+    """The performance profile of ``metric`` per configuration with its 95% band (drawn here:
+    ``rliable.plot_utils`` imports pyplot); ``None`` when no job finished."""
     from matplotlib.figure import Figure
 
     taus = np.linspace(0.0, 1.0, 101)
@@ -218,8 +188,7 @@ def plot_performance_profile(
     if not profiles:
         return None
     labels = labels or short_labels(list(profiles))
-    # the legend goes below the plot, each label wrapped to the figure's width: long override
-    # lists neither hide the curves nor run off the figure's edge
+    # the legend below the plot, labels wrapped: long override lists hide no curve
     texts = [textwrap.fill(labels.get(c, c), _LEGEND_WIDTH) for c in profiles]
     lines = sum(t.count("\n") + 1 for t in texts)
     fig = Figure(figsize=(7.0, 4.2 + 0.17 * lines), layout="constrained")

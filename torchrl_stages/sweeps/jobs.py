@@ -1,40 +1,22 @@
-"""Reading a sweep's runs: the job directories under a sweep directory and what each one holds.
-
-A job directory has ``.hydra/overrides.yaml`` (the job's command-line overrides), ``eval.json``
-(a finished run) or ``status.json`` (a run that stopped) and ``metrics.csv``, whatever launched
-it (a trial of ``stages-tune`` is one too). Only these files are read (as data: nothing in them
-is run).
-"""
+"""The job directories of a sweep, whatever launched them, read as data: overrides, status and
+the numbers of ``eval.json``."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-__all__ = [
-    "METRICS",
-    "STATUSES",
-    "Job",
-    "configs",
-    "find_jobs",
-    "finite_float",
-    "result_metrics",
-    "read_job",
-]
-
 #: the numbers every finished run has (``eval.json``); a task adds its headline metrics
 METRICS = ("success_rate", "mean_return", "mean_steps")
-#: the statuses of ``status.json``: how a run that did not finish ended (``pruned``: a
-#: ``stages-tune`` trial its pruner stopped at a stage evaluation)
-STATUSES = ("invalid", "interrupted", "diverged", "failed", "pruned")
 #: files that make a directory a job directory
 JOB_MARKERS = (".hydra/overrides.yaml", "eval.json", "status.json", "config.yaml")
 SEED = re.compile(r"^\+{0,2}seed=(?P<seed>.*)$")
@@ -42,10 +24,8 @@ SEED = re.compile(r"^\+{0,2}seed=(?P<seed>.*)$")
 
 @dataclass
 class Job:
-    """One job directory of a sweep, as read from its files (:func:`read_job`).
-
-    ``metrics`` holds :data:`METRICS` and the headline metrics of the run's task (the names
-    ``eval.json`` lists in ``headline_metrics``, e.g. the grid world's value error).
+    """One job directory of a sweep (:func:`read_job`); ``metrics`` holds :data:`METRICS` and
+    the task's headline metrics.
 
     Examples:
         >>> from pathlib import Path
@@ -58,7 +38,7 @@ class Job:
     name: str  # its path relative to the sweep directory
     overrides: list[str]
     seed: int | None
-    status: str  # done | incomplete | the status of status.json (STATUSES: failed, pruned, ...)
+    status: str  # done | incomplete | the status of status.json (failed, pruned, ...)
     reason: str | None = None
     metrics: dict[str, float | None] = field(default_factory=dict)
     train_seconds: float | None = None
@@ -72,7 +52,7 @@ class Job:
         return " ".join(rest) if rest else "(defaults)"
 
     def row(self, metrics: Iterable[str] = METRICS) -> dict[str, Any]:
-        """The job's ``summary.csv`` row, with a column per name of ``metrics``."""
+        """The job's ``summary.csv`` row."""
         return {
             "job": self.name,
             "config": self.config,
@@ -109,20 +89,8 @@ def _is_job(path: Path) -> bool:
 
 
 def find_jobs(sweep_dir: str | Path) -> list[Path]:
-    """The job directories under ``sweep_dir`` (any depth, e.g. Hydra's ``hydra.sweep.subdir``
-    set to nested folders), in natural order (``2`` before ``10``). Hidden folders (``.hydra``,
-    ``.submitit``) and a job's own sub-folders are not searched; ``sweep_dir`` itself counts
-    only when it holds no job below it (a single run directory).
-
-    Examples:
-        >>> import tempfile, pathlib
-        >>> root = pathlib.Path(tempfile.mkdtemp())
-        >>> for job in ("0", "1", "10", "2"):
-        ...     (root / job).mkdir()
-        ...     _ = (root / job / "eval.json").write_text("{}")
-        >>> [p.name for p in find_jobs(root)]
-        ['0', '1', '2', '10']
-    """
+    """The job directories at any depth under ``sweep_dir`` (not in hidden folders or in a job),
+    in natural order; ``sweep_dir`` itself when it holds no job below it."""
     root = Path(sweep_dir)
     jobs: list[Path] = []
     for current, dirs, _files in os.walk(root):
@@ -137,16 +105,16 @@ def find_jobs(sweep_dir: str | Path) -> list[Path]:
     return sorted(jobs, key=lambda p: _natural_key(p.relative_to(root).as_posix()))
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
+def _read(path: Path, load: Callable[[str], Any] = yaml.safe_load) -> Any:
+    """What ``path`` holds; ``None`` when it is missing or damaged."""
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
+        return load(path.read_text())
+    except (OSError, ValueError, yaml.YAMLError):
         return None
-    return data if isinstance(data, dict) else None
 
 
 def finite_float(value: Any) -> float | None:
-    """``value`` as a finite float; ``None`` for anything else (a run's files are data)."""
+    """``value`` as a finite float, else ``None``."""
     try:
         out = float(value)
     except (TypeError, ValueError):
@@ -154,78 +122,46 @@ def finite_float(value: Any) -> float | None:
     return out if math.isfinite(out) else None
 
 
-def _read_overrides(path: Path) -> list[str]:
-    try:
-        overrides = yaml.safe_load((path / ".hydra" / "overrides.yaml").read_text())
-    except (OSError, yaml.YAMLError):
-        return []
-    return [str(o) for o in overrides] if isinstance(overrides, list) else []
-
-
 def _read_seed(path: Path, overrides: list[str]) -> int | None:
     for override in overrides:
-        match = SEED.match(override)
-        if match is not None:
-            try:
+        if match := SEED.match(override):
+            with contextlib.suppress(ValueError):
                 return int(match["seed"])
-            except ValueError:
-                return None
+            return None
     for name in ("config.yaml", ".hydra/config.yaml"):
-        try:
-            saved = yaml.safe_load((path / name).read_text())
-        except (OSError, yaml.YAMLError):
-            continue
+        saved = _read(path / name)
         if isinstance(saved, dict) and isinstance(saved.get("seed"), int):
             return saved["seed"]
     return None
 
 
 def _status(job: Job, eval_file: Path, status_file: Path) -> dict[str, Any] | None:
-    """Sets ``job.status`` and ``job.reason``; returns ``eval.json`` if the job finished."""
-    result = _read_json(eval_file) if eval_file.is_file() else None
-    status = _read_json(status_file) if status_file.is_file() else None
-    failed_later = (
-        status is not None
-        and result is not None
-        and status_file.stat().st_mtime > eval_file.stat().st_mtime
-    )
-    if status is not None and (result is None or failed_later):
+    """Sets ``job.status`` and ``job.reason``; returns ``eval.json`` if the job finished (and
+    no newer ``status.json`` says otherwise)."""
+    result, status = _read(eval_file, json.loads), _read(status_file, json.loads)
+    result = result if isinstance(result, dict) else None
+    if isinstance(status, dict) and (
+        result is None or status_file.stat().st_mtime > eval_file.stat().st_mtime
+    ):
         job.status = str(status.get("status") or "failed")
         job.reason = None if status.get("reason") is None else str(status["reason"])
         return None
     if result is not None:
         job.status = "done"
-        return result
-    job.reason = (
-        "eval.json is damaged"
-        if eval_file.is_file()
-        else "no eval.json nor status.json (still running, or killed)"
-    )
-    return None
+    elif eval_file.is_file():
+        job.reason = "eval.json is damaged"
+    else:
+        job.reason = "no eval.json nor status.json (still running, or killed)"
+    return result
 
 
 def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
-    """One job directory: overrides, seed, status and the numbers of its ``eval.json``.
-
-    The status is ``done`` when ``eval.json`` exists (and no newer ``status.json``), the
-    ``status`` of ``status.json`` (:data:`STATUSES`: ``invalid``, ``interrupted``,
-    ``diverged``, ``failed``, ``pruned``) with its reason, else ``incomplete`` (still running,
-    or killed).
-
-    Examples:
-        >>> import json, tempfile, pathlib
-        >>> trial = pathlib.Path(tempfile.mkdtemp()) / "3"
-        >>> trial.mkdir()
-        >>> _ = (trial / "status.json").write_text(json.dumps(
-        ...     {"status": "pruned", "reason": "pruned at stage evaluation 2"}))
-        >>> job = read_job(trial)
-        >>> job.name, job.status, job.reason
-        ('3', 'pruned', 'pruned at stage evaluation 2')
-    """
+    """One job directory: ``done``, the status of its ``status.json``, or ``incomplete``."""
     path = Path(path)
     root = Path(sweep_dir) if sweep_dir is not None else path.parent
     name = path.relative_to(root).as_posix() if path != root else "."
-    overrides = _read_overrides(path)
+    overrides = _read(path / ".hydra" / "overrides.yaml")
+    overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
     job = Job(path, name, overrides, _read_seed(path, overrides), "incomplete")
     result = _status(job, path / "eval.json", path / "status.json")
     if result is None:

@@ -1,8 +1,5 @@
-"""Statistics across seeds, on rliable (Agarwal et al., 2021, "Deep Reinforcement Learning at
-the Edge of the Statistical Precipice"): per configuration and metric the mean and the
-interquartile mean, each with a stratified-bootstrap confidence interval, and performance
-profiles. The bootstrap is seeded: the same runs give the same numbers.
-"""
+"""Statistics across seeds on rliable (Agarwal et al., 2021): mean, interquartile mean and
+performance profiles with seeded stratified-bootstrap confidence intervals."""
 
 from __future__ import annotations
 
@@ -14,16 +11,13 @@ import numpy as np
 
 from torchrl_stages.sweeps.jobs import Job, configs, result_metrics
 
-__all__ = ["Aggregate", "aggregate_jobs", "interval_estimates", "performance_profiles"]
-
 #: bootstrap resamples (rliable's default is 50 000: these intervals are for a summary)
 REPS = 2000
 CONFIDENCE = 0.95
 
 
-def _scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray:
-    """The finished runs' values of ``metric`` for ``config``: rliable's ``(runs, tasks)``
-    array, one task."""
+def finished_scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray:
+    """The finished runs' values as rliable's ``(runs, tasks)`` array, one task."""
     values = [
         v
         for j in jobs
@@ -35,21 +29,8 @@ def _scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray:
 def interval_estimates(
     scores: np.ndarray, func, seed: int = 0, reps: int = REPS
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``func(scores)`` (a 1-D array) and its stratified-bootstrap ``CONFIDENCE`` interval
-    (``(2, len)``: lower and upper bounds) from :func:`rliable.library.get_interval_estimates`.
-
-    rliable draws its resamples from numpy's global generator
-    (``StratifiedBootstrap.update_indices`` ignores ``random_state``): it is seeded with
-    ``seed`` for the call and restored after, so the same scores give the same interval and
-    the caller's draws are untouched.
-
-    Examples:
-        >>> import numpy as np
-        >>> mean = lambda s: np.array([s.mean()])
-        >>> point, interval = interval_estimates(np.array([[0.2], [0.4], [0.6]]), mean)
-        >>> point.round(3).tolist(), interval.shape, bool(interval[0, 0] < 0.4 < interval[1, 0])
-        ([0.4], (2, 1), True)
-    """
+    """``func(scores)`` and its stratified-bootstrap interval (``(2, len)``). rliable draws from
+    numpy's global generator (it ignores ``random_state``): seeded for the call, then restored."""
     from rliable import library as rly  # here: ~1 s of imports that training never needs
 
     state, absl = np.random.get_state(), logging.getLogger("absl")
@@ -68,8 +49,7 @@ def interval_estimates(
 
 @dataclass
 class Aggregate:
-    """One metric of one configuration, across the seeds that finished: the mean and the
-    interquartile mean (IQM), each with its bootstrap confidence interval.
+    """One metric of one configuration across its finished seeds: mean and IQM with intervals.
 
     Examples:
         >>> agg = Aggregate("lr=1e-3", "success_rate", 3, 1, 0.5, 0.25, 0.75, 0.5, 0.0, 1.0)
@@ -90,9 +70,8 @@ class Aggregate:
 
 
 def _mean_and_iqm(scores: np.ndarray) -> np.ndarray:
-    """rliable's ``aggregate_mean`` and ``aggregate_iqm`` (the 25% trimmed mean of every score)
-    in one sort: the bootstrap calls this ``REPS`` times per metric, where scipy's ``trim_mean``
-    and its argument checks took 0.2 ms a call (tests/test_sweeps.py holds them equal)."""
+    """rliable's ``aggregate_mean`` and ``aggregate_iqm`` in one sort (the bootstrap calls it
+    ``REPS`` times per metric; scipy's ``trim_mean`` took 0.2 ms a call)."""
     ordered = np.sort(scores, axis=None)
     cut = int(0.25 * ordered.size)
     return np.array([ordered.mean(), ordered[cut : ordered.size - cut].mean()])
@@ -101,13 +80,12 @@ def _mean_and_iqm(scores: np.ndarray) -> np.ndarray:
 def aggregate_jobs(
     jobs: Sequence[Job], metrics: Sequence[str] | None = None, seed: int = 0
 ) -> list[Aggregate]:
-    """Mean and IQM of each metric (default: :func:`~torchrl_stages.sweeps.jobs.result_metrics`)
-    per configuration over its finished jobs, with stratified-bootstrap 95% intervals."""
+    """The :class:`Aggregate` of each metric (default: all) of each configuration."""
     out = []
     for config in configs(jobs):
         failed = sum(j.status != "done" for j in jobs if j.config == config)
         for metric in result_metrics(jobs) if metrics is None else metrics:
-            scores = _scores(jobs, config, metric)
+            scores = finished_scores(jobs, config, metric)
             if scores.size == 0:
                 out.append(Aggregate(config, metric, 0, failed, *[None] * 6))
                 continue
@@ -123,20 +101,17 @@ def performance_profiles(
     metric: str = "success_rate",
     seed: int = 0,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per configuration with a finished run: the fraction of its runs whose ``metric`` is
-    above each of ``taus`` (rliable's score distribution) and its bootstrap interval
-    (``(2, len(taus))``)."""
-
+    """Per configuration, the fraction of its runs with ``metric`` above each of ``taus``
+    (rliable's score distribution) and its bootstrap interval."""
     taus = np.asarray(taus, dtype=float)
 
     def profile(scores: np.ndarray) -> np.ndarray:
-        # rliable's score_distributions, one comparison for every tau at once (it loops over
-        # them with np.vectorize; tests/test_sweeps.py holds the two equal)
+        # rliable's score_distributions, every tau at once (it loops with np.vectorize)
         return (scores.reshape(1, -1) > taus.reshape(-1, 1)).mean(axis=1)
 
     out = {}
     for config in configs(jobs):
-        scores = _scores(jobs, config, metric)
+        scores = finished_scores(jobs, config, metric)
         if scores.size:
             out[config] = interval_estimates(scores, profile, seed)
     return out

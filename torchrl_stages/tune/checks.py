@@ -1,66 +1,33 @@
-"""A study's settings and search space checked before any trial runs: a bad one is refused
-in one line naming the key and the fix."""
+"""A study's settings and search space, checked before any trial runs: a bad one is refused in
+one line naming the key and the fix."""
 
 from __future__ import annotations
-
-from pathlib import Path
-from typing import Any
 
 from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from torchrl_stages.config import (
-    ConfigError,
-    apply_all_stages,
-    check,
-    stage_keys_set,
-)
+from torchrl_stages.config import ConfigError, apply_all_stages, check, stage_keys_set
 from torchrl_stages.hydra_configs import config_group_options
 from torchrl_stages.runs.seed_run import with_env_stages
-from torchrl_stages.tune.space import (
-    PRUNERS,
-    SAMPLERS,
-    Compose,
-    ParamSpec,
-    override_key,
-)
+from torchrl_stages.tune.space import Compose, ParamSpec, override_key
 from torchrl_stages.validate import validate_config
 
+SAMPLERS = ("tpe", "random")
+PRUNERS = ("median", "threshold", "none")
 _MISSING = object()
 
 
-# ---------------------------------------------------------------------- checks
 def check_settings(tune: DictConfig) -> None:
-    """Checks the ``tune`` keys other than ``params`` (:class:`ConfigError`)."""
+    """Checks the ``tune`` keys other than ``params``."""
     check(bool(tune.study_name), "tune.study_name", tune.study_name, "empty", "name the study")
     check(bool(tune.storage), "tune.storage", tune.storage, "empty", "set sqlite:///study.db")
     check(tune.n_trials >= 1, "tune.n_trials", tune.n_trials, "must be >= 1", "set it to 1+")
-    for key, value, known in (
-        ("sampler", tune.sampler, SAMPLERS),
-        ("pruner", tune.pruner, PRUNERS),
-    ):
-        check(
-            value in known,
-            f"tune.{key}",
-            value,
-            f"unknown (known: {', '.join(known)})",
-            f"set tune.{key}={known[0]}",
-        )
-    check(
-        tune.startup_trials >= 0,
-        "tune.startup_trials",
-        tune.startup_trials,
-        "must be >= 0",
-        "set it to 0 or more",
-    )
-    check(
-        tune.warmup_steps >= 0,
-        "tune.warmup_steps",
-        tune.warmup_steps,
-        "must be >= 0",
-        "set it to 0 or more",
-    )
+    for key, known in (("sampler", SAMPLERS), ("pruner", PRUNERS)):
+        rule = f"unknown (known: {', '.join(known)})"
+        check(tune[key] in known, f"tune.{key}", tune[key], rule, f"set tune.{key}={known[0]}")
+    for key in ("startup_trials", "warmup_steps"):
+        check(tune[key] >= 0, f"tune.{key}", tune[key], "must be >= 0", "set it to 0 or more")
     if tune.pruner == "threshold":
         below = tune.prune_below
         check(
@@ -73,16 +40,14 @@ def check_settings(tune: DictConfig) -> None:
 
 
 def train_config(compose: Compose, overrides: list[str]) -> DictConfig:
-    """The config of a run of ``overrides``, as ``stages-train`` makes it and checked as
-    :class:`~torchrl_stages.runs.experiment.Experiment` does before training (:class:`ConfigError`;
-    Hydra's errors for overrides that do not compose)."""
+    """The config of a run of ``overrides``, made and checked as ``stages-train`` does."""
     cfg = apply_all_stages(compose(overrides), keep=stage_keys_set(overrides))
     validate_config(with_env_stages(cfg))
     return cfg
 
 
 def compose_error(err: BaseException) -> str:
-    """Hydra's message in one line, with its cause's (the indented details left out)."""
+    """Hydra's message in one line, with its cause's (without the indented details)."""
     parts, cause = [], err
     while cause is not None and len(parts) < 2:
         lines = [line for line in str(cause).splitlines() if line.strip() and not line[0].isspace()]
@@ -96,10 +61,9 @@ def _fail(where: str, problem: str, fix: str) -> None:
 
 
 def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> None:
-    """Checks every entry of ``space`` against the config of ``base`` (the command line's
-    overrides) before any training: the key exists (or the group and its options), no
-    override of the command line sets it too, and each bound (each choice) makes a valid
-    config. Raises :class:`ConfigError` naming the key and the fix."""
+    """Checks each entry of ``space`` against the config of ``base`` (the command's overrides):
+    the key (or group and options) exists, the command does not set it, and each bound or
+    choice makes a valid config."""
     try:
         cfg = train_config(compose, base)
     except (HydraException, OmegaConfBaseException) as err:
@@ -163,38 +127,3 @@ def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> No
                     f"{override} makes an invalid config ({problem})",
                     "narrow the range to values the key accepts",
                 )
-
-
-# ---------------------------------------------------------------------- storage
-def storage_location(storage: str, cwd: str | Path) -> str:
-    """``tune.storage`` with a relative SQLite file or journal file made absolute against
-    ``cwd`` (where the command was launched); other URLs as given.
-
-    Examples:
-        >>> storage_location("sqlite:///study.db", "/runs")
-        'sqlite:////runs/study.db'
-        >>> storage_location("study.log", "/runs")
-        '/runs/study.log'
-        >>> storage_location("postgresql://host/optuna", "/runs")
-        'postgresql://host/optuna'
-    """
-    if "://" not in storage:
-        return str(Path(cwd) / Path(storage).expanduser())
-    if storage.startswith("sqlite:///"):
-        path = storage[len("sqlite:///") :]
-        if path and path != ":memory:" and not Path(path).is_absolute():
-            return "sqlite:///" + str(Path(cwd) / path)
-    return storage
-
-
-def open_storage(location: str) -> Any:
-    """The Optuna storage at ``location`` (:func:`storage_location`): an RDB URL as is (a
-    SQLite file's directory is created), a journal file as ``JournalStorage``."""
-    import optuna
-
-    if "://" in location:
-        if location.startswith("sqlite:///") and location != "sqlite:///:memory:":
-            Path(location[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
-        return location
-    Path(location).parent.mkdir(parents=True, exist_ok=True)
-    return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(location))

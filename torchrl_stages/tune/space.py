@@ -1,5 +1,5 @@
-"""The search space of a study: ``tune.params`` read into :class:`ParamSpec` s, and each
-trial's values as ``stages-train`` overrides."""
+"""A study's search space: ``tune.params`` read into :class:`ParamSpec` s, and each trial's
+values as ``stages-train`` overrides."""
 
 from __future__ import annotations
 
@@ -11,37 +11,17 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_stages.config import (
-    check,
-)
+from torchrl_stages.config import check
 
-SAMPLERS = ("tpe", "random")
-PRUNERS = ("median", "threshold", "none")
 SPEC_KEYS = ("low", "high", "log", "step", "choices")
-BEST_FILE = "best.yaml"
 _PLAIN = re.compile(r"^[A-Za-z_][\w\-./@:]*$")
 
 #: ``compose(overrides)``: the config ``stages-train`` composes from ``overrides``
 Compose = Callable[[list[str]], DictConfig]
 
 
-class TrialFailed(RuntimeError):
-    """A trial whose run did not finish (bad config, divergence, the env's error): recorded as
-    failed in the study, which goes on with the next trial."""
-
-
-class StudyError(RuntimeError):
-    """The study cannot go on (a trial's directory holds another run, a disk error)."""
-
-
-# ---------------------------------------------------------------------- the search space
 def hydra_value(value: Any) -> str:
-    """``value`` as a Hydra command-line value.
-
-    Examples:
-        >>> [hydra_value(v) for v in (3, 0.001, True, None, "sac", "a b")]
-        ['3', '0.001', 'true', 'null', 'sac', "'a b'"]
-    """
+    """``value`` as a Hydra command-line value."""
     if isinstance(value, bool):
         return "true" if value else "false"
     if value is None:
@@ -60,11 +40,9 @@ def _is_number(value: Any) -> bool:
 
 @dataclass
 class ParamSpec:
-    """One entry of ``tune.params``: a config key (or group) and its range.
-
-    ``key`` is written as on the command line: ``task.stages.s3.lr``, ``+all_stages.lr`` (a key
-    added to a mapping), ``algo@task.stages.s0`` (a config group); Optuna knows the parameter
-    by :attr:`name`, the key without ``+``.
+    """One entry of ``tune.params``: a key as written on the command line (``task.stages.s3.lr``,
+    ``+all_stages.lr``, a group ``algo@task.stages.s0``) and its range; the study knows it by
+    :attr:`name`, the key without ``+``.
 
     Examples:
         >>> spec = ParamSpec.parse("task.stages.s3.lr", {"low": 1e-4, "high": 1e-2, "log": True})
@@ -90,39 +68,29 @@ class ParamSpec:
 
     @property
     def name(self) -> str:
-        """The parameter's name in the study: the key without its leading ``+``."""
         return self.key.lstrip("+")
+
+    @property
+    def group(self) -> str | None:
+        """The config group the key's spelling names (``algo@task.stages.s0``: ``algo``)."""
+        path = self.name.split("@", 1)[0]
+        return path if ("@" in self.name or "/" in path) else None
 
     @classmethod
     def parse(cls, key: str, spec: Any) -> ParamSpec:
-        """The spec ``{low, high[, log][, step]}`` or ``{choices}`` of ``key``; a
-        :class:`~torchrl_stages.config.ConfigError` names what is wrong and the fix."""
+        """The spec ``{low, high[, log][, step]}`` or ``{choices}`` of ``key``."""
         where = f"tune.params.{key}"
         example = "{low: 1e-4, high: 1e-2, log: true} or {choices: [a, b]}"
-        check(
-            isinstance(spec, Mapping) and bool(spec),
-            where,
-            spec,
-            f"a range is a mapping of {', '.join(SPEC_KEYS)}",
-            f"write it as {example}",
-        )
-        unknown = [str(k) for k in spec if k not in SPEC_KEYS]
-        check(
-            not unknown,
-            where,
-            dict(spec),
-            f"unknown {', '.join(unknown)} (known: {', '.join(SPEC_KEYS)})",
-            f"write it as {example}",
-        )
+        rule = f"a range is a mapping of {', '.join(SPEC_KEYS)}"
+        check(isinstance(spec, Mapping) and bool(spec), where, spec, rule, f"write it as {example}")
+        unknown = ", ".join(str(k) for k in spec if k not in SPEC_KEYS)
+        rule = f"unknown {unknown} (known: {', '.join(SPEC_KEYS)})"
+        check(not unknown, where, dict(spec), rule, f"write it as {example}")
         if "choices" in spec:
             choices = spec["choices"]
-            check(
-                set(spec) == {"choices"},
-                where,
-                dict(spec),
-                "choices cannot go with low, high, log or step",
-                "keep either choices or the range",
-            )
+            rule = "choices cannot go with low, high, log or step"
+            fix = "keep either choices or the range"
+            check(set(spec) == {"choices"}, where, dict(spec), rule, fix)
             ok = isinstance(choices, Sequence) and not isinstance(choices, str) and choices
             check(bool(ok), f"{where}.choices", choices, "must be a non-empty list", example)
             for choice in choices:
@@ -135,26 +103,23 @@ class ParamSpec:
                 )
             return cls(key, "categorical", choices=tuple(choices))
         for bound in ("low", "high"):
-            check(
-                _is_number(spec.get(bound)),
-                f"{where}.{bound}",
-                spec.get(bound),
-                "must be a finite number",
-                f"write the range as {example}",
-            )
+            value = spec.get(bound)
+            rule, fix = "must be a finite number", f"write the range as {example}"
+            check(_is_number(value), f"{where}.{bound}", value, rule, fix)
         low, high, log, step = spec["low"], spec["high"], spec.get("log", False), spec.get("step")
-        check(isinstance(log, bool), f"{where}.log", log, "must be true or false", "set log: true")
-        check(low < high, f"{where}.low", low, f"must be below high={high}", "swap them")
-        if log:
-            check(low > 0, f"{where}.low", low, "must be > 0 with log: true", "set low > 0")
-            check(step is None, f"{where}.step", step, "cannot go with log: true", "drop one")
-        if step is not None:
-            check(_is_number(step) and step > 0, f"{where}.step", step, "must be > 0", "fix it")
+        for ok, name, value, rule, fix in (
+            (isinstance(log, bool), "log", log, "must be true or false", "set log: true"),
+            (low < high, "low", low, f"must be below high={high}", "swap them"),
+            (not log or low > 0, "low", low, "must be > 0 with log: true", "set low > 0"),
+            (not log or step is None, "step", step, "cannot go with log: true", "drop one"),
+            (step is None or _is_number(step) and step > 0, "step", step, "must be > 0", "fix it"),
+        ):
+            check(ok, f"{where}.{name}", value, rule, fix)
         is_int = all(isinstance(v, int) for v in (low, high, step if step is not None else 1))
         return cls(key, "int" if is_int else "float", low, high, log, step)
 
     def suggest(self, trial: Any) -> Any:
-        """The trial's value (``trial``: an ``optuna.Trial``)."""
+        """The value of an ``optuna.Trial``."""
         if self.kind == "categorical":
             return trial.suggest_categorical(self.name, list(self.choices))
         if self.kind == "int":
@@ -163,19 +128,11 @@ class ParamSpec:
         return trial.suggest_float(self.name, self.low, self.high, step=self.step, log=self.log)
 
     def override(self, value: Any) -> str:
-        """The command-line override that sets ``value``."""
         return f"{self.key}={hydra_value(value)}"
 
     def candidates(self) -> list[Any]:
         """The values checked before any training: the bounds, or every choice."""
         return list(self.choices) if self.kind == "categorical" else [self.low, self.high]
-
-    @property
-    def group(self) -> str | None:
-        """The config group the key selects an option of (``algo@task.stages.s0``: ``algo``),
-        as far as its spelling says (``schedule`` is one too: see :func:`check_space`)."""
-        path = self.name.split("@", 1)[0]
-        return path if ("@" in self.name or "/" in path) else None
 
 
 def _flatten(params: Mapping, prefix: str = "") -> Iterable[tuple[str, Any]]:
@@ -193,15 +150,7 @@ def _flatten(params: Mapping, prefix: str = "") -> Iterable[tuple[str, Any]]:
 
 
 def search_space(params: Any) -> list[ParamSpec]:
-    """``tune.params`` as specs: keys written with dots (``{task.stages.s3.lr: {...}}``) or
-    nested (``+tune.params.task.stages.s3.lr={...}`` on the command line) alike.
-
-    Examples:
-        >>> space = search_space({"task.stages.s3.lr": {"low": 1e-4, "high": 1e-2, "log": True},
-        ...                       "task": {"stages": {"s2": {"gamma": {"choices": [0.9, 0.99]}}}}})
-        >>> [(p.name, p.kind) for p in space]
-        [('task.stages.s3.lr', 'float'), ('task.stages.s2.gamma', 'categorical')]
-    """
+    """``tune.params`` as specs, keys written with dots or nested alike."""
     if isinstance(params, DictConfig):
         params = OmegaConf.to_container(params, resolve=True)
     check(
@@ -215,13 +164,7 @@ def search_space(params: Any) -> list[ParamSpec]:
     space = [ParamSpec.parse(key, spec) for key, spec in _flatten(params)]
     names = [p.name for p in space]
     for name in names:
-        check(
-            names.count(name) == 1,
-            f"tune.params.{name}",
-            "...",
-            "given twice",
-            "keep one",
-        )
+        check(names.count(name) == 1, f"tune.params.{name}", "...", "given twice", "keep one")
     return space
 
 
@@ -230,15 +173,5 @@ def override_key(override: str) -> str:
 
 
 def train_overrides(overrides: Iterable[str]) -> list[str]:
-    """The command line's overrides that ``stages-train`` takes: all but the ``tune`` ones.
-
-    Examples:
-        >>> train_overrides(["experiment=smoke", "tune.n_trials=4", "+tune.params={}", "tune=lr"])
-        ['experiment=smoke']
-    """
-    out = []
-    for override in overrides:
-        key = override_key(override)
-        if key != "tune" and not key.startswith("tune."):
-            out.append(override)
-    return out
+    """The command line's overrides that ``stages-train`` takes: all but the ``tune`` ones."""
+    return [o for o in overrides if override_key(o).split(".")[0] != "tune"]

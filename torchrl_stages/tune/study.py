@@ -1,22 +1,10 @@
-"""``stages-tune``: hyper-parameter tuning with Optuna, each trial a ``stages-train`` run.
-
-``stages-tune`` composes the config ``stages-train`` does (every override of it works) with a
-``tune`` block (:class:`torchrl_stages.config.TuneConfig`): the study's name and storage, the
-sampler and pruner, and the search space ``tune.params``. Trial ``n`` is the run
-``stages-train`` would make with the command's overrides and the trial's values
-(:class:`~torchrl_stages.runs.experiment.Experiment`), written to ``<study dir>/<n>/`` with its
-``.hydra/overrides.yaml``, where the study directory is the command's ``hydra.run.dir``. Each
-stage evaluation's success rate is reported to the trial (:class:`TrialPruning`, an observer
-of the run's logger); a trial the pruner finds hopeless stops there, ``status.json`` saying
-``pruned``. At the end the study directory gets the sweep summary
-(:func:`torchrl_stages.sweeps.summarize_sweep`) and ``best.yaml``.
-
-Optuna is imported only when a study runs: this module loads without the ``[tune]`` extra."""
+"""An Optuna study whose trial ``n`` is the ``stages-train`` run of the command's overrides and
+the trial's values, in ``<study dir>/<n>/``, pruned on its stage evaluations; the study directory
+gets the sweep summary and ``best.yaml``. Optuna is imported only when a study runs."""
 
 from __future__ import annotations
 
 import copy
-import sys
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,38 +25,32 @@ from torchrl_stages.config import (
 )
 from torchrl_stages.failures import EXIT_FAILED, DivergenceError, EnvError, one_line
 from torchrl_stages.loggers import StopRun
+from torchrl_stages.metric_names import is_loop_evaluation
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.evaluation import format_summary
 from torchrl_stages.runs.experiment import Experiment, seed_dir
 from torchrl_stages.runs.layout import RunDirError
-from torchrl_stages.sweeps import find_jobs, summarize_sweep
-from torchrl_stages.tune.checks import (
-    check_settings,
-    check_space,
-    compose_error,
-    open_storage,
-    storage_location,
-)
-from torchrl_stages.tune.pruning import TrialPruning, make_pruner, make_sampler
-from torchrl_stages.tune.space import (
-    BEST_FILE,
-    Compose,
-    ParamSpec,
-    StudyError,
-    TrialFailed,
-    hydra_value,
-    search_space,
-    train_overrides,
-)
+from torchrl_stages.sweeps import summarize_or_say
+from torchrl_stages.tune.checks import check_settings, check_space, compose_error
+from torchrl_stages.tune.space import Compose, ParamSpec, hydra_value, search_space, train_overrides
+
+BEST_FILE = "best.yaml"
 
 
-# ---------------------------------------------------------------------- the study
+class TrialFailed(RuntimeError):
+    """A trial whose run did not finish: failed in the study, which goes on."""
+
+
+class StudyError(RuntimeError):
+    """The study cannot go on (a trial's directory holds another run, a disk error)."""
+
+
 @dataclass
 class StudyContext:
-    """Where a study runs: its directory (the command's ``hydra.run.dir``), the directory
-    the command was launched from, the command's overrides, how configs are composed and what
-    each trial's ``.hydra/hydra.yaml`` records of Hydra (``None``: nothing).
+    """Where a study runs: its directory (``hydra.run.dir``), the launch directory, the
+    command's overrides, how configs are composed and Hydra's config for each trial's
+    ``.hydra/hydra.yaml`` (``None``: none written).
 
     Examples:
         >>> context = StudyContext(Path("tune/grid"), Path("."), ["tune.n_trials=4"], print)
@@ -81,6 +63,81 @@ class StudyContext:
     overrides: list[str]
     compose: Compose
     hydra_cfg: DictConfig | None = None
+
+
+class TrialPruning:
+    """A run's :data:`~torchrl_stages.loggers.Observer` that reports each loop evaluation's
+    success rate to an Optuna ``trial`` (step: the evaluation's index in the run; the failure
+    rate when the objective is minimized) and raises ``StopRun("pruned")`` when it should stop.
+
+    Examples:
+        >>> class Trial:  # what it uses of an optuna.Trial
+        ...     reported = []
+        ...     def report(self, value, step):
+        ...         self.reported.append((step, value))
+        ...     def should_prune(self):
+        ...         return len(self.reported) >= 2
+        >>> trial = Trial()
+        >>> pruning = TrialPruning(trial)
+        >>> pruning({"eval/stage_4/success_rate": 0.5, "eval/stage_4/value_error": 0.1}, 512)
+        >>> pruning({"train/stage_4/loss": 0.2}, 768)  # not an evaluation
+        >>> pruning({"eval/stage_4/success_rate": 0.25}, 1024)
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.loggers.StopRun: pruned at stage evaluation 1 (...=0.25 at 1024 frames ...)
+        >>> trial.reported
+        [(0, 0.5), (1, 0.25)]
+    """
+
+    def __init__(self, trial: Any, direction: str = "maximize") -> None:
+        self.trial = trial
+        self.minimize = direction == "minimize"
+        self.evaluations = 0
+
+    def __call__(self, metrics: dict[str, float], step: int) -> None:
+        for name, value in metrics.items():
+            if not is_loop_evaluation(name):
+                continue
+            index, self.evaluations = self.evaluations, self.evaluations + 1
+            success = float(value)
+            self.trial.report(1.0 - success if self.minimize else success, index)
+            if self.trial.should_prune():
+                where = f"{name}={success:g} at {step} frames of the stage"
+                raise StopRun("pruned", f"pruned at stage evaluation {index} ({where})")
+
+
+def make_sampler(name: str, seed: int) -> Any:
+    """The seeded Optuna sampler ``tune.sampler`` names."""
+    import optuna
+
+    samplers = optuna.samplers
+    return (samplers.RandomSampler if name == "random" else samplers.TPESampler)(seed=seed)
+
+
+def make_pruner(tune: DictConfig, direction: str) -> Any:
+    """The Optuna pruner ``tune.pruner`` names, over what :class:`TrialPruning` reports."""
+    import optuna
+
+    warmup = int(tune.warmup_steps)
+    if tune.pruner == "median":
+        return optuna.pruners.MedianPruner(
+            n_startup_trials=int(tune.startup_trials), n_warmup_steps=warmup
+        )
+    if tune.pruner == "threshold":
+        below = float(tune.prune_below)
+        if direction == "minimize":  # failure rates reported: above 1 - below is pruned
+            return optuna.pruners.ThresholdPruner(upper=1.0 - below, n_warmup_steps=warmup)
+        return optuna.pruners.ThresholdPruner(lower=below, n_warmup_steps=warmup)
+    return optuna.pruners.NopPruner()
+
+
+def print_results(experiment: Experiment, results: list, run_dir: Path, cfg: DictConfig) -> float:
+    """Prints each seed's summary; returns the mean of the seeds' objectives."""
+    for seed, result in zip(experiment.seeds, results, strict=True):
+        where = seed_dir(run_dir, seed) if experiment.stacked else run_dir
+        print(format_summary(result, where), flush=True)
+    values = [objective_value(result, cfg) for result in results]
+    return sum(values) / len(values)
 
 
 def _trial_hydra_files(
@@ -100,7 +157,6 @@ def _trial_hydra_files(
 def _run_trial(
     trial: Any, cfg: DictConfig, space: list[ParamSpec], base: list[str], context: StudyContext
 ) -> float:
-    """Trial ``trial.number``: the run of the command's overrides and the trial's values."""
     import optuna
 
     overrides = [*base, *(spec.override(spec.suggest(trial)) for spec in space)]
@@ -115,13 +171,9 @@ def _run_trial(
         invalid = err if isinstance(err, ConfigError) else compose_error(err)
     else:
         files = _trial_hydra_files(context, run_cfg, overrides, run_dir, trial.number)
+        pruning = TrialPruning(trial, str(cfg.objective.direction))
         try:
-            experiment = Experiment(
-                run_cfg,
-                run_dir,
-                hydra_files=files,
-                observers=[TrialPruning(trial, str(cfg.objective.direction))],
-            )
+            experiment = Experiment(run_cfg, run_dir, hydra_files=files, observers=[pruning])
         except RunDirError as err:
             raise StudyError(f"{err} (trial {trial.number})") from None
         except ConfigError as err:
@@ -146,50 +198,56 @@ def _run_trial(
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
         raise TrialFailed(one_line(err)) from None
-    for seed, result in zip(experiment.seeds, results, strict=True):
-        where = seed_dir(run_dir, seed) if experiment.stacked else run_dir
-        print(format_summary(result, where), flush=True)
-    values = [objective_value(result, cfg) for result in results]
-    return sum(values) / len(values)  # several seeds: the mean of their objectives
+    return print_results(experiment, results, run_dir, cfg)
+
+
+def storage_location(storage: str, cwd: str | Path) -> str:
+    """``tune.storage`` with a relative SQLite or journal file made absolute against ``cwd``."""
+    if "://" not in storage:
+        return str(Path(cwd) / Path(storage).expanduser())
+    if storage.startswith("sqlite:///"):
+        path = storage[len("sqlite:///") :]
+        if path and path != ":memory:" and not Path(path).is_absolute():
+            return "sqlite:///" + str(Path(cwd) / path)
+    return storage
+
+
+def _open_storage(location: str) -> Any:
+    """An RDB URL as it is (a SQLite file's directory made), a journal file's storage."""
+    import optuna
+
+    if "://" in location:
+        if location.startswith("sqlite:///") and location != "sqlite:///:memory:":
+            Path(location[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
+        return location
+    Path(location).parent.mkdir(parents=True, exist_ok=True)
+    return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(location))
 
 
 def _load_study(cfg: DictConfig, location: str) -> Any:
-    """Creates the study, or loads it with its sampler (seeded from ``tune.seed`` and the
-    trials it has) and pruner; checks that it optimizes the objective."""
+    """The study, made or loaded, checked to optimize the objective; its sampler is seeded from
+    ``tune.seed`` plus the trials it has, so that a rerun draws new values."""
     import optuna
 
     tune, objective = cfg.tune, cfg.objective
-    storage = open_storage(location)
+    storage = _open_storage(location)
     name, direction = str(tune.study_name), str(objective.direction)
     study = optuna.create_study(
         storage=storage, study_name=name, direction=direction, load_if_exists=True
     )
-    theirs = study.direction.name.lower()
-    check(
-        theirs == direction,
-        "tune.study_name",
-        name,
-        f"the study in {tune.storage} was made to {theirs} the objective, "
-        f"objective.direction={direction}",
-        "name a new study (tune.study_name=...) or keep objective.direction as the study's",
-    )
-    metric = study.user_attrs.get("objective.metric")
-    check(
-        metric in (None, objective.metric),
-        "tune.study_name",
-        name,
-        f"the study in {tune.storage} optimizes objective.metric={metric}, not {objective.metric}",
-        "name a new study (tune.study_name=...) or keep the study's objective.metric",
-    )
+    theirs, metric = study.direction.name.lower(), study.user_attrs.get("objective.metric")
+    where = f"the study in {tune.storage}"
+    rule = f"{where} was made to {theirs} the objective, objective.direction={direction}"
+    fix = "name a new study (tune.study_name=...) or keep objective.direction as the study's"
+    check(theirs == direction, "tune.study_name", name, rule, fix)
+    rule = f"{where} optimizes objective.metric={metric}, not {objective.metric}"
+    fix = "name a new study (tune.study_name=...) or keep the study's objective.metric"
+    check(metric in (None, objective.metric), "tune.study_name", name, rule, fix)
     if metric is None:
         study.set_user_attr("objective.metric", str(objective.metric))
     seed = int(tune.seed) + len(study.get_trials(deepcopy=False))
-    return optuna.load_study(
-        study_name=name,
-        storage=storage,
-        sampler=make_sampler(str(tune.sampler), seed),
-        pruner=make_pruner(tune, direction),
-    )
+    sampler, pruner = make_sampler(str(tune.sampler), seed), make_pruner(tune, direction)
+    return optuna.load_study(study_name=name, storage=storage, sampler=sampler, pruner=pruner)
 
 
 def _best(study: Any, cfg: DictConfig, location: str) -> dict[str, Any]:
@@ -198,34 +256,30 @@ def _best(study: Any, cfg: DictConfig, location: str) -> dict[str, Any]:
 
     states = [t.state for t in study.get_trials(deepcopy=False)]
     counts = {s.name.lower(): states.count(s) for s in optuna.trial.TrialState if s in states}
-    out: dict[str, Any] = {
+    objective = {"metric": str(cfg.objective.metric), "direction": study.direction.name.lower()}
+    best = None
+    if counts.get("complete"):
+        trial = study.best_trial
+        best = {
+            "number": trial.number,
+            "value": trial.value,
+            "params": dict(trial.params),
+            "run_dir": trial.user_attrs.get("run_dir"),
+            "overrides": trial.user_attrs.get("overrides"),
+        }
+    return {
         "study_name": study.study_name,
         "storage": location,
-        "objective": {
-            "metric": str(cfg.objective.metric),
-            "direction": study.direction.name.lower(),
-        },
+        "objective": objective,
         "trials": counts,
-        "best": None,
+        "best": best,
     }
-    if counts.get("complete"):
-        best = study.best_trial
-        out["best"] = {
-            "number": best.number,
-            "value": best.value,
-            "params": dict(best.params),
-            "run_dir": best.user_attrs.get("run_dir"),
-            "overrides": best.user_attrs.get("overrides"),
-        }
-    return out
 
 
 def run_study(cfg: DictConfig, context: StudyContext) -> int:
-    """Runs ``cfg.tune.n_trials`` trials of the study ``cfg.tune`` describes, writes the
-    summary and ``best.yaml`` into the study directory and prints the best trial; returns the
-    exit code (0; 1 when every trial of this command failed). The config, the search space
-    and every bound of it are checked first (:class:`ConfigError`, before any training);
-    :class:`StudyError` and :class:`~torchrl_stages.preemption.Interrupted` end the study."""
+    """Runs ``tune.n_trials`` trials after checking the settings and every bound of the space
+    (:class:`ConfigError`), writes the summary and ``best.yaml`` and prints the best trial.
+    Returns the exit code: 1 when every trial of this command failed, else 0."""
     try:
         import optuna
     except ImportError:
@@ -257,17 +311,20 @@ def run_study(cfg: DictConfig, context: StudyContext) -> int:
             catch=(TrialFailed,),
         )
     finally:
-        _summarize(context.study_dir, plots=bool(tune.plots))
+        summary = summarize_or_say(
+            context.study_dir, bool(tune.plots), "stages-tune: no study summary"
+        )
+        if summary is not None:
+            print(f"Study summary: {summary.files['summary.md']}")
         best = _best(study, cfg, location)
         (context.study_dir / BEST_FILE).write_text(yaml.safe_dump(best, sort_keys=False))
-    ran = study.get_trials(deepcopy=False)[before:]
-    states = [t.state for t in ran]
-    failed = states.count(optuna.trial.TrialState.FAIL)
+    states = [t.state for t in study.get_trials(deepcopy=False)[before:]]
+    state = optuna.trial.TrialState
+    pruned, failed = states.count(state.PRUNED), states.count(state.FAIL)
     print(
-        f"stages-tune: study {study.study_name}: {len(ran)} trials run here "
-        f"({len(ran) - failed - states.count(optuna.trial.TrialState.PRUNED)} finished, "
-        f"{states.count(optuna.trial.TrialState.PRUNED)} pruned, {failed} failed), "
-        f"{len(study.get_trials(deepcopy=False))} in the study"
+        f"stages-tune: study {study.study_name}: {len(states)} trials run here "
+        f"({len(states) - failed - pruned} finished, {pruned} pruned, {failed} failed), "
+        f"{before + len(states)} in the study"
     )
     if best["best"] is None:
         print("stages-tune: no trial of the study has finished yet")
@@ -277,17 +334,4 @@ def run_study(cfg: DictConfig, context: StudyContext) -> int:
         print(f"Best trial {b['number']}: {cfg.objective.metric}={b['value']:g} with {params}")
         print(f"  run directory: {b['run_dir']}")
     print(f"Best trial file: {context.study_dir / BEST_FILE}")
-    return EXIT_FAILED if ran and failed == len(ran) else 0
-
-
-def _summarize(study_dir: Path, plots: bool) -> None:
-    """The sweep summary of the trials in ``study_dir`` (best effort: it never hides the
-    study's own outcome)."""
-    if not find_jobs(study_dir):
-        return
-    try:
-        summary = summarize_sweep(study_dir, plots=plots)
-    except Exception as err:  # noqa: BLE001
-        print(f"stages-tune: no study summary ({type(err).__name__}: {err})", file=sys.stderr)
-        return
-    print(f"Study summary: {summary.files['summary.md']}")
+    return EXIT_FAILED if states and failed == len(states) else 0

@@ -1,0 +1,119 @@
+"""The Hydra callbacks of ``stages-train`` (``hydra.callbacks`` in ``conf/config.yaml``): a
+refused run's new directories taken away, and a multirun's sweep summary."""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
+from torchrl_stages.failures import EXIT_INVALID
+from torchrl_stages.sweeps import summarize_or_say
+from torchrl_stages.validate import ConfigError, validate_sweeper
+
+
+class RunDirCallback(Callback):
+    """Notes, before Hydra makes ``hydra.run.dir``, which of its directories are new and what it
+    holds, so that a refused run takes away what Hydra made and nothing else.
+
+    Examples:
+        >>> import tempfile
+        >>> from omegaconf import OmegaConf
+        >>> root = Path(tempfile.mkdtemp())
+        >>> run_dir = root / "outputs" / "run"
+        >>> RunDirCallback().on_run_start(OmegaConf.create({"hydra": {"run": {"dir": run_dir}}}))
+        >>> run_dir.mkdir(parents=True)  # what Hydra does next
+        >>> RunDirCallback.remove_made(run_dir)
+        >>> sorted(root.iterdir())  # outputs/ went with it; root/ was there before
+        []
+    """
+
+    run_dir: Path | None = None
+    made: list[Path] = []  # the new directories of its path, deepest first
+    held: frozenset[str] = frozenset()  # what it held before the launch
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        cls = RunDirCallback
+        cls.run_dir, cls.made, cls.held = None, [], frozenset()
+        with contextlib.suppress(Exception):  # a path it cannot tell: nothing is removed
+            path = cls.run_dir = Path(os.path.abspath(str(config.hydra.run.dir)))
+            while not path.exists() and path != path.parent:
+                cls.made.append(path)
+                path = path.parent
+            if not cls.made:
+                cls.held = frozenset(os.listdir(cls.run_dir))
+
+    @classmethod
+    def remove_made(cls, run_dir: Path) -> None:
+        """Removes the Hydra log this launch made in ``run_dir``, then the new directories while
+        they are empty."""
+        if cls.run_dir is None or cls.run_dir != Path(os.path.abspath(run_dir)):
+            return
+        root = logging.getLogger()
+        for handler in list(root.handlers):
+            log = Path(getattr(handler, "baseFilename", ""))
+            if log.parent == cls.run_dir and log.name not in cls.held:
+                root.removeHandler(handler)
+                handler.close()
+                log.unlink(missing_ok=True)
+        for path in cls.made:
+            try:
+                path.rmdir()
+            except OSError:  # it holds something else
+                break
+        cls.run_dir, cls.made, cls.held = None, [], frozenset()
+
+
+class SweepSummaryCallback(Callback):
+    """Checks the sweeper before any job runs, and writes the sweep's summary into
+    ``hydra.sweep.dir`` when the multirun ends, also when a job failed.
+
+    Examples:
+        >>> import tempfile
+        >>> from omegaconf import OmegaConf
+        >>> sweep = tempfile.mkdtemp()
+        >>> callback = SweepSummaryCallback(plots=False)
+        >>> cfg = OmegaConf.create({"hydra": {"sweep": {"dir": sweep}, "sweeper": {}},
+        ...                         "objective": {"metric": "success_rate",
+        ...                                       "direction": "maximize"}})
+        >>> callback.on_multirun_start(cfg)
+        >>> callback.on_multirun_end(cfg)  # no job here: nothing to summarize
+    """
+
+    def __init__(self, plots: bool = True) -> None:
+        self.plots = plots
+        self._sweep_dir: Path | None = None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        try:
+            validate_sweeper(config.hydra.get("sweeper"), config)
+        except ConfigError as err:
+            print(f"stages-train: invalid config: {err}", file=sys.stderr)
+            sys.exit(EXIT_INVALID)
+        self._sweep_dir = Path(str(config.hydra.sweep.dir))
+        # a failed job makes Hydra's sweepers raise before on_multirun_end: summarize at exit
+        atexit.register(self._summarize)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        atexit.unregister(self._summarize)
+        self._summarize()
+
+    def _summarize(self) -> None:
+        sweep_dir, self._sweep_dir = self._sweep_dir, None
+        if sweep_dir is None:
+            return
+        summary = summarize_or_say(sweep_dir, self.plots, "stages-train: no sweep summary")
+        if summary is None:
+            return
+        done = sum(job.status == "done" for job in summary.jobs)
+        print(
+            f"Sweep summary: {summary.files['summary.md']} ({done} of {len(summary.jobs)} jobs "
+            "finished)"
+        )
