@@ -34,7 +34,14 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
-from torchrl_stages.config import apply_all_stages, objective_value, stage_keys_set
+from torchrl_stages.config import (
+    ConfigError,
+    apply_all_stages,
+    objective_value,
+    register_configs,
+    stage_keys_set,
+    validate_sweeper,
+)
 from torchrl_stages.failures import (
     EXIT_DIVERGED,
     EXIT_FAILED,
@@ -44,7 +51,7 @@ from torchrl_stages.failures import (
     one_line,
 )
 from torchrl_stages.gym_env import SuccessKeyError
-from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.evaluation import evaluate_run, format_summary
@@ -55,7 +62,6 @@ from torchrl_stages.runs.seed_run import with_env_stages
 from torchrl_stages.runs.stage_store import SharedStageStore, StageEntry, StoreError
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.tune import StudyContext, StudyError, run_study
-from torchrl_stages.validate import ConfigError, validate_sweeper
 
 
 class JobFailed(RuntimeError):
@@ -206,7 +212,7 @@ def _cannot_write(err: OSError, run_dir: Path) -> str:
 
 def train() -> None:
     """``stages-train [OVERRIDES...]``: train a task with the backward schedule (Hydra CLI)."""
-    register_configs()
+    register_configs(ALGORITHMS)
     if not _shows_config(sys.argv[1:]):
         _train_app()
         return
@@ -305,7 +311,7 @@ def tune_app(cfg: DictConfig) -> None:
 def tune() -> None:
     """``stages-tune [OVERRIDES...]``: tune hyper-parameters with Optuna, each trial a
     ``stages-train`` run (Hydra CLI; :mod:`torchrl_stages.tune`)."""
-    register_configs()
+    register_configs(ALGORITHMS)
     tune_app()
 
 

@@ -11,6 +11,7 @@ from torchrl.data import TensorSpec
 from torchrl.objectives import TD3Loss
 
 from torchrl_stages.config import StageChecks
+from torchrl_stages.config.schema import free, non_negative, positive
 from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticConfig,
     DeterministicActorCriticLearner,
@@ -24,10 +25,10 @@ from torchrl_stages.values import ActorCriticValue, with_params
 class TD3Config(DeterministicActorCriticConfig):
     """TD3 stage: twin critics, target policy smoothing and delayed actor updates."""
 
-    algo: str = "td3"
-    policy_noise: float = 0.2
-    noise_clip: float = 0.5
-    policy_update_delay: int = 2
+    algo: str = free("td3")
+    policy_noise: float = non_negative(0.2)
+    noise_clip: float = non_negative(0.5)
+    policy_update_delay: int = positive(2)
 
 
 @register_algorithm

@@ -14,9 +14,8 @@ from typing import Any
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_stages.config import targets
+from torchrl_stages.config import missing_keys, targets
 from torchrl_stages.runs.layout import RunDirError
-from torchrl_stages.validate import missing_keys
 
 
 def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:

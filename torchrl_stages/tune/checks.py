@@ -14,10 +14,13 @@ from torchrl_stages.config import (
     ConfigError,
     apply_all_stages,
     check,
+    config_group_options,
     stage_keys_set,
+    validate_config,
 )
-from torchrl_stages.hydra_configs import config_group_options
+from torchrl_stages.learners import ALGORITHMS, learner_class
 from torchrl_stages.runs.seed_run import with_env_stages
+from torchrl_stages.schedules import get_schedule
 from torchrl_stages.tune.space import (
     PRUNERS,
     SAMPLERS,
@@ -25,7 +28,6 @@ from torchrl_stages.tune.space import (
     ParamSpec,
     override_key,
 )
-from torchrl_stages.validate import validate_config
 
 _MISSING = object()
 
@@ -77,7 +79,8 @@ def train_config(compose: Compose, overrides: list[str]) -> DictConfig:
     :class:`~torchrl_stages.runs.experiment.Experiment` does before training (:class:`ConfigError`;
     Hydra's errors for overrides that do not compose)."""
     cfg = apply_all_stages(compose(overrides), keep=stage_keys_set(overrides))
-    validate_config(with_env_stages(cfg))
+    schedule = get_schedule(str(cfg.schedule.name))
+    validate_config(with_env_stages(cfg), schedule, learner_class, ALGORITHMS)
     return cfg
 
 

@@ -1,4 +1,5 @@
-"""Checks a composed config before anything trains; every error names the key and the fix."""
+"""Checks of a composed config before anything trains: every key against its field's bound,
+the cross-field rules, the env's keys and code; every error names the key and the fix."""
 
 from __future__ import annotations
 
@@ -6,69 +7,42 @@ import importlib
 import importlib.util
 import inspect
 import math
+from collections.abc import Callable, Collection
 from dataclasses import is_dataclass
+from typing import Any
 
 import torch
 from hydra.utils import get_object
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_stages.config import (
+from torchrl_stages.config.expansion import targets
+from torchrl_stages.config.schema import (
     ConfigError,
     StageChecks,
+    TrainConfig,
+    TuneAppConfig,
     check,
+    check_bounds,
     nearest,
     schema_keys,
-    targets,
     unknown_key,
 )
-from torchrl_stages.learners import ALGORITHMS, learner_class
-from torchrl_stages.schedules import get_schedule
 
-LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
-COMPILE_MODES = ("auto", "off", "default", "reduce-overhead", "max-autotune")
-OBJECTIVE_METRICS = ("success_rate", "mean_return", "mean_steps")
-DIRECTIONS = ("maximize", "minimize")
+#: the learner class of a stage node (``torchrl_stages.learners.learner_class``)
+LearnerClass = Callable[[Any], Any]
 
 
-def _check_stage(key: str, s: DictConfig) -> None:
-    """One stage's keys (``key`` is e.g. ``task.stages.s3``): those every stage has, then its
-    algorithm's own (:meth:`~torchrl_stages.learners.Learner.validate`)."""
+def _check_stage(key: str, s: DictConfig, learner_class: LearnerClass) -> None:
+    """One stage's keys (``key`` is e.g. ``task.stages.s3``): each against its bound, the
+    cross-field rules, then its learner's own checks (``Learner.validate``)."""
     try:
         learner = learner_class(s)
     except ConfigError as err:
         raise ConfigError(f"{key}.{err}") from None
+    check_bounds(s, stage_schema(s) or learner.Config, key)
     checks = StageChecks(key, s)
-    checks.fraction("gamma", low_open=True)
-    checks.fraction("tau", low_open=True)
-    for field, example in [
-        ("lr", 1e-3),
-        ("num_envs", 64),
-        ("frames", 50_000),
-        ("frames_per_batch", 256),
-        ("buffer_size", 100_000),
-        ("batch_size", 256),
-        ("eval_episodes", 64),
-        ("patience", 1),
-    ]:
-        checks.positive(field, example)
-    for field in ("init_random_frames", "updates_per_batch", "eval_every", "min_frames"):
-        checks.non_negative(field)
-    checks(
-        len(s.num_cells) > 0 and all(c > 0 for c in s.num_cells),
-        "num_cells",
-        "needs at least one positive layer width",
-        f"set {key}.num_cells=[64,64]",
-    )
-    defaults = {"cnn_channels": "[16,32]", "cnn_kernels": "[3,3]", "cnn_strides": "[1,2]"}
-    cnn = {field: list(s[field]) for field in defaults}
-    for field, values in cnn.items():
-        checks(
-            len(values) > 0 and all(v > 0 for v in values),
-            field,
-            "must hold positive integers (one per conv layer)",
-            f"set {key}.{field}={defaults[field]}",
-        )
+    cnn = {field: list(s[field]) for field in ("cnn_channels", "cnn_kernels", "cnn_strides")}
     checks(
         len(set(map(len, cnn.values()))) == 1,
         "cnn_channels",
@@ -94,23 +68,6 @@ def _check_stage(key: str, s: DictConfig) -> None:
         f"exceeds {key}.buffer_size={s.buffer_size}",
         f"lower {key}.batch_size",
     )
-    checks(
-        s.keep_best_by in ("value_error", "return"),
-        "keep_best_by",
-        "unknown (known: value_error, return)",
-        f"set {key}.keep_best_by=value_error",
-    )
-    if s.success_threshold is not None:
-        checks.fraction("success_threshold")
-    if s.eval_max_steps is not None:
-        checks.positive("eval_max_steps", 100)
-    if s.value_tolerance is not None:
-        checks(
-            s.value_tolerance >= 0,
-            "value_tolerance",
-            "must be >= 0 (or null)",
-            f"set {key}.value_tolerance=0.02 or null",
-        )
     learner.validate(checks)
 
 
@@ -291,7 +248,7 @@ def _check_known(key: str, node: DictConfig, schema: type | None, cfg: DictConfi
             raise error
 
 
-def check_stage_keys(cfg: DictConfig) -> None:
+def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
     """Every stage of ``task.stages`` is one of the task's and every key of a stage (and of
     ``task.stage_template``) is one of its algorithm's, whether the command line set it with
     Hydra's ``+`` or without: one line naming the nearest stage or key otherwise."""
@@ -318,7 +275,7 @@ def check_stage_keys(cfg: DictConfig) -> None:
                 f"did you mean task.stages.{close}?"
                 if close
                 else f"set a key of one of them, or add the stage with "
-                f"+algo@task.stages.{name}=<algo> ({'|'.join(ALGORITHMS)})",
+                f"+algo@task.stages.{name}=<algo> ({'|'.join(algorithms)})",
             )
 
 
@@ -327,22 +284,41 @@ def _is_stage(stage: object) -> bool:
     return isinstance(stage, DictConfig) and "algo" in stage
 
 
-def validate_config(cfg: DictConfig) -> None:
+def check_device(name: str) -> None:
+    """Refuses a CUDA device that torch does not see on this machine."""
+    device = torch.device(name)
+    if device.type != "cuda":
+        return
+    check(
+        torch.cuda.is_available(),
+        "device",
+        name,
+        "names a CUDA device, but torch sees none on this machine",
+        "set device=cpu",
+    )
+    count = torch.cuda.device_count()
+    check(
+        device.index is None or device.index < count,
+        "device",
+        name,
+        f"names a GPU this machine does not have (it has {count})",
+        "set device=cuda (the first GPU) or a lower index",
+    )
+
+
+def validate_config(
+    cfg: DictConfig, schedule: Any, learner_class: LearnerClass, algorithms: Collection[str]
+) -> None:
     """Checks what can be checked without building the env (its code is imported: the
-    ``_target_`` s must be found)."""
-    check_stage_keys(cfg)
+    ``_target_`` s must be found); ``schedule`` is the one ``cfg.schedule.name`` names, and
+    ``learner_class`` and ``algorithms`` the learners' registry."""
+    check_stage_keys(cfg, algorithms)
     _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
     _check_finite(cfg.task.get("stage_template"), "task.stage_template")
     for name in ("eval", "objective"):
         _check_finite(cfg.get(name), name)
     check_env_keys(cfg)
-    check(
-        cfg.logger.backend in LOGGER_BACKENDS,
-        "logger.backend",
-        cfg.logger.backend,
-        f"unknown (known: {', '.join(LOGGER_BACKENDS)})",
-        "select one with logger=csv",
-    )
+    check_bounds(cfg, TuneAppConfig if "tune" in cfg else TrainConfig, "")
     package = LOGGER_PACKAGES.get(cfg.logger.backend)
     check(
         package is None or importlib.util.find_spec(package) is not None,
@@ -351,24 +327,6 @@ def validate_config(cfg: DictConfig) -> None:
         f"needs the '{package}' package, which is not installed",
         f"pip install {package}, or use logger=csv",
     )
-    check(cfg.threads >= 1, "threads", cfg.threads, "must be >= 1", "set threads=1")
-    objective = cfg.get("objective")
-    if objective is not None:
-        check(
-            objective.metric in OBJECTIVE_METRICS,
-            "objective.metric",
-            objective.metric,
-            f"unknown (known: {', '.join(OBJECTIVE_METRICS)}: entries of eval.json)",
-            "set objective.metric=success_rate",
-        )
-        check(
-            objective.direction in DIRECTIONS,
-            "objective.direction",
-            objective.direction,
-            "must be maximize or minimize",
-            f"set objective.direction=maximize (or minimize, e.g. for {OBJECTIVE_METRICS[2]})",
-        )
-    schedule = get_schedule(str(cfg.schedule.name))
     schedule.validate(cfg)
     for key in ("stage_store", "init_from"):
         check(
@@ -379,55 +337,7 @@ def validate_config(cfg: DictConfig) -> None:
             "reusable on its own",
             f"use schedule=backward, or drop {key}",
         )
-    check(
-        cfg.checkpoint_every >= 0,
-        "checkpoint_every",
-        cfg.checkpoint_every,
-        "must be >= 0 (0: no checkpoints)",
-        "set checkpoint_every=50000",
-    )
-    check(
-        cfg.compile in COMPILE_MODES,
-        "compile",
-        cfg.compile,
-        f"unknown (known: {', '.join(COMPILE_MODES)})",
-        "set compile=auto",
-    )
-    check(
-        cfg.checkpoint_keep >= 1,
-        "checkpoint_keep",
-        cfg.checkpoint_keep,
-        "must be >= 1",
-        "set checkpoint_keep=2",
-    )
-    try:
-        device = torch.device(cfg.device)
-    except (RuntimeError, TypeError):
-        device = None
-    fix = "set device=cpu (or cuda)"
-    check(device is not None, "device", cfg.device, "is not a torch device", fix)
-    check(
-        device.type != "cuda" or torch.cuda.is_available(),
-        "device",
-        cfg.device,
-        "names a CUDA device, but torch sees none on this machine",
-        "set device=cpu",
-    )
-    count = torch.cuda.device_count() if device.type == "cuda" else 0
-    check(
-        device.type != "cuda" or device.index is None or device.index < count,
-        "device",
-        cfg.device,
-        f"names a GPU this machine does not have (it has {count})",
-        "set device=cuda (the first GPU) or a lower index",
-    )
-    check(
-        cfg.eval.episodes >= 1,
-        "eval.episodes",
-        cfg.eval.episodes,
-        "must be >= 1",
-        "set eval.episodes=100",
-    )
+    check_device(cfg.device)
     check(
         len(cfg.task.stages) > 0,
         "task.stages",
@@ -436,14 +346,7 @@ def validate_config(cfg: DictConfig) -> None:
         "pick a task with stages, e.g. task=gridworld",
     )
     for name, stage in cfg.task.stages.items():
-        check(
-            _is_stage(stage),
-            f"task.stages.{name}",
-            stage,
-            "is not a stage learner config",
-            f"select one with algo@task.stages.{name}=<algo> ({'|'.join(ALGORITHMS)})",
-        )
-        _check_stage(f"task.stages.{name}", stage)
+        _check_stage(f"task.stages.{name}", stage, learner_class)
 
 
 def missing_keys(node: object, prefix: str) -> list[str]:
@@ -499,9 +402,9 @@ def validate_env_protocol(cfg: DictConfig, env) -> None:
     )
 
 
-def validate_task(cfg: DictConfig, task) -> None:
-    """Checks the env against the task protocol, then the stage list and each stage's
-    algorithm against the built env's specs."""
+def validate_task(cfg: DictConfig, task, schedule: Any, learner_class: LearnerClass) -> None:
+    """Checks the built env against the task protocol, then the stage list and each stage's
+    algorithm against its specs."""
     validate_env_protocol(cfg, task.spec_env)
     names = list(cfg.task.stages)
     check(
@@ -512,7 +415,7 @@ def validate_task(cfg: DictConfig, task) -> None:
         f"configure exactly {task.num_stages} stages (add them with "
         f"+algo@task.stages.NAME=<algo> or remove extra ones with ~task.stages.NAME)",
     )
-    get_schedule(str(cfg.schedule.name)).validate_task(cfg, task)
+    schedule.validate_task(cfg, task)
     template = bool(cfg.task.get("stage_template"))
     for k, name in enumerate(names):
         stage = cfg.task.stages[name]
