@@ -21,11 +21,11 @@ from torchrl_stages.config import (
     ConfigError,
     LoggerConfig,
     StageConfig,
-    TuneConfig,
     apply_all_stages,
     as_dataclass,
 )
-from torchrl_stages.config.schema import Bound, TuneAppConfig
+from torchrl_stages.config.bounds import Bound
+from torchrl_stages.config.schema import TuneAppConfig, TuneConfig
 from torchrl_stages.learners import ALGORITHMS, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
 from torchrl_stages.learners.dqn import DQNConfig

@@ -12,7 +12,8 @@ import pytest
 from helpers import run_cli, validate
 from omegaconf import OmegaConf
 
-from torchrl_stages.config import ConfigError, apply_all_stages, stage_keys_set, validate_sweeper
+from torchrl_stages.config import ConfigError, apply_all_stages, stage_keys_set
+from torchrl_stages.config.checks import validate_sweeper
 from torchrl_stages.runs.experiment import Experiment, with_env_stages
 
 CONF = importlib.resources.files("torchrl_stages.conf")

@@ -40,8 +40,8 @@ from torchrl_stages.config import (
     objective_value,
     register_configs,
     stage_keys_set,
-    validate_sweeper,
 )
+from torchrl_stages.config.checks import validate_sweeper
 from torchrl_stages.failures import (
     EXIT_DIVERGED,
     EXIT_FAILED,

@@ -5,30 +5,29 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
-import inspect
 import math
 from collections.abc import Callable, Collection
 from dataclasses import is_dataclass
 from typing import Any
 
 import torch
-from hydra.utils import get_object
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_stages.config.expansion import targets
-from torchrl_stages.config.schema import (
+from torchrl_stages.config.bounds import (
     ConfigError,
     StageChecks,
-    TrainConfig,
-    TuneAppConfig,
     check,
     check_bounds,
     nearest,
     schema_keys,
     unknown_key,
 )
+from torchrl_stages.config.env_checks import check_env_keys, validate_env_protocol
+from torchrl_stages.config.schema import TrainConfig, TuneAppConfig
 
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
+
+
 #: the learner class of a stage node (``torchrl_stages.learners.learner_class``)
 LearnerClass = Callable[[Any], Any]
 
@@ -72,8 +71,7 @@ def _check_stage(key: str, s: DictConfig, learner_class: LearnerClass) -> None:
 
 
 def _check_finite(node: object, prefix: str) -> None:
-    """Refuses a NaN or infinite float anywhere under ``node`` (``lr=inf``, ``gamma=nan``):
-    no key of the package means anything by them."""
+    """Refuses a NaN or infinite float anywhere under ``node``: no key means anything by them."""
     if isinstance(node, DictConfig | ListConfig):
         items = node.items() if isinstance(node, DictConfig) else enumerate(node)
         for key, value in items:
@@ -82,161 +80,14 @@ def _check_finite(node: object, prefix: str) -> None:
         check(False, prefix, node, "must be a finite number", f"set {prefix} to a finite value")
 
 
-class TargetError(ConfigError):
-    """A ``_target_`` of the config names code that cannot be found: its module is not
-    importable, fails to import, or has no such name."""
-
-
-def _first_line(err: BaseException) -> str:
-    lines = str(err).strip().splitlines()
-    return f"{type(err).__name__}: {lines[0] if lines else ''}"
-
-
-def target_problem(path: str) -> str | None:
-    """What is wrong with the dotted ``path`` a ``_target_`` names (``None``: it is found),
-    found as Hydra's locate does: the longest importable module, then its attributes.
-
-    Examples:
-        >>> target_problem("torchrl_stages.envs.GridWorldEnv") is None
-        True
-        >>> target_problem("no_such_module.Env").split(".")[0]
-        'module `no_such_module` is not importable'
-        >>> target_problem("torchrl_stages.envs.GridWorld").split(".")[0]
-        'module `torchrl_stages'
-        >>> "has no `GridWorld`" in target_problem("torchrl_stages.envs.GridWorld")
-        True
-    """
-    parts = path.split(".")
-    if not all(parts):
-        return f"`{path}` is not a dotted path. Fix: name it as my_module.MyClass"
-    found, where = None, ""
-    for index, part in enumerate(parts):
-        name = ".".join(parts[: index + 1])
-        if found is not None and hasattr(found, part):
-            found, where = getattr(found, part), name
-            continue
-        try:
-            found, where = importlib.import_module(name), name
-        except ModuleNotFoundError as err:
-            if err.name != name:  # a module it imports is missing
-                return f"module `{name}` failed to import ({_first_line(err)}). Fix: install it"
-            if index == 0:
-                return (
-                    f"module `{name}` is not importable. Fix: add its directory to PYTHONPATH "
-                    "or pip install it"
-                )
-            return (
-                f"module `{where}` has no `{part}`. Fix: check the name (it must be defined at "
-                "the top of the module)"
-            )
-        except Exception as err:  # noqa: BLE001 - the user's module fails on import
-            return (
-                f"module `{name}` failed to import ({_first_line(err)}). Fix: run "
-                f"`python -c 'import {name}'` to see why"
-            )
-    return None
-
-
-def check_targets(cfg: DictConfig) -> None:
-    """Raises :class:`TargetError` naming the key, the module and the fix for every
-    ``_target_`` of ``cfg.task`` (the env, its stage function, a stage's learner) that cannot
-    be found. It imports their modules: run it only on configs you trust."""
-    container = OmegaConf.to_container(cfg.task, resolve=False)
-    for key, target in targets(container, "task"):
-        if not isinstance(target, str) or target == "???" or "${" in target:
-            continue
-        problem = target_problem(target)
-        if problem is not None:
-            raise TargetError(f"{key}={target}: {problem}")
-
-
-HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
-
-
-def env_arguments(target: str) -> list[str] | None:
-    """The keyword arguments the env ``target`` (a dotted class or function) takes; ``None``
-    when it takes any (``**kwargs``) or cannot be told.
-
-    Examples:
-        >>> "size" in env_arguments("torchrl_stages.envs.GridWorldEnv")
-        True
-        >>> env_arguments("torchrl_stages.GymStageEnv") is None  # the rest go to gymnasium
-        True
-    """
-    try:
-        found = get_object(target)
-        function = found.__init__ if isinstance(found, type) else found
-        parameters = inspect.signature(function).parameters.values()
-    except Exception:  # noqa: BLE001 - not found or no signature: check_targets says which
-        return None
-    if any(p.kind is p.VAR_KEYWORD for p in parameters):
-        return None
-    named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-    return [p.name for p in parameters if p.kind in named and p.name != "self"]
-
-
-def check_env_arguments(cfg: DictConfig) -> None:
-    """Every key of ``task.env`` (and ``task.eval_env``, passed on top of it) is an argument of
-    the env it names: a key it lacks (``task.env.env_id`` on a task of its own env, a typo) is
-    one line naming the nearest argument, or ``task=gym`` for a gymnasium id."""
-    env = cfg.task.get("env")
-    target = env.get("_target_") if isinstance(env, DictConfig) else None
-    if not isinstance(target, str) or OmegaConf.is_missing(env, "_target_") or "${" in target:
-        return
-    known = env_arguments(target)
-    if known is None:
-        return
-    task = cfg.task.get("name")
-    for node_key in ("env", "eval_env"):
-        node = cfg.task.get(node_key)
-        if not isinstance(node, DictConfig):
-            continue
-        values = OmegaConf.to_container(node, resolve=False)
-        for name, value in values.items():
-            if name in HYDRA_KEYS or name in known:
-                continue
-            if name == "env_id":  # a gymnasium id given to a task of another env
-                raise ConfigError(
-                    f"task.{node_key}.env_id={value!r}: task '{task}' builds {target}, which "
-                    f"takes no env id. Fix: did you mean task=gym? (task=gym "
-                    f"task.env.env_id={value} task.env.stage_fn._target_=my_pkg.my_stage)"
-                )
-            error = unknown_key(
-                f"task.{node_key}",
-                name,
-                value,
-                known,
-                f"{target} (the env of task '{task}')",
-                f"drop it ({target} takes: {', '.join(known)})",
-                what="an argument",
-            )
-            raise error
-
-
-def check_env_keys(cfg: DictConfig) -> None:
-    """The env's keys can build it: none left ``???``, every ``_target_`` found and every key
-    an argument of the env (:func:`check_env_arguments`)."""
-    for key in missing_keys(cfg.task.get("env"), "task.env"):
-        check(
-            False,
-            key,
-            "???",
-            f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)",
-            f"set it on the command line: {key}=...",
-        )
-    check_targets(cfg)
-    check_env_arguments(cfg)
-
-
 def stage_schema(stage: DictConfig) -> type | None:
-    """The config dataclass of a composed stage node (``algo@...`` gives it its algorithm's);
-    ``None`` for a plain mapping (a run's saved ``config.yaml``, whose keys are its own)."""
+    """The config dataclass of a composed stage node; ``None`` for a plain mapping (a run's
+    saved ``config.yaml``)."""
     schema = OmegaConf.get_type(stage)
     return schema if is_dataclass(schema) else None
 
 
 def _check_known(key: str, node: DictConfig, schema: type | None, cfg: DictConfig) -> None:
-    """Every key of the stage node ``node`` (at ``key``) is one of ``schema``'s."""
     if schema is None:
         return
     known = schema_keys(schema)
@@ -249,9 +100,8 @@ def _check_known(key: str, node: DictConfig, schema: type | None, cfg: DictConfi
 
 
 def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
-    """Every stage of ``task.stages`` is one of the task's and every key of a stage (and of
-    ``task.stage_template``) is one of its algorithm's, whether the command line set it with
-    Hydra's ``+`` or without: one line naming the nearest stage or key otherwise."""
+    """Refuses a stage the task does not have, and a key of a stage (or of the template) that
+    its algorithm does not have, naming the nearest one."""
     template = cfg.task.get("stage_template")
     template_schema = stage_schema(template) if template else None
     if template:
@@ -280,7 +130,6 @@ def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
 
 
 def _is_stage(stage: object) -> bool:
-    """Whether a ``task.stages`` entry is a stage learner config (it names its algorithm)."""
     return isinstance(stage, DictConfig) and "algo" in stage
 
 
@@ -349,59 +198,6 @@ def validate_config(
         _check_stage(f"task.stages.{name}", stage, learner_class)
 
 
-def missing_keys(node: object, prefix: str) -> list[str]:
-    """Dotted keys under ``node`` whose value is ``???`` (to be set by the user).
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> missing_keys(OmegaConf.create({"env": {"id": "???", "n": 2}}), "task")
-        ['task.env.id']
-    """
-    if not isinstance(node, DictConfig):
-        return []
-    out = []
-    for key in node.keys():
-        if OmegaConf.is_missing(node, key):
-            out.append(f"{prefix}.{key}")
-        elif not OmegaConf.is_interpolation(node, key):  # ${...} is set: left unresolved
-            out += missing_keys(node[key], f"{prefix}.{key}")
-    return out
-
-
-def validate_env_protocol(cfg: DictConfig, env) -> None:
-    """Checks what every stage env must have (a built one, ``batch_size=(1,)`` asked): one
-    batch dimension that honours the asked size, ``num_stages`` and ``stage_fn``."""
-    target = cfg.task.env.get("_target_", "?")
-    fix = (
-        "accept the batch_size keyword and build a batched env of that size (e.g. with "
-        "torchrl's SerialEnv), or use task=gym for a gymnasium env (torchrl_stages.GymStageEnv)"
-    )
-    check(
-        tuple(env.batch_size) == (1,),
-        "task.env._target_",
-        target,
-        f"the env has batch_size={list(env.batch_size)} where batch_size=(1,) was asked: the "
-        "stage trainer needs a batched env with one batch dimension [num_envs]",
-        fix,
-    )
-    num_stages = getattr(env, "num_stages", None)
-    check(
-        isinstance(num_stages, int) and num_stages >= 1,
-        "task.env._target_",
-        target,
-        f"the env has no positive integer num_stages attribute (got {num_stages!r})",
-        "give the env class a num_stages attribute (the number of stages it runs through)",
-    )
-    check(
-        hasattr(env, "stage_fn") and (env.stage_fn is None or callable(env.stage_fn)),
-        "task.env._target_",
-        target,
-        "the env has no stage_fn(tensordict) method (nor stage_fn = None with its own "
-        '"stage" entry)',
-        "add stage_fn(td) returning the stage of each state as int64 [*batch, 1]",
-    )
-
-
 def validate_task(cfg: DictConfig, task, schedule: Any, learner_class: LearnerClass) -> None:
     """Checks the built env against the task protocol, then the stage list and each stage's
     algorithm against its specs."""
@@ -429,23 +225,12 @@ def validate_task(cfg: DictConfig, task, schedule: Any, learner_class: LearnerCl
 
 
 def _direction_name(direction: object) -> str:
-    """``maximize`` / ``minimize`` of a sweeper's direction (a string or an enum member)."""
     return str(getattr(direction, "name", direction)).lower()
 
 
 def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
-    """Checks that a sweeper optimizing a direction (Optuna's ``hydra.sweeper.direction``)
-    optimizes the one of ``cfg.objective``: the number a run returns is ``objective.metric``.
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"objective": {"metric": "mean_steps", "direction": "minimize"}})
-        >>> validate_sweeper(OmegaConf.create({"direction": "minimize"}), cfg)
-        >>> validate_sweeper(OmegaConf.create({"direction": "maximize"}), cfg)
-        Traceback (most recent call last):
-        ...
-        torchrl_stages.config.ConfigError: hydra.sweeper.direction='maximize': ...
-    """
+    """Refuses a sweeper direction (Optuna's ``hydra.sweeper.direction``) other than
+    ``objective.direction``: a run returns ``objective.metric``."""
     if sweeper is None or sweeper.get("direction") is None:
         return
     objective = cfg.objective

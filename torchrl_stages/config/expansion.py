@@ -11,13 +11,12 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
-from torchrl_stages.config.schema import ConfigError, nearest, schema_keys
+from torchrl_stages.config.bounds import ConfigError, nearest, schema_keys
 
 
 def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> DictConfig:
-    """A copy of ``cfg`` with ``cfg.all_stages``'s keys set in every ``task.stages.<name>``
-    except the ``(stage, key)`` pairs of ``keep`` (set for one stage on the command line), and
-    ``all_stages`` emptied. A key a stage's algorithm lacks is a :class:`ConfigError`.
+    """A copy of ``cfg`` with ``cfg.all_stages``'s keys set in every stage but the ``(stage,
+    key)`` pairs of ``keep`` (set for one stage on the command line), and ``all_stages`` emptied.
 
     Examples:
         >>> cfg = OmegaConf.create({"task": {"stages": {"a": {"frames": 9}, "b": {"frames": 9}}},
@@ -62,8 +61,7 @@ def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> D
 
 def expand_stage_template(task: DictConfig, num_stages: int) -> DictConfig:
     """A copy of the task config with stages ``s0..s<num_stages-1>``, each the template with the
-    stage's own ``task.stages.s<k>`` keys over it; ``task`` itself when it has no template. A
-    stage named otherwise, or past the env's last, is a :class:`ConfigError`.
+    stage's own ``task.stages.s<k>`` keys over it; ``task`` itself when it has no template.
 
     Examples:
         >>> task = OmegaConf.create({"stage_template": {"algo": "dqn", "lr": 1e-3},

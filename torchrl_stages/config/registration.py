@@ -8,7 +8,7 @@ before training instead, :func:`~torchrl_stages.config.checks.validate_config`).
 
 from __future__ import annotations
 
-import weakref
+import functools
 from collections.abc import Mapping
 from typing import Any
 
@@ -76,25 +76,20 @@ def by_prefix(name: str, values: Mapping[str, Any], default: Any) -> Any:
     return next((value for prefix, value in values.items() if name.startswith(prefix)), default)
 
 
-# listed once per config loader: Hydra resolves the help template twice a run
-_OPTIONS: weakref.WeakKeyDictionary[Any, dict[str, tuple[str, ...]]] = weakref.WeakKeyDictionary()
-
-
 def config_group_options(group: str) -> list[str]:
     """The options of config group ``group`` in the running Hydra app, the schemas left out
     (``[]`` outside one, or for no such group)."""
     hydra = GlobalHydra.instance()
-    if not hydra.is_initialized():
-        return []
-    loader = hydra.config_loader()
-    listed = _OPTIONS.setdefault(loader, {})
-    if group not in listed:
-        try:
-            names = loader.get_group_options(group)
-        except HydraException:
-            names = []
-        listed[group] = tuple(name for name in names if not name.endswith("_schema"))
-    return list(listed[group])
+    return list(_options(hydra.config_loader(), group)) if hydra.is_initialized() else []
+
+
+@functools.lru_cache(maxsize=64)  # Hydra resolves the help template twice a run
+def _options(loader: Any, group: str) -> tuple[str, ...]:
+    try:
+        names = loader.get_group_options(group)
+    except HydraException:
+        return ()
+    return tuple(name for name in names if not name.endswith("_schema"))
 
 
 def group_options(group: str) -> str:

@@ -19,7 +19,7 @@ from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
 from torchrl.objectives import LossModule, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
-from torchrl_stages.config.schema import flag, non_negative, one_of, positive
+from torchrl_stages.config.bounds import flag, non_negative, one_of, positive
 from torchrl_stages.learners.base import (
     LOSS_FUNCTIONS,
     Learner,

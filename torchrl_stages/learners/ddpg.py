@@ -11,7 +11,7 @@ from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
 
-from torchrl_stages.config.schema import free
+from torchrl_stages.config.bounds import free
 from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticConfig,
     DeterministicActorCriticLearner,

@@ -13,7 +13,7 @@ from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
 from torchrl.objectives import DiscreteSACLoss, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
-from torchrl_stages.config.schema import free, in_range, one_of, positive
+from torchrl_stages.config.bounds import free, in_range, one_of, positive
 from torchrl_stages.learners.base import (
     LOSS_FUNCTIONS,
     Learner,

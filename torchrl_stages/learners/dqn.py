@@ -13,7 +13,7 @@ from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
-from torchrl_stages.config.schema import flag, free, in_range, one_of
+from torchrl_stages.config.bounds import flag, free, in_range, one_of
 from torchrl_stages.learners.base import (
     LOSS_FUNCTIONS,
     Learner,

@@ -14,7 +14,7 @@ from torchrl.modules.distributions.utils import rsample_and_log_prob
 from torchrl.objectives import SACLoss
 
 from torchrl_stages.config import StageChecks
-from torchrl_stages.config.schema import free, positive
+from torchrl_stages.config.bounds import free, positive
 from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
 from torchrl_stages.learners.base import register_algorithm
 from torchrl_stages.learners.entropy import EntropyRegularized

@@ -11,7 +11,7 @@ from torchrl.data import TensorSpec
 from torchrl.objectives import TD3Loss
 
 from torchrl_stages.config import StageChecks
-from torchrl_stages.config.schema import free, non_negative, positive
+from torchrl_stages.config.bounds import free, non_negative, positive
 from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticConfig,
     DeterministicActorCriticLearner,

@@ -12,7 +12,8 @@ import torch
 from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
-from torchrl_stages.config import ConfigError, TargetError, validate_config
+from torchrl_stages.config import ConfigError, validate_config
+from torchrl_stages.config.env_checks import TargetError
 from torchrl_stages.learners import ALGORITHMS, Learner, learner_class, make_learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.runs.directory import RunDir

@@ -18,11 +18,11 @@ from omegaconf import DictConfig, open_dict
 from torchrl_stages.config import (
     ConfigError,
     apply_all_stages,
-    check_env_keys,
     expand_stage_template,
     validate_config,
-    validate_task,
 )
+from torchrl_stages.config.checks import validate_task
+from torchrl_stages.config.env_checks import check_env_keys
 from torchrl_stages.learners import ALGORITHMS, Learner, learner_class
 from torchrl_stages.loggers import Observer, make_logger
 from torchrl_stages.metric_names import FINAL, TASK, metric_name

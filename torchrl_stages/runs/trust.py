@@ -14,7 +14,8 @@ from typing import Any
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_stages.config import missing_keys, targets
+from torchrl_stages.config import targets
+from torchrl_stages.config.env_checks import missing_keys
 from torchrl_stages.runs.layout import RunDirError
 
 

@@ -14,10 +14,10 @@ from torchrl_stages.config import (
     ConfigError,
     apply_all_stages,
     check,
-    config_group_options,
     stage_keys_set,
     validate_config,
 )
+from torchrl_stages.config.registration import config_group_options
 from torchrl_stages.learners import ALGORITHMS, learner_class
 from torchrl_stages.runs.seed_run import with_env_stages
 from torchrl_stages.schedules import get_schedule
