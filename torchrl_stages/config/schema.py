@@ -24,28 +24,23 @@ LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
 
 @dataclass
 class StageConfig:
-    """Hyper-parameters shared by every stage learner; budgets count env frames (summed over
-    the stage env's batch)."""
+    """Hyper-parameters shared by every stage learner; budgets count env frames."""
 
     algo: str = free()  # a registered algorithm (torchrl_stages.learners.ALGORITHMS)
-    # your own learner class instead of the algorithm's (it keeps the keys of `algo`):
-    # {_target_: my_pkg.MyLearner, my_key: 1}; the class is called with (cfg, specs, compile=,
-    # my_key=1) and subclasses torchrl_stages.learners.Learner
+    # your own Learner subclass instead of the algorithm's, keeping the keys of `algo`:
+    # {_target_: my_pkg.MyLearner, my_key: 1} calls it with (cfg, specs, compile=, my_key=1)
     learner: dict[str, Any] = free(factory=dict)
     gamma: float = in_range(0, 1, 0.99, low_open=True)  # this stage's discount
     lr: float = positive(1e-3)  # learning rate (the critic's, for actor-critic algorithms)
-    # every learning rate decays linearly to this fraction of its start value over `frames`
-    # (1: constant)
+    # every learning rate decays linearly to this fraction of its start over `frames`
     lr_end_factor: float = in_range(0, 1, 1.0)
     max_grad_norm: float | None = positive(None)  # clip each optimizer's gradient norm (null: off)
-    # torch.optim.Adam(fused=True): the same update up to float rounding, cheaper for small
-    # networks; false: torch's default Adam
+    # torch.optim.Adam(fused=True): the same update up to rounding, cheaper for small networks
     fused_adam: bool = flag(False)
     num_cells: list[int] = positive(factory=lambda: [64, 64])  # hidden layers of each MLP
-    # octaves of sin/cos input encoding before each MLP (0: raw input)
-    fourier_features: int = non_negative(0)
-    # CNN over image observations (C, H, W), one entry per conv layer (padding kernel // 2); its
-    # flattened features join the vector observations before the MLP. Unused without images.
+    fourier_features: int = non_negative(0)  # octaves of sin/cos input encoding (0: raw input)
+    # CNN over image observations (C, H, W), one entry per conv layer (padding kernel // 2),
+    # its features joining the vector observations before the MLP
     cnn_channels: list[int] = positive(factory=lambda: [16, 32])
     cnn_kernels: list[int] = positive(factory=lambda: [3, 3])
     cnn_strides: list[int] = positive(factory=lambda: [1, 2])
@@ -60,12 +55,11 @@ class StageConfig:
     annealing_frames: int = non_negative(20_000)
     tau: float = in_range(0, 1, 0.005, low_open=True)  # soft target-network update rate
     eval_every: int = non_negative(5_000)  # frames between greedy evaluations (0: never)
-    # greedy episodes per stage evaluation, from random starts in the stage (or all of its
-    # start states where the env enumerates them, e.g. GridWorldEnv.start_states)
+    # greedy episodes per evaluation, from random starts in the stage (or every start state the
+    # env enumerates, e.g. GridWorldEnv.start_states)
     eval_episodes: int = positive(64)
     eval_max_steps: int | None = positive(None)  # longer greedy episodes fail (null: env limit)
-    # early stop once stage success >= this (null: off)
-    success_threshold: float | None = in_range(0, 1, None)
+    success_threshold: float | None = in_range(0, 1, None)  # early stop at this success (null: off)
     # ... and |V(s_0) - discounted greedy return| <= this over the evaluation's starts, reduced
     # by `value_error_reduce` (null: not checked)
     value_tolerance: float | None = non_negative(None)
@@ -73,7 +67,7 @@ class StageConfig:
     patience: int = positive(1)  # consecutive evaluations that must meet the early stop
     min_frames: int = non_negative(0)  # no early stop before this many frames
     keep_best: bool = flag(True)  # budget exhausted: restore the best evaluated weights
-    # "best" = highest success, then: value_error (lowest) | return (highest mean discounted)
+    # "best": highest success, then lowest value_error | highest mean discounted return
     keep_best_by: str = one_of("value_error", "return", default="value_error")
 
 
@@ -82,31 +76,26 @@ class TaskConfig:
     """A multi-stage task: its env and one learner config per stage, in stage order."""
 
     name: str = free()
-    # keyword arguments of the multi-stage env; `_target_` names its class. The schedule adds
-    # `batch_size` and `start_stage` when it builds per-stage envs.
+    # keyword arguments of the multi-stage env, `_target_` its class (the schedule adds
+    # `batch_size` and `start_stage`)
     env: dict[str, Any] = free(factory=dict)
-    # whole-task starts used for the final evaluation (passed to the env on top of `env`)
-    eval_env: dict[str, Any] = free(factory=dict)
+    eval_env: dict[str, Any] = free(factory=dict)  # over `env` in the whole-task evaluation
     stages: dict[str, Any] = free(factory=dict)
-    # every stage's keys when the env says how many stages there are (its num_stages): stages
-    # s0..s<N-1>, each this template with its own task.stages.s<k> keys over it. Empty:
-    # `stages` lists them all
+    # every stage's keys when the env's num_stages says how many: stages s0..s<N-1>, each this
+    # template with its own task.stages.s<k> keys over it (empty: `stages` lists them all)
     stage_template: dict[str, Any] = free(factory=dict)
     eval_episodes: int = positive(100)  # this task's default for eval.episodes
-    # this task's default for `threads` (torch intra-op threads): one beside a busy process is
-    # 3-4x faster than two (scripts/benchmark_threads.py, docs/speed.md)
-    threads: int = positive(1)
-    # whether the env can start an episode inside a chosen stage (`start_stage=k`); without
-    # stage starts only schedule=joint applies, as one phase from the task's own starts
+    threads: int = positive(1)  # this task's default for `threads` (docs/speed.md)
+    # whether the env can start an episode in a chosen stage (`start_stage=k`); without,
+    # only schedule=joint applies, as one phase from the task's own starts
     stage_starts: bool = flag(True)
 
 
 @dataclass
 class ScheduleConfig:
-    """How the stages are trained: ``backward`` (stage N-1 alone, frozen, then N-2 against its
-    value, ...), ``joint`` (the paper's Algorithm 1: every stage learns from whole-task episodes,
-    phase k starting in stage k) or ``flat`` (one learner over the whole task, each transition
-    discounted by its stage's gamma: the end-to-end baseline)."""
+    """How the stages are trained: ``backward`` (stage N-1 first, then each stage against the
+    frozen next one), ``joint`` (the paper's Algorithm 1) or ``flat`` (one learner over the
+    whole task: the end-to-end baseline)."""
 
     name: str = free("backward")  # a registered schedule (get_schedule names them)
 
@@ -122,14 +111,12 @@ class LoggerConfig:
 
 @dataclass
 class EvalConfig:
-    """Whole-task evaluation of the stacked greedy policy after training, from every
-    whole-task start the env enumerates, else from ``episodes`` random ones."""
+    """Whole-task evaluation of the stacked greedy policy after training."""
 
     episodes: int = positive(II("task.eval_episodes"))  # default: the task's
     plots: bool = flag(True)
-    # follow the whole task during training: at every evaluation of stage 0 (backward), of
-    # phase 0 (joint) or of the flat learner, log eval/task/{success_rate, seconds} against the
-    # frames of all stages so far
+    # log eval/task/{success_rate, seconds} at every evaluation of stage 0 (backward), phase 0
+    # (joint) or the flat learner
     probe: bool = flag(False)
 
 
@@ -145,22 +132,16 @@ class ObjectiveConfig:
 @dataclass
 class TuneConfig:
     """The ``tune`` block of ``stages-tune``: an Optuna study of ``objective`` over ``params``,
-    each trial a ``stages-train`` run.
-
-    ``params`` maps a config key (``task.stages.s3.lr``, ``++all_stages.lr``) or a config
-    group (``algo@task.stages.s0``, ``schedule``) to its range: ``{low: 1e-4, high: 1e-2,
-    log: true}`` (ints when ``low`` and ``high`` are; optional ``step``) or ``{choices: [dqn,
-    sac]}``.
-    """
+    each trial a ``stages-train`` run. ``params`` maps a config key or group to its range:
+    ``{low: 1e-4, high: 1e-2, log: true}`` (optional ``step``) or ``{choices: [dqn, sac]}``."""
 
     study_name: str = free("${task.name}")
     # Optuna storage: an RDB URL (sqlite:///study.db, postgresql://...) or a journal file
-    # (study.log: several processes, NFS); relative paths from where the command is launched
+    # (study.log: several processes, NFS)
     storage: str = free("sqlite:///study.db")
     n_trials: int = positive(20)  # trials this command runs (a rerun adds as many to the study)
     sampler: str = one_of("tpe", "random", default="tpe")
-    # the sampler's seed (plus the number of trials already in the study)
-    seed: int = non_negative(II("seed"))
+    seed: int = non_negative(II("seed"))  # plus the number of trials already in the study
     pruner: str = one_of("median", "threshold", "none", default="median")
     startup_trials: int = non_negative(5)  # median: trials that must finish before any is pruned
     warmup_steps: int = non_negative(0)  # stage evaluations of a trial before it may be pruned
@@ -181,17 +162,14 @@ class TrainConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     seed: int = non_negative(0)
-    # several seeds of this config in one process, their networks stacked (backward and flat
-    # schedules; dqn, ddpg, td3): seeds=[0,1,2] writes hydra.run.dir/seed_<s>/, one run
-    # directory per seed, and the sweep summary over them (null: one run, `seed`)
+    # several seeds in one process, their networks stacked (backward and flat; dqn, ddpg, td3):
+    # seeds=[0,1,2] writes one run directory per seed, seed_<s>/ (null: one run, `seed`)
     seeds: list[int] | None = non_negative(None)
     device: str = torch_device("cpu")  # cpu | cuda | cuda:<index> | mps
-    # torch intra-op threads; default: the task's (task.threads). Use 1 per job when a launcher
-    # runs several jobs at once on the same cores
+    # torch intra-op threads (default: task.threads); 1 per job when jobs share the cores
     threads: int = positive(II("task.threads"))
     progress: bool = flag(True)  # tqdm bar per stage (hidden anyway when stderr is not a TTY)
-    # frames between two checkpoints of the stage in progress (0: none)
-    checkpoint_every: int = non_negative(50_000)
+    checkpoint_every: int = non_negative(50_000)  # frames between checkpoints (0: none)
     checkpoint_keep: int = positive(2)  # newest checkpoints kept per stage
     # torch.compile of every learner's loss: auto (off on CPU, reduce-overhead on a GPU) | off |
     # default | reduce-overhead | max-autotune
@@ -199,16 +177,15 @@ class TrainConfig:
         "auto", "off", "default", "reduce-overhead", "max-autotune", default="auto"
     )
     resume: bool = flag(False)  # continue the run in hydra.run.dir (same overrides otherwise)
-    # a directory of finished stages shared by runs: a stage whose identity (its config, the
-    # env, the seed, the stages after it) is there is loaded instead of trained, and every stage
-    # trained is added. schedule=backward only; `stages-store ls|rm|prune DIR` manages it
+    # a directory of finished stages shared by runs (schedule=backward): a stage whose identity
+    # (config, env, seed, later stages) is there is loaded, not trained; `stages-store` manages it
     stage_store: str | None = free(None)
-    # a run directory whose finished stages are taken where their identity is unchanged: a
-    # changed key of stage k retrains stage k and the stages before it (schedule=backward)
+    # a run directory whose finished stages are taken where their identity is unchanged
+    # (schedule=backward)
     init_from: str | None = free(None)
     overwrite: bool = flag(False)  # replace the run in hydra.run.dir
-    # keys set in every task.stages.<name>, over the task's own; a key set for one stage on the
-    # command line keeps its value. Emptied once applied (apply_all_stages)
+    # keys set in every stage over the task's own, but not over one set for a stage on the
+    # command line; emptied once applied
     all_stages: dict[str, Any] = free(factory=dict)
 
 
@@ -235,13 +212,7 @@ def objective_value(result: dict[str, Any], cfg: Any) -> float:
 
 def as_dataclass(cfg: Any) -> Any:
     """A structured config node as an instance of its schema, interpolations resolved (a
-    dataclass read costs nanoseconds, a ``DictConfig`` read ~10 us); anything else as given.
-
-    Examples:
-        >>> cfg = as_dataclass(OmegaConf.structured(StageConfig(algo="mine", gamma=0.9)))
-        >>> type(cfg).__name__, cfg.gamma
-        ('StageConfig', 0.9)
-    """
+    dataclass read costs nanoseconds, a ``DictConfig`` read ~10 us); anything else as given."""
     if isinstance(cfg, DictConfig) and is_dataclass(OmegaConf.get_type(cfg)):
         try:
             return OmegaConf.to_object(cfg)
