@@ -4,6 +4,7 @@ generated from them, :class:`ConfigError` and the key helpers of its messages.""
 from __future__ import annotations
 
 import difflib
+import functools
 import re
 from collections.abc import Callable, Collection, Iterable
 from dataclasses import dataclass, field, fields, is_dataclass
@@ -88,14 +89,6 @@ def bound(default: Any = MISSING, *, factory: Callable[[], Any] | None = None, *
     return field(default=default, metadata=metadata)
 
 
-def positive(default: Any = MISSING, **kwargs) -> Any:
-    return bound(default, low=0, low_open=True, **kwargs)
-
-
-def non_negative(default: Any = MISSING, **kwargs) -> Any:
-    return bound(default, low=0, **kwargs)
-
-
 def in_range(low: float, high: float, default: Any, **kwargs) -> Any:
     """A number in ``[low, high]``; ``low_open`` / ``high_open`` leave an end out."""
     return bound(default, low=low, high=high, **kwargs)
@@ -105,17 +98,13 @@ def one_of(*choices: Any, default: Any) -> Any:
     return bound(default, choices=choices)
 
 
-def flag(default: bool) -> Any:
-    return bound(default, choices=(True, False))
-
-
-def torch_device(default: str) -> Any:
-    return bound(default, pattern=r"cpu|mps|cuda(:\d+)?", text="cpu, cuda, cuda:<index> or mps")
-
-
-def free(default: Any = MISSING, *, factory: Callable[[], Any] | None = None) -> Any:
-    """A field that takes any value of its type (a name, a free-form mapping)."""
-    return bound(default, factory=factory, free=True)
+positive = functools.partial(bound, low=0, low_open=True)
+non_negative = functools.partial(bound, low=0)
+flag = functools.partial(bound, choices=(True, False))
+torch_device = functools.partial(
+    bound, pattern=r"cpu|mps|cuda(:\d+)?", text="cpu, cuda, cuda:<index> or mps"
+)
+free = functools.partial(bound, free=True)  # any value of the field's type (a name, a mapping)
 
 
 def check_bounds(node: Any, schema: type, prefix: str) -> None:

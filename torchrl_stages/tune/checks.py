@@ -17,7 +17,9 @@ from torchrl_stages.config import (
     stage_keys_set,
     validate_config,
 )
+from torchrl_stages.config.bounds import check_bounds
 from torchrl_stages.config.registration import config_group_options
+from torchrl_stages.config.schema import TuneConfig
 from torchrl_stages.learners import ALGORITHMS, learner_class
 from torchrl_stages.runs.seed_run import with_env_stages
 from torchrl_stages.schedules import get_schedule
@@ -35,6 +37,7 @@ _MISSING = object()
 # ---------------------------------------------------------------------- checks
 def check_settings(tune: DictConfig) -> None:
     """Checks the ``tune`` keys other than ``params`` (:class:`ConfigError`)."""
+    check_bounds(tune, TuneConfig, "tune")
     check(bool(tune.study_name), "tune.study_name", tune.study_name, "empty", "name the study")
     check(bool(tune.storage), "tune.storage", tune.storage, "empty", "set sqlite:///study.db")
     check(tune.n_trials >= 1, "tune.n_trials", tune.n_trials, "must be >= 1", "set it to 1+")
