@@ -22,8 +22,9 @@ import torch
 from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 
+from torchrl_stages.config import register_configs
 from torchrl_stages.envs import measure_throughput
-from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.runs.experiment import Experiment
 
 
@@ -91,7 +92,7 @@ def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespac
         "overrides", nargs="*", help="extra Hydra overrides for every run, e.g. task.env.size=20"
     )
     args = parser.parse_args()
-    register_configs()
+    register_configs(ALGORITHMS)
     args.out = args.out or Path(tempfile.mkdtemp(prefix="benchmark_"))
     args.out.mkdir(parents=True, exist_ok=True)
     args.command = command_line()

@@ -28,7 +28,8 @@ from _benchmark import (
     train,
 )
 
-from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.config import register_configs
+from torchrl_stages.learners import ALGORITHMS
 
 VARIANTS = {
     "gridworld": ("gridworld", []),
@@ -51,7 +52,7 @@ def main() -> None:
     parser.add_argument("--figures", type=Path, default=None, help="also copy the figures here")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every run")
     args = parser.parse_args()
-    register_configs()
+    register_configs(ALGORITHMS)
     args.out.mkdir(parents=True, exist_ok=True)
     command = command_line()
     print(command, flush=True)

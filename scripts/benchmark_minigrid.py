@@ -26,13 +26,14 @@ from pathlib import Path
 
 from _benchmark import add_table_argument, command_line, machine_speed, speed_note, train
 
-from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.config import register_configs
+from torchrl_stages.learners import ALGORITHMS
 
 SCHEDULES = ("backward", "joint", "flat")
 
 
 def run(level: str, schedule: str, seed: int, out: Path, overrides: list[str]) -> dict:
-    register_configs()
+    register_configs(ALGORITHMS)
     run_dir = out / f"{level}_{schedule}_seed{seed}"
     result = train(
         "minigrid",

@@ -30,7 +30,8 @@ from pathlib import Path
 import torch
 from _benchmark import command_line, compose_config, run_table
 
-from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.config import register_configs
+from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.runs.experiment import build_task, compile_mode
 from torchrl_stages.runs.loading import load_run
 from torchrl_stages.schedules import train_stage
@@ -107,7 +108,7 @@ def next_stage_value(args: argparse.Namespace, num_stages: int):
 
 def main() -> None:
     args = parse_args()
-    register_configs()
+    register_configs(ALGORITHMS)
     overrides = dict(args.variant_list)
     base = build_task(compose_config(args.task, *args.overrides))
     if not 0 <= args.stage < base.num_stages:

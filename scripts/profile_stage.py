@@ -33,7 +33,8 @@ from _benchmark import (
     speed_note,
 )
 
-from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.config import register_configs
+from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.learners.ops import FusedSoftUpdate
 from torchrl_stages.runs.experiment import Experiment
 from torchrl_stages.runs.keeper import RunKeeper
@@ -134,7 +135,7 @@ def main() -> None:
     misplaced = [mode for mode in args.compile if "=" in mode]
     if misplaced:  # --compile takes every word after it
         parser.error(f"{misplaced} are not compile modes: put Hydra overrides before --compile")
-    register_configs()
+    register_configs(ALGORITHMS)
     out = args.out or Path(tempfile.mkdtemp(prefix="profile_"))
     out.mkdir(parents=True, exist_ok=True)
     command = command_line()

@@ -50,8 +50,8 @@ from tensordict import TensorDictBase
 from torch.utils.flop_counter import FlopCounterMode
 
 from torchrl_stages.collector import StageCollector
-from torchrl_stages.hydra_configs import register_configs
-from torchrl_stages.learners import Learner, make_learner
+from torchrl_stages.config import register_configs
+from torchrl_stages.learners import ALGORITHMS, Learner, make_learner
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.runs.experiment import build_task, compile_mode
 from torchrl_stages.task import StagedTask
@@ -180,7 +180,7 @@ def main() -> None:
         parser.error(f"--stages {malformed}: each is TASK:STAGE, e.g. gridworld:4 or cargo:0")
     if any(word.split("=")[0].lstrip("+") == "compile" for word in args.overrides):
         parser.error("set the compile modes with --compile, not a compile= override")
-    register_configs()
+    register_configs(ALGORITHMS)
     out = args.out or Path(tempfile.mkdtemp(prefix="profile_update_"))
     out.mkdir(parents=True, exist_ok=True)
     command = command_line()

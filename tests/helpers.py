@@ -17,7 +17,9 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.config import register_configs, validate_config
+from torchrl_stages.learners import ALGORITHMS, learner_class
+from torchrl_stages.schedules import get_schedule
 from torchrl_stages.task import StagedTask
 
 
@@ -38,12 +40,17 @@ def hydra_config(*base: str) -> Iterator[Callable[..., DictConfig]]:
     """Yields ``compose(*overrides)`` of the root config (``base`` overrides first), with
     Hydra initialised from a cleared global state and cleared again on exit."""
     GlobalHydra.instance().clear()
-    register_configs()
+    register_configs(ALGORITHMS)
     try:
         with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
             yield lambda *overrides: compose("config", overrides=[*base, *overrides])
     finally:
         GlobalHydra.instance().clear()
+
+
+def validate(cfg: DictConfig) -> None:
+    """``validate_config`` with the schedule ``cfg`` names and the package's learners."""
+    validate_config(cfg, get_schedule(str(cfg.schedule.name)), learner_class, ALGORITHMS)
 
 
 TINY_STAGE = {  # per-stage budgets that train any stage in about a second

@@ -9,7 +9,8 @@ import sys
 import pytest
 from test_profile_scripts import SCRIPTS, TINY_GRID, main_of, run_script
 
-from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.config import register_configs
+from torchrl_stages.learners import ALGORITHMS
 
 SCRIPTS_ARGS = ["--task", "gridworld", *TINY_GRID]
 
@@ -19,7 +20,7 @@ def test_a_stage_alone_is_the_stage_of_a_whole_run(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(SCRIPTS))
     from _benchmark import train
 
-    register_configs()
+    register_configs(ALGORITHMS)
     whole = train("gridworld", tmp_path / "run", "seed=4", *TINY_GRID)["training"]["stages"]
     out = tmp_path / "alone"
     done = run_script(

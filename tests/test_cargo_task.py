@@ -10,6 +10,7 @@ from helpers import assert_figure, hydra_config
 from tensordict.nn import TensorDictModule
 from torchrl.data import Bounded, Categorical
 
+from torchrl_stages.config import ConfigError
 from torchrl_stages.evaluate import rollout_first_episodes
 from torchrl_stages.learners import make_learner
 from torchrl_stages.learners.dqn import DQNLearner
@@ -17,7 +18,6 @@ from torchrl_stages.learners.networks import ConvEncoder
 from torchrl_stages.learners.td3 import TD3Learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.runs.experiment import build_task
-from torchrl_stages.validate import ConfigError
 
 
 @pytest.fixture(scope="module")

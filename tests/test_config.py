@@ -8,21 +8,30 @@ from __future__ import annotations
 import copy
 import importlib.resources
 import importlib.util
+import re
+from dataclasses import Field, fields, is_dataclass
 
 import pytest
 import torch
-from helpers import run_cli
+from helpers import run_cli, validate
 from hydra.errors import ConfigCompositionException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
-from torchrl_stages.config import LoggerConfig, apply_all_stages, as_dataclass
+from torchrl_stages.config import (
+    ConfigError,
+    LoggerConfig,
+    StageConfig,
+    apply_all_stages,
+    as_dataclass,
+)
+from torchrl_stages.config.bounds import Bound
+from torchrl_stages.config.schema import TuneAppConfig, TuneConfig
 from torchrl_stages.learners import ALGORITHMS, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
 from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.learners.td3 import TD3Config
 from torchrl_stages.runs.experiment import Experiment, build_task, with_env_stages
 from torchrl_stages.schedules import BackwardSchedule
-from torchrl_stages.validate import ConfigError, validate_config
 
 CONF = importlib.resources.files("torchrl_stages.conf")
 # the grid world's per-stage frame budget, as its YAML sets it (keys shared by every stage)
@@ -81,7 +90,7 @@ def test_default_config(hydra_compose):
     assert cfg.seed == 0 and cfg.device == "cpu"
     # the task's YAML values land on top of the schema defaults
     assert cfg.task.stages.s2.frames == GRID_FRAMES and cfg.task.stages.s2.fourier_features == 3
-    validate_config(cfg)
+    validate(cfg)
 
 
 # the keys the env templates leave to the user (tests/line_env.py registers LineWorld-v0)
@@ -113,7 +122,7 @@ def test_every_gammas_preset_composes(hydra_compose, gammas):
     cfg = hydra_compose(f"task/gammas={gammas}")
     gs = _gammas(cfg)
     assert len(gs) == 5 and all(0 < g <= 1 for g in gs)
-    validate_config(cfg)
+    validate(cfg)
 
 
 @pytest.mark.parametrize("algo", ALGOS)
@@ -129,7 +138,7 @@ def test_every_algo_option_composes_on_a_stage(hydra_compose, algo):
     assert node.gamma == 0.9  # hetero
     others = [OmegaConf.get_type(cfg.task.stages[s]) for s in STAGES if s != stage]
     assert others == [DQNConfig] * 4
-    validate_config(cfg)  # ranges are fine; only the env check rejects continuous algos
+    validate(cfg)  # ranges are fine; only the env check rejects continuous algos
 
 
 @pytest.mark.parametrize("logger", LOGGERS)
@@ -139,7 +148,7 @@ def test_every_logger_option_composes(hydra_compose, logger):
     assert OmegaConf.get_type(cfg.logger) is LoggerConfig
     assert cfg.logger.exp_name == "gridworld"
     if logger in ("csv", "none"):  # the others need their (optional) package at validation
-        validate_config(cfg)
+        validate(cfg)
 
 
 # ------------------------------------------------------------------ gammas presets
@@ -211,7 +220,7 @@ def test_a_template_tasks_stage_key_is_set_as_on_any_task(hydra_compose, templat
     assert list(cfg.task.stages) == ["s0", "s1"]
     assert cfg.task.stages.s1.frames == 4096
     assert cfg.task.stages.s0.frames == cfg.task.stage_template.frames != 4096
-    validate_config(cfg)
+    validate(cfg)
 
 
 @pytest.mark.parametrize(
@@ -248,7 +257,7 @@ def test_an_all_stages_typo_names_the_nearest_key(hydra_compose):
 
 def test_a_stage_the_task_does_not_have_is_named_with_its_stages(hydra_compose):
     with pytest.raises(ConfigError) as info:
-        validate_config(hydra_compose("task=manipulator", "task.stages.fin.lr=1e-3"))
+        validate(hydra_compose("task=manipulator", "task.stages.fin.lr=1e-3"))
     text = str(info.value)
     assert text.startswith("task.stages.fin=") and "task 'manipulator'" in text, text
     assert "coarse, fine" in text and "did you mean task.stages.fine?" in text, text
@@ -258,7 +267,7 @@ def test_a_stage_the_task_does_not_have_is_named_with_its_stages(hydra_compose):
 def test_an_env_id_without_task_gym_suggests_it(hydra_compose, plus):
     cfg = hydra_compose(f"{plus}task.env.env_id=CartPole-v1")
     with pytest.raises(ConfigError) as info:
-        validate_config(cfg)
+        validate(cfg)
     text = str(info.value)
     assert text.startswith("task.env.env_id='CartPole-v1': task 'gridworld'"), text
     assert "Fix: did you mean task=gym?" in text and "\n" not in text, text
@@ -266,7 +275,7 @@ def test_an_env_id_without_task_gym_suggests_it(hydra_compose, plus):
 
 def test_an_env_argument_the_env_lacks_names_the_nearest(hydra_compose):
     with pytest.raises(ConfigError) as info:
-        validate_config(hydra_compose("task.env.max_step=30"))
+        validate(hydra_compose("task.env.max_step=30"))
     text = str(info.value)
     assert text.startswith("task.env.max_step=30: not an argument of torchrl_stages.envs."), text
     assert "did you mean task.env.max_steps?" in text, text
@@ -336,30 +345,15 @@ def test_invalid_config_raises_config_error(hydra_compose, case):
 def test_range_errors_are_found_without_building_the_env(hydra_compose, case):
     overrides, needles = INVALID[case]
     with pytest.raises(ConfigError, match="Fix:") as info:
-        validate_config(hydra_compose(*overrides))
+        validate(hydra_compose(*overrides))
     assert needles[0] in str(info.value)
 
 
-# More range rules, set on a copy of the default config (a compose per case costs ~0.2 s).
+# Rules a field's bound does not say: cross-field, a list's length.
 OUT_OF_RANGE = [
-    ("task.stages.s0.gamma", -0.5),
-    ("task.stages.s1.tau", 0.0),
-    ("task.stages.s1.tau", 1.5),
-    ("task.stages.s2.lr", 0.0),
-    ("task.stages.s2.num_envs", 0),
     ("task.stages.s3.frames", 128),  # smaller than one collector batch (256)
-    ("task.stages.s3.batch_size", 0),
-    ("task.stages.s3.init_random_frames", -1),
     ("task.stages.s4.num_cells", []),
-    ("task.stages.s4.loss_function", "huber"),
-    ("task.stages.s4.eps_init", 2.0),
-    ("task.stages.s4.eps_end", -0.1),
-    ("task.stages.s4.advantage_learning", 1.0),
-    ("task.stages.s4.advantage_learning", -0.1),
-    ("task.stages.s0.success_threshold", 1.5),
-    ("task.stages.s0.patience", 0),
-    ("eval.episodes", 0),
-    ("threads", 0),
+    ("task.stages.s4.cnn_channels", [16]),  # one entry per conv layer, like cnn_kernels
 ]
 
 
@@ -368,25 +362,90 @@ def test_out_of_range_value_raises_config_error(hydra_compose, key, value):
     cfg = copy.deepcopy(hydra_compose())
     OmegaConf.update(cfg, key, value, merge=False)
     with pytest.raises(ConfigError) as info:
-        validate_config(cfg)
+        validate(cfg)
     message = str(info.value)
     assert message.startswith(f"{key}="), message
     assert "Fix:" in message
 
 
-def test_out_of_range_values_of_actor_critic_stages(hydra_compose):
-    base = hydra_compose("algo@task.stages.s2=td3")
-    for key, value in [
-        ("task.stages.s2.actor_lr", 0.0),
-        ("task.stages.s2.sigma_init", -1.0),
-        ("task.stages.s2.policy_update_delay", 0),
-        ("task.stages.s2.noise_clip", -0.5),
-    ]:
-        cfg = copy.deepcopy(base)
-        OmegaConf.update(cfg, key, value, merge=False)
-        with pytest.raises(ConfigError, match="Fix:") as info:
-            validate_config(cfg)
-        assert str(info.value).startswith(f"{key}=")
+# ------------------------------------------------------------------ declared bounds
+SCHEMAS = [TuneAppConfig, StageConfig, *(learner.Config for learner in ALGORITHMS.values())]
+
+
+def _fields(schema: type, prefix: str = "") -> list[tuple[str, Field]]:
+    """``(key, field)`` of every field of ``schema``, its blocks' fields included."""
+    out = []
+    for f in fields(schema):
+        key = f"{prefix}{f.name}"
+        if is_dataclass(f.default_factory):
+            out += _fields(f.default_factory, f"{key}.")
+        else:
+            out.append((key, f))
+    return out
+
+
+def _outside(f: Field) -> list:
+    """Values just outside the bound of ``f`` (none for a free field or a flag: its type bounds
+    it)."""
+    bound = f.metadata["bound"]
+    if bound.free or bound.choices == (True, False):
+        return []
+    if bound.choices:
+        return ["no_such_choice"]
+    if bound.pattern:
+        return ["meta"]
+    values = [bound.low if bound.low_open else bound.low - 1]
+    if bound.high is not None:
+        values.append(bound.high if bound.high_open else bound.high + 1)
+    return [[v] if str(f.type).startswith("list") else v for v in values]
+
+
+@pytest.mark.parametrize("schema", SCHEMAS, ids=lambda schema: schema.__name__)
+def test_every_config_field_declares_a_bound_or_free(schema):
+    for key, f in _fields(schema):
+        assert isinstance(f.metadata.get("bound"), Bound), f"{schema.__name__}.{key}"
+
+
+@pytest.mark.parametrize("algo", sorted(ALGORITHMS))
+def test_a_value_outside_its_bound_is_refused_naming_the_key(hydra_compose, algo):
+    base = copy.deepcopy(hydra_compose(f"algo@task.stages.s0={algo}"))
+    with open_dict(base):
+        base.tune = OmegaConf.structured(TuneConfig)
+    cases = [(f"task.stages.s0.{key}", f) for key, f in _fields(ALGORITHMS[algo].Config)]
+    if algo == "dqn":  # the root's keys once
+        cases += _fields(TuneAppConfig)
+    checked = 0
+    for key, f in cases:
+        for value in _outside(f):
+            cfg = copy.deepcopy(base)
+            OmegaConf.update(cfg, key, value, merge=False)
+            with pytest.raises(ConfigError) as info:
+                validate(cfg)
+            message = str(info.value)
+            assert message.startswith(f"{key}=") and "Fix:" in message, message
+            assert "\n" not in message, message
+            checked += 1
+    assert checked > 20
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "task.stages.s0.max_grad_norm=-1",
+        "task.stages.s0.lr_end_factor=-1",
+        "task.stages.s0.fourier_features=-1",
+        "task.stages.s0.value_error_reduce=median",
+        "task.stages.s0.updates_per_batch=0",
+        "seed=-1",
+        "device=meta",
+    ],
+)
+def test_a_value_that_would_train_nonsense_is_refused_before_the_run(
+    hydra_compose, tmp_path, override
+):
+    with pytest.raises(ConfigError, match=rf"^{re.escape(override.split('=')[0])}=.*Fix:"):
+        Experiment(hydra_compose(override), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
 
 
 def test_config_error_is_a_value_error():

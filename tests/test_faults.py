@@ -24,16 +24,16 @@ from omegaconf import OmegaConf
 from torchrl_stages import threads
 from torchrl_stages.checkpoint import CheckpointDamagedError, StageCheckpoints
 from torchrl_stages.cli import evaluate
+from torchrl_stages.config import ConfigError, register_configs
 from torchrl_stages.failures import DivergenceError, EnvError
-from torchrl_stages.hydra_configs import register_configs
 from torchrl_stages.integrity import atomic_write
+from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.experiment import Experiment
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.runs.loading import load_run
 from torchrl_stages.runs.trust import shippedtargets
 from torchrl_stages.sweeps import read_job
-from torchrl_stages.validate import ConfigError
 
 TINY = {**TINY_STAGE, "frames": 512, "updates_per_batch": 2, "eval_every": 256}
 OVERRIDES = [*tiny_grid(TINY), "checkpoint_every=256"]
@@ -125,7 +125,7 @@ def test_a_shipped_tasks_targets_are_read_without_resolving_it():
         targets = shippedtargets("minigrid")
         assert targets == {"task.env._target_": "torchrl_stages.envs.MiniGridEnv"}
     finally:
-        register_configs()
+        register_configs(ALGORITHMS)
 
 
 def _pickle_bomb(marker: Path) -> bytes:

@@ -27,13 +27,13 @@ from torchrl.envs import GymWrapper, TransformedEnv
 from torchrl_stages import GymStageEnv, StagedTask, StageTrainer
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.collector import StageCollector
+from torchrl_stages.config import ConfigError
 from torchrl_stages.evaluate import evaluate_policy
 from torchrl_stages.gym_env import SuccessKeyError, SuccessReader
 from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.runs.experiment import build_task
 from torchrl_stages.transforms import StageTransform
-from torchrl_stages.validate import ConfigError
 
 TESTS = Path(__file__).resolve().parent
 TIMEOUT_S = 300

@@ -12,8 +12,9 @@ from helpers import assert_figure
 from torchrl.record.loggers import Logger
 
 from torchrl_stages import Experiment
+from torchrl_stages.config.checks import LOGGER_PACKAGES
+from torchrl_stages.config.schema import LOGGER_BACKENDS
 from torchrl_stages.loggers import RunLogger
-from torchrl_stages.validate import LOGGER_BACKENDS, LOGGER_PACKAGES
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -10,9 +10,9 @@ import torch
 from helpers import assert_figure, hydra_config
 from tensordict.nn import TensorDictModule
 
+from torchrl_stages.config import ConfigError
 from torchrl_stages.envs.manipulator import inverse_kinematics
 from torchrl_stages.runs.experiment import build_task
-from torchrl_stages.validate import ConfigError
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ pytest.importorskip("minigrid", reason=MISSING)
 
 import gymnasium  # noqa: E402
 
+from torchrl_stages.config import ConfigError  # noqa: E402
 from torchrl_stages.envs.minigrid import (  # noqa: E402
     DOORS,
     FEATURES,
@@ -24,7 +25,6 @@ from torchrl_stages.envs.minigrid import (  # noqa: E402
 )
 from torchrl_stages.envs.minigrid.env import VIEW  # noqa: E402
 from torchrl_stages.runs.experiment import build_task  # noqa: E402
-from torchrl_stages.validate import ConfigError  # noqa: E402
 
 LEVELS = ["MiniGrid-DoorKey-5x5-v0", "MiniGrid-KeyCorridorS3R1-v0", "MiniGrid-UnlockPickup-v0"]
 DIRECTIONS = [(1, 0), (0, 1), (-1, 0), (0, -1)]  # MiniGrid's agent_dir 0..3

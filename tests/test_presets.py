@@ -9,12 +9,12 @@ import logging
 import re
 
 import pytest
-from helpers import run_cli
+from helpers import run_cli, validate
 from omegaconf import OmegaConf
 
-from torchrl_stages.config import apply_all_stages, stage_keys_set
+from torchrl_stages.config import ConfigError, apply_all_stages, stage_keys_set
+from torchrl_stages.config.checks import validate_sweeper
 from torchrl_stages.runs.experiment import Experiment, with_env_stages
-from torchrl_stages.validate import ConfigError, validate_config, validate_sweeper
 
 CONF = importlib.resources.files("torchrl_stages.conf")
 SMOKE = OmegaConf.create(CONF.joinpath("experiment/smoke.yaml").read_text()).all_stages
@@ -53,7 +53,7 @@ def test_smoke_gives_every_stage_of_every_task_its_budget(hydra_compose, task):
             assert stage[key] == full_stages[name][key], (name, key)
     assert smoke.eval.episodes == 32
     if task in SHIPPED:  # the env templates leave their env keys to the user
-        validate_config(smoke)
+        validate(smoke)
 
 
 LINE = ("task.env.env_id=line_env:LineWorld-v0", "task.env.stage_fn._target_=line_env.line_stage")
@@ -146,13 +146,13 @@ def test_stage_overrides_still_apply(hydra_compose):
 def test_objective_defaults_and_validation(hydra_compose):
     cfg = hydra_compose()
     assert (cfg.objective.metric, cfg.objective.direction) == ("success_rate", "maximize")
-    validate_config(hydra_compose("objective.metric=mean_steps", "objective.direction=minimize"))
+    validate(hydra_compose("objective.metric=mean_steps", "objective.direction=minimize"))
     for override, key in (
         ("objective.metric=reward", "objective.metric"),
         ("objective.direction=up", "objective.direction"),
     ):
         with pytest.raises(ConfigError, match=rf"{re.escape(key)}=.*Fix:"):
-            validate_config(hydra_compose(override))
+            validate(hydra_compose(override))
 
 
 def test_sweeper_direction_must_match_the_objective(hydra_compose):

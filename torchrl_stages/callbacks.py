@@ -14,9 +14,10 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from torchrl_stages.config import ConfigError
+from torchrl_stages.config.checks import validate_sweeper
 from torchrl_stages.failures import EXIT_INVALID
 from torchrl_stages.sweeps import summarize_or_say
-from torchrl_stages.validate import ConfigError, validate_sweeper
 
 
 class RunDirCallback(Callback):

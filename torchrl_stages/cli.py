@@ -23,7 +23,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.callbacks import RunDirCallback
 from torchrl_stages.checkpoint import CheckpointDamagedError
-from torchrl_stages.config import apply_all_stages, stage_keys_set
+from torchrl_stages.config import (
+    ConfigError,
+    apply_all_stages,
+    register_configs,
+    stage_keys_set,
+)
+from torchrl_stages.config.checks import validate_sweeper
 from torchrl_stages.failures import (
     EXIT_DIVERGED,
     EXIT_FAILED,
@@ -33,7 +39,7 @@ from torchrl_stages.failures import (
     one_line,
 )
 from torchrl_stages.gym_env import SuccessKeyError
-from torchrl_stages.hydra_configs import register_configs
+from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.evaluation import evaluate_run, format_summary
@@ -45,7 +51,6 @@ from torchrl_stages.runs.stage_store import SharedStageStore, StageEntry, StoreE
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.tune import StudyContext, StudyError, run_study
 from torchrl_stages.tune.study import print_results
-from torchrl_stages.validate import ConfigError, validate_sweeper
 
 
 class JobFailed(RuntimeError):
@@ -134,7 +139,7 @@ def _cannot_write(err: OSError, run_dir: Path) -> str:
 
 def train() -> None:
     """``stages-train [OVERRIDES...]``: train a task (Hydra CLI)."""
-    register_configs()
+    register_configs(ALGORITHMS)
     if not _shows_config(sys.argv[1:]):
         _train_app()
         return
@@ -209,7 +214,7 @@ def tune_app(cfg: DictConfig) -> None:
 
 def tune() -> None:
     """``stages-tune [OVERRIDES...]``: an Optuna study of ``stages-train`` runs (Hydra CLI)."""
-    register_configs()
+    register_configs(ALGORITHMS)
     tune_app()
 
 

@@ -81,7 +81,7 @@ def table(cls: type, own_only: bool = False) -> str:
 
 def reference() -> str:
     """The whole reference: root config, blocks, stage keys, algorithms, schedules."""
-    from torchrl_stages import config
+    from torchrl_stages.config import schema as config
     from torchrl_stages.learners import ALGORITHMS
     from torchrl_stages.schedules import SCHEDULES
 

@@ -14,7 +14,13 @@ from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
 from torchrl.objectives import ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
-from torchrl_stages.learners.base import Learner, StageSpecs, check_loss_function
+from torchrl_stages.config.bounds import flag, non_negative, one_of, positive
+from torchrl_stages.learners.base import (
+    LOSS_FUNCTIONS,
+    Learner,
+    StageSpecs,
+    check_loss_function,
+)
 from torchrl_stages.learners.networks import SharedEncoderCritic
 from torchrl_stages.learners.ops import FusedSoftUpdate, linear_schedule, stacked_calls
 from torchrl_stages.values import ActorCriticValue, with_params
@@ -26,27 +32,27 @@ SATURATION = 2.0  # pre-tanh magnitude beyond which `saturation_penalty` applies
 class ActorCriticConfig(StageConfig):
     """The keys of an actor-critic stage (continuous, bounded actions); ``lr`` is the critic's."""
 
-    actor_lr: float = 1e-3
-    loss_function: str = "l2"
+    actor_lr: float = positive(1e-3)
+    loss_function: str = one_of(*LOSS_FUNCTIONS, default="l2")
     # one input encoder (the CNN of image observations) for the actor and the critic(s),
     # trained by the critic loss alone; the actor reads its features detached (as SAC-AE and
     # DrQ do). An update then encodes s and s' once each (s' with the target encoder) instead
     # of once per network (five with twin critics). A different network from separate
     # encoders. Without an image input or fourier_features there is no encoder to share.
-    shared_encoder: bool = False
+    shared_encoder: bool = flag(False)
 
 
 @dataclass
 class DeterministicActorCriticConfig(ActorCriticConfig):
     """The keys of a deterministic actor-critic stage with Gaussian exploration."""
 
-    sigma_init: float = 0.5  # exploration noise std (in action units) at the start
-    sigma_end: float = 0.1
+    sigma_init: float = non_negative(0.5)  # exploration noise std (in action units) at the start
+    sigma_end: float = non_negative(0.1)
     # weight of mean(relu(|pre-tanh actor output| - 2)^2) in the actor loss: keeps the actor out
     # of deep tanh saturation, where its gradient vanishes and the actor stays at an action bound
     # for good (the manipulator's fine stage failed from one elbow configuration without it, the
     # cargo slider circled); zero inside |action| <= 0.96 of the bound (0: off)
-    saturation_penalty: float = 1.0
+    saturation_penalty: float = non_negative(1.0)
 
 
 class ActorCriticLearner(Learner):

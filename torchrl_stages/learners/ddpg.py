@@ -11,6 +11,7 @@ from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
 
+from torchrl_stages.config.bounds import free
 from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticConfig,
     DeterministicActorCriticLearner,
@@ -25,7 +26,7 @@ class DDPGConfig(DeterministicActorCriticConfig):
     """DDPG stage (continuous, bounded actions): ``DDPGLoss``'s objective with Gaussian
     exploration."""
 
-    algo: str = "ddpg"
+    algo: str = free("ddpg")
 
 
 @register_algorithm

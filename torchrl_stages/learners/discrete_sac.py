@@ -13,7 +13,9 @@ from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
 from torchrl.objectives import DiscreteSACLoss, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
+from torchrl_stages.config.bounds import free, in_range, one_of, positive
 from torchrl_stages.learners.base import (
+    LOSS_FUNCTIONS,
     Learner,
     StageSpecs,
     check_loss_function,
@@ -29,18 +31,18 @@ class DiscreteSACConfig(StageConfig):
     """Discrete SAC stage: a categorical policy, twin critics of every action's value and an
     entropy coefficient tuned to a target entropy (``DiscreteSACLoss``'s objective)."""
 
-    algo: str = "discrete_sac"
-    actor_lr: float = 1e-3
-    loss_function: str = "l2"
+    algo: str = free("discrete_sac")
+    actor_lr: float = positive(1e-3)
+    loss_function: str = one_of(*LOSS_FUNCTIONS, default="l2")
     # the entropy coefficient at the start, small for the reason SACConfig.alpha_init gives
-    alpha_init: float = 0.01
-    alpha_lr: float = 3e-4  # its learning rate (automatic entropy tuning)
+    alpha_init: float = positive(0.01)
+    alpha_lr: float = positive(3e-4)  # its learning rate (automatic entropy tuning)
     # the target entropy is this fraction of the uniform policy's, log(number of actions).
     # Low: an episode that does not end collects the entropy bonus at every step, so a high
     # target (torchrl's default 0.98) made wandering worth more than the goal (0% success in
     # the grid world, values growing past 1.8); at 0.1 alpha decays and the greedy path is
     # optimal
-    target_entropy_weight: float = 0.1
+    target_entropy_weight: float = in_range(0, 1, 0.1)
 
 
 def _log_probs(probs: torch.Tensor) -> torch.Tensor:

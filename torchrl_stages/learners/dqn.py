@@ -13,7 +13,9 @@ from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig
+from torchrl_stages.config.bounds import flag, free, in_range, one_of
 from torchrl_stages.learners.base import (
+    LOSS_FUNCTIONS,
     Learner,
     StageSpecs,
     check_loss_function,
@@ -33,21 +35,21 @@ from torchrl_stages.values import QMaxValue, with_params
 class DQNConfig(StageConfig):
     """DQN stage (discrete actions): ``DQNLoss``'s objective with an epsilon-greedy collector."""
 
-    algo: str = "dqn"
-    double_dqn: bool = True  # double-DQN targets (torchrl's DQNLoss(double_dqn=...))
+    algo: str = free("dqn")
+    double_dqn: bool = flag(True)  # double-DQN targets (torchrl's DQNLoss(double_dqn=...))
     # dueling Q-network: separate state-value and advantage heads. Where actions differ by little
     # (a blocked move in the grid world costs 1 - gamma of the value) the advantages are learned
     # apart from the value they would otherwise be lost in, and the greedy action stops flipping.
-    dueling: bool = True
-    loss_function: str = "l2"  # l1 | l2 | smooth_l1
+    dueling: bool = flag(True)
+    loss_function: str = one_of(*LOSS_FUNCTIONS, default="l2")
     # advantage learning (Baird 1999; Bellemare et al. 2016, "Increasing the action gap"):
     # the target y - alpha (max_b Q_target(s, b) - Q_target(s, a)). Where discounting leaves
     # the actions of a state (1 - gamma) V(s) apart, a Q error that size flips the greedy
     # action and a greedy policy loops; this widens every gap by about 1 / (1 - alpha) and
     # changes neither the greedy policy nor max_a Q, the value a stage hands on. 0: plain DQN
-    advantage_learning: float = 0.0
-    eps_init: float = 1.0
-    eps_end: float = 0.05  # epsilon decays linearly to it over `annealing_frames`
+    advantage_learning: float = in_range(0, 1, 0.0, high_open=True)
+    eps_init: float = in_range(0, 1, 1.0)
+    eps_end: float = in_range(0, 1, 0.05)  # epsilon decays linearly to it over `annealing_frames`
 
 
 @register_algorithm

@@ -14,6 +14,7 @@ from torchrl.modules.distributions.utils import rsample_and_log_prob
 from torchrl.objectives import SACLoss
 
 from torchrl_stages.config import StageChecks
+from torchrl_stages.config.bounds import free, positive
 from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
 from torchrl_stages.learners.base import register_algorithm
 from torchrl_stages.learners.entropy import EntropyRegularized, soft_value
@@ -27,16 +28,17 @@ class SACConfig(ActorCriticConfig):
     """SAC stage (continuous, bounded actions): a tanh-Gaussian policy, twin critics and an
     entropy coefficient tuned to a target entropy (``SACLoss``'s objective, version 2)."""
 
-    algo: str = "sac"
+    algo: str = free("sac")
     # the entropy coefficient at the start. Small: the entropy bonus summed over an episode,
     # about alpha |H| / (1 - gamma), must stay well under the tasks' unit rewards, or the soft
     # value a stage hands on is mostly entropy (alpha 1, torchrl's default, left the
     # manipulator's stages at 0% success with values 12 off; 0.01 reached 100%)
-    alpha_init: float = 0.01
-    alpha_lr: float = 3e-4  # its learning rate (automatic entropy tuning)
-    target_entropy: float | None = None  # null: -(action dimensions), torchrl's "auto"
+    alpha_init: float = positive(0.01)
+    alpha_lr: float = positive(3e-4)  # its learning rate (automatic entropy tuning)
+    # any number; null: -(action dimensions), torchrl's "auto"
+    target_entropy: float | None = free(None)
     # actions per state in the stage value's expectation E_a[min_i Q_i(s, a) - alpha log pi]
-    value_samples: int = 16
+    value_samples: int = positive(16)
 
 
 class SoftValue(nn.Module):

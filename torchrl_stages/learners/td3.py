@@ -10,6 +10,7 @@ from torchrl.data import TensorSpec
 from torchrl.objectives import TD3Loss
 
 from torchrl_stages.config import StageChecks
+from torchrl_stages.config.bounds import free, non_negative, positive
 from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticConfig,
     DeterministicActorCriticLearner,
@@ -22,10 +23,10 @@ from torchrl_stages.learners.ops import distance, td0_target
 class TD3Config(DeterministicActorCriticConfig):
     """TD3 stage: twin critics, target policy smoothing and delayed actor updates."""
 
-    algo: str = "td3"
-    policy_noise: float = 0.2
-    noise_clip: float = 0.5
-    policy_update_delay: int = 2
+    algo: str = free("td3")
+    policy_noise: float = non_negative(0.2)
+    noise_clip: float = non_negative(0.5)
+    policy_update_delay: int = positive(2)
 
 
 @register_algorithm

@@ -145,8 +145,9 @@ class Experiment:
 
     Examples:
         >>> from hydra import compose, initialize_config_module
-        >>> from torchrl_stages.hydra_configs import register_configs
-        >>> register_configs()
+        >>> from torchrl_stages.config import register_configs
+        >>> from torchrl_stages.learners import ALGORITHMS
+        >>> register_configs(ALGORITHMS)
         >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
         ...     cfg = compose("config", overrides=["experiment=smoke", "seeds=[0,1]"])
         >>> results = Experiment(cfg, "runs/grid_seeds").run()  # doctest: +SKIP

@@ -12,7 +12,9 @@ import torch
 from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
-from torchrl_stages.learners import Learner, make_learner
+from torchrl_stages.config import ConfigError, validate_config
+from torchrl_stages.config.env_checks import TargetError
+from torchrl_stages.learners import ALGORITHMS, Learner, learner_class, make_learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.layout import (
@@ -24,7 +26,6 @@ from torchrl_stages.runs.trust import (
 from torchrl_stages.schedules import get_schedule
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
-from torchrl_stages.validate import ConfigError, TargetError, validate_config
 
 log = logging.getLogger("torchrl_stages")
 
@@ -102,7 +103,7 @@ def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> Dic
     try:
         checked = cfg.copy()  # as it would run here: on this device, with no logger
         checked.device, checked.logger.backend = str(device), "none"
-        validate_config(checked)
+        validate_config(checked, get_schedule(str(cfg.schedule.name)), learner_class, ALGORITHMS)
     except TargetError as err:  # code of the run's own that is not importable here
         raise RunDirError(f"{source}: {err}") from None
     except (ConfigError, OmegaConfBaseException, AttributeError, TypeError, ValueError) as err:

@@ -15,8 +15,15 @@ import torch
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig, open_dict
 
-from torchrl_stages.config import apply_all_stages, expand_stage_template
-from torchrl_stages.learners import Learner
+from torchrl_stages.config import (
+    ConfigError,
+    apply_all_stages,
+    expand_stage_template,
+    validate_config,
+)
+from torchrl_stages.config.checks import validate_task
+from torchrl_stages.config.env_checks import check_env_keys
+from torchrl_stages.learners import ALGORITHMS, Learner, learner_class
 from torchrl_stages.loggers import Observer, make_logger
 from torchrl_stages.metric_names import FINAL, TASK, metric_name
 from torchrl_stages.preemption import stop_if_asked
@@ -29,7 +36,6 @@ from torchrl_stages.runs.trust import RESUMABLE_CHANGES, config_differences
 from torchrl_stages.schedules import Probe, Trained, get_schedule
 from torchrl_stages.seeding import TASK_EVAL_OFFSET
 from torchrl_stages.task import StagedTask
-from torchrl_stages.validate import ConfigError, check_env_keys, validate_config, validate_task
 
 log = logging.getLogger("torchrl_stages")
 
@@ -75,14 +81,15 @@ def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
     """Validates ``cfg`` (unless already ``validated``) and builds its task; raises
     :class:`ConfigError` before any training. A task with a stage template gets its stages
     from the env here (:func:`with_env_stages`; the task's ``cfg`` holds them)."""
+    schedule = get_schedule(str(cfg.schedule.name))
     if not validated:
         cfg = with_env_stages(cfg)
-        validate_config(cfg)
+        validate_config(cfg, schedule, learner_class, ALGORITHMS)
     try:
         task = StagedTask(cfg.task, device=cfg.device)
     except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
         raise _env_error(cfg, err) from err
-    validate_task(cfg, task)
+    validate_task(cfg, task, schedule, learner_class)
     return task
 
 
@@ -92,7 +99,7 @@ class SeedRun:
     trains.
 
     Everything is checked when it is built, before anything is written: the config
-    (:class:`~torchrl_stages.validate.ConfigError`) and the run directory
+    (:class:`~torchrl_stages.config.ConfigError`) and the run directory
     (:class:`~torchrl_stages.runs.layout.RunDirError`), which it locks until the run ends (one
     process per directory). A directory that already holds a run is refused unless ``resume``
     (continue it: finished stages are loaded, the stage in progress goes on from its last
@@ -109,8 +116,9 @@ class SeedRun:
     Examples:
         >>> import tempfile
         >>> from hydra import compose, initialize_config_module
-        >>> from torchrl_stages.hydra_configs import register_configs
-        >>> register_configs()
+        >>> from torchrl_stages.config import register_configs
+        >>> from torchrl_stages.learners import ALGORITHMS
+        >>> register_configs(ALGORITHMS)
         >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
         ...     cfg = compose("config", overrides=["experiment=smoke"])
         >>> run = SeedRun(cfg, tempfile.mkdtemp())
@@ -135,7 +143,7 @@ class SeedRun:
         self.run_dir = RunDir(run_dir)
         self.resume = bool(cfg.get("resume", False) if resume is None else resume)
         self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
-        validate_config(cfg)
+        validate_config(cfg, get_schedule(str(cfg.schedule.name)), learner_class, ALGORITHMS)
         if self.resume and self.overwrite:
             raise ConfigError(
                 "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "

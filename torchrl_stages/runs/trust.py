@@ -15,8 +15,8 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config import targets
+from torchrl_stages.config.env_checks import missing_keys
 from torchrl_stages.runs.layout import RunDirError
-from torchrl_stages.validate import missing_keys
 
 
 def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:

@@ -7,11 +7,20 @@ from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from torchrl_stages.config import ConfigError, apply_all_stages, check, stage_keys_set
-from torchrl_stages.hydra_configs import config_group_options
+from torchrl_stages.config import (
+    ConfigError,
+    apply_all_stages,
+    check,
+    stage_keys_set,
+    validate_config,
+)
+from torchrl_stages.config.bounds import check_bounds
+from torchrl_stages.config.registration import config_group_options
+from torchrl_stages.config.schema import TuneConfig
+from torchrl_stages.learners import ALGORITHMS, learner_class
 from torchrl_stages.runs.seed_run import with_env_stages
+from torchrl_stages.schedules import get_schedule
 from torchrl_stages.tune.space import Compose, ParamSpec, override_key
-from torchrl_stages.validate import validate_config
 
 SAMPLERS = ("tpe", "random")
 PRUNERS = ("median", "threshold", "none")
@@ -20,6 +29,7 @@ _MISSING = object()
 
 def check_settings(tune: DictConfig) -> None:
     """Checks the ``tune`` keys other than ``params``."""
+    check_bounds(tune, TuneConfig, "tune")
     check(bool(tune.study_name), "tune.study_name", tune.study_name, "empty", "name the study")
     check(bool(tune.storage), "tune.storage", tune.storage, "empty", "set sqlite:///study.db")
     check(tune.n_trials >= 1, "tune.n_trials", tune.n_trials, "must be >= 1", "set it to 1+")
@@ -42,7 +52,8 @@ def check_settings(tune: DictConfig) -> None:
 def train_config(compose: Compose, overrides: list[str]) -> DictConfig:
     """The config of a run of ``overrides``, made and checked as ``stages-train`` does."""
     cfg = apply_all_stages(compose(overrides), keep=stage_keys_set(overrides))
-    validate_config(with_env_stages(cfg))
+    schedule = get_schedule(str(cfg.schedule.name))
+    validate_config(with_env_stages(cfg), schedule, learner_class, ALGORITHMS)
     return cfg
 
 

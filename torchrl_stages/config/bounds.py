@@ -1,0 +1,186 @@
+"""The bound every config field declares (:func:`positive`, :func:`one_of`, ...), the checks
+generated from them, :class:`ConfigError` and the key helpers of its messages."""
+
+from __future__ import annotations
+
+import difflib
+import functools
+import re
+from collections.abc import Callable, Collection, Iterable
+from dataclasses import dataclass, field, fields, is_dataclass
+from typing import Any
+
+from omegaconf import MISSING, ListConfig, OmegaConf
+
+
+class ConfigError(ValueError):
+    """An invalid configuration, found before training starts."""
+
+    __module__ = "torchrl_stages.config"  # where it is imported from
+
+
+def check(ok: bool, key: str, value: object, rule: str, fix: str) -> None:
+    """Raises :class:`ConfigError` ``"{key}={value!r}: {rule}. Fix: {fix}"`` unless ``ok``."""
+    if not ok:
+        raise ConfigError(f"{key}={value!r}: {rule}. Fix: {fix}")
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The values a config field accepts: a number in ``[low, high]`` (ends open or not), one of
+    ``choices``, a full match of ``pattern`` (``text`` names it), or any (``free``). A list needs
+    one entry at least, each inside; ``None`` is left to the field's type.
+
+    Examples:
+        >>> Bound(low=0, low_open=True).problem(0), Bound(choices=("a", "b")).problem(["a"])
+        ('must be > 0', None)
+    """
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    choices: tuple[Any, ...] = ()
+    pattern: str | None = None
+    text: str = ""
+    free: bool = False
+    example: Any = None
+
+    def rule(self) -> str:
+        if self.choices:
+            return f"unknown (known: {', '.join(map(str, self.choices))})"
+        if self.pattern:
+            return f"must be {self.text}"
+        if self.high is None:
+            return f"must be {'>' if self.low_open else '>='} {self.low}"
+        left, right = "(" if self.low_open else "[", ")" if self.high_open else "]"
+        return f"must be in {left}{self.low}, {self.high}{right}"
+
+    def problem(self, value: Any) -> str | None:
+        """Why ``value`` is refused (``None``: it is allowed)."""
+        if self.free or value is None:
+            return None
+        if isinstance(value, list | ListConfig):
+            if value and not any(map(self.problem, value)):
+                return None
+            return f"needs at least one entry, each {self.rule().removeprefix('must be ')}"
+        if self.choices:
+            ok = value in self.choices
+        elif self.pattern:
+            ok = re.fullmatch(self.pattern, str(value)) is not None
+        else:
+            above = value > self.low or (value == self.low and not self.low_open)
+            below = self.high is None or value < self.high
+            ok = above and (below or (value == self.high and not self.high_open))
+        return None if ok else self.rule()
+
+    def fix(self, key: str) -> str:
+        shown = str(self.example).replace(" ", "")
+        if self.example is None or shown == MISSING or "${" in shown or self.high is not None:
+            return f"set {key} to a value in that range"
+        return f"set {key}={shown}"
+
+
+def bound(default: Any = MISSING, *, factory: Callable[[], Any] | None = None, **limits) -> Any:
+    """A dataclass field of ``default`` (or ``factory()``) inside ``limits`` (:class:`Bound`)."""
+    metadata = {"bound": Bound(**limits, example=factory() if factory else default)}
+    if factory is not None:
+        return field(default_factory=factory, metadata=metadata)
+    return field(default=default, metadata=metadata)
+
+
+def in_range(low: float, high: float, default: Any, **kwargs) -> Any:
+    """A number in ``[low, high]``; ``low_open`` / ``high_open`` leave an end out."""
+    return bound(default, low=low, high=high, **kwargs)
+
+
+def one_of(*choices: Any, default: Any) -> Any:
+    return bound(default, choices=choices)
+
+
+positive = functools.partial(bound, low=0, low_open=True)
+non_negative = functools.partial(bound, low=0)
+flag = functools.partial(bound, choices=(True, False))
+torch_device = functools.partial(
+    bound, pattern=r"cpu|mps|cuda(:\d+)?", text="cpu, cuda, cuda:<index> or mps"
+)
+free = functools.partial(bound, free=True)  # any value of the field's type (a name, a mapping)
+
+
+def check_bounds(node: Any, schema: type, prefix: str) -> None:
+    """Refuses every key of ``node`` (at ``prefix``) outside the bound its ``schema`` field
+    declares, in nested blocks too; ``???`` and fields without a bound (a user's own config
+    class) are left alone."""
+    for f in fields(schema):
+        if f.name not in node or OmegaConf.is_missing(node, f.name):
+            continue
+        key, value = f"{prefix}.{f.name}" if prefix else f.name, node[f.name]
+        if is_dataclass(f.default_factory) and value is not None:
+            check_bounds(value, f.default_factory, key)
+        elif "bound" in f.metadata:
+            problem = f.metadata["bound"].problem(value)
+            check(problem is None, key, value, str(problem), f.metadata["bound"].fix(key))
+
+
+def nearest(name: str, known: Iterable[str]) -> str | None:
+    """The name of ``known`` closest to ``name`` (a typo of it), ``None`` when none is close."""
+    found = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return found[0] if found else None
+
+
+def unknown_key(
+    prefix: str,
+    name: str,
+    value: object,
+    known: Collection[str],
+    owner: str,
+    fix: str,
+    what: str = "a key",
+) -> ConfigError | None:
+    """The error of ``{prefix}.{name}`` unless ``name`` is one of ``known`` (``what`` of
+    ``owner``): it names the nearest known key, else ends with ``fix``.
+
+    Examples:
+        >>> print(unknown_key("task.stages.s0", "lrr", 1e-3, ["lr", "gamma"], "dqn", "drop it"))
+        task.stages.s0.lrr=0.001: not a key of dqn. Fix: did you mean task.stages.s0.lr?
+    """
+    if name in known:
+        return None
+    close = nearest(name, known)
+    hint = f"did you mean {prefix}.{close}?" if close else fix
+    return ConfigError(f"{prefix}.{name}={value!r}: not {what} of {owner}. Fix: {hint}")
+
+
+def schema_keys(schema: type) -> list[str]:
+    return [f.name for f in fields(schema)]
+
+
+class StageChecks:
+    """An algorithm's own checks of one stage's keys (``Learner.validate``), each error naming
+    ``{key}.{field}`` and the fix.
+
+    Examples:
+        >>> StageChecks("task.stages.s0", {"lr": 0.0}).positive("lr", 1e-3)
+        Traceback (most recent call last):
+        ...
+        torchrl_stages.config.ConfigError: task.stages.s0.lr=0.0: must be > 0. Fix: ...
+    """
+
+    def __init__(self, key: str, cfg: Any) -> None:
+        self.key, self.cfg = key, cfg
+
+    def __call__(self, ok: bool, field: str, rule: str, fix: str) -> None:
+        check(ok, f"{self.key}.{field}", self.cfg[field], rule, fix)
+
+    def bound(self, field: str, bound: Bound) -> None:
+        problem = bound.problem(self.cfg[field])
+        self(problem is None, field, str(problem), bound.fix(f"{self.key}.{field}"))
+
+    def positive(self, field: str, example: object) -> None:
+        self.bound(field, Bound(low=0, low_open=True, example=example))
+
+    def non_negative(self, field: str) -> None:
+        self.bound(field, Bound(low=0, example=0))
+
+    def fraction(self, field: str, low_open: bool = False) -> None:
+        self.bound(field, Bound(low=0, high=1, low_open=low_open))

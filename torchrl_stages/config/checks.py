@@ -1,0 +1,256 @@
+"""Checks of a composed config before anything trains: every key against its field's bound,
+the cross-field rules, the env's keys and code; every error names the key and the fix."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import math
+from collections.abc import Callable, Collection
+from dataclasses import is_dataclass
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from torchrl_stages.config.bounds import (
+    ConfigError,
+    StageChecks,
+    check,
+    check_bounds,
+    nearest,
+    schema_keys,
+    unknown_key,
+)
+from torchrl_stages.config.env_checks import check_env_keys, validate_env_protocol
+from torchrl_stages.config.schema import TrainConfig, TuneAppConfig
+
+LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
+
+
+#: the learner class of a stage node (``torchrl_stages.learners.learner_class``)
+LearnerClass = Callable[[Any], Any]
+
+
+def _check_stage(key: str, s: DictConfig, learner_class: LearnerClass) -> None:
+    """One stage's keys (``key`` is e.g. ``task.stages.s3``): each against its bound, the
+    cross-field rules, then its learner's own checks (``Learner.validate``)."""
+    try:
+        learner = learner_class(s)
+    except ConfigError as err:
+        raise ConfigError(f"{key}.{err}") from None
+    check_bounds(s, stage_schema(s) or learner.Config, key)
+    checks = StageChecks(key, s)
+    cnn = {field: list(s[field]) for field in ("cnn_channels", "cnn_kernels", "cnn_strides")}
+    checks(
+        len(set(map(len, cnn.values()))) == 1,
+        "cnn_channels",
+        f"needs one entry per conv layer, like {key}.cnn_kernels={cnn['cnn_kernels']} and "
+        f"{key}.cnn_strides={cnn['cnn_strides']}",
+        "give cnn_channels, cnn_kernels and cnn_strides the same length",
+    )
+    checks(
+        s.frames_per_batch % s.num_envs == 0,
+        "frames_per_batch",
+        f"must be a multiple of {key}.num_envs={s.num_envs}",
+        f"set {key}.frames_per_batch={max(1, s.frames_per_batch // s.num_envs) * s.num_envs}",
+    )
+    checks(
+        s.frames >= s.frames_per_batch,
+        "frames",
+        f"is smaller than one collector batch ({key}.frames_per_batch={s.frames_per_batch})",
+        f"raise {key}.frames or lower {key}.frames_per_batch",
+    )
+    checks(
+        s.batch_size <= s.buffer_size,
+        "batch_size",
+        f"exceeds {key}.buffer_size={s.buffer_size}",
+        f"lower {key}.batch_size",
+    )
+    learner.validate(checks)
+
+
+def _check_finite(node: object, prefix: str) -> None:
+    """Refuses a NaN or infinite float anywhere under ``node``: no key means anything by them."""
+    if isinstance(node, DictConfig | ListConfig):
+        items = node.items() if isinstance(node, DictConfig) else enumerate(node)
+        for key, value in items:
+            _check_finite(value, f"{prefix}.{key}" if prefix else str(key))
+    elif isinstance(node, float) and not math.isfinite(node):
+        check(False, prefix, node, "must be a finite number", f"set {prefix} to a finite value")
+
+
+def stage_schema(stage: DictConfig) -> type | None:
+    """The config dataclass of a composed stage node; ``None`` for a plain mapping (a run's
+    saved ``config.yaml``)."""
+    schema = OmegaConf.get_type(stage)
+    return schema if is_dataclass(schema) else None
+
+
+def _check_known(key: str, node: DictConfig, schema: type | None, cfg: DictConfig) -> None:
+    if schema is None:
+        return
+    known = schema_keys(schema)
+    owner = getattr(schema, "algo", None) or schema.__name__
+    listing = f"stages-train task={cfg.task.get('name')} --cfg job"
+    for name, value in OmegaConf.to_container(node, resolve=False).items():
+        error = unknown_key(key, name, value, known, owner, f"drop it (its keys: {listing})")
+        if error is not None:
+            raise error
+
+
+def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
+    """Refuses a stage the task does not have, and a key of a stage (or of the template) that
+    its algorithm does not have, naming the nearest one."""
+    template = cfg.task.get("stage_template")
+    template_schema = stage_schema(template) if template else None
+    if template:
+        _check_known("task.stage_template", template, template_schema, cfg)
+    stages = cfg.task.get("stages") or {}
+    named = [name for name, stage in stages.items() if _is_stage(stage)]
+    for name, stage in stages.items():
+        key = f"task.stages.{name}"
+        if _is_stage(stage):
+            _check_known(key, stage, stage_schema(stage), cfg)
+        elif template and isinstance(stage, DictConfig):  # its own keys over the template
+            _check_known(key, stage, template_schema, cfg)
+        else:
+            close = nearest(str(name), named)
+            check(
+                False,
+                key,
+                stage,
+                f"task '{cfg.task.get('name')}' has no stage {name} (its stages: "
+                f"{', '.join(named)})",
+                f"did you mean task.stages.{close}?"
+                if close
+                else f"set a key of one of them, or add the stage with "
+                f"+algo@task.stages.{name}=<algo> ({'|'.join(algorithms)})",
+            )
+
+
+def _is_stage(stage: object) -> bool:
+    return isinstance(stage, DictConfig) and "algo" in stage
+
+
+def check_device(name: str) -> None:
+    """Refuses a CUDA device that torch does not see on this machine."""
+    device = torch.device(name)
+    if device.type != "cuda":
+        return
+    check(
+        torch.cuda.is_available(),
+        "device",
+        name,
+        "names a CUDA device, but torch sees none on this machine",
+        "set device=cpu",
+    )
+    count = torch.cuda.device_count()
+    check(
+        device.index is None or device.index < count,
+        "device",
+        name,
+        f"names a GPU this machine does not have (it has {count})",
+        "set device=cuda (the first GPU) or a lower index",
+    )
+
+
+def validate_config(
+    cfg: DictConfig, schedule: Any, learner_class: LearnerClass, algorithms: Collection[str]
+) -> None:
+    """Checks what can be checked without building the env (its code is imported: the
+    ``_target_`` s must be found); ``schedule`` is the one ``cfg.schedule.name`` names, and
+    ``learner_class`` and ``algorithms`` the learners' registry."""
+    check_stage_keys(cfg, algorithms)
+    _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
+    _check_finite(cfg.task.get("stage_template"), "task.stage_template")
+    for name in ("eval", "objective"):
+        _check_finite(cfg.get(name), name)
+    check_env_keys(cfg)
+    check_bounds(cfg, TuneAppConfig if "tune" in cfg else TrainConfig, "")
+    package = LOGGER_PACKAGES.get(cfg.logger.backend)
+    check(
+        package is None or importlib.util.find_spec(package) is not None,
+        "logger.backend",
+        cfg.logger.backend,
+        f"needs the '{package}' package, which is not installed",
+        f"pip install {package}, or use logger=csv",
+    )
+    schedule.validate(cfg)
+    for key in ("stage_store", "init_from"):
+        check(
+            not cfg.get(key) or schedule.reuses_stages,
+            key,
+            cfg.get(key),
+            f"schedule={schedule.name} trains its stages together, so a finished stage is not "
+            "reusable on its own",
+            f"use schedule=backward, or drop {key}",
+        )
+    check_device(cfg.device)
+    check(
+        len(cfg.task.stages) > 0,
+        "task.stages",
+        dict(cfg.task.stages),
+        "lists no stage",
+        "pick a task with stages, e.g. task=gridworld",
+    )
+    for name, stage in cfg.task.stages.items():
+        _check_stage(f"task.stages.{name}", stage, learner_class)
+
+
+def validate_task(cfg: DictConfig, task, schedule: Any, learner_class: LearnerClass) -> None:
+    """Checks the built env against the task protocol, then the stage list and each stage's
+    algorithm against its specs."""
+    validate_env_protocol(cfg, task.spec_env)
+    names = list(cfg.task.stages)
+    check(
+        len(names) == task.num_stages,
+        "task.stages",
+        names,
+        f"task '{cfg.task.name}' has {task.num_stages} stages but {len(names)} are configured",
+        f"configure exactly {task.num_stages} stages (add them with "
+        f"+algo@task.stages.NAME=<algo> or remove extra ones with ~task.stages.NAME)",
+    )
+    schedule.validate_task(cfg, task)
+    template = bool(cfg.task.get("stage_template"))
+    for k, name in enumerate(names):
+        stage = cfg.task.stages[name]
+        problem = learner_class(stage).check_action_spec(task.specs(k).action_spec)
+        fix = (
+            "pick every stage's with algo@task.stage_template=<algo>"
+            if template
+            else f"override it with algo@task.stages.{name}=<algo>"
+        )
+        check(problem is None, f"task.stages.{name}.algo", stage.algo, str(problem), fix)
+
+
+def _direction_name(direction: object) -> str:
+    return str(getattr(direction, "name", direction)).lower()
+
+
+def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
+    """Refuses a sweeper direction (Optuna's ``hydra.sweeper.direction``) other than
+    ``objective.direction``: a run returns ``objective.metric``."""
+    if sweeper is None or sweeper.get("direction") is None:
+        return
+    objective = cfg.objective
+    direction = sweeper.direction
+    if not isinstance(direction, str) and isinstance(direction, list | tuple | ListConfig):
+        check(
+            False,
+            "hydra.sweeper.direction",
+            [_direction_name(d) for d in direction],
+            f"a run returns one number (objective.metric={objective.metric})",
+            f"set hydra.sweeper.direction={objective.direction}",
+        )
+    name = _direction_name(direction)
+    check(
+        name == objective.direction,
+        "hydra.sweeper.direction",
+        name,
+        f"the sweeper would {name} objective.metric={objective.metric}, but "
+        f"objective.direction={objective.direction}",
+        f"add hydra.sweeper.direction={objective.direction} (Optuna's default is minimize), or "
+        f"set objective.direction={name} if a {'lower' if name == 'minimize' else 'higher'} "
+        f"{objective.metric} is better",
+    )

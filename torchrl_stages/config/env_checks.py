@@ -1,0 +1,191 @@
+"""Checks of a task's env: its keys, the code its ``_target_`` s name, and a built env against
+the stage protocol; every error names the key and the fix."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+
+from hydra.utils import get_object
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_stages.config.bounds import ConfigError, check, unknown_key
+from torchrl_stages.config.expansion import targets
+
+
+class TargetError(ConfigError):
+    """A ``_target_`` of the config names code that cannot be found."""
+
+
+def _first_line(err: BaseException) -> str:
+    lines = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {lines[0] if lines else ''}"
+
+
+def target_problem(path: str) -> str | None:
+    """What is wrong with the dotted ``path`` a ``_target_`` names (``None``: it is found),
+    found as Hydra's locate does: the longest importable module, then its attributes.
+
+    Examples:
+        >>> target_problem("torchrl_stages.envs.GridWorld").split(". Fix")[0]
+        'module `torchrl_stages.envs` has no `GridWorld`'
+    """
+    parts = path.split(".")
+    if not all(parts):
+        return f"`{path}` is not a dotted path. Fix: name it as my_module.MyClass"
+    found, where = None, ""
+    for index, part in enumerate(parts):
+        name = ".".join(parts[: index + 1])
+        if found is not None and hasattr(found, part):
+            found, where = getattr(found, part), name
+            continue
+        try:
+            found, where = importlib.import_module(name), name
+        except ModuleNotFoundError as err:
+            if err.name != name:  # a module it imports is missing
+                return f"module `{name}` failed to import ({_first_line(err)}). Fix: install it"
+            if index == 0:
+                return (
+                    f"module `{name}` is not importable. Fix: add its directory to PYTHONPATH "
+                    "or pip install it"
+                )
+            return (
+                f"module `{where}` has no `{part}`. Fix: check the name (it must be defined at "
+                "the top of the module)"
+            )
+        except Exception as err:  # noqa: BLE001 - the user's module fails on import
+            return (
+                f"module `{name}` failed to import ({_first_line(err)}). Fix: run "
+                f"`python -c 'import {name}'` to see why"
+            )
+    return None
+
+
+def check_targets(cfg: DictConfig) -> None:
+    """Refuses every ``_target_`` of ``cfg.task`` that cannot be found (:class:`TargetError`).
+    It imports their modules: run it only on configs you trust."""
+    container = OmegaConf.to_container(cfg.task, resolve=False)
+    for key, target in targets(container, "task"):
+        if not isinstance(target, str) or target == "???" or "${" in target:
+            continue
+        problem = target_problem(target)
+        if problem is not None:
+            raise TargetError(f"{key}={target}: {problem}")
+
+
+HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
+
+
+def env_arguments(target: str) -> list[str] | None:
+    """The keyword arguments the env ``target`` (a dotted class or function) takes; ``None``
+    when it takes any (``**kwargs``) or cannot be told."""
+    try:
+        found = get_object(target)
+        function = found.__init__ if isinstance(found, type) else found
+        parameters = inspect.signature(function).parameters.values()
+    except Exception:  # noqa: BLE001 - not found or no signature: check_targets says which
+        return None
+    if any(p.kind is p.VAR_KEYWORD for p in parameters):
+        return None
+    named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    return [p.name for p in parameters if p.kind in named and p.name != "self"]
+
+
+def check_env_arguments(cfg: DictConfig) -> None:
+    """Refuses a key of ``task.env`` or ``task.eval_env`` that the env takes no argument of,
+    naming the nearest one (or ``task=gym`` for a gymnasium id)."""
+    env = cfg.task.get("env")
+    target = env.get("_target_") if isinstance(env, DictConfig) else None
+    if not isinstance(target, str) or OmegaConf.is_missing(env, "_target_") or "${" in target:
+        return
+    known = env_arguments(target)
+    if known is None:
+        return
+    task = cfg.task.get("name")
+    for node_key in ("env", "eval_env"):
+        node = cfg.task.get(node_key)
+        if not isinstance(node, DictConfig):
+            continue
+        values = OmegaConf.to_container(node, resolve=False)
+        for name, value in values.items():
+            if name in HYDRA_KEYS or name in known:
+                continue
+            if name == "env_id":  # a gymnasium id given to a task of another env
+                raise ConfigError(
+                    f"task.{node_key}.env_id={value!r}: task '{task}' builds {target}, which "
+                    f"takes no env id. Fix: did you mean task=gym? (task=gym "
+                    f"task.env.env_id={value} task.env.stage_fn._target_=my_pkg.my_stage)"
+                )
+            error = unknown_key(
+                f"task.{node_key}",
+                name,
+                value,
+                known,
+                f"{target} (the env of task '{task}')",
+                f"drop it ({target} takes: {', '.join(known)})",
+                what="an argument",
+            )
+            raise error
+
+
+def check_env_keys(cfg: DictConfig) -> None:
+    """The env's keys can build it: none left ``???``, every ``_target_`` found, every key an
+    argument of the env."""
+    for key in missing_keys(cfg.task.get("env"), "task.env"):
+        check(
+            False,
+            key,
+            "???",
+            f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)",
+            f"set it on the command line: {key}=...",
+        )
+    check_targets(cfg)
+    check_env_arguments(cfg)
+
+
+def missing_keys(node: object, prefix: str) -> list[str]:
+    """Dotted keys under ``node`` whose value is ``???``.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> missing_keys(OmegaConf.create({"env": {"id": "???", "n": 2}}), "task")
+        ['task.env.id']
+    """
+    if not isinstance(node, DictConfig):
+        return []
+    out = []
+    for key in node.keys():
+        if OmegaConf.is_missing(node, key):
+            out.append(f"{prefix}.{key}")
+        elif not OmegaConf.is_interpolation(node, key):  # ${...} is set: left unresolved
+            out += missing_keys(node[key], f"{prefix}.{key}")
+    return out
+
+
+def validate_env_protocol(cfg: DictConfig, env) -> None:
+    """Checks what a built stage env (``batch_size=(1,)`` asked) must have: that batch size,
+    ``num_stages`` and ``stage_fn``."""
+    num_stages = getattr(env, "num_stages", None)
+    rules = [
+        (
+            tuple(env.batch_size) == (1,),
+            f"the env has batch_size={list(env.batch_size)} where batch_size=(1,) was asked: the "
+            "stage trainer needs a batched env with one batch dimension [num_envs]",
+            "accept the batch_size keyword and build a batched env of that size (e.g. with "
+            "torchrl's SerialEnv), or use task=gym for a gymnasium env "
+            "(torchrl_stages.GymStageEnv)",
+        ),
+        (
+            isinstance(num_stages, int) and num_stages >= 1,
+            f"the env has no positive integer num_stages attribute (got {num_stages!r})",
+            "give the env class a num_stages attribute (the number of stages it runs through)",
+        ),
+        (
+            hasattr(env, "stage_fn") and (env.stage_fn is None or callable(env.stage_fn)),
+            'the env has no stage_fn(tensordict) method (nor stage_fn = None with its own "stage" '
+            "entry)",
+            "add stage_fn(td) returning the stage of each state as int64 [*batch, 1]",
+        ),
+    ]
+    for ok, rule, fix in rules:
+        check(ok, "task.env._target_", cfg.task.env.get("_target_", "?"), rule, fix)

@@ -1,0 +1,132 @@
+"""What a composed config becomes before it is checked: ``all_stages`` applied to every stage,
+a template task's stages made from ``task.stage_template``."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Iterable, Iterator
+from dataclasses import is_dataclass
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
+
+from torchrl_stages.config.bounds import ConfigError, nearest, schema_keys
+
+
+def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> DictConfig:
+    """A copy of ``cfg`` with ``cfg.all_stages``'s keys set in every stage but the ``(stage,
+    key)`` pairs of ``keep`` (set for one stage on the command line), and ``all_stages`` emptied.
+
+    Examples:
+        >>> cfg = OmegaConf.create({"task": {"stages": {"a": {"frames": 9}, "b": {"frames": 9}}},
+        ...                         "all_stages": {"frames": 1024}})
+        >>> cfg = apply_all_stages(cfg, keep=[("b", "frames")])
+        >>> cfg.task.stages.a.frames, cfg.task.stages.b.frames, dict(cfg.all_stages)
+        (1024, 9, {})
+    """
+    if not cfg.get("all_stages"):
+        return cfg
+    cfg = copy.deepcopy(cfg)
+    every, kept = cfg.all_stages, set(keep)
+    stages = dict(cfg.task.stages.items())
+    if cfg.task.get("stage_template"):  # stages made from the template get them from there
+        stages = {k: v for k, v in stages.items() if "algo" in v}
+        stages["stage_template"] = cfg.task.stage_template
+    for name, stage in stages.items():
+        schema = OmegaConf.get_type(stage)
+        for key, value in every.items():
+            if (name, key) in kept:
+                continue
+            try:
+                if is_dataclass(schema) and key not in schema_keys(schema):  # an open node
+                    raise ConfigKeyError(key)  # would take it: its schema does not
+                stage[key] = value
+            except OmegaConfBaseException as err:
+                where = "task.stage_template" if name == "stage_template" else f"task.stages.{name}"
+                close = nearest(key, schema_keys(schema)) if is_dataclass(schema) else None
+                fix = (
+                    f"did you mean all_stages.{close}?"
+                    if close and close not in every
+                    else f"set it for the stages that have it (task.stages.<stage>.{key}=...)"
+                )
+                raise ConfigError(
+                    f"all_stages.{key}={value!r}: {where} "
+                    f"({getattr(schema, '__name__', schema)}) cannot take it "
+                    f"({type(err).__name__}). Fix: {fix}"
+                ) from None
+    cfg.all_stages = {}
+    return cfg
+
+
+def expand_stage_template(task: DictConfig, num_stages: int) -> DictConfig:
+    """A copy of the task config with stages ``s0..s<num_stages-1>``, each the template with the
+    stage's own ``task.stages.s<k>`` keys over it; ``task`` itself when it has no template.
+
+    Examples:
+        >>> task = OmegaConf.create({"stage_template": {"algo": "dqn", "lr": 1e-3},
+        ...                          "stages": {"s2": {"lr": 5e-4}}})
+        >>> stages = expand_stage_template(task, 3).stages
+        >>> list(stages), stages.s0.lr, stages.s2.lr, stages.s2.algo
+        (['s0', 's1', 's2'], 0.001, 0.0005, 'dqn')
+    """
+    if not task.get("stage_template"):
+        return task
+    names = [f"s{k}" for k in range(num_stages)]
+    extra = [name for name in task.stages if name not in names]
+    if extra:
+        raise ConfigError(
+            f"task.stages.{extra[0]}: the env has {num_stages} stages, named "
+            f"{', '.join(names)} (each task.stage_template with its own keys over it). Fix: "
+            f"set that stage's keys as task.stages.<{names[0]}..{names[-1]}>.<key>=..."
+        )
+    task = copy.deepcopy(task)
+    stages = {}
+    for name in names:
+        try:
+            stages[name] = OmegaConf.merge(task.stage_template, task.stages.get(name) or {})
+        except OmegaConfBaseException as err:
+            raise ConfigError(
+                f"task.stages.{name}: its keys do not fit task.stage_template "
+                f"({type(err).__name__}: {str(err).splitlines()[0]}). Fix: set only keys the "
+                "stage's algorithm has"
+            ) from None
+    with open_dict(task):
+        task.stages = stages
+    return task
+
+
+def stage_keys_set(overrides: Iterable[str]) -> set[tuple[str, str]]:
+    """The ``(stage, key)`` pairs that command-line ``overrides`` set directly.
+
+    Examples:
+        >>> sorted(stage_keys_set(["task.stages.s0.frames=10", "+task.stages.s1.lr=1e-3",
+        ...                        "algo@task.stages.s2=sac", "seed=1"]))
+        [('s0', 'frames'), ('s1', 'lr')]
+    """
+    out = set()
+    for override in overrides:
+        key = override.split("=", 1)[0].lstrip("+~")
+        parts = key.split(".")
+        if len(parts) >= 4 and parts[:2] == ["task", "stages"] and "@" not in key:
+            out.add((parts[2], parts[3]))
+    return out
+
+
+def targets(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """``(dotted key, value)`` of every ``_target_`` under ``node`` (plain mappings and lists).
+
+    Examples:
+        >>> list(targets({"task": {"env": {"_target_": "a.B", "fn": {"_target_": "a.f"}}}}))
+        [('task.env._target_', 'a.B'), ('task.env.fn._target_', 'a.f')]
+    """
+    if isinstance(node, dict):
+        for key, item in node.items():
+            path = f"{prefix}.{key}" if prefix else str(key)
+            if key == "_target_":
+                yield path, item
+            else:
+                yield from targets(item, path)
+    elif isinstance(node, list):
+        for index, item in enumerate(node):
+            yield from targets(item, f"{prefix}.{index}")

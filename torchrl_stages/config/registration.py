@@ -1,0 +1,97 @@
+"""The schemas in Hydra's ConfigStore, and the resolvers ``conf/`` uses.
+
+``conf/config.yaml`` extends ``train_schema``, ``conf/tune.yaml`` ``tune_schema`` and
+``conf/algo/<name>.yaml`` ``<name>_schema``. Of what Hydra composes, ``task.stages``, each stage
+and ``task.env`` stay open, so that one form of a key works on every task (their keys are checked
+before training instead, :func:`~torchrl_stages.config.checks.validate_config`).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from hydra.core.global_hydra import GlobalHydra
+from hydra.errors import HydraException
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_stages.config.schema import LoggerConfig, ScheduleConfig, TrainConfig, TuneAppConfig
+
+
+def register_configs(algorithms: Mapping[str, Any]) -> None:
+    """Registers the root schemas and the ``Config`` of every learner of ``algorithms``
+    (``torchrl_stages.learners.ALGORITHMS``), and the ``stages_*`` resolvers.
+
+    Examples:
+        >>> from torchrl_stages.learners import ALGORITHMS
+        >>> register_configs(ALGORITHMS)
+        >>> "dqn_schema.yaml" in ConfigStore.instance().repo["algo"]
+        True
+    """
+    cs = ConfigStore.instance()
+    cs.store(name="train_schema", node=_open(TrainConfig, "task.stages", "task.env"))
+    cs.store(name="tune_schema", node=_open(TuneAppConfig, "task.stages", "task.env"))
+    cs.store(group="logger", name="logger_schema", node=LoggerConfig)
+    cs.store(group="schedule", name="schedule_schema", node=ScheduleConfig)
+    for name, learner in algorithms.items():
+        cs.store(group="algo", name=f"{name}_schema", node=_open(learner.Config, ""))
+    resolvers = {
+        "stages_algorithms": lambda: "|".join(algorithms),
+        "stages_options": group_options,
+        "stages_by_prefix": by_prefix,
+    }
+    for name, resolver in resolvers.items():
+        OmegaConf.register_new_resolver(name, resolver, replace=True)
+
+
+def _open(schema: type, *keys: str) -> DictConfig:
+    """``schema`` whose nodes at ``keys`` (``""``: the root) take keys they lack without ``+``."""
+    node = OmegaConf.structured(schema)
+    for key in keys:
+        OmegaConf.set_struct(node if not key else OmegaConf.select(node, key), False)
+    return node
+
+
+def by_prefix(name: str, values: Mapping[str, Any], default: Any) -> Any:
+    """The value of the first key of ``values`` that ``name`` starts with, else ``default``: the
+    ``stages_by_prefix`` resolver, a value per level id
+    (``${stages_by_prefix:${.env_id},{MiniGrid-KeyCorridor: true},false}``).
+
+    Examples:
+        >>> by_prefix("MiniGrid-KeyCorridorS3R3-v0", {"MiniGrid-KeyCorridor": 0.95}, 0.99)
+        0.95
+        >>> by_prefix("MiniGrid-DoorKey-8x8-v0", 0.95, 0.99)
+        Traceback (most recent call last):
+        ...
+        ValueError: stages_by_prefix:'MiniGrid-DoorKey-8x8-v0',0.95,...: takes an id (a string), ...
+    """
+    if not isinstance(name, str) or not isinstance(values, Mapping):
+        raise ValueError(
+            f"stages_by_prefix:{name!r},{values!r},...: takes an id (a string), a mapping of "
+            "id prefixes to values, and a default. Fix: "
+            "${stages_by_prefix:${task.env.env_id},{Prefix-: value},default}"
+        )
+    return next((value for prefix, value in values.items() if name.startswith(prefix)), default)
+
+
+def config_group_options(group: str) -> list[str]:
+    """The options of config group ``group`` in the running Hydra app, the schemas left out
+    (``[]`` outside one, or for no such group)."""
+    hydra = GlobalHydra.instance()
+    return list(_options(hydra.config_loader(), group)) if hydra.is_initialized() else []
+
+
+@functools.lru_cache(maxsize=64)  # Hydra resolves the help template twice a run
+def _options(loader: Any, group: str) -> tuple[str, ...]:
+    try:
+        names = loader.get_group_options(group)
+    except HydraException:
+        return ()
+    return tuple(name for name in names if not name.endswith("_schema"))
+
+
+def group_options(group: str) -> str:
+    """``a|b|c`` of :func:`config_group_options` (the ``stages_options`` resolver)."""
+    return "|".join(config_group_options(group)) or "?"
