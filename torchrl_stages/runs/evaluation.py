@@ -1,6 +1,5 @@
-"""A run's whole-task evaluation (:func:`evaluate_run`: ``eval.json``), the whole task
-followed during training (:func:`probe_task`) and the lines a finished run prints
-(:func:`format_summary`)."""
+"""A run's whole-task evaluation (``eval.json``), its probe during training, and the lines a
+finished run prints."""
 
 from __future__ import annotations
 
@@ -26,10 +25,8 @@ from torchrl_stages.task_registry import task_report
 
 @torch.no_grad()
 def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict[str, float]:
-    """Whole-task numbers of the current learners, for learning curves across schedules: the
-    success rate of greedy whole-task episodes (every whole-task start when the env enumerates
-    them, else stage 0's ``eval_episodes`` random ones), plus the task's own probe (the grid
-    world: optimal path from (0, 0), merged value error)."""
+    """Whole-task success rate of the current learners (stage 0's ``eval_episodes``), plus the
+    task's own probe metrics: learning curves comparable across schedules."""
     policy = StackedPolicy([learner.policy for learner in learners])
     episodes = int(task.stage_cfg(0).eval_episodes)
     out = {
@@ -59,17 +56,11 @@ def evaluate_run(
     run_dir: Path,
     training: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Evaluates the greedy stacked policy on whole-task episodes; writes ``eval.json``.
-
-    Episodes start from every whole-task start state when the env enumerates them, else from
-    ``cfg.eval.episodes`` random ones seeded from ``cfg.seed``; the task's report (if any) adds
-    its metrics and figures; ``training`` (wall-clock, frames, updates per stage) is stored
-    alongside. ``eval.json`` is strict JSON: undefined values are ``null``.
-    """
+    """Evaluates the greedy stacked policy on whole-task episodes; writes ``eval.json`` (strict
+    JSON, with the task report's metrics and ``training`` alongside)."""
     policy = StackedPolicy([learner.policy for learner in learners])
-    evaluation = evaluate_task(
-        task, policy, int(cfg.eval.episodes), int(cfg.seed) + TASK_EVAL_OFFSET, interruptible=True
-    )
+    seed = int(cfg.seed) + TASK_EVAL_OFFSET
+    evaluation = evaluate_task(task, policy, int(cfg.eval.episodes), seed, interruptible=True)
     result: dict[str, Any] = {
         "task": cfg.task.name,
         **evaluation.summary(),
@@ -82,7 +73,6 @@ def evaluate_run(
         )
         result["headline_metrics"] = list(report.headline)
     if evaluation.handoffs:  # how each stage's value holds where the stage before hands over
-        seed = int(cfg.seed) + TASK_EVAL_OFFSET
         records = handoff_diagnostics(task, learners, evaluation.handoffs, seed)
         warn_extrapolated(records)
         if cfg.eval.plots:
@@ -103,9 +93,7 @@ STARTS = {"all": "every whole-task start", "fixed": "one fixed start", "random":
 
 
 def format_summary(result: dict[str, Any], run_dir: Path) -> str:
-    """A few human-readable lines for the end of a run: its whole-task evaluation (``result``,
-    its ``eval.json``), then the run directory with the paths of ``eval.json`` and of the
-    figures in it.
+    """The lines printed at the end of a run: its ``eval.json`` summary, then its files.
 
     Examples:
         >>> import tempfile
@@ -124,7 +112,7 @@ def format_summary(result: dict[str, Any], run_dir: Path) -> str:
     lines = [
         f"task {result['task']}: success {result['success_rate']:.1%} over "
         f"{result['episodes']} whole-task episodes ({starts}), mean return "
-        f"{result['mean_return']:.3f}, mean steps {result['mean_steps']:.1f}",
+        f"{result['mean_return']:.3f}, mean steps {result['mean_steps']:.1f}"
     ]
     for key, value in result.get("task_metrics", {}).items():
         if key != "path_from_origin":

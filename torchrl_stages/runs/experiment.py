@@ -1,12 +1,5 @@
-"""A training launch, start to end: the library API behind ``stages-train``.
-
-:class:`Experiment` trains and evaluates a config for one seed (``seed=s``: one run directory)
-or several at once (``seeds=[...]``: one run directory per seed, ``<run_dir>/seed_<s>/``, and a
-summary over them), with one code path: each seed's directory is a
-:class:`~torchrl_stages.runs.seed_run.SeedRun` (checked, locked, resumed and evaluated alike), and
-the schedule trains every seed's stages in one call, their networks stacked when there are
-several. The CLI, ``stages-tune``, the benchmark scripts and Python users all go through it.
-"""
+"""A training launch, start to end: the library API behind ``stages-train``, for one seed or
+several trained at once (one :class:`~torchrl_stages.runs.seed_run.SeedRun` per seed)."""
 
 from __future__ import annotations
 
@@ -15,6 +8,7 @@ import logging
 import re
 import shutil
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +23,13 @@ from torchrl_stages.loggers import Observer, StopRun
 from torchrl_stages.preemption import Interrupted, handle_signals
 from torchrl_stages.runs.directory import refuse_links
 from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
-from torchrl_stages.runs.seed_run import SeedRun, build_task, compile_mode, with_env_stages
+from torchrl_stages.runs.seed_run import (
+    RunOptions,
+    SeedRun,
+    build_task,
+    compile_mode,
+    with_env_stages,
+)
 from torchrl_stages.schedules import SCHEDULES, get_schedule
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import hold_threads
@@ -38,8 +38,7 @@ log = logging.getLogger("torchrl_stages")
 
 
 def validate_seeds(cfg: DictConfig) -> list[int]:
-    """``cfg.seeds`` as a list of ints; :class:`ConfigError` naming the fix when it cannot be
-    trained in one process.
+    """``cfg.seeds`` as ints; :class:`ConfigError` when they cannot train in one process.
 
     Examples:
         >>> validate_seeds(OmegaConf.create({"seeds": [0, 2], "schedule": {"name": "backward"},
@@ -91,9 +90,7 @@ def validate_seeds(cfg: DictConfig) -> list[int]:
 
 
 def check_stackable(task: StagedTask, num_seeds: int) -> None:
-    """Builds each stage's learner stacked for ``num_seeds`` seeds (small, on the CPU, thrown
-    away): :class:`ConfigError` naming the stage and the fix when one cannot be, before any
-    training."""
+    """Raises :class:`ConfigError` naming the stage that cannot stack ``num_seeds`` seeds."""
     for k, name in enumerate(task.stage_names):
         try:
             make_learner(task.stage_cfg(k), task.specs(k), seeds=num_seeds)
@@ -114,8 +111,8 @@ def _for_seed(cfg: DictConfig, seed: int) -> DictConfig:
 
 
 def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[str, Any]:
-    """``.hydra/`` of seed ``seed``'s directory: its config, and the command's overrides with
-    ``seed=<seed>`` for ``seeds=...`` (how the sweep summary groups the seeds)."""
+    """Seed ``seed``'s ``.hydra/``: its config, and ``seed=<seed>`` for ``seeds=...`` in the
+    overrides (how the sweep summary groups the seeds)."""
     out = dict(files)
     out["config.yaml"] = cfg
     overrides = [str(o) for o in files.get("overrides.yaml", [])]
@@ -125,23 +122,10 @@ def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[
 
 
 class Experiment:
-    """Trains and evaluates ``cfg`` in ``run_dir``: seed ``cfg.seed`` in ``run_dir`` itself, or,
-    with ``cfg.seeds``, every seed at once, seed ``s`` in ``<run_dir>/seed_<s>/``;
-    :meth:`run` returns each seed's ``eval.json``.
-
-    Each seed's directory is a :class:`~torchrl_stages.runs.seed_run.SeedRun` (checked, locked and
-    written alike: ``resume`` and ``overwrite`` act on each; ``load_run``, ``stages-eval`` and
-    ``stages-report`` read it as any other), built before anything is written. The schedule
-    trains every seed's stages in one call; several seeds' networks are stacked (schedules and
-    algorithms that declare ``stacks_seeds``), their checkpoints one state for all of them
-    (``<run_dir>/seed_checkpoints/``), and a summary over them is written in ``run_dir``
-    (:func:`~torchrl_stages.sweeps.summarize_sweep`). ``hydra_files`` and ``observers`` go to
-    each seed's run (an observer may end it by raising
-    :class:`~torchrl_stages.loggers.StopRun`: ``stages-tune`` prunes a trial so).
-
-    While it runs, SIGTERM, SIGINT and SIGUSR1 stop it at the next batch with a checkpoint
-    (:mod:`torchrl_stages.preemption`), and the torch thread count is held at ``cfg.threads``;
-    how a launch that did not finish ended is in each seed's ``status.json``.
+    """Trains and evaluates ``cfg`` in ``run_dir`` (with ``cfg.seeds``: every seed at once, their
+    networks stacked, seed ``s`` in ``<run_dir>/seed_<s>/``, and a summary over them);
+    :meth:`run` returns each seed's ``eval.json``. The options (:class:`RunOptions`) go to each
+    seed's run. SIGTERM, SIGINT and SIGUSR1 stop it at the next batch with a checkpoint.
 
     Examples:
         >>> from hydra import compose, initialize_config_module
@@ -167,33 +151,26 @@ class Experiment:
         self.stacked = cfg.get("seeds") is not None
         self.seeds = validate_seeds(cfg) if self.stacked else [int(cfg.seed)]
         self.cfg, self.run_dir = cfg, Path(run_dir)
+        options = RunOptions(resume, overwrite, hydra_files, tuple(observers))
         self.runs: list[SeedRun] = []
-        if self.stacked:  # before any directory is made: the config, and whether it stacks
-            first = with_env_stages(apply_all_stages(_for_seed(cfg, self.seeds[0])))
-            check_stackable(build_task(first), len(self.seeds))
+        if not self.stacked:
+            self.runs.append(SeedRun(cfg, self.run_dir, options))
+            return
+        # before any directory is made: the config, and whether it stacks
+        first = with_env_stages(apply_all_stages(_for_seed(cfg, self.seeds[0])))
+        check_stackable(build_task(first), len(self.seeds))
         try:
             for seed in self.seeds:
-                seed_cfg = _for_seed(cfg, seed) if self.stacked else cfg
-                files = hydra_files
-                if self.stacked and hydra_files:
-                    files = _hydra_files_for(hydra_files, seed_cfg, seed)
-                where = seed_dir(self.run_dir, seed) if self.stacked else self.run_dir
-                run = SeedRun(
-                    seed_cfg,
-                    where,
-                    resume=resume,
-                    overwrite=overwrite,
-                    hydra_files=files,
-                    observers=observers,
-                )
-                self.runs.append(run)
+                seed_cfg = _for_seed(cfg, seed)
+                files = hydra_files and _hydra_files_for(hydra_files, seed_cfg, seed)
+                seed_options = replace(options, hydra_files=files)
+                self.runs.append(SeedRun(seed_cfg, seed_dir(self.run_dir, seed), seed_options))
         except BaseException:
             self.close()
             raise
 
     @property
     def task(self) -> StagedTask:
-        """The task every seed trains."""
         return self.runs[0].task
 
     def close(self) -> None:
@@ -202,13 +179,8 @@ class Experiment:
             run.close()
 
     def run(self) -> list[dict[str, Any]]:
-        """Trains every stage of every seed (or what is left of them) and evaluates; returns
-        each seed's ``eval.json``.
-
-        How a launch that did not finish ended is in each seed's record (its launches) and
-        ``status.json``: ``interrupted`` (:class:`~torchrl_stages.preemption.Interrupted`),
-        ``diverged`` (:class:`~torchrl_stages.failures.DivergenceError`), ``failed``, or the
-        status of an observer's :class:`~torchrl_stages.loggers.StopRun` (e.g. ``pruned``)."""
+        """Trains what is left of every seed's stages and evaluates; a launch that does not
+        finish records how it ended (``interrupted``, ``diverged``, ``failed``, ``pruned``)."""
         cfg = self.runs[0].cfg
         try:
             with handle_signals(), hold_threads(int(cfg.threads)):
@@ -241,8 +213,7 @@ class Experiment:
             keepers.append(run.start())
             if self.stacked:
                 keepers[-1].seed = seed  # its log lines name it
-        # several seeds' stacked networks train uncompiled, as they always have: compiling
-        # them (CUDA graphs on a GPU) has not been measured
+        # several seeds' stacked networks train uncompiled: compiling them is unmeasured
         compile = "off" if self.stacked else compile_mode(cfg)
         if compile != "off":
             # compiled code starts fresh in every run: the jobs of a sweep run one after another
@@ -268,14 +239,12 @@ class Experiment:
 
     @property
     def checkpoint_root(self) -> Path:
-        """Where the checkpoints of a loop of several seeds live: one state for all of them,
-        beside their directories (``<run_dir>/seed_checkpoints/stage_<k>/``)."""
+        """The checkpoints of several seeds' loops: one state for all of them."""
         return self.run_dir / SEED_CHECKPOINTS
 
     def _checkpoints(self) -> Callable[[int | str], StageCheckpoints]:
-        """The checkpoints of each scope (a stage) of several seeds for this launch. A launch
-        that does not resume every seed drops those of an earlier launch; a resumed one drops
-        those of the stages whose config changed (:attr:`SeedRun.restarted`)."""
+        """Several seeds' checkpoints per scope; a launch drops those of an earlier one, unless
+        it resumes every seed (then only those of the stages whose config changed)."""
         cfg, root = self.runs[0].cfg, self.checkpoint_root
         refuse_links([root, *(root.rglob("*") if root.is_dir() else [])])
         if not all(run.resuming for run in self.runs):
@@ -293,8 +262,7 @@ class Experiment:
         return StageCheckpoints(self.checkpoint_root / name, every, keep)
 
     def _drop_checkpoints(self, every: bool) -> None:
-        """Removes the checkpoint directory when it is empty, or (``every``) with what it holds:
-        the scopes' directories alone (anything else in it is left, and so is the directory)."""
+        """Removes the checkpoint directory when empty; ``every``: its scopes' directories first."""
         root = self.checkpoint_root
         if not root.is_dir():
             return
@@ -306,8 +274,7 @@ class Experiment:
             root.rmdir()
 
     def summarize(self, plots: bool = True) -> None:
-        """The sweep summary over the seeds' directories, in the run directory (best effort:
-        the runs themselves are written)."""
+        """The sweep summary over the seeds' directories (best effort: the runs are written)."""
         from torchrl_stages.sweeps import summarize_sweep
 
         try:

@@ -1,6 +1,5 @@
-"""A schedule's stages kept in a run directory: :class:`RunKeeper`, the
-:class:`~torchrl_stages.schedules.StageKeeper` that each seed's
-:class:`~torchrl_stages.runs.seed_run.SeedRun` passes down to the schedule it runs."""
+"""The :class:`~torchrl_stages.schedules.StageKeeper` that keeps a schedule's stages in a run
+directory."""
 
 from __future__ import annotations
 
@@ -25,15 +24,9 @@ __all__ = ["RunKeeper"]
 
 
 class RunKeeper:
-    """Finished stages (``stage_<k>.pt``), checkpoints of the loop in progress and the logger's
-    position, in the run directory ``run``.
-
-    With ``resuming`` the stages an earlier launch finished are loaded (:meth:`finished`) and a
-    loop goes on from its newest checkpoint (:meth:`begin`); without one to go on from, the
-    logger's files are rewound to where the loop started, so the rows of an interrupted
-    attempt are dropped. With ``reuse`` (``stage_store`` / ``init_from``) a stage is taken from
-    there when it can be, and every stage trained is handed to it; :attr:`reused` says which
-    stages were taken and from where.
+    """Finished stages, checkpoints of the loop in progress and the logger's position in
+    ``run``. With ``resuming``, finished stages are loaded and a loop restarted afresh rewinds
+    the logger's files; with ``reuse``, stages are taken from there when they can be.
 
     Examples:
         >>> import tempfile
@@ -65,50 +58,44 @@ class RunKeeper:
         self.run, self.task, self.schedule, self.reuse = run, task, schedule, reuse
         self.log, self.resuming, self.device = MetricsLog(logger), resuming, device
         self.checkpoint_every, self.checkpoint_keep = checkpoint_every, checkpoint_keep
-        # the seed of a launch of several seeds whose directory this is: its log lines say it
         self.seed: int | None = None
 
-    def _log(self, level: int, message: str, *args: Any) -> None:
-        if self.seed is not None:
-            message = f"seed {self.seed}: {message}"
-        log.log(level, message, *args)
+    def _log(self, level: int, message: str) -> None:
+        log.log(level, message if self.seed is None else f"seed {self.seed}: {message}")
 
     @property
     def reused(self) -> dict[str, str]:
-        """``{stage name: where it was taken from}`` over every launch of the run."""
+        """``{stage name: where it was taken from}`` over every launch."""
         return dict(self.run.record.get("reused", {}))
 
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
-        """Stage ``stage`` as trained by an earlier launch of this run (resume only), or taken
-        from ``reuse`` (its stage file is then written as if this run had trained it)."""
+        """Stage ``stage`` as an earlier launch trained it, or taken from ``reuse``."""
         name = self.schedule.stage_name(self.task, stage)
         if self.resuming:
             loaded = load_stage(self.run, self.task, stage, self.device, name=name)
             if loaded is not None:
-                learner, result = loaded
-                self._log(logging.INFO, "stage %d (%s): finished earlier, loaded", stage, name)
-                return learner, StageResult(**result)
-        if self.reuse is None:
-            return None
-        taken = self.reuse.take(self.task, stage, self.device)
+                self._log(logging.INFO, f"stage {stage} ({name}): finished earlier, loaded")
+                return loaded[0], StageResult(**loaded[1])
+        taken = None if self.reuse is None else self.reuse.take(self.task, stage, self.device)
         if taken is None:
             return None
         learner, result, where = taken
         self.run.record.setdefault("reused", {})[name] = where
+        self._write(stage, name, learner, result)
+        self._log(logging.INFO, f"stage {stage} ({name}): reused from {where}")
+        return learner, result
+
+    def _write(self, stage: int, name: str, learner: Learner, result: StageResult) -> None:
         self.run.save_stage(stage, name, learner, result, log=self.log.position())
         self.run.clear_checkpoints(stage)
         self.run.update_launch()
-        self._log(logging.INFO, "stage %d (%s): reused from %s", stage, name, where)
-        return learner, result
 
     def checkpoints(self, scope: int | str) -> StageCheckpoints:
-        """The checkpoints of ``scope`` (a stage, or ``"joint"``) in the run directory."""
         return self.run.checkpoints(scope, self.checkpoint_every, self.checkpoint_keep)
 
     def begin(self, scope: int | str) -> None:
-        """The loop ``scope`` starts afresh: a resumed run's logs are rewound to where it
-        starts, the position stage ``scope + 1``'s file recorded (a backward stage starts
-        where the stage after it ended), else the start."""
+        """The loop ``scope`` starts afresh: a resumed run's logs are rewound to where stage
+        ``scope + 1`` ended (a backward stage starts there), else to the start."""
         if not self.resuming:
             return
         later = None
@@ -117,45 +104,31 @@ class RunKeeper:
         self.log.rewind({} if later is None else later.get("log", {}))
 
     def save(self, stage: int, learner: Learner, result: StageResult) -> None:
-        """Writes ``stage_<k>.pt`` (with the log position) and drops the stage's checkpoints."""
         name = self.schedule.stage_name(self.task, stage)
-        self.run.save_stage(stage, name, learner, result, log=self.log.position())
-        self.run.clear_checkpoints(stage)
-        self.run.update_launch()
+        self._write(stage, name, learner, result)
         if self.reuse is not None:
             self.reuse.trained(self.task, stage, learner, result)
-        quality = (
-            f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
-            if result.success_rate is not None
-            else "not evaluated"
-        )
+        quality = "not evaluated"
+        if result.success_rate is not None:
+            quality = (
+                f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
+            )
         note = " (early stop)" if result.early_stopped else ""
         if result.restored_best:
             note = " (best evaluation restored)"
         self._log(
             logging.INFO,
-            "stage %d (%s, %s): %d frames, %d updates, %.1fs, %s%s",
-            stage,
-            name,
-            learner.algo,
-            result.frames,
-            result.updates,
-            result.seconds,
-            quality,
-            note,
+            f"stage {stage} ({name}, {learner.algo}): {result.frames} frames, {result.updates} "
+            f"updates, {result.seconds:.1f}s, {quality}{note}",
         )
         threshold = self.task.stage_cfg(stage).success_threshold
         if self.schedule.stage_early_stop and threshold is not None and not result.early_stopped:
-            stage_name = self.task.stage_names[stage]
+            key = self.task.stage_names[stage]
             self._log(
                 logging.WARNING,
-                "stage %d (%s) did not meet its early-stop criterion within its budget of %d "
-                "frames; the run goes on with its best evaluation. Fix: raise "
-                "task.stages.%s.frames",
-                stage,
-                stage_name,
-                result.frames,
-                stage_name,
+                f"stage {stage} ({key}) did not meet its early-stop criterion within its budget "
+                f"of {result.frames} frames; the run goes on with its best evaluation. Fix: raise "
+                f"task.stages.{key}.frames",
             )
 
     def keep(self, key: str, value: Any) -> None:
@@ -169,6 +142,5 @@ class RunKeeper:
         self.run.clear_checkpoints(scope)
 
     def close(self) -> None:
-        """Releases what ``reuse`` still holds (the lock of a stage that did not finish)."""
         if self.reuse is not None:
             self.reuse.close()

@@ -1,5 +1,5 @@
-"""One seed's run directory, from its checks to its ``eval.json`` (:class:`SeedRun`), and the
-task a config builds (:func:`build_task`)."""
+"""One seed's run directory, from its checks to its ``eval.json``, and the task a config
+builds."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import copy
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,13 +33,12 @@ from torchrl_stages.validate import ConfigError, check_env_keys, validate_config
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = ["SeedRun", "build_task", "compile_mode", "with_env_stages"]
+__all__ = ["RunOptions", "SeedRun", "build_task", "compile_mode", "with_env_stages"]
 
 
 def compile_mode(cfg: DictConfig) -> str:
-    """``cfg.compile`` with ``auto`` resolved for the run's device: ``off`` on CPU (compiling
-    the small update costs more than it saves, see docs/speed.md),
-    ``reduce-overhead`` (CUDA graphs) on a GPU."""
+    """``cfg.compile``, ``auto`` resolved: ``off`` on CPU (compiling the small update costs more
+    than it saves, see docs/speed.md), ``reduce-overhead`` (CUDA graphs) on a GPU."""
     mode = str(cfg.get("compile", "auto"))
     if mode != "auto":
         return mode
@@ -47,10 +46,8 @@ def compile_mode(cfg: DictConfig) -> str:
 
 
 def with_env_stages(cfg: DictConfig) -> DictConfig:
-    """``cfg`` with its stages from ``task.stage_template`` when it has one: as many as the
-    env's ``num_stages`` (the env is built once to ask), each the template with the stage's
-    own keys over it (:func:`~torchrl_stages.config.expand_stage_template`); ``cfg`` itself
-    otherwise. Raises :class:`ConfigError` before any training."""
+    """``cfg`` with its stages from ``task.stage_template`` when it has one, as many as the env's
+    ``num_stages`` (the env is built once to ask)."""
     if not cfg.task.get("stage_template"):
         return cfg
     check_env_keys(cfg)
@@ -72,9 +69,8 @@ def _env_error(cfg: DictConfig, err: BaseException) -> ConfigError:
 
 
 def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
-    """Validates ``cfg`` (unless already ``validated``) and builds its task; raises
-    :class:`ConfigError` before any training. A task with a stage template gets its stages
-    from the env here (:func:`with_env_stages`; the task's ``cfg`` holds them)."""
+    """Validates ``cfg`` (unless ``validated``) and builds its task; :class:`ConfigError` before
+    any training."""
     if not validated:
         cfg = with_env_stages(cfg)
         validate_config(cfg)
@@ -86,25 +82,28 @@ def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
     return task
 
 
-class SeedRun:
-    """One seed's run of ``cfg`` in the run directory ``run_dir``, from its checks to its
-    ``eval.json``: what :class:`~torchrl_stages.runs.experiment.Experiment` makes for each seed it
-    trains.
+@dataclass(frozen=True)
+class RunOptions:
+    """How a launch treats its run directories.
 
-    Everything is checked when it is built, before anything is written: the config
-    (:class:`~torchrl_stages.validate.ConfigError`) and the run directory
-    (:class:`~torchrl_stages.runs.layout.RunDirError`), which it locks until the run ends (one
-    process per directory). A directory that already holds a run is refused unless ``resume``
-    (continue it: finished stages are loaded, the stage in progress goes on from its last
-    checkpoint; keys of stages that no finished stage depends on may change, and those stages
-    restart) or ``overwrite`` (replace it: exactly the files its record lists are deleted).
-    Both default to ``cfg.resume`` / ``cfg.overwrite``. With ``resume`` and no run in the
-    directory, a new run starts (the same command can be relaunched after any interruption).
-    ``hydra_files`` (``{name: config}``) are written to ``.hydra/`` when the run starts or its
-    config changes (what ``stages-train`` records of Hydra). ``observers``
-    (:data:`~torchrl_stages.loggers.Observer`) see the metrics as the run logs them.
-    :meth:`start` begins a launch (the keeper its schedule trains into), :meth:`finish` ends it
-    (the whole-task evaluation), :meth:`ended` records one that did not finish.
+    ``resume`` continues a run (finished stages loaded, the one in progress from its last
+    checkpoint; stages no finished stage depends on may change and restart) and ``overwrite``
+    replaces one (exactly the files its record lists); both default to the config's.
+    ``hydra_files`` (``{name: config}``) go to ``.hydra/``; ``observers`` see the metrics.
+    """
+
+    resume: bool | None = None
+    overwrite: bool | None = None
+    hydra_files: dict[str, Any] | None = None
+    observers: Sequence[Observer] = ()
+
+
+class SeedRun:
+    """One seed's run of ``cfg`` in ``run_dir``, from its checks to its ``eval.json``.
+
+    The config and the run directory are checked before anything is written, and the
+    directory is locked until the run ends. :meth:`start` begins a launch, :meth:`finish` ends
+    it with the whole-task evaluation, :meth:`ended` records one that did not finish.
 
     Examples:
         >>> import tempfile
@@ -120,19 +119,13 @@ class SeedRun:
     """
 
     def __init__(
-        self,
-        cfg: DictConfig,
-        run_dir: str | Path,
-        *,
-        resume: bool | None = None,
-        overwrite: bool | None = None,
-        hydra_files: dict[str, Any] | None = None,
-        observers: Sequence[Observer] = (),
+        self, cfg: DictConfig, run_dir: str | Path, options: RunOptions = RunOptions()
     ) -> None:
         self.cfg = cfg = with_env_stages(apply_all_stages(cfg))
-        self.hydra_files = dict(hydra_files or {})
-        self.observers = tuple(observers)
+        self.hydra_files = dict(options.hydra_files or {})
+        self.observers = tuple(options.observers)
         self.run_dir = RunDir(run_dir)
+        resume, overwrite = options.resume, options.overwrite
         self.resume = bool(cfg.get("resume", False) if resume is None else resume)
         self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
         validate_config(cfg)
@@ -155,8 +148,7 @@ class SeedRun:
         self.logger = None
 
     def close(self) -> None:
-        """Releases the run directory, and the stage store's locks it holds (:meth:`run` does
-        it when it ends)."""
+        """Releases the run directory and the stage store's locks it holds."""
         if self.reuse is not None:
             self.reuse.close()
         self._lock.release()
@@ -202,8 +194,7 @@ class SeedRun:
 
     # ------------------------------------------------------------------ a launch
     def ended(self, outcome: str, reason: str, **extra: Any) -> None:
-        """Records how a launch that did not finish ended (best effort: the disk may be the
-        cause)."""
+        """Records how a launch that did not finish ended (best effort: the disk may be why)."""
         try:
             self.run_dir.update_launch(outcome)
             self.run_dir.write_status(outcome, reason, **extra)
@@ -211,8 +202,7 @@ class SeedRun:
             pass
 
     def _prepare(self) -> None:
-        """Writes what a run starts with: a fresh record and config, or the changes a resumed
-        run may make."""
+        """Writes a fresh record and config, or the changes a resumed run may make."""
         cfg, run = self.cfg, self.run_dir
         self._lock.announce()
         if self.overwrite and run.holds_run():
@@ -240,8 +230,7 @@ class SeedRun:
         run.begin_launch()
 
     def start(self) -> RunKeeper:
-        """The start of a launch: what the run starts with is written (:meth:`_prepare`), then
-        the logger and the keeper of the run's stages that the schedule trains into are made."""
+        """Begins a launch: returns the keeper the schedule trains into."""
         self._prepare()
         cfg, run = self.cfg, self.run_dir
         logging.getLogger("torchrl").setLevel(logging.WARNING)
@@ -279,8 +268,7 @@ class SeedRun:
         return probe
 
     def finish(self, trained: Trained, keeper: RunKeeper) -> dict[str, Any]:
-        """The end of a launch: records it done, evaluates the trained stages and writes
-        ``eval.json``; returns it."""
+        """Ends a launch: records it done, evaluates and returns ``eval.json``."""
         cfg, run, schedule = self.cfg, self.run_dir, keeper.schedule
         learners, results = trained.learners, trained.results
         stop_if_asked("the whole-task evaluation")  # a stop asked for during the last stage's save
