@@ -36,7 +36,7 @@ from _benchmark import (
 from torchrl_stages.hydra_configs import register_configs
 from torchrl_stages.learners.ops import FusedSoftUpdate
 from torchrl_stages.runs.experiment import Experiment
-from torchrl_stages.runs.keeper import RunKeeper
+from torchrl_stages.runs.seed_run import SeedRun as RunKeeper
 
 PHASES = ("collect", "sample", "update", "target_update", "evaluate", "log", "checkpoint")
 

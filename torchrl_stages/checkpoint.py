@@ -75,14 +75,10 @@ class SavedCounters:
         return dataclasses.asdict(self)  # type: ignore[call-overload]
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        check_format(state)
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise CheckpointFormatError(f"format {state.get('format', 1)}, not {CHECKPOINT_FORMAT}")
         for f in dataclasses.fields(self):  # type: ignore[arg-type]
             setattr(self, f.name, state[f.name])
-
-
-def check_format(state: dict) -> None:
-    if state.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointFormatError(f"format {state.get('format', 1)}, not {CHECKPOINT_FORMAT}")
 
 
 class TensorStateAdapter(StateDictCheckpointAdapter):
@@ -170,12 +166,10 @@ class StageCheckpoints:
             ckpt.register(name, component, adapter=adapter)
         return ckpt
 
-    def _rotation(self) -> CheckpointRotation:
-        return CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX)
-
     def save(self, frames: int, components: Mapping[str, Any]) -> Path:
         """Writes a checkpoint at ``frames`` (atomically) and prunes the old ones."""
-        path = self._rotation().save(self._checkpoint(components), step=int(frames))
+        rotation = CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX)
+        path = rotation.save(self._checkpoint(components), step=int(frames))
         self._next = (frames // self.every + 1) * self.every if self.every > 0 else 0
         self._verified = path
         if self.on_save is not None:

@@ -4,8 +4,10 @@ only numpy and gymnasium: vector env workers receive :class:`EpisodeReplay` by v
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
+import json
 from collections.abc import Mapping
 from typing import Any
 
@@ -71,24 +73,8 @@ def _set_rng_state(env: gymnasium.Env, state: Mapping) -> None:
 
 def _digest(obs: Any) -> str:
     """A SHA-256 of an observation (arrays, scalars, strings, dicts and tuples of them)."""
-    sha = hashlib.sha256()
-
-    def add(value: Any) -> None:
-        if isinstance(value, Mapping):
-            for key in sorted(value, key=str):
-                sha.update(repr(key).encode())
-                add(value[key])
-        elif isinstance(value, list | tuple):
-            sha.update(b"(%d" % len(value))
-            for item in value:
-                add(item)
-        else:
-            array = np.ascontiguousarray(value)
-            sha.update(f"{array.dtype.str}{array.shape}".encode())
-            sha.update(array.tobytes() if array.dtype.kind != "O" else repr(value).encode())
-
-    add(obs)
-    return sha.hexdigest()
+    text = json.dumps(_plain(obs), sort_keys=True, default=repr)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 class EpisodeReplay(gymnasium.Wrapper):
@@ -176,10 +162,9 @@ class EpisodeReplay(gymnasium.Wrapper):
         except Exception as err:  # an env that cannot take its own actions back
             why_not = f"replaying its episode raised {type(err).__name__}: {err}"
         if why_not is not None and state.get("rng_now") is not None:
-            try:  # the generator goes on from where it was, for the episodes that start over
+            # the generator goes on from where it was, for the episodes that start over
+            with contextlib.suppress(KeyError, TypeError, ValueError):
                 _set_rng_state(self.env.unwrapped, state["rng_now"])
-            except (KeyError, TypeError, ValueError):
-                pass
         return why_not
 
     def rebuild_pending(self) -> str | None:

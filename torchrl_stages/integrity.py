@@ -47,20 +47,7 @@ def write_checksums(directory: str | Path) -> dict[str, str]:
 
 def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> None:
     """Checks ``directory`` holds exactly the files of its ``sha256.json``, same bytes (and with
-    ``suffixes``, only those endings); :class:`DamagedFileError` names the first that differs.
-
-    Examples:
-        >>> import tempfile, pathlib
-        >>> d = pathlib.Path(tempfile.mkdtemp())
-        >>> _ = (d / "x.json").write_text("{}")
-        >>> _ = write_checksums(d)
-        >>> verify_checksums(d, suffixes=(".json",))
-        >>> _ = (d / "x.json").write_text("{ }")
-        >>> verify_checksums(d)
-        Traceback (most recent call last):
-        ...
-        torchrl_stages.integrity.DamagedFileError: ...x.json: its bytes differ from those written
-    """
+    ``suffixes``, only those endings); :class:`DamagedFileError` names the first that differs."""
     directory = Path(directory)
     record = directory / CHECKSUMS
     try:
@@ -92,15 +79,7 @@ def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> N
 
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Writes ``path`` through a temporary file of this process's own, renamed into place; on
-    any error ``path`` is left as it was (an ``OSError`` names it).
-
-    Examples:
-        >>> import tempfile, pathlib
-        >>> f = pathlib.Path(tempfile.mkdtemp()) / "a.txt"
-        >>> atomic_write(f, lambda tmp: tmp.write_text("whole"))
-        >>> f.read_text(), [p.name for p in f.parent.iterdir()]
-        ('whole', ['a.txt'])
-    """
+    any error ``path`` is left as it was (an ``OSError`` names it)."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
     try:
         write(tmp)

@@ -29,7 +29,6 @@ from torchrl_stages.runs.layout import (
     EVAL_FILE,
     LEGACY_ENTRIES,
     LEGACY_FIGURES,
-    LEGACY_PATTERNS,
     RECORD_FILE,
     RECORD_FORMAT,
     RUN_MARKERS,
@@ -71,9 +70,12 @@ class RunDir:
         return self.path / LOCK_DIR / RECORD_FILE
 
     def holds_run(self) -> bool:
-        return any((self.path / n).exists() for n in RUN_MARKERS) or any(
-            self.path.glob("stage_*.pt")
-        )
+        return bool(self._run_files())
+
+    def _run_files(self, names: tuple[str, ...] = RUN_MARKERS) -> list[str]:
+        """Those of ``names`` that exist here, then the stage files, each sorted."""
+        found = sorted(n for n in names if (self.path / n).exists())
+        return found + sorted(p.name for p in self.path.glob("stage_*.pt"))
 
     def lock(self) -> RunLock:
         """Takes this directory's lock; :class:`RunDirError` names the process holding it."""
@@ -145,9 +147,7 @@ class RunDir:
 
     def adopt_legacy(self) -> None:
         """Claims what a run written without a record holds (resuming such a run)."""
-        names = [n for n in (*LEGACY_ENTRIES, *LEGACY_FIGURES) if (self.path / n).exists()]
-        names += [p.name for pattern in LEGACY_PATTERNS for p in self.path.glob(pattern)]
-        self.claim(*sorted(names))
+        self.claim(*sorted(self._run_files((*LEGACY_ENTRIES, *LEGACY_FIGURES))))
 
     def _write_verified(self, name: str, write: Callable[[Path], None]) -> Path:
         path = self.path / name
@@ -348,17 +348,14 @@ class RunDir:
     def check_clearable(self) -> None:
         """Raises :class:`RunDirError` unless :meth:`clear` would remove every run file."""
         if not self.has_record():
-            found = sorted(n for n in [*RUN_MARKERS, STATUS_FILE] if (self.path / n).exists())
-            found += sorted(p.name for p in self.path.glob("stage_*.pt"))
+            found = self._run_files((*RUN_MARKERS, STATUS_FILE))
             raise RunDirError(
                 f"overwrite=true: {self.path} holds {', '.join(found)} but no "
                 f"{LOCK_DIR}/{RECORD_FILE}, the record of what torchrl-stages wrote there, so "
                 "nothing in it is deleted. Fix: delete those files yourself, or pick another "
                 "hydra.run.dir"
             )
-        entries = self.record["entries"]
-        foreign = [n for n in RUN_MARKERS if (self.path / n).exists() and n not in entries]
-        foreign += [p.name for p in self.path.glob("stage_*.pt") if p.name not in entries]
+        foreign = [n for n in self._run_files() if n not in self.record["entries"]]
         if foreign:
             raise RunDirError(
                 f"overwrite=true: {self.path} holds {', '.join(sorted(foreign))}, which its "

@@ -4,7 +4,6 @@ finished run prints."""
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -36,17 +35,6 @@ def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict
     if extra is not None and extra.probe is not None:
         out.update(extra.probe(task, learners))
     return out
-
-
-def strict_json(value: Any) -> Any:
-    """``value`` with every NaN or infinite float replaced by ``None`` (strict JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: strict_json(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [strict_json(v) for v in value]
-    return value
 
 
 def evaluate_run(
@@ -83,7 +71,7 @@ def evaluate_run(
         from torchrl_stages.plots import plot_learning_curves
 
         plot_learning_curves(run_dir / "metrics.csv", run_dir / "learning_curves.png")
-    result = strict_json(result)
+    result = json.loads(json.dumps(result), parse_constant=lambda _: None)  # NaN, inf: null
     text = json.dumps(result, indent=2, allow_nan=False)
     atomic_write(run_dir / EVAL_FILE, lambda tmp: tmp.write_text(text))
     return result

@@ -38,37 +38,16 @@ log = logging.getLogger("torchrl_stages")
 
 
 def validate_seeds(cfg: DictConfig) -> list[int]:
-    """``cfg.seeds`` as ints; :class:`ConfigError` when they cannot train in one process.
-
-    Examples:
-        >>> validate_seeds(OmegaConf.create({"seeds": [0, 2], "schedule": {"name": "backward"},
-        ...                                  "eval": {}}))
-        [0, 2]
-        >>> validate_seeds(OmegaConf.create({"seeds": [1, 1], "schedule": {"name": "backward"},
-        ...                                  "eval": {}}))
-        Traceback (most recent call last):
-        ...
-        torchrl_stages.config.ConfigError: seeds=[1, 1]: ...
-    """
+    """``cfg.seeds`` as ints; :class:`ConfigError` when they cannot train in one process."""
     raw = cfg.get("seeds")
     shown = OmegaConf.to_container(raw) if isinstance(raw, ListConfig) else raw
-    check(
-        isinstance(raw, ListConfig | list) and len(raw) > 0,
-        "seeds",
-        shown,
-        "must be a non-empty list of seeds",
-        "seeds=[0,1,2]",
-    )
+    listed = isinstance(raw, ListConfig | list) and len(raw) > 0
+    check(listed, "seeds", shown, "must be a non-empty list of seeds", "seeds=[0,1,2]")
     ok = all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in raw)
     check(ok, "seeds", shown, "every seed must be an int >= 0", "seeds=[0,1,2]")
     seeds = [int(s) for s in raw]
-    check(
-        len(set(seeds)) == len(seeds),
-        "seeds",
-        shown,
-        "a seed is listed twice",
-        f"seeds=[{','.join(str(s) for s in dict.fromkeys(seeds))}]",
-    )
+    once = f"seeds=[{','.join(str(s) for s in dict.fromkeys(seeds))}]"
+    check(len(set(seeds)) == len(seeds), "seeds", shown, "a seed is listed twice", once)
     name = str(cfg.schedule.name)
     able = [n for n, schedule in SCHEDULES.items() if schedule.stacks_seeds]
     check(
@@ -79,13 +58,8 @@ def validate_seeds(cfg: DictConfig) -> list[int]:
         f"schedule={'|'.join(able)}, or train the seeds apart: stages-train -m "
         f"schedule={name} seed={','.join(str(s) for s in seeds)}",
     )
-    check(
-        not cfg.eval.get("probe", False),
-        "eval.probe",
-        True,
-        "the whole-task probe is not run for several seeds in one process",
-        "eval.probe=false",
-    )
+    probe = "the whole-task probe is not run for several seeds in one process"
+    check(not cfg.eval.get("probe", False), "eval.probe", True, probe, "eval.probe=false")
     return seeds
 
 
@@ -151,6 +125,7 @@ class Experiment:
         self.stacked = cfg.get("seeds") is not None
         self.seeds = validate_seeds(cfg) if self.stacked else [int(cfg.seed)]
         self.cfg, self.run_dir = cfg, Path(run_dir)
+        self.checkpoint_root = self.run_dir / SEED_CHECKPOINTS  # several seeds' loops: one state
         options = RunOptions(resume, overwrite, hydra_files, tuple(observers))
         self.runs: list[SeedRun] = []
         if not self.stacked:
@@ -202,29 +177,33 @@ class Experiment:
             raise
         finally:
             self.close()
-        if self.stacked:
-            self.summarize(plots=bool(cfg.eval.get("plots", True)))
+        if self.stacked:  # best effort: the runs are written
+            from torchrl_stages.sweeps import summarize_sweep
+
+            try:
+                summarize_sweep(self.run_dir, plots=bool(cfg.eval.get("plots", True)))
+            except Exception as err:  # noqa: BLE001 - say why, go on
+                log.warning("the summary of %s was not written: %s", self.run_dir, one_line(err))
         return results
 
     def _run(self) -> list[dict[str, Any]]:
         runs, cfg = self.runs, self.runs[0].cfg
-        keepers = []
         for seed, run in zip(self.seeds, runs, strict=True):
-            keepers.append(run.start())
+            run.start()
             if self.stacked:
-                keepers[-1].seed = seed  # its log lines name it
+                run.seed = seed  # its log lines name it
         # several seeds' stacked networks train uncompiled: compiling them is unmeasured
         compile = "off" if self.stacked else compile_mode(cfg)
         if compile != "off":
             # compiled code starts fresh in every run: the jobs of a sweep run one after another
             # in one process, and their learners' recompiles would add up to Dynamo's limit
             torch._dynamo.reset()
-        trained = keepers[0].schedule.train(
+        trained = runs[0].schedule.train(
             self.task,
             self.seeds,
-            keepers=keepers,
-            logs=[keeper.log for keeper in keepers],
-            checkpoints=self._checkpoints() if self.stacked else keepers[0].checkpoints,
+            keepers=runs,
+            logs=[run.log for run in runs],
+            checkpoints=self._checkpoints() if self.stacked else runs[0].checkpoints,
             progress=bool(cfg.progress),
             probe=runs[0].probe() if len(runs) == 1 else None,
             compile=compile,
@@ -233,26 +212,17 @@ class Experiment:
             self._drop_checkpoints(every=False)
             for one in trained:  # eval.json: its wall-clock is that of all of them
                 one.extra["trained_with_seeds"] = list(self.seeds)
-        return [
-            run.finish(one, keeper) for run, keeper, one in zip(runs, keepers, trained, strict=True)
-        ]
-
-    @property
-    def checkpoint_root(self) -> Path:
-        """The checkpoints of several seeds' loops: one state for all of them."""
-        return self.run_dir / SEED_CHECKPOINTS
+        return [run.finish(one) for run, one in zip(runs, trained, strict=True)]
 
     def _checkpoints(self) -> Callable[[int | str], StageCheckpoints]:
         """Several seeds' checkpoints per scope; a launch drops those of an earlier one, unless
         it resumes every seed (then only those of the stages whose config changed)."""
-        cfg, root = self.runs[0].cfg, self.checkpoint_root
+        root, first = self.checkpoint_root, self.runs[0]
         refuse_links([root, *(root.rglob("*") if root.is_dir() else [])])
         if not all(run.resuming for run in self.runs):
             self._drop_checkpoints(every=True)
-        else:
-            schedule = get_schedule(str(cfg.schedule.name))
-            for stage in self.runs[0].restarted:
-                self._at(schedule.checkpoint_scope(stage)).clear()
+        for stage in first.restarted:  # resumed stages whose config changed
+            self._at(first.schedule.checkpoint_scope(stage)).clear()
         return self._at
 
     def _at(self, scope: int | str) -> StageCheckpoints:
@@ -266,21 +236,11 @@ class Experiment:
         root = self.checkpoint_root
         if not root.is_dir():
             return
-        if every:
-            for child in root.iterdir():
-                if child.is_dir() and re.fullmatch(r"\w+", child.name):
-                    shutil.rmtree(child)
+        for child in root.iterdir() if every else ():
+            if child.is_dir() and re.fullmatch(r"\w+", child.name):
+                shutil.rmtree(child)
         if not any(root.iterdir()):
             root.rmdir()
-
-    def summarize(self, plots: bool = True) -> None:
-        """The sweep summary over the seeds' directories (best effort: the runs are written)."""
-        from torchrl_stages.sweeps import summarize_sweep
-
-        try:
-            summarize_sweep(self.run_dir, plots=plots)
-        except Exception as err:  # noqa: BLE001 - the runs are written; say why, go on
-            log.warning("the summary of %s was not written: %s", self.run_dir, one_line(err))
 
     def _ended(self, outcome: str, reason: str, **extra: Any) -> None:
         for run in self.runs:

@@ -21,8 +21,7 @@ def stage_identity_inputs(cfg: DictConfig) -> list[dict[str, Any]]:
     """What determines each stage of a resolved ``stages-train`` config, in stage order.
 
     Each holds the identity of the stage after it under ``"next"``. Keys that cannot change
-    the weights (logger, progress, checkpoint cadence, whole-task eval) are left out.
-    """
+    the weights (logger, progress, checkpoint cadence, whole-task eval) are left out."""
     task = cfg.task
     names = list(task.stages)
     common = {
@@ -54,18 +53,7 @@ def stage_identity_inputs(cfg: DictConfig) -> list[dict[str, Any]]:
 
 
 def stage_identities(cfg: DictConfig) -> list[str]:
-    """The identity of each stage of ``cfg`` (hex digests, stage order).
-
-    Examples:
-        >>> def config(lr0):
-        ...     stages = {"s0": {"lr": lr0}, "s1": {"lr": 1e-3}}
-        ...     return OmegaConf.create({"task": {"env": {"size": 5}, "stages": stages},
-        ...                              "schedule": {"name": "backward"}, "seed": 0,
-        ...                              "device": "cpu", "threads": 1, "eval": {}})
-        >>> a, b = stage_identities(config(1e-3)), stage_identities(config(2e-3))
-        >>> a[0] == b[0], a[1] == b[1]  # stage 0 changed; stage 1 does not depend on it
-        (False, True)
-    """
+    """The identity of each stage of ``cfg`` (hex digests, stage order)."""
     return [digest(stage) for stage in stage_identity_inputs(cfg)]
 
 

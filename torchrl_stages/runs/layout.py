@@ -17,7 +17,6 @@ RECORD_FILE = "run.json"  # in .stages/
 RUN_MARKERS = (CONFIG_FILE, EVAL_FILE, METRICS_FILE, CHECKPOINTS)
 #: what runs written without a record hold (adopted when such a run is resumed)
 LEGACY_ENTRIES = (*RUN_MARKERS, STATUS_FILE, "csv", ".hydra")
-LEGACY_PATTERNS = ("stage_*.pt",)
 LEGACY_FIGURES = (
     "learning_curves.png",
     "trajectories.png",

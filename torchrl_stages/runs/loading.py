@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,8 +20,6 @@ from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 from torchrl_stages.validate import ConfigError, TargetError, validate_config
 
-log = logging.getLogger("torchrl_stages")
-
 __all__ = ["LoadedRun", "load_policy", "load_run", "run_policy"]
 
 
@@ -37,19 +34,12 @@ class LoadedRun:
 
 
 def load_stage(
-    run: RunDir,
-    task: StagedTask,
-    stage: int,
-    device: str | torch.device = "cpu",
-    *,
-    name: str | None = None,
+    run: RunDir, task: StagedTask, stage: int, device: str | torch.device, name: str
 ) -> tuple[Learner, dict[str, Any]] | None:
-    """Stage ``stage``'s learner and result (``None``: not finished), which must hold the stage
-    ``name`` (default: the task's name of stage ``stage``)."""
+    """Stage ``stage``'s learner and result (``None``: not finished), if it holds ``name``."""
     state = run.read_stage(stage, map_location=device)
     if state is None:
         return None
-    name = task.stage_names[stage] if name is None else name
     fix = (
         "restore the config it was trained with, or delete the file and resume the run to "
         "retrain the stage."
@@ -64,12 +54,7 @@ def load_stage(
 
 
 def restore_learner(
-    task: StagedTask,
-    stage: int,
-    state: dict[str, Any],
-    device: str | torch.device,
-    source: Path,
-    fix: str,
+    task: StagedTask, stage: int, state: dict, device: str | torch.device, source: Path, fix: str
 ) -> Learner:
     """Stage ``stage``'s learner built from the task's config and loaded from ``state`` (read
     from ``source``); :class:`RunDirError` naming ``source`` and ``fix`` when they differ."""
@@ -110,13 +95,7 @@ def load_run(
 ) -> LoadedRun:
     """Config, task, trained learners and results of a finished run directory: checksums are
     verified, nothing is unpickled, and the config may only instantiate what its task ships
-    with unless ``trust=True`` (runs of your own env).
-
-    Examples:
-        >>> from torchrl_stages import load_run  # doctest: +SKIP
-        >>> run = load_run("outputs/2026-11-21/16-00-00")  # doctest: +SKIP
-        >>> run.learners[0].policy, run.task.task_env(8)  # doctest: +SKIP
-    """
+    with unless ``trust=True`` (runs of your own env)."""
     run = RunDir(run_dir)
     cfg = read_run_config(run, device, trust)
     try:
@@ -130,7 +109,7 @@ def load_run(
     schedule = get_schedule(str(cfg.schedule.name))  # which file holds each stage's learner
     stored = [schedule.stored_stage(k) for k in range(task.num_stages)]
     loaded = {
-        k: load_stage(run, task, k, device, name=schedule.stage_name(task, k))
+        k: load_stage(run, task, k, device, schedule.stage_name(task, k))
         for k in dict.fromkeys(stored)
     }
     stages = [loaded[k] for k in stored]
@@ -147,13 +126,7 @@ def load_run(
 def load_policy(
     run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
 ) -> StackedPolicy:
-    """The greedy stacked policy of a finished run, with its task's stage function.
-
-    Examples:
-        >>> from torchrl_stages import load_policy  # doctest: +SKIP
-        >>> policy = load_policy("outputs/2026-11-21/16-00-00")  # doctest: +SKIP
-        >>> GridWorldEnv(batch_size=(8,)).rollout(200, policy)  # doctest: +SKIP
-    """
+    """The greedy stacked policy of a finished run, with its task's stage function."""
     return run_policy(load_run(run_dir, device, trust=trust))
 
 

@@ -3,7 +3,7 @@ the kernel releases when the process dies (SIGKILL too); the holder writes who i
 
 from __future__ import annotations
 
-import json
+import contextlib
 import os
 import socket
 import sys
@@ -61,7 +61,7 @@ class RunLock:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                holder = _describe(os.read(fd, 4096).decode("utf-8", "replace").strip())
+                holder = os.read(fd, 4096).decode("utf-8", "replace").strip() or "holder unknown"
                 os.close(fd)
                 err = RunLockedError(
                     f"{self.path} is in use by another process ({holder}): one "
@@ -70,11 +70,10 @@ class RunLock:
                 )
                 err.holder = holder
                 raise err from None
-            try:  # the file locked is still the lock file (a refused process may remove it)
+            # the file locked is still the lock file (a refused process may remove it)
+            with contextlib.suppress(FileNotFoundError):
                 if os.stat(self.file).st_ino == os.fstat(fd).st_ino:
                     break
-            except FileNotFoundError:
-                pass
             os.close(fd)
         self._fd = fd
         return self
@@ -92,14 +91,10 @@ class RunLock:
         """Writes who holds the lock into the lock file."""
         if self._fd is None:
             return
-        holder = {
-            "host": socket.gethostname(),
-            "pid": os.getpid(),
-            "since": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "command": " ".join(sys.argv)[:500],
-        }
+        since, command = time.strftime("%Y-%m-%dT%H:%M:%S%z"), " ".join(sys.argv)[:500]
+        holder = f"process {os.getpid()} on {socket.gethostname()} since {since}: {command}"
         os.ftruncate(self._fd, 0)
-        os.pwrite(self._fd, json.dumps(holder).encode(), 0)
+        os.pwrite(self._fd, holder.encode(), 0)
 
     def release(self, remove: bool = False) -> None:
         """Releases the lock (``remove``: deletes the lock file, and its directory if this lock
@@ -118,11 +113,3 @@ class RunLock:
 
     def __exit__(self, *exc: object) -> None:
         self.release()
-
-
-def _describe(holder: str) -> str:
-    try:
-        info = json.loads(holder)
-        return f"process {info['pid']} on {info['host']} since {info['since']}: {info['command']}"
-    except (ValueError, KeyError, TypeError):
-        return "holder unknown"

@@ -3,6 +3,7 @@ stages a backward run takes from there or from ``init_from=RUN_DIR`` instead of 
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
@@ -115,17 +116,12 @@ class SharedStageStore:
         try:
             state = self._read(entry, identity, map_location)
         except DamagedFileError as err:
-            log.warning(
-                "stage store: entry %s is damaged (%s); removed, the stage is trained again",
-                entry,
-                err.reason,
-            )
+            why = f"{entry} is damaged ({err.reason})"
+            log.warning(f"stage store: entry {why}; removed, the stage is trained again")
             self._discard(entry)
             return None
-        try:
+        with contextlib.suppress(OSError):  # a read-only store still serves
             os.utime(entry / ENTRY_FILE)  # when it was last used, for `stages-store prune`
-        except OSError:  # a read-only store still serves
-            pass
         return state
 
     def _read(self, entry: Path, identity: str, map_location: Any = "cpu") -> dict[str, Any]:
@@ -261,30 +257,23 @@ class StageReuse:
     its stage has this run's identity, else from ``store``.
 
     :meth:`take` returns a stage, or ``None`` with the stage's store lock held (other jobs
-    needing it wait) until :meth:`trained` stores it; :meth:`close` releases what is held.
-    """
+    needing it wait) until :meth:`trained` stores it; :meth:`close` releases what is held."""
 
-    def __init__(
-        self, cfg: DictConfig, store: SharedStageStore | None, init_from: str | None, run_dir: Path
-    ) -> None:
+    def __init__(self, cfg: DictConfig, run_dir: str | Path) -> None:
         self.inputs = stage_identity_inputs(cfg)
         self.identities = [digest(stage) for stage in self.inputs]
-        self.store, self.cfg = store, cfg
-        self.run_dir = str(Path(run_dir).resolve())
+        self.cfg, self.run_dir = cfg, str(Path(run_dir).resolve())
+        self.store = SharedStageStore(cfg.stage_store) if cfg.get("stage_store") else None
         self.init_run: RunDir | None = None
         self.init_identities: list[str] = []
-        if init_from is not None:
-            self._open_init(Path(init_from), cfg)
+        if cfg.get("init_from"):
+            self._open_init(Path(cfg.init_from), cfg)
         self._held: dict[int, RunLock] = {}
 
     @classmethod
     def from_config(cls, cfg: DictConfig, run_dir: str | Path) -> StageReuse | None:
         """What ``cfg.stage_store`` and ``cfg.init_from`` ask for (``None``: neither)."""
-        store_dir, init_from = cfg.get("stage_store"), cfg.get("init_from")
-        if not store_dir and not init_from:
-            return None
-        store = SharedStageStore(store_dir) if store_dir else None
-        return cls(cfg, store, init_from or None, Path(run_dir))
+        return cls(cfg, run_dir) if cfg.get("stage_store") or cfg.get("init_from") else None
 
     def _open_init(self, path: Path, cfg: DictConfig) -> None:
         run = RunDir(path)
@@ -328,18 +317,12 @@ class StageReuse:
         found = self._from_store(task, stage, device)
         if found is not None:
             return found
-        lock = self.store.lock(identity)
-        announced = []
+        lock, root, announced = self.store.lock(identity), self.store.root, []
 
         def waiting(holder: str) -> None:
             if not announced:
-                log.info(
-                    "stage %d (%s): waiting for %s, which trains it (stage store %s)",
-                    stage,
-                    task.stage_names[stage],
-                    holder,
-                    self.store.root,
-                )
+                where = f"stage {stage} ({task.stage_names[stage]})"
+                log.info(f"{where}: waiting for {holder}, which trains it (stage store {root})")
                 announced.append(True)
             stop_if_asked(f"waiting for stage {stage} in the stage store")
 

@@ -40,15 +40,7 @@ RESUMABLE_CHANGES = (
 
 
 def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...] = ()) -> list[str]:
-    """Dotted keys whose resolved values differ (``ignore``: key prefixes that may differ).
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> a = OmegaConf.create({"seed": 0, "eval": {"plots": True}, "task": {"lr": 1.0}})
-        >>> b = OmegaConf.create({"seed": 0, "eval": {"plots": False}, "task": {"lr": 2.0}})
-        >>> config_differences(a, b, ignore=("eval",))
-        ['task.lr']
-    """
+    """Dotted keys whose resolved values differ (``ignore``: key prefixes that may differ)."""
     flat_old = dict(_flatten(OmegaConf.to_container(old, resolve=True)))
     flat_new = dict(_flatten(OmegaConf.to_container(new, resolve=True)))
     keys = sorted(set(flat_old) | set(flat_new))
@@ -96,19 +88,7 @@ def shippedtargets(task_name: str) -> dict[str, str] | None:
 
 def check_trusted(cfg: DictConfig, source: Path) -> None:
     """Refuses a loaded config with any ``_target_`` (at any depth) other than its shipped
-    task's at the same key; runs of your own env need ``trust=True``.
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"task": {"name": "gridworld", "env": {
-        ...     "_target_": "torchrl_stages.envs.GridWorldEnv", "size": 25}}})
-        >>> check_trusted(cfg, Path("run/config.yaml"))
-        >>> cfg.task.env.size = {"_target_": "os.system", "_args_": ["echo hi"]}
-        >>> check_trusted(cfg, Path("run/config.yaml"))
-        Traceback (most recent call last):
-        ...
-        torchrl_stages.runs.layout.RunDirError: run/config.yaml: task.env.size._target_=...
-    """
+    task's at the same key; runs of your own env need ``trust=True``."""
     container = OmegaConf.to_container(cfg, resolve=False)
     task_name = str((container.get("task") or {}).get("name", ""))
     allowed = shippedtargets(task_name)
