@@ -142,11 +142,7 @@ class StageCheckpoints:
     """
 
     def __init__(
-        self,
-        directory: str | Path,
-        every: int,
-        keep: int = 2,
-        on_save: Callable[[Path], None] | None = None,
+        self, directory: str | Path, every: int, keep: int = 2, on_save: Callable | None = None
     ) -> None:
         self.directory = Path(directory)
         self.every, self.keep = int(every), int(keep)

@@ -24,8 +24,7 @@ _BIT_GENERATORS = {
 
 
 def _plain(value: Any) -> Any:
-    """``value`` with numpy arrays and scalars as lists and Python numbers (comparable after a
-    trip through JSON)."""
+    """``value`` with numpy arrays and scalars as plain lists and numbers (JSON-comparable)."""
     if isinstance(value, Mapping):
         return {str(k): _plain(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
@@ -135,8 +134,7 @@ class EpisodeReplay(gymnasium.Wrapper):
         return out
 
     def episode_state(self) -> dict[str, Any]:
-        """What :meth:`rebuild` needs (``why_not``: why the episode cannot be rebuilt, or
-        ``None``)."""
+        """What :meth:`rebuild` needs; ``why_not`` says why it cannot rebuild the episode."""
         why_not, rng_now = self._why_not, _rng_state(self.env.unwrapped)
         actions = np.stack(self._actions) if self._actions and why_not is None else None
         if actions is not None and actions.dtype.kind not in "biuf":

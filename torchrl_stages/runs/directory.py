@@ -56,18 +56,12 @@ class RunDir:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        self.config_file = self.path / CONFIG_FILE
+        self.record_file = self.path / LOCK_DIR / RECORD_FILE
         self._launch_start: float | None = None
 
     def stage_file(self, stage: int) -> Path:
         return self.path / f"stage_{stage}.pt"
-
-    @property
-    def config_file(self) -> Path:
-        return self.path / CONFIG_FILE
-
-    @property
-    def record_file(self) -> Path:
-        return self.path / LOCK_DIR / RECORD_FILE
 
     def holds_run(self) -> bool:
         return bool(self._run_files())
@@ -98,8 +92,7 @@ class RunDir:
 
     @cached_property
     def record(self) -> dict[str, Any]:
-        """``entries`` (what the package wrote here, with checksums), ``launches`` and
-        ``phases`` (a joint run's); empty when missing."""
+        """``entries`` (what the package wrote, with checksums), ``launches``, ``phases``."""
         return self._read_record()
 
     def _read_record(self) -> dict[str, Any]:
@@ -129,8 +122,7 @@ class RunDir:
         atomic_write(self.record_file, lambda tmp: tmp.write_text(text))
 
     def claim(self, *names: str) -> None:
-        """Records top-level entries as the package's, before they are written:
-        ``overwrite=true`` deletes exactly what is recorded."""
+        """Records entries as the package's before they are written (``overwrite`` deletes them)."""
         entries = self.record["entries"]
         new = [name for name in names if name not in entries]
         for name in new:
@@ -252,18 +244,12 @@ class RunDir:
         return cfg
 
     def save_stage(
-        self,
-        stage: int,
-        name: str,
-        learner: Learner,
-        result: StageResult,
-        log: dict[str, int] | None = None,
+        self, stage: int, name: str, learner: Learner, result: StageResult, log: dict[str, int]
     ) -> Path:
-        """Writes ``stage_<k>.pt``: learner, result and ``log`` (the logger's file sizes, where
-        a resumed run rewinds them to). Never a non-finite one."""
+        """Writes ``stage_<k>.pt`` (never a non-finite one); ``log``: the logger's file sizes."""
         learner.check_finite()
         state = {"stage": stage, "name": name, "algo": learner.algo, "result": asdict(result)}
-        state["log"] = dict(log or {})
+        state["log"] = dict(log)
         buffer = io.BytesIO()  # written by Python's file IO: a failed write is an OSError
         torch.save({**state, **learner.checkpoint()}, buffer)
         return self._write_verified(

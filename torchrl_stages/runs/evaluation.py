@@ -24,8 +24,7 @@ from torchrl_stages.task_registry import task_report
 
 @torch.no_grad()
 def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict[str, float]:
-    """Whole-task success rate of the current learners (stage 0's ``eval_episodes``), plus the
-    task's own probe metrics: learning curves comparable across schedules."""
+    """Whole-task success rate of the current learners, plus the task's own probe metrics."""
     policy = StackedPolicy([learner.policy for learner in learners])
     episodes = int(task.stage_cfg(0).eval_episodes)
     out = {
@@ -38,21 +37,16 @@ def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict
 
 
 def evaluate_run(
-    cfg: DictConfig,
-    task: StagedTask,
-    learners: Sequence[Learner],
-    run_dir: Path,
-    training: dict[str, Any] | None = None,
+    cfg: DictConfig, task: StagedTask, learners: Sequence[Learner], run_dir: Path, training: dict
 ) -> dict[str, Any]:
-    """Evaluates the greedy stacked policy on whole-task episodes; writes ``eval.json`` (strict
-    JSON, with the task report's metrics and ``training`` alongside)."""
+    """Evaluates the greedy stacked policy on whole-task episodes; writes ``eval.json``."""
     policy = StackedPolicy([learner.policy for learner in learners])
     seed = int(cfg.seed) + TASK_EVAL_OFFSET
     evaluation = evaluate_task(task, policy, int(cfg.eval.episodes), seed, interruptible=True)
     result: dict[str, Any] = {
         "task": cfg.task.name,
         **evaluation.summary(),
-        "training": training or {},
+        "training": training,
     }
     report = task_report(str(cfg.task.name))
     if report is not None and report.report is not None:
@@ -81,21 +75,7 @@ STARTS = {"all": "every whole-task start", "fixed": "one fixed start", "random":
 
 
 def format_summary(result: dict[str, Any], run_dir: Path) -> str:
-    """The lines printed at the end of a run: its ``eval.json`` summary, then its files.
-
-    Examples:
-        >>> import tempfile
-        >>> run_dir = Path(tempfile.mkdtemp())
-        >>> _ = (run_dir / "learning_curves.png").write_bytes(b"")
-        >>> result = {"task": "grid", "success_rate": 0.5, "episodes": 8, "starts": "fixed",
-        ...           "mean_return": 0.25, "mean_steps": 12.0}
-        >>> lines = format_summary(result, run_dir).replace(str(run_dir), "RUN")
-        >>> print(lines)  # doctest: +ELLIPSIS
-        task grid: success 50.0% over 8 whole-task episodes (one fixed start), mean return 0.250...
-        Run directory: RUN
-          eval.json: RUN/eval.json
-          figure: RUN/learning_curves.png
-    """
+    """The lines printed at the end of a run: its ``eval.json`` summary, then its files."""
     starts = STARTS.get(str(result.get("starts")), "random starts")
     lines = [
         f"task {result['task']}: success {result['success_rate']:.1%} over "

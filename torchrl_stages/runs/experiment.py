@@ -85,8 +85,7 @@ def _for_seed(cfg: DictConfig, seed: int) -> DictConfig:
 
 
 def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[str, Any]:
-    """Seed ``seed``'s ``.hydra/``: its config, and ``seed=<seed>`` for ``seeds=...`` in the
-    overrides (how the sweep summary groups the seeds)."""
+    """Seed ``seed``'s ``.hydra/`` files: the sweep summary groups seeds by ``seed=`` overrides."""
     out = dict(files)
     out["config.yaml"] = cfg
     overrides = [str(o) for o in files.get("overrides.yaml", [])]

@@ -188,8 +188,7 @@ def _names(entries: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``stages-export RUN_DIR FILE``: a finished run's greedy stacked policy as one
-    ``torch.export`` file that runs with PyTorch alone."""
+    """``stages-export RUN_DIR FILE``: a finished run's greedy policy as a ``torch.export`` file."""
     parser = argparse.ArgumentParser(prog="stages-export", description=main.__doc__)
     parser.add_argument("run_dir", type=Path, help="a run directory written by stages-train")
     parser.add_argument("file", type=Path, help="the .pt2 file to write")

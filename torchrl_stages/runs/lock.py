@@ -97,8 +97,7 @@ class RunLock:
         os.pwrite(self._fd, holder.encode(), 0)
 
     def release(self, remove: bool = False) -> None:
-        """Releases the lock (``remove``: deletes the lock file, and its directory if this lock
-        created it and it is empty)."""
+        """Releases the lock; ``remove`` also deletes the lock file (and the directory it made)."""
         if self._fd is None:
             return
         if remove:

@@ -73,8 +73,7 @@ def _env_error(cfg: DictConfig, err: BaseException) -> ConfigError:
 
 
 def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
-    """Validates ``cfg`` (unless ``validated``) and builds its task; :class:`ConfigError` before
-    any training."""
+    """Validates ``cfg`` (unless ``validated``) and builds its task, before any training."""
     if not validated:
         cfg = with_env_stages(cfg)
         validate_config(cfg)

@@ -108,8 +108,7 @@ class SharedStageStore:
         return self.root / ENTRIES / identity
 
     def get(self, identity: str, map_location: Any = "cpu") -> dict[str, Any] | None:
-        """``stage.pt`` of entry ``identity``, or ``None``; a damaged entry is removed, never
-        served."""
+        """``stage.pt`` of entry ``identity`` (``None``: none); a damaged entry is removed."""
         entry = self.path(identity)
         if not entry.exists() and not entry.is_symlink():
             return None
