@@ -37,7 +37,7 @@ from torchrl_stages.config import register_configs
 from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.learners.ops import FusedSoftUpdate
 from torchrl_stages.runs.experiment import Experiment
-from torchrl_stages.runs.keeper import RunKeeper
+from torchrl_stages.runs.seed_run import SeedRun as RunKeeper
 
 PHASES = ("collect", "sample", "update", "target_update", "evaluate", "log", "checkpoint")
 

@@ -20,7 +20,8 @@ from helpers import TINY_STAGE, Launched, console_script, hydra_config, run_cli
 from torchrl_stages.cli import stage_store as stages_store_cli
 from torchrl_stages.config import ConfigError
 from torchrl_stages.runs.experiment import Experiment
-from torchrl_stages.runs.stage_store import SharedStageStore, StoreError, stage_identities
+from torchrl_stages.runs.identity import stage_identities
+from torchrl_stages.runs.stage_store import SharedStageStore, StoreError
 
 THREE = [
     "task.env.size=9",

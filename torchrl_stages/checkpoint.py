@@ -1,20 +1,6 @@
-"""Periodic checkpoints of the stage in progress, on ``torchrl.checkpoint``.
-
-A checkpoint holds everything the stage loop needs to go on as if it had never stopped: the
-learner (weights, target networks, optimizers, exploration state, update count), the replay
-buffer, the collector (frames, running episodes, the env's state and generator), the
-evaluation env's generator, the early-stop and best-weights bookkeeping, the loop's counters,
-every process-global generator (``GlobalRNGState``: torch, numpy, Python) and the length of
-every log file. ``torchrl.checkpoint.Checkpoint`` writes each one into a staging directory and
-renames it into place, so a checkpoint on disk is always whole; ``CheckpointRotation`` keeps
-the last few.
-
-Every component is stored as tensors and JSON (tensordict's memory-mapped directory format),
-never as a pickle, with the SHA-256 of each of its files. A checkpoint is verified before it
-is read: a file that is not a payload (``.json``, ``.memmap``), was never written there, or
-whose bytes changed makes it damaged, and :meth:`StageCheckpoints.latest` falls back to the
-one before.
-"""
+"""Periodic checkpoints of the stage in progress on ``torchrl.checkpoint``: everything the loop
+needs to go on as if it had never stopped, as tensors and JSON (never a pickle) with the SHA-256
+of every file; a damaged checkpoint is skipped for the one before."""
 
 from __future__ import annotations
 
@@ -45,14 +31,13 @@ from torchrl_stages.integrity import (
 
 PREFIX = "frames"
 MANIFEST = "manifest.json"  # torchrl.checkpoint's own record of the components
-#: the only files a component may hold: tensordict's memory-mapped tensors and JSON
 PAYLOAD_SUFFIXES = (".json", ".memmap")
 
 log = logging.getLogger("torchrl_stages")
 
 
 class StateOf:
-    """Adapts a pair of functions to the ``state_dict`` / ``load_state_dict`` protocol.
+    """A pair of functions as ``state_dict`` / ``load_state_dict``.
 
     Examples:
         >>> box = {"n": 1}
@@ -80,32 +65,24 @@ CHECKPOINT_FORMAT = 2
 
 
 class CheckpointFormatError(ValueError):
-    """A checkpoint written by a version of the package whose loops kept another state."""
+    """A checkpoint written by a version whose loops kept another state."""
 
 
 class SavedCounters:
-    """What a loop's counters (a dataclass with a ``format`` field) are in a checkpoint: their
-    fields as a dict, read back only from a state of :data:`CHECKPOINT_FORMAT`."""
+    """A loop's counters (a dataclass with a ``format`` field) as a checkpoint component."""
 
     def state_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)  # type: ignore[call-overload]
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        check_format(state)
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise CheckpointFormatError(f"format {state.get('format', 1)}, not {CHECKPOINT_FORMAT}")
         for f in dataclasses.fields(self):  # type: ignore[arg-type]
             setattr(self, f.name, state[f.name])
 
 
-def check_format(state: dict) -> None:
-    """Raises :class:`CheckpointFormatError` unless a loop's saved counters are of
-    :data:`CHECKPOINT_FORMAT`."""
-    if state.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointFormatError(f"format {state.get('format', 1)}, not {CHECKPOINT_FORMAT}")
-
-
 class TensorStateAdapter(StateDictCheckpointAdapter):
-    """torchrl's state-dict adapter in its tensor + JSON format (no pickle), with the
-    SHA-256 of every file it writes, verified before it reads them back."""
+    """torchrl's state-dict adapter in its tensor + JSON format, with checksums."""
 
     def __init__(self) -> None:
         super().__init__(payload_format="directory")
@@ -130,8 +107,8 @@ class TensorStateAdapter(StateDictCheckpointAdapter):
 
 
 def verify_checkpoint(path: Path) -> None:
-    """Raises :class:`~torchrl_stages.integrity.DamagedFileError` unless every file of the
-    checkpoint ``path`` is its manifest or a verified payload file of one of its components."""
+    """Raises :class:`DamagedFileError` unless every file of the checkpoint is its manifest or
+    a verified payload file of one of its components."""
     try:
         components = Checkpoint.manifest(path)["components"]
         dirs = {path / record["path"] for record in components.values()}
@@ -149,13 +126,8 @@ def verify_checkpoint(path: Path) -> None:
 
 
 class StageCheckpoints:
-    """The rotated checkpoints of one stage in ``directory`` (``frames-<frames>`` entries).
-
-    Args:
-        directory: where this stage's checkpoints live (e.g. ``RUN/checkpoints/stage_3``).
-        every: frames between two checkpoints (``0``: only when asked, e.g. on a signal).
-        keep: how many of the newest checkpoints to keep.
-        on_save: called with the path of every checkpoint written (a run's bookkeeping).
+    """The ``keep`` newest checkpoints of one stage in ``directory``, one per ``every`` frames
+    (``0``: only when asked, e.g. on a signal); ``on_save`` sees each one written.
 
     Examples:
         >>> import tempfile, torch
@@ -170,11 +142,7 @@ class StageCheckpoints:
     """
 
     def __init__(
-        self,
-        directory: str | Path,
-        every: int,
-        keep: int = 2,
-        on_save: Callable[[Path], None] | None = None,
+        self, directory: str | Path, every: int, keep: int = 2, on_save: Callable | None = None
     ) -> None:
         self.directory = Path(directory)
         self.every, self.keep = int(every), int(keep)
@@ -183,7 +151,6 @@ class StageCheckpoints:
         self._verified: Path | None = None
 
     def due(self, frames: int) -> bool:
-        """Whether a checkpoint is due after ``frames`` frames (one per ``every`` frames)."""
         return self.every > 0 and frames >= self._next
 
     def _checkpoint(self, components: Mapping[str, Any]) -> Checkpoint:
@@ -195,12 +162,10 @@ class StageCheckpoints:
             ckpt.register(name, component, adapter=adapter)
         return ckpt
 
-    def _rotation(self) -> CheckpointRotation:
-        return CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX)
-
     def save(self, frames: int, components: Mapping[str, Any]) -> Path:
         """Writes a checkpoint at ``frames`` (atomically) and prunes the old ones."""
-        path = self._rotation().save(self._checkpoint(components), step=int(frames))
+        rotation = CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX)
+        path = rotation.save(self._checkpoint(components), step=int(frames))
         self._next = (frames // self.every + 1) * self.every if self.every > 0 else 0
         self._verified = path
         if self.on_save is not None:
@@ -208,11 +173,8 @@ class StageCheckpoints:
         return path
 
     def latest(self) -> Path | None:
-        """The newest checkpoint of this stage that is whole, if any.
-
-        A damaged one (see :func:`verify_checkpoint`) is skipped with a warning that names it;
-        when every checkpoint is damaged, :class:`CheckpointDamagedError` says what to delete.
-        """
+        """The newest whole checkpoint, if any: damaged ones are skipped with a warning, and
+        :class:`CheckpointDamagedError` says what to delete when all are."""
         if not self.directory.is_dir():
             return None
         candidates = sorted(  # every entry of the rotation's form, readable or not
@@ -243,8 +205,7 @@ class StageCheckpoints:
         )
 
     def load(self, path: Path, components: Mapping[str, Any]) -> Path:
-        """Restores those of ``components`` that the checkpoint ``path`` holds (and the global
-        generators)."""
+        """Restores those of ``components`` that ``path`` holds, and the global generators."""
         try:
             if path != self._verified:
                 verify_checkpoint(path)
@@ -275,7 +236,6 @@ class StageCheckpoints:
         return path
 
     def clear(self) -> None:
-        """Removes this stage's checkpoints (once the stage's final file is written)."""
         shutil.rmtree(self.directory, ignore_errors=True)
         self._verified = None
 
@@ -285,7 +245,6 @@ def _frames(path: Path) -> int:
 
 
 def _nbytes(state: Any) -> int:
-    """Bytes of the tensors in a state (what its payload files take on disk)."""
     if isinstance(state, torch.Tensor):
         return state.numel() * state.element_size()
     if isinstance(state, Mapping):

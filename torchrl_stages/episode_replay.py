@@ -1,20 +1,13 @@
-"""Rebuilding a gymnasium env's running episode from plain data: what a resumed run continues.
-
-An env that follows gymnasium's seeding API draws every random number from ``env.np_random``, a
-numpy generator whose state is plain data (ints and strings). The state of that generator just
-before the reset that began an episode, the reset's seed and options, and the actions taken
-since then rebuild the episode exactly: put the generator back, reset, step the same actions.
-:class:`EpisodeReplay` keeps them and replays them, and checks that the generator and the last
-observation end where they were (an env that draws from elsewhere fails that check).
-
-This module imports only numpy and gymnasium: the worker processes of an ``AsyncVectorEnv``
-receive :class:`EpisodeReplay` by value (``cloudpickle``), without importing the package.
-"""
+"""A gymnasium env's running episode rebuilt from plain data (its ``np_random`` state before the
+reset, the reset's seed and options, the actions since): what a resumed run continues. Imports
+only numpy and gymnasium: vector env workers receive :class:`EpisodeReplay` by value."""
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
+import json
 from collections.abc import Mapping
 from typing import Any
 
@@ -23,17 +16,15 @@ import numpy as np
 
 __all__ = ["MAX_REPLAY_STEPS", "EpisodeReplay"]
 
-#: the longest episode a copy keeps the actions of (a longer one cannot be rebuilt on resume)
+#: the longest episode whose actions are kept (a longer one cannot be rebuilt on resume)
 MAX_REPLAY_STEPS = 100_000
-#: numpy's bit generators, by the name their ``state`` carries
 _BIT_GENERATORS = {
     name: getattr(np.random, name) for name in ("PCG64", "PCG64DXSM", "MT19937", "Philox", "SFC64")
 }
 
 
 def _plain(value: Any) -> Any:
-    """``value`` with numpy arrays and scalars as lists and Python numbers (a generator's state
-    as plain data, comparable after a trip through JSON)."""
+    """``value`` with numpy arrays and scalars as plain lists and numbers (JSON-comparable)."""
     if isinstance(value, Mapping):
         return {str(k): _plain(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
@@ -44,7 +35,7 @@ def _plain(value: Any) -> Any:
 
 
 def _is_plain(value: Any) -> bool:
-    """Whether ``value`` is what a checkpoint holds as it is: JSON values and numeric arrays."""
+    """Whether ``value`` is JSON values and numeric arrays."""
     if value is None or isinstance(value, bool | int | float | str):
         return True
     if isinstance(value, np.ndarray | np.generic):
@@ -57,14 +48,13 @@ def _is_plain(value: Any) -> bool:
 
 
 def _rng_state(env: gymnasium.Env) -> dict | None:
-    """The state of ``env``'s ``np_random`` as plain data (``None``: it has none yet)."""
     generator = getattr(env, "_np_random", None)
     return None if generator is None else _plain(generator.bit_generator.state)
 
 
 def _set_rng_state(env: gymnasium.Env, state: Mapping) -> None:
     """Puts ``state`` into ``env``'s ``np_random`` (the same generator object where it has one
-    of that kind, so an env that keeps a reference to it draws from the restored state)."""
+    of that kind: an env may keep a reference to it)."""
     name = state["bit_generator"]
     if name not in _BIT_GENERATORS:
         raise ValueError(f"an unknown bit generator {name!r}")
@@ -82,37 +72,14 @@ def _set_rng_state(env: gymnasium.Env, state: Mapping) -> None:
 
 def _digest(obs: Any) -> str:
     """A SHA-256 of an observation (arrays, scalars, strings, dicts and tuples of them)."""
-    sha = hashlib.sha256()
-
-    def add(value: Any) -> None:
-        if isinstance(value, Mapping):
-            for key in sorted(value, key=str):
-                sha.update(repr(key).encode())
-                add(value[key])
-        elif isinstance(value, list | tuple):
-            sha.update(b"(%d" % len(value))
-            for item in value:
-                add(item)
-        else:
-            array = np.ascontiguousarray(value)
-            sha.update(f"{array.dtype.str}{array.shape}".encode())
-            sha.update(array.tobytes() if array.dtype.kind != "O" else repr(value).encode())
-
-    add(obs)
-    return sha.hexdigest()
+    text = json.dumps(_plain(obs), sort_keys=True, default=repr)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 class EpisodeReplay(gymnasium.Wrapper):
-    """Keeps what rebuilds a gymnasium env's running episode, as plain data: the state of its
-    ``np_random`` just before the reset that began the episode (or that reset's seed), the
-    reset's options, and the actions since. :meth:`episode_state` returns it (with the
-    generator's state now and a digest of the last observation); :meth:`rebuild` puts the
-    generator back, resets and steps the same actions, which gives the same episode (the env's
-    own state and that of its wrappers, such as ``TimeLimit``'s step count) on an env whose
-    every random draw comes from ``np_random`` (gymnasium's seeding API), and checks that the
-    generator and the observation end where they were.
-
-    :class:`GymStageEnv` wraps each copy in it, so a resumed run continues the same episodes.
+    """Keeps what rebuilds the running episode (:meth:`episode_state`); :meth:`rebuild` puts the
+    generator back, resets, steps the same actions, and checks that the generator and the
+    observation end where they were (true of an env whose every draw is from ``np_random``).
 
     Examples:
         >>> env = EpisodeReplay(gymnasium.make("CartPole-v1"))
@@ -167,43 +134,39 @@ class EpisodeReplay(gymnasium.Wrapper):
         return out
 
     def episode_state(self) -> dict[str, Any]:
-        """What :meth:`rebuild` needs, as plain data and arrays (``why_not``: the reason the
-        running episode cannot be rebuilt, else ``None``)."""
-        if self._why_not is not None:
-            return {"why_not": self._why_not, "rng_now": _rng_state(self.env.unwrapped)}
-        actions = np.stack(self._actions) if self._actions else None
+        """What :meth:`rebuild` needs; ``why_not`` says why it cannot rebuild the episode."""
+        why_not, rng_now = self._why_not, _rng_state(self.env.unwrapped)
+        actions = np.stack(self._actions) if self._actions and why_not is None else None
         if actions is not None and actions.dtype.kind not in "biuf":
-            return {
-                "why_not": "its actions are not numeric",
-                "rng_now": _rng_state(self.env.unwrapped),
-            }
+            why_not = "its actions are not numeric"
+        if why_not is not None:
+            return {"why_not": why_not, "rng_now": rng_now}
+        start = self._start
         return {
             "why_not": None,
-            "seed": self._start["seed"],
-            "rng_start": self._start["rng"],
-            "options": self._start["options"],
+            "seed": start["seed"],
+            "rng_start": start["rng"],
+            "options": start["options"],
             "actions": actions,
-            "rng_now": _rng_state(self.env.unwrapped),
+            "rng_now": rng_now,
             "obs": _digest(self._obs),
         }
 
     def rebuild(self, state: Mapping[str, Any]) -> str | None:
-        """Rebuilds the episode :meth:`episode_state` returned; ``None`` if it ends where it
-        was, else why not (the env's generator is then left in its saved state)."""
+        """Rebuilds the episode; ``None`` if it ends where it was, else why not (the generator is
+        then left in its saved state)."""
         try:
             why_not = self._replay(state)
         except Exception as err:  # an env that cannot take its own actions back
             why_not = f"replaying its episode raised {type(err).__name__}: {err}"
         if why_not is not None and state.get("rng_now") is not None:
-            try:  # the generator goes on from where it was, for the episodes that start over
+            # the generator goes on from where it was, for the episodes that start over
+            with contextlib.suppress(KeyError, TypeError, ValueError):
                 _set_rng_state(self.env.unwrapped, state["rng_now"])
-            except (KeyError, TypeError, ValueError):
-                pass
         return why_not
 
     def rebuild_pending(self) -> str | None:
-        """:meth:`rebuild` of :attr:`pending_episode` (what a vector env's ``call`` runs in each
-        copy, after ``set_attr("pending_episode", states)``)."""
+        """:meth:`rebuild` of :attr:`pending_episode` (set by a vector env's ``set_attr``)."""
         state, self.pending_episode = self.pending_episode, None
         return "no saved episode" if state is None else self.rebuild(state)
 

@@ -1,9 +1,5 @@
-"""Checksums of the files a run writes, verified before anything is read back.
-
-A run directory is untrusted data when it is loaded: a file may be truncated by a full disk,
-damaged by a copy, or crafted. Every stage file and every checkpoint component is recorded
-with its SHA-256 when it is written; reading it back first checks that the bytes are those.
-"""
+"""Atomic writes, and SHA-256 checksums of the files a run writes, verified before anything
+is read back (a file may be truncated by a full disk, damaged by a copy, or crafted)."""
 
 from __future__ import annotations
 
@@ -16,16 +12,11 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
-#: the checksum file of a directory of payload files (one entry per file, relative path)
 CHECKSUMS = "sha256.json"
 
 
 class DamagedFileError(RuntimeError):
-    """A file differs from what was recorded when it was written (or was never recorded).
-
-    Attributes:
-        path: the file (or directory) at fault.
-    """
+    """A file (``path``) differs from what was recorded when it was written."""
 
     def __init__(self, path: str | Path, reason: str) -> None:
         super().__init__(f"{path}: {reason}")
@@ -34,20 +25,8 @@ class DamagedFileError(RuntimeError):
 
 
 def sha256_file(path: str | Path) -> str:
-    """The SHA-256 of a file's bytes, as hex.
-
-    Examples:
-        >>> import tempfile, pathlib
-        >>> f = pathlib.Path(tempfile.mkdtemp()) / "a"
-        >>> _ = f.write_bytes(b"abc")
-        >>> sha256_file(f)[:16]
-        'ba7816bf8f01cfea'
-    """
-    digest = hashlib.sha256()
     with Path(path).open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+        return hashlib.file_digest(handle, "sha256").hexdigest()
 
 
 def _files(directory: Path) -> list[str]:
@@ -67,22 +46,8 @@ def write_checksums(directory: str | Path) -> dict[str, str]:
 
 
 def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> None:
-    """Checks the files under ``directory`` against its ``sha256.json``: the same files, the
-    same bytes, and (with ``suffixes``) only files with those endings. Raises
-    :class:`DamagedFileError` naming the first file that differs.
-
-    Examples:
-        >>> import tempfile, pathlib
-        >>> d = pathlib.Path(tempfile.mkdtemp())
-        >>> _ = (d / "x.json").write_text("{}")
-        >>> _ = write_checksums(d)
-        >>> verify_checksums(d, suffixes=(".json",))
-        >>> _ = (d / "x.json").write_text("{ }")
-        >>> verify_checksums(d)
-        Traceback (most recent call last):
-        ...
-        torchrl_stages.integrity.DamagedFileError: ...x.json: its bytes differ from those written
-    """
+    """Checks ``directory`` holds exactly the files of its ``sha256.json``, same bytes (and with
+    ``suffixes``, only those endings); :class:`DamagedFileError` names the first that differs."""
     directory = Path(directory)
     record = directory / CHECKSUMS
     try:
@@ -113,17 +78,8 @@ def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> N
 
 
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """Writes ``path`` through a temporary file of this process's own, then renames it into
-    place; on any error the temporary file is removed and ``path`` is left as it was (an
-    ``OSError`` names ``path``).
-
-    Examples:
-        >>> import tempfile, pathlib
-        >>> f = pathlib.Path(tempfile.mkdtemp()) / "a.txt"
-        >>> atomic_write(f, lambda tmp: tmp.write_text("whole"))
-        >>> f.read_text(), [p.name for p in f.parent.iterdir()]
-        ('whole', ['a.txt'])
-    """
+    """Writes ``path`` through a temporary file of this process's own, renamed into place; on
+    any error ``path`` is left as it was (an ``OSError`` names it)."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
     try:
         write(tmp)

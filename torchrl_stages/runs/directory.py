@@ -1,11 +1,5 @@
-"""A run directory on disk (:class:`RunDir`): its files, writing them safely, and reading them
-back.
-
-Files are written atomically (a temporary file unique to the process, then a rename); a
-failed write leaves no temporary file. A run directory is untrusted data when it is read back:
-checksums are verified and a damaged or foreign file raises
-:class:`~torchrl_stages.runs.layout.RunDirError` naming the file and the fix.
-"""
+"""A run directory on disk: its files written atomically with their checksums, and read back
+as untrusted data (a damaged or foreign file raises :class:`RunDirError` naming the fix)."""
 
 from __future__ import annotations
 
@@ -16,6 +10,7 @@ import shutil
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, fields
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +29,6 @@ from torchrl_stages.runs.layout import (
     EVAL_FILE,
     LEGACY_ENTRIES,
     LEGACY_FIGURES,
-    LEGACY_PATTERNS,
     RECORD_FILE,
     RECORD_FORMAT,
     RUN_MARKERS,
@@ -50,9 +44,8 @@ log = logging.getLogger("torchrl_stages")
 __all__ = ["RunDir", "refuse_links"]
 
 
-# ---------------------------------------------------------------------- the directory
 class RunDir:
-    """The files of one run directory and its record.
+    """The files of one run directory and its record (``.stages/run.json``).
 
     Examples:
         >>> import tempfile
@@ -63,55 +56,44 @@ class RunDir:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._record: dict[str, Any] | None = None
+        self.config_file = self.path / CONFIG_FILE
+        self.record_file = self.path / LOCK_DIR / RECORD_FILE
         self._launch_start: float | None = None
 
     def stage_file(self, stage: int) -> Path:
         return self.path / f"stage_{stage}.pt"
 
-    @property
-    def config_file(self) -> Path:
-        return self.path / CONFIG_FILE
-
-    @property
-    def record_file(self) -> Path:
-        return self.path / LOCK_DIR / RECORD_FILE
-
     def holds_run(self) -> bool:
-        """Whether a run was started here (a config, a stage, checkpoints, metrics or eval)."""
-        return any((self.path / n).exists() for n in RUN_MARKERS) or any(
-            self.path.glob("stage_*.pt")
-        )
+        return bool(self._run_files())
+
+    def _run_files(self, names: tuple[str, ...] = RUN_MARKERS) -> list[str]:
+        """Those of ``names`` that exist here, then the stage files, each sorted."""
+        found = sorted(n for n in names if (self.path / n).exists())
+        return found + sorted(p.name for p in self.path.glob("stage_*.pt"))
 
     def lock(self) -> RunLock:
-        """Takes this directory's lock (one process at a time); :class:`RunDirError` names the
-        process that holds it. The directory's other entries are checked for links once the
-        lock is held: the process that holds it may be writing and deleting them meanwhile."""
+        """Takes this directory's lock; :class:`RunDirError` names the process holding it."""
         lock_dir = self.path / LOCK_DIR
-        self._refuse_links([lock_dir, lock_dir / "lock"])
+        refuse_links([lock_dir, lock_dir / "lock"])
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             held = RunLock(self.path).acquire()
         except RunLockedError as err:
             raise RunDirError(str(err)) from None
-        try:
+        try:  # checked once the lock is held: its holder may be writing them meanwhile
             self.check_no_links()
         except BaseException:
             held.release(remove=held.created_dir)
             raise
         return held
 
-    # ------------------------------------------------------------------ the record
     def has_record(self) -> bool:
         return self.record_file.is_file()
 
-    @property
+    @cached_property
     def record(self) -> dict[str, Any]:
-        """``.stages/run.json``: ``entries`` (what the package wrote here, with checksums),
-        ``launches`` and ``phases`` (a joint run's). A missing one reads as empty."""
-        if self._record is None:
-            self._record = self._read_record()
-        return self._record
+        """``entries`` (what the package wrote, with checksums), ``launches``, ``phases``."""
+        return self._read_record()
 
     def _read_record(self) -> dict[str, Any]:
         empty = {"format": RECORD_FORMAT, "version": 1, "entries": {}, "launches": []}
@@ -140,8 +122,7 @@ class RunDir:
         atomic_write(self.record_file, lambda tmp: tmp.write_text(text))
 
     def claim(self, *names: str) -> None:
-        """Records top-level entries as written by the package (before they are written:
-        ``overwrite=true`` deletes exactly what is recorded)."""
+        """Records entries as the package's before they are written (``overwrite`` deletes them)."""
         entries = self.record["entries"]
         new = [name for name in names if name not in entries]
         for name in new:
@@ -150,22 +131,17 @@ class RunDir:
             self._save_record()
 
     def listing(self) -> set[str]:
-        """The top-level entries of the directory now."""
         return {p.name for p in self.path.iterdir()} if self.path.is_dir() else set()
 
     def claim_new(self, before: set[str]) -> None:
-        """Claims the top-level entries that appeared since the ``before`` listing (figures,
-        a logger backend's directory), written while this process held the lock."""
+        """Claims the entries that appeared since the ``before`` listing (figures, logs)."""
         self.claim(*sorted(self.listing() - before - {LOCK_DIR}))
 
     def adopt_legacy(self) -> None:
         """Claims what a run written without a record holds (resuming such a run)."""
-        names = [n for n in (*LEGACY_ENTRIES, *LEGACY_FIGURES) if (self.path / n).exists()]
-        names += [p.name for pattern in LEGACY_PATTERNS for p in self.path.glob(pattern)]
-        self.claim(*sorted(names))
+        self.claim(*sorted(self._run_files((*LEGACY_ENTRIES, *LEGACY_FIGURES))))
 
     def _write_verified(self, name: str, write: Callable[[Path], None]) -> Path:
-        """Writes the top-level file ``name`` atomically with its checksum in the record."""
         path = self.path / name
         self.claim(name)
 
@@ -183,8 +159,7 @@ class RunDir:
         return path
 
     def _verify(self, name: str, fix: str) -> None:
-        """Raises :class:`RunDirError` if ``name`` differs from the checksum recorded when it
-        was written (files without a recorded checksum pass)."""
+        """Raises :class:`RunDirError` if ``name`` differs from its recorded checksum."""
         try:
             entry = self._read_record()["entries"].get(name, {})
             expected = {entry.get("sha256"), entry.get("previous")} - {None}
@@ -196,17 +171,14 @@ class RunDir:
                 f"SHA-256 in {self.record_file}). Fix: {fix}"
             )
 
-    # ------------------------------------------------------------------ launches
     def begin_launch(self) -> None:
-        """Starts this process's entry in the record's ``launches``."""
         self._launch_start = time.perf_counter()
         started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         self.record["launches"].append({"started": started, "seconds": 0.0, "outcome": "running"})
         self._save_record()
 
     def update_launch(self, outcome: str | None = None) -> None:
-        """Records this launch's wall-clock so far (and its outcome: ``done``,
-        ``interrupted``, ``diverged``, ``failed``); a killed launch keeps its last update."""
+        """Records this launch's wall-clock so far, and its ``outcome`` when it ends."""
         if self._launch_start is None:
             return
         launch = self.record["launches"][-1]
@@ -222,24 +194,19 @@ class RunDir:
         seconds = sum(float(launch.get("seconds", 0.0)) for launch in launches)
         return {"seconds": seconds, "launches": launches}
 
-    # ------------------------------------------------------------------ config
     def write_config(self, cfg: DictConfig) -> None:
-        """Writes the resolved config; :func:`load_run` rebuilds everything from it."""
         self.path.mkdir(parents=True, exist_ok=True)
         self._write_verified(CONFIG_FILE, lambda tmp: OmegaConf.save(cfg, tmp, resolve=True))
 
     @property
     def config_source(self) -> Path:
-        """The file the config is read from: ``config.yaml``, or ``.hydra/config.yaml`` (the
-        composed config Hydra recorded) when it is missing."""
+        """``config.yaml``, or ``.hydra/config.yaml`` when it is missing."""
         hydra = self.path / ".hydra" / CONFIG_FILE
         return hydra if not self.config_file.is_file() and hydra.is_file() else self.config_file
 
     def read_config(self) -> DictConfig:
-        """The run's config, resolved and checked against the schema (``.hydra/config.yaml``
-        when ``config.yaml`` is missing); a damaged or incomplete one, or one that holds an
-        interpolation (``${...}``: a saved config is resolved, and resolving untrusted text
-        can build nodes), raises :class:`RunDirError`."""
+        """The run's config, checked against the schema; :class:`RunDirError` when damaged,
+        incomplete, or holding an interpolation (resolving untrusted text can build nodes)."""
         path = self.config_source
         fix = (
             "restore it from the run's .hydra/config.yaml (or a copy of the run), or retrain "
@@ -276,22 +243,13 @@ class RunDir:
             ) from err
         return cfg
 
-    # ------------------------------------------------------------------ stages
     def save_stage(
-        self,
-        stage: int,
-        name: str,
-        learner: Learner,
-        result: StageResult,
-        log: dict[str, int] | None = None,
+        self, stage: int, name: str, learner: Learner, result: StageResult, log: dict[str, int]
     ) -> Path:
-        """Writes ``stage_<k>.pt`` atomically with its checksum: weights (targets included),
-        optimizers, exploration state, counters, the stage's result and ``log`` (the logger's
-        file sizes when the stage ended, where a resumed run rewinds them to). Never a
-        non-finite one."""
+        """Writes ``stage_<k>.pt`` (never a non-finite one); ``log``: the logger's file sizes."""
         learner.check_finite()
         state = {"stage": stage, "name": name, "algo": learner.algo, "result": asdict(result)}
-        state["log"] = dict(log or {})
+        state["log"] = dict(log)
         buffer = io.BytesIO()  # written by Python's file IO: a failed write is an OSError
         torch.save({**state, **learner.checkpoint()}, buffer)
         return self._write_verified(
@@ -299,8 +257,7 @@ class RunDir:
         )
 
     def read_stage(self, stage: int, map_location: Any = "cpu") -> dict[str, Any] | None:
-        """The content of ``stage_<k>.pt`` (``None`` if the stage has not finished), after
-        checking its checksum, its content and the stage it records."""
+        """The checked content of ``stage_<k>.pt`` (``None``: not finished)."""
         path = self.stage_file(stage)
         if not path.is_file():
             return None
@@ -328,8 +285,7 @@ class RunDir:
         return state
 
     def checkpoints(self, stage: int | str, every: int, keep: int) -> StageCheckpoints:
-        """The periodic checkpoints of stage ``stage`` in progress (``"joint"``: of the joint
-        schedule, all stages at once); each one written updates this launch's wall-clock."""
+        """The checkpoints of stage ``stage`` (``"joint"``: the joint schedule's)."""
         self.claim(CHECKPOINTS)
         name = stage if isinstance(stage, str) else f"stage_{stage}"
         return StageCheckpoints(
@@ -337,8 +293,6 @@ class RunDir:
         )
 
     def clear_checkpoints(self, stage: int | str) -> None:
-        """Drops stage ``stage``'s checkpoints (once ``stage_<k>.pt`` is written, or when a
-        resumed run changed the stage's config)."""
         self.check_no_links()
         self.checkpoints(stage, 0, 1).clear()
         root = self.path / CHECKPOINTS
@@ -346,32 +300,24 @@ class RunDir:
             root.rmdir()
 
     def check_no_links(self) -> None:
-        """Raises :class:`RunDirError` if an entry the package reads or writes here is a
-        symbolic link (it would read or write, or delete, what the link points to)."""
+        """Raises :class:`RunDirError` if an entry the package reads or writes is a link."""
         entries = [self.path / n for n in (*LEGACY_ENTRIES, LOCK_DIR)]
         entries += [*self.path.glob("stage_*.pt"), *self.path.glob("*.png")]
         entries.append(self.path / "value_map.npy")
         for entry in entries:
             inner = entry.rglob("*") if entry.is_dir() and not entry.is_symlink() else []
-            self._refuse_links([entry, *inner])
-
-    @staticmethod
-    def _refuse_links(paths: list[Path]) -> None:
-        refuse_links(paths)
+            refuse_links([entry, *inner])
 
     def write_hydra_files(self, files: dict[str, Any]) -> None:
-        """``.hydra/<name>`` for each ``{name: config}`` (what ``stages-train`` records of
-        Hydra: the composed config, Hydra's config, the command-line overrides)."""
+        """``.hydra/<name>`` for each ``{name: config}``."""
         self.claim(".hydra")
         out = self.path / ".hydra"
         out.mkdir(parents=True, exist_ok=True)
         for name, node in files.items():
             atomic_write(out / name, lambda tmp, node=node: OmegaConf.save(node, tmp))
 
-    # ------------------------------------------------------------------ status, eval
     def write_status(self, status: str, reason: str | None = None, **extra: Any) -> None:
-        """``status.json``: how the run ended when it did not finish (``failed``,
-        ``diverged``, ``interrupted`` with its ``signal``, ...) and why."""
+        """``status.json``: how and why a run that did not finish ended."""
         self.path.mkdir(parents=True, exist_ok=True)
         text = json.dumps({"status": status, "reason": reason, **extra}, indent=2)
         self.claim(STATUS_FILE)
@@ -386,21 +332,16 @@ class RunDir:
         return data if isinstance(data, dict) else None
 
     def check_clearable(self) -> None:
-        """Raises :class:`RunDirError` unless :meth:`clear` would remove every file of the run:
-        a directory holding a run's files but no record, or files its record does not list,
-        is refused and nothing in it is deleted."""
+        """Raises :class:`RunDirError` unless :meth:`clear` would remove every run file."""
         if not self.has_record():
-            found = sorted(n for n in [*RUN_MARKERS, STATUS_FILE] if (self.path / n).exists())
-            found += sorted(p.name for p in self.path.glob("stage_*.pt"))
+            found = self._run_files((*RUN_MARKERS, STATUS_FILE))
             raise RunDirError(
                 f"overwrite=true: {self.path} holds {', '.join(found)} but no "
                 f"{LOCK_DIR}/{RECORD_FILE}, the record of what torchrl-stages wrote there, so "
                 "nothing in it is deleted. Fix: delete those files yourself, or pick another "
                 "hydra.run.dir"
             )
-        entries = self.record["entries"]
-        foreign = [n for n in RUN_MARKERS if (self.path / n).exists() and n not in entries]
-        foreign += [p.name for p in self.path.glob("stage_*.pt") if p.name not in entries]
+        foreign = [n for n in self._run_files() if n not in self.record["entries"]]
         if foreign:
             raise RunDirError(
                 f"overwrite=true: {self.path} holds {', '.join(sorted(foreign))}, which its "
@@ -410,8 +351,7 @@ class RunDir:
             )
 
     def clear(self) -> list[str]:
-        """Removes a previous run (``overwrite=true``): exactly the entries its record lists,
-        nothing else; returns them (see :meth:`check_clearable`)."""
+        """Removes exactly the entries the record lists (``overwrite=true``); returns them."""
         self.check_clearable()
         entries = self.record["entries"]
         removed = []
@@ -433,8 +373,7 @@ class RunDir:
 
 
 def refuse_links(paths: Iterable[Path]) -> None:
-    """Raises :class:`RunDirError` naming the first of ``paths`` that is a symbolic link (a
-    run's own files are never links: writing or deleting through one touches another place)."""
+    """Raises :class:`RunDirError` naming the first of ``paths`` that is a symbolic link."""
     for path in paths:
         if path.is_symlink():
             raise RunDirError(

@@ -1,11 +1,9 @@
-"""A run's whole-task evaluation (:func:`evaluate_run`: ``eval.json``), the whole task
-followed during training (:func:`probe_task`) and the lines a finished run prints
-(:func:`format_summary`)."""
+"""A run's whole-task evaluation (``eval.json``), its probe during training, and the lines a
+finished run prints."""
 
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -26,10 +24,7 @@ from torchrl_stages.task_registry import task_report
 
 @torch.no_grad()
 def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict[str, float]:
-    """Whole-task numbers of the current learners, for learning curves across schedules: the
-    success rate of greedy whole-task episodes (every whole-task start when the env enumerates
-    them, else stage 0's ``eval_episodes`` random ones), plus the task's own probe (the grid
-    world: optimal path from (0, 0), merged value error)."""
+    """Whole-task success rate of the current learners, plus the task's own probe metrics."""
     policy = StackedPolicy([learner.policy for learner in learners])
     episodes = int(task.stage_cfg(0).eval_episodes)
     out = {
@@ -41,39 +36,17 @@ def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict
     return out
 
 
-def strict_json(value: Any) -> Any:
-    """``value`` with every NaN or infinite float replaced by ``None`` (strict JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: strict_json(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [strict_json(v) for v in value]
-    return value
-
-
 def evaluate_run(
-    cfg: DictConfig,
-    task: StagedTask,
-    learners: Sequence[Learner],
-    run_dir: Path,
-    training: dict[str, Any] | None = None,
+    cfg: DictConfig, task: StagedTask, learners: Sequence[Learner], run_dir: Path, training: dict
 ) -> dict[str, Any]:
-    """Evaluates the greedy stacked policy on whole-task episodes; writes ``eval.json``.
-
-    Episodes start from every whole-task start state when the env enumerates them, else from
-    ``cfg.eval.episodes`` random ones seeded from ``cfg.seed``; the task's report (if any) adds
-    its metrics and figures; ``training`` (wall-clock, frames, updates per stage) is stored
-    alongside. ``eval.json`` is strict JSON: undefined values are ``null``.
-    """
+    """Evaluates the greedy stacked policy on whole-task episodes; writes ``eval.json``."""
     policy = StackedPolicy([learner.policy for learner in learners])
-    evaluation = evaluate_task(
-        task, policy, int(cfg.eval.episodes), int(cfg.seed) + TASK_EVAL_OFFSET, interruptible=True
-    )
+    seed = int(cfg.seed) + TASK_EVAL_OFFSET
+    evaluation = evaluate_task(task, policy, int(cfg.eval.episodes), seed, interruptible=True)
     result: dict[str, Any] = {
         "task": cfg.task.name,
         **evaluation.summary(),
-        "training": training or {},
+        "training": training,
     }
     report = task_report(str(cfg.task.name))
     if report is not None and report.report is not None:
@@ -82,7 +55,6 @@ def evaluate_run(
         )
         result["headline_metrics"] = list(report.headline)
     if evaluation.handoffs:  # how each stage's value holds where the stage before hands over
-        seed = int(cfg.seed) + TASK_EVAL_OFFSET
         records = handoff_diagnostics(task, learners, evaluation.handoffs, seed)
         warn_extrapolated(records)
         if cfg.eval.plots:
@@ -93,7 +65,7 @@ def evaluate_run(
         from torchrl_stages.plots import plot_learning_curves
 
         plot_learning_curves(run_dir / "metrics.csv", run_dir / "learning_curves.png")
-    result = strict_json(result)
+    result = json.loads(json.dumps(result), parse_constant=lambda _: None)  # NaN, inf: null
     text = json.dumps(result, indent=2, allow_nan=False)
     atomic_write(run_dir / EVAL_FILE, lambda tmp: tmp.write_text(text))
     return result
@@ -103,28 +75,12 @@ STARTS = {"all": "every whole-task start", "fixed": "one fixed start", "random":
 
 
 def format_summary(result: dict[str, Any], run_dir: Path) -> str:
-    """A few human-readable lines for the end of a run: its whole-task evaluation (``result``,
-    its ``eval.json``), then the run directory with the paths of ``eval.json`` and of the
-    figures in it.
-
-    Examples:
-        >>> import tempfile
-        >>> run_dir = Path(tempfile.mkdtemp())
-        >>> _ = (run_dir / "learning_curves.png").write_bytes(b"")
-        >>> result = {"task": "grid", "success_rate": 0.5, "episodes": 8, "starts": "fixed",
-        ...           "mean_return": 0.25, "mean_steps": 12.0}
-        >>> lines = format_summary(result, run_dir).replace(str(run_dir), "RUN")
-        >>> print(lines)  # doctest: +ELLIPSIS
-        task grid: success 50.0% over 8 whole-task episodes (one fixed start), mean return 0.250...
-        Run directory: RUN
-          eval.json: RUN/eval.json
-          figure: RUN/learning_curves.png
-    """
+    """The lines printed at the end of a run: its ``eval.json`` summary, then its files."""
     starts = STARTS.get(str(result.get("starts")), "random starts")
     lines = [
         f"task {result['task']}: success {result['success_rate']:.1%} over "
         f"{result['episodes']} whole-task episodes ({starts}), mean return "
-        f"{result['mean_return']:.3f}, mean steps {result['mean_steps']:.1f}",
+        f"{result['mean_return']:.3f}, mean steps {result['mean_steps']:.1f}"
     ]
     for key, value in result.get("task_metrics", {}).items():
         if key != "path_from_origin":

@@ -1,12 +1,5 @@
-"""A training launch, start to end: the library API behind ``stages-train``.
-
-:class:`Experiment` trains and evaluates a config for one seed (``seed=s``: one run directory)
-or several at once (``seeds=[...]``: one run directory per seed, ``<run_dir>/seed_<s>/``, and a
-summary over them), with one code path: each seed's directory is a
-:class:`~torchrl_stages.runs.seed_run.SeedRun` (checked, locked, resumed and evaluated alike), and
-the schedule trains every seed's stages in one call, their networks stacked when there are
-several. The CLI, ``stages-tune``, the benchmark scripts and Python users all go through it.
-"""
+"""A training launch, start to end: the library API behind ``stages-train``, for one seed or
+several trained at once (one :class:`~torchrl_stages.runs.seed_run.SeedRun` per seed)."""
 
 from __future__ import annotations
 
@@ -15,6 +8,7 @@ import logging
 import re
 import shutil
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +23,13 @@ from torchrl_stages.loggers import Observer, StopRun
 from torchrl_stages.preemption import Interrupted, handle_signals
 from torchrl_stages.runs.directory import refuse_links
 from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
-from torchrl_stages.runs.seed_run import SeedRun, build_task, compile_mode, with_env_stages
+from torchrl_stages.runs.seed_run import (
+    RunOptions,
+    SeedRun,
+    build_task,
+    compile_mode,
+    with_env_stages,
+)
 from torchrl_stages.schedules import SCHEDULES, get_schedule
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import hold_threads
@@ -38,38 +38,16 @@ log = logging.getLogger("torchrl_stages")
 
 
 def validate_seeds(cfg: DictConfig) -> list[int]:
-    """``cfg.seeds`` as a list of ints; :class:`ConfigError` naming the fix when it cannot be
-    trained in one process.
-
-    Examples:
-        >>> validate_seeds(OmegaConf.create({"seeds": [0, 2], "schedule": {"name": "backward"},
-        ...                                  "eval": {}}))
-        [0, 2]
-        >>> validate_seeds(OmegaConf.create({"seeds": [1, 1], "schedule": {"name": "backward"},
-        ...                                  "eval": {}}))
-        Traceback (most recent call last):
-        ...
-        torchrl_stages.config.ConfigError: seeds=[1, 1]: ...
-    """
+    """``cfg.seeds`` as ints; :class:`ConfigError` when they cannot train in one process."""
     raw = cfg.get("seeds")
     shown = OmegaConf.to_container(raw) if isinstance(raw, ListConfig) else raw
-    check(
-        isinstance(raw, ListConfig | list) and len(raw) > 0,
-        "seeds",
-        shown,
-        "must be a non-empty list of seeds",
-        "seeds=[0,1,2]",
-    )
+    listed = isinstance(raw, ListConfig | list) and len(raw) > 0
+    check(listed, "seeds", shown, "must be a non-empty list of seeds", "seeds=[0,1,2]")
     ok = all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in raw)
     check(ok, "seeds", shown, "every seed must be an int >= 0", "seeds=[0,1,2]")
     seeds = [int(s) for s in raw]
-    check(
-        len(set(seeds)) == len(seeds),
-        "seeds",
-        shown,
-        "a seed is listed twice",
-        f"seeds=[{','.join(str(s) for s in dict.fromkeys(seeds))}]",
-    )
+    once = f"seeds=[{','.join(str(s) for s in dict.fromkeys(seeds))}]"
+    check(len(set(seeds)) == len(seeds), "seeds", shown, "a seed is listed twice", once)
     name = str(cfg.schedule.name)
     able = [n for n, schedule in SCHEDULES.items() if schedule.stacks_seeds]
     check(
@@ -80,20 +58,13 @@ def validate_seeds(cfg: DictConfig) -> list[int]:
         f"schedule={'|'.join(able)}, or train the seeds apart: stages-train -m "
         f"schedule={name} seed={','.join(str(s) for s in seeds)}",
     )
-    check(
-        not cfg.eval.get("probe", False),
-        "eval.probe",
-        True,
-        "the whole-task probe is not run for several seeds in one process",
-        "eval.probe=false",
-    )
+    probe = "the whole-task probe is not run for several seeds in one process"
+    check(not cfg.eval.get("probe", False), "eval.probe", True, probe, "eval.probe=false")
     return seeds
 
 
 def check_stackable(task: StagedTask, num_seeds: int) -> None:
-    """Builds each stage's learner stacked for ``num_seeds`` seeds (small, on the CPU, thrown
-    away): :class:`ConfigError` naming the stage and the fix when one cannot be, before any
-    training."""
+    """Raises :class:`ConfigError` naming the stage that cannot stack ``num_seeds`` seeds."""
     for k, name in enumerate(task.stage_names):
         try:
             make_learner(task.stage_cfg(k), task.specs(k), seeds=num_seeds)
@@ -114,8 +85,7 @@ def _for_seed(cfg: DictConfig, seed: int) -> DictConfig:
 
 
 def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[str, Any]:
-    """``.hydra/`` of seed ``seed``'s directory: its config, and the command's overrides with
-    ``seed=<seed>`` for ``seeds=...`` (how the sweep summary groups the seeds)."""
+    """Seed ``seed``'s ``.hydra/`` files: the sweep summary groups seeds by ``seed=`` overrides."""
     out = dict(files)
     out["config.yaml"] = cfg
     overrides = [str(o) for o in files.get("overrides.yaml", [])]
@@ -125,23 +95,10 @@ def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[
 
 
 class Experiment:
-    """Trains and evaluates ``cfg`` in ``run_dir``: seed ``cfg.seed`` in ``run_dir`` itself, or,
-    with ``cfg.seeds``, every seed at once, seed ``s`` in ``<run_dir>/seed_<s>/``;
-    :meth:`run` returns each seed's ``eval.json``.
-
-    Each seed's directory is a :class:`~torchrl_stages.runs.seed_run.SeedRun` (checked, locked and
-    written alike: ``resume`` and ``overwrite`` act on each; ``load_run``, ``stages-eval`` and
-    ``stages-report`` read it as any other), built before anything is written. The schedule
-    trains every seed's stages in one call; several seeds' networks are stacked (schedules and
-    algorithms that declare ``stacks_seeds``), their checkpoints one state for all of them
-    (``<run_dir>/seed_checkpoints/``), and a summary over them is written in ``run_dir``
-    (:func:`~torchrl_stages.sweeps.summarize_sweep`). ``hydra_files`` and ``observers`` go to
-    each seed's run (an observer may end it by raising
-    :class:`~torchrl_stages.loggers.StopRun`: ``stages-tune`` prunes a trial so).
-
-    While it runs, SIGTERM, SIGINT and SIGUSR1 stop it at the next batch with a checkpoint
-    (:mod:`torchrl_stages.preemption`), and the torch thread count is held at ``cfg.threads``;
-    how a launch that did not finish ended is in each seed's ``status.json``.
+    """Trains and evaluates ``cfg`` in ``run_dir`` (with ``cfg.seeds``: every seed at once, their
+    networks stacked, seed ``s`` in ``<run_dir>/seed_<s>/``, and a summary over them);
+    :meth:`run` returns each seed's ``eval.json``. The options (:class:`RunOptions`) go to each
+    seed's run. SIGTERM, SIGINT and SIGUSR1 stop it at the next batch with a checkpoint.
 
     Examples:
         >>> from hydra import compose, initialize_config_module
@@ -168,33 +125,27 @@ class Experiment:
         self.stacked = cfg.get("seeds") is not None
         self.seeds = validate_seeds(cfg) if self.stacked else [int(cfg.seed)]
         self.cfg, self.run_dir = cfg, Path(run_dir)
+        self.checkpoint_root = self.run_dir / SEED_CHECKPOINTS  # several seeds' loops: one state
+        options = RunOptions(resume, overwrite, hydra_files, tuple(observers))
         self.runs: list[SeedRun] = []
-        if self.stacked:  # before any directory is made: the config, and whether it stacks
-            first = with_env_stages(apply_all_stages(_for_seed(cfg, self.seeds[0])))
-            check_stackable(build_task(first), len(self.seeds))
+        if not self.stacked:
+            self.runs.append(SeedRun(cfg, self.run_dir, options))
+            return
+        # before any directory is made: the config, and whether it stacks
+        first = with_env_stages(apply_all_stages(_for_seed(cfg, self.seeds[0])))
+        check_stackable(build_task(first), len(self.seeds))
         try:
             for seed in self.seeds:
-                seed_cfg = _for_seed(cfg, seed) if self.stacked else cfg
-                files = hydra_files
-                if self.stacked and hydra_files:
-                    files = _hydra_files_for(hydra_files, seed_cfg, seed)
-                where = seed_dir(self.run_dir, seed) if self.stacked else self.run_dir
-                run = SeedRun(
-                    seed_cfg,
-                    where,
-                    resume=resume,
-                    overwrite=overwrite,
-                    hydra_files=files,
-                    observers=observers,
-                )
-                self.runs.append(run)
+                seed_cfg = _for_seed(cfg, seed)
+                files = hydra_files and _hydra_files_for(hydra_files, seed_cfg, seed)
+                seed_options = replace(options, hydra_files=files)
+                self.runs.append(SeedRun(seed_cfg, seed_dir(self.run_dir, seed), seed_options))
         except BaseException:
             self.close()
             raise
 
     @property
     def task(self) -> StagedTask:
-        """The task every seed trains."""
         return self.runs[0].task
 
     def close(self) -> None:
@@ -203,13 +154,8 @@ class Experiment:
             run.close()
 
     def run(self) -> list[dict[str, Any]]:
-        """Trains every stage of every seed (or what is left of them) and evaluates; returns
-        each seed's ``eval.json``.
-
-        How a launch that did not finish ended is in each seed's record (its launches) and
-        ``status.json``: ``interrupted`` (:class:`~torchrl_stages.preemption.Interrupted`),
-        ``diverged`` (:class:`~torchrl_stages.failures.DivergenceError`), ``failed``, or the
-        status of an observer's :class:`~torchrl_stages.loggers.StopRun` (e.g. ``pruned``)."""
+        """Trains what is left of every seed's stages and evaluates; a launch that does not
+        finish records how it ended (``interrupted``, ``diverged``, ``failed``, ``pruned``)."""
         cfg = self.runs[0].cfg
         try:
             with handle_signals(), hold_threads(int(cfg.threads)):
@@ -231,30 +177,33 @@ class Experiment:
             raise
         finally:
             self.close()
-        if self.stacked:
-            self.summarize(plots=bool(cfg.eval.get("plots", True)))
+        if self.stacked:  # best effort: the runs are written
+            from torchrl_stages.sweeps import summarize_sweep
+
+            try:
+                summarize_sweep(self.run_dir, plots=bool(cfg.eval.get("plots", True)))
+            except Exception as err:  # noqa: BLE001 - say why, go on
+                log.warning("the summary of %s was not written: %s", self.run_dir, one_line(err))
         return results
 
     def _run(self) -> list[dict[str, Any]]:
         runs, cfg = self.runs, self.runs[0].cfg
-        keepers = []
         for seed, run in zip(self.seeds, runs, strict=True):
-            keepers.append(run.start())
+            run.start()
             if self.stacked:
-                keepers[-1].seed = seed  # its log lines name it
-        # several seeds' stacked networks train uncompiled, as they always have: compiling
-        # them (CUDA graphs on a GPU) has not been measured
+                run.seed = seed  # its log lines name it
+        # several seeds' stacked networks train uncompiled: compiling them is unmeasured
         compile = "off" if self.stacked else compile_mode(cfg)
         if compile != "off":
             # compiled code starts fresh in every run: the jobs of a sweep run one after another
             # in one process, and their learners' recompiles would add up to Dynamo's limit
             torch._dynamo.reset()
-        trained = keepers[0].schedule.train(
+        trained = runs[0].schedule.train(
             self.task,
             self.seeds,
-            keepers=keepers,
-            logs=[keeper.log for keeper in keepers],
-            checkpoints=self._checkpoints() if self.stacked else keepers[0].checkpoints,
+            keepers=runs,
+            logs=[run.log for run in runs],
+            checkpoints=self._checkpoints() if self.stacked else runs[0].checkpoints,
             progress=bool(cfg.progress),
             probe=runs[0].probe() if len(runs) == 1 else None,
             compile=compile,
@@ -263,28 +212,17 @@ class Experiment:
             self._drop_checkpoints(every=False)
             for one in trained:  # eval.json: its wall-clock is that of all of them
                 one.extra["trained_with_seeds"] = list(self.seeds)
-        return [
-            run.finish(one, keeper) for run, keeper, one in zip(runs, keepers, trained, strict=True)
-        ]
-
-    @property
-    def checkpoint_root(self) -> Path:
-        """Where the checkpoints of a loop of several seeds live: one state for all of them,
-        beside their directories (``<run_dir>/seed_checkpoints/stage_<k>/``)."""
-        return self.run_dir / SEED_CHECKPOINTS
+        return [run.finish(one) for run, one in zip(runs, trained, strict=True)]
 
     def _checkpoints(self) -> Callable[[int | str], StageCheckpoints]:
-        """The checkpoints of each scope (a stage) of several seeds for this launch. A launch
-        that does not resume every seed drops those of an earlier launch; a resumed one drops
-        those of the stages whose config changed (:attr:`SeedRun.restarted`)."""
-        cfg, root = self.runs[0].cfg, self.checkpoint_root
+        """Several seeds' checkpoints per scope; a launch drops those of an earlier one, unless
+        it resumes every seed (then only those of the stages whose config changed)."""
+        root, first = self.checkpoint_root, self.runs[0]
         refuse_links([root, *(root.rglob("*") if root.is_dir() else [])])
         if not all(run.resuming for run in self.runs):
             self._drop_checkpoints(every=True)
-        else:
-            schedule = get_schedule(str(cfg.schedule.name))
-            for stage in self.runs[0].restarted:
-                self._at(schedule.checkpoint_scope(stage)).clear()
+        for stage in first.restarted:  # resumed stages whose config changed
+            self._at(first.schedule.checkpoint_scope(stage)).clear()
         return self._at
 
     def _at(self, scope: int | str) -> StageCheckpoints:
@@ -294,27 +232,15 @@ class Experiment:
         return StageCheckpoints(self.checkpoint_root / name, every, keep)
 
     def _drop_checkpoints(self, every: bool) -> None:
-        """Removes the checkpoint directory when it is empty, or (``every``) with what it holds:
-        the scopes' directories alone (anything else in it is left, and so is the directory)."""
+        """Removes the checkpoint directory when empty; ``every``: its scopes' directories first."""
         root = self.checkpoint_root
         if not root.is_dir():
             return
-        if every:
-            for child in root.iterdir():
-                if child.is_dir() and re.fullmatch(r"\w+", child.name):
-                    shutil.rmtree(child)
+        for child in root.iterdir() if every else ():
+            if child.is_dir() and re.fullmatch(r"\w+", child.name):
+                shutil.rmtree(child)
         if not any(root.iterdir()):
             root.rmdir()
-
-    def summarize(self, plots: bool = True) -> None:
-        """The sweep summary over the seeds' directories, in the run directory (best effort:
-        the runs themselves are written)."""
-        from torchrl_stages.sweeps import summarize_sweep
-
-        try:
-            summarize_sweep(self.run_dir, plots=plots)
-        except Exception as err:  # noqa: BLE001 - the runs are written; say why, go on
-            log.warning("the summary of %s was not written: %s", self.run_dir, one_line(err))
 
     def _ended(self, outcome: str, reason: str, **extra: Any) -> None:
         for run in self.runs:

@@ -1,27 +1,12 @@
-"""A trained stacked policy as one ``.pt2`` file that runs with PyTorch alone.
-
-:func:`export_policy` traces the whole stacked policy, the task's stage function included,
-with ``torch.export`` and saves the ``ExportedProgram`` with ``torch.export.save``. The program
-takes the plain tensors that the stage policies and the stage function read, each with one
-leading batch dimension of any size, in the order of the file's ``policy.json``
-(:data:`METADATA`), and returns the greedy action of each action entry, as a tuple. Only
-``torch`` is needed to run it::
-
-    import json, torch
-
-    extra = {"policy.json": ""}
-    program = torch.export.load("policy.pt2", extra_files=extra)
-    meta = json.loads(extra["policy.json"])  # its inputs and outputs, by key
-    (action,) = program.module()(observation)  # the grid world: "observation" [B, 2]
-
-``stages-export RUN_DIR FILE`` does the same from the command line.
-"""
+"""A trained stacked policy, stage function included, as one ``torch.export`` ``.pt2`` file
+that runs with PyTorch alone (``stages-export RUN_DIR FILE``); its ``policy.json`` names the
+program's inputs and outputs."""
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
-import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,24 +18,23 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_stages.integrity import atomic_write
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.runs.loading import load_run, run_policy
 
-#: the name, inside the ``.pt2`` file, of the JSON that names the program's inputs and outputs
+#: the JSON file, inside the ``.pt2`` file, that names the program's inputs and outputs
 METADATA = "policy.json"
 
-#: entries of an env's TensorDicts that are no observation (what a stage function may read)
+#: entries of an env's TensorDicts that are no observation
 _NOT_OBSERVED = {"done", "terminated", "truncated", "reward", "is_init", "success", "_reset"}
 
 __all__ = ["METADATA", "TensorPolicy", "export_policy", "input_keys", "main"]
 
 
 class TensorPolicy(nn.Module):
-    """A stacked policy on plain tensors: ``in_keys``' tensors in (one leading batch
-    dimension), the ``out_keys`` entries it writes out, as a tuple. Every stage policy runs on
-    the whole batch (``skip_absent=False``), so the traced program holds no data-dependent
-    branch.
+    """A stacked policy on plain tensors: ``in_keys``' tensors in, ``out_keys``' out. Every
+    stage policy runs on the whole batch, so the traced program has no data-dependent branch.
 
     Examples:
         >>> from tensordict.nn import TensorDictModule
@@ -97,9 +81,8 @@ def _describe(keys: Sequence[NestedKey], tensors: Sequence[torch.Tensor]) -> lis
 
 
 def input_keys(policy: StackedPolicy, example: TensorDictBase) -> list[NestedKey]:
-    """The entries the stacked policy reads, its stage function's included: the stage
-    policies' inputs, and, when the stage function reads more than those, every observation
-    entry of ``example``."""
+    """The stage policies' inputs, and every observation entry of ``example`` when the stage
+    function reads more than those."""
     keys = list(policy.in_keys)
     if policy.stage_fn is None:
         return keys
@@ -127,25 +110,10 @@ def export_policy(
     out_keys: Sequence[NestedKey] | None = None,
     trust: bool = False,
 ) -> Path:
-    """Exports a greedy stacked policy to ``path`` (a ``.pt2`` file) with ``torch.export``.
+    """Exports the greedy policy of a run directory (or a :class:`StackedPolicy`) to ``path``.
 
-    Args:
-        source: a finished run directory (its policy, as :func:`~torchrl_stages.load_policy`
-            loads it), or a :class:`~torchrl_stages.StackedPolicy`.
-        path: the file to write (``.pt2``), replaced atomically.
-        example: a TensorDict of the env's, with one batch dimension of at least 2 (e.g.
-            ``env.reset()``): the inputs' shapes and dtypes. Default for a run directory: a
-            reset of its task env.
-
-    Keyword Args:
-        in_keys: the program's inputs, in order (default: :func:`input_keys`).
-        out_keys: its outputs (default: the run's action entries; for a policy, its outputs
-            named ``"action"``, else all of them).
-        trust: see :func:`~torchrl_stages.load_run`.
-
-    Returns:
-        ``path``. Its ``policy.json`` (:data:`METADATA`) lists the inputs and outputs: key,
-        shape (``"batch"`` first) and dtype.
+    ``example``: an env TensorDict with one batch dimension of at least 2 (default for a run:
+    a reset of its task env). ``out_keys`` default to the action entries.
 
     Examples:
         >>> from tensordict.nn import TensorDictModule
@@ -205,12 +173,9 @@ def export_policy(
         "num_stages": len(policy.policies),
         "stage": "input" if policy.stage_fn is None else "stage function, in the program",
     }
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.pt2")
-    try:
-        torch.export.save(program, tmp, extra_files={METADATA: json.dumps(meta)})
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    buffer = io.BytesIO()
+    torch.export.save(program, buffer, extra_files={METADATA: json.dumps(meta)})
+    atomic_write(path, lambda tmp: tmp.write_bytes(buffer.getvalue()))
     return path
 
 
@@ -223,8 +188,7 @@ def _names(entries: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``stages-export RUN_DIR FILE``: a finished run's greedy stacked policy as one
-    ``torch.export`` file that runs with PyTorch alone."""
+    """``stages-export RUN_DIR FILE``: a finished run's greedy policy as a ``torch.export`` file."""
     parser = argparse.ArgumentParser(prog="stages-export", description=main.__doc__)
     parser.add_argument("run_dir", type=Path, help="a run directory written by stages-train")
     parser.add_argument("file", type=Path, help="the .pt2 file to write")

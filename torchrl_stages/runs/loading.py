@@ -1,9 +1,7 @@
-"""A finished run read back (:func:`load_run`, :func:`load_policy`): its config, task,
-learners and results, as a run directory's untrusted data allows."""
+"""A finished run read back from its (untrusted) directory: config, task, learners, results."""
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,17 +15,11 @@ from torchrl_stages.config.env_checks import TargetError
 from torchrl_stages.learners import ALGORITHMS, Learner, learner_class, make_learner
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.runs.directory import RunDir
-from torchrl_stages.runs.layout import (
-    RunDirError,
-)
-from torchrl_stages.runs.trust import (
-    check_trusted,
-)
+from torchrl_stages.runs.layout import RunDirError
+from torchrl_stages.runs.trust import check_trusted
 from torchrl_stages.schedules import get_schedule
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
-
-log = logging.getLogger("torchrl_stages")
 
 __all__ = ["LoadedRun", "load_policy", "load_run", "run_policy"]
 
@@ -43,44 +35,30 @@ class LoadedRun:
 
 
 def load_stage(
-    run: RunDir,
-    task: StagedTask,
-    stage: int,
-    device: str | torch.device = "cpu",
-    *,
-    name: str | None = None,
+    run: RunDir, task: StagedTask, stage: int, device: str | torch.device, name: str
 ) -> tuple[Learner, dict[str, Any]] | None:
-    """Stage ``stage``'s learner and result from ``stage_<k>.pt`` (``None``: not finished),
-    which must hold the stage ``name`` (default: the task's name of stage ``stage``)."""
+    """Stage ``stage``'s learner and result (``None``: not finished), if it holds ``name``."""
     state = run.read_stage(stage, map_location=device)
     if state is None:
         return None
-    name = task.stage_names[stage] if name is None else name
-    if state.get("name") != name:
-        raise RunDirError(
-            f"{run.stage_file(stage)} holds stage {state.get('name')!r}, but the run's stage "
-            f"{stage} is {name!r}. Fix: restore the config it was trained "
-            "with, or delete the file and resume the run to retrain the stage."
-        )
     fix = (
         "restore the config it was trained with, or delete the file and resume the run to "
         "retrain the stage."
     )
+    if state.get("name") != name:
+        raise RunDirError(
+            f"{run.stage_file(stage)} holds stage {state.get('name')!r}, but the run's stage "
+            f"{stage} is {name!r}. Fix: {fix}"
+        )
     learner = restore_learner(task, stage, state, device, run.stage_file(stage), fix)
     return learner, state["result"]
 
 
 def restore_learner(
-    task: StagedTask,
-    stage: int,
-    state: dict[str, Any],
-    device: str | torch.device,
-    source: Path,
-    fix: str,
+    task: StagedTask, stage: int, state: dict, device: str | torch.device, source: Path, fix: str
 ) -> Learner:
-    """Stage ``stage``'s learner, built from the task's config and loaded from ``state`` (a
-    stage file's content, read from ``source``); :class:`RunDirError` naming ``source`` and
-    ``fix`` when they do not match."""
+    """Stage ``stage``'s learner built from the task's config and loaded from ``state`` (read
+    from ``source``); :class:`RunDirError` naming ``source`` and ``fix`` when they differ."""
     learner = make_learner(task.stage_cfg(stage), task.specs(stage), device=device)
     try:
         learner.load_checkpoint(state)
@@ -94,8 +72,7 @@ def restore_learner(
 
 
 def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> DictConfig:
-    """The run's config, checked: what it may instantiate (unless ``trust``) and every value
-    (as ``stages-train`` checks them), for loading on ``device``."""
+    """The run's config, checked as ``stages-train`` checks it (and for trust) on ``device``."""
     cfg = run.read_config()
     source = run.config_source
     if not trust:
@@ -117,17 +94,9 @@ def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> Dic
 def load_run(
     run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
 ) -> LoadedRun:
-    """Config, task, trained learners and training results of a finished run directory.
-
-    The directory is untrusted data: its config may only instantiate what its task ships with
-    (:func:`check_trusted`; ``trust=True`` lifts that, for runs of your own env), checksums are
-    verified and nothing in it is unpickled.
-
-    Examples:
-        >>> from torchrl_stages import load_run  # doctest: +SKIP
-        >>> run = load_run("outputs/2026-11-21/16-00-00")  # doctest: +SKIP
-        >>> run.learners[0].policy, run.task.task_env(8)  # doctest: +SKIP
-    """
+    """Config, task, trained learners and results of a finished run directory: checksums are
+    verified, nothing is unpickled, and the config may only instantiate what its task ships
+    with unless ``trust=True`` (runs of your own env)."""
     run = RunDir(run_dir)
     cfg = read_run_config(run, device, trust)
     try:
@@ -139,13 +108,12 @@ def load_run(
             "install what the run's env needs (see its config.yaml task.env)"
         ) from err
     schedule = get_schedule(str(cfg.schedule.name))  # which file holds each stage's learner
-    loaded: dict[int, tuple[Learner, dict[str, Any]] | None] = {}
-    for k in range(task.num_stages):
-        stored = schedule.stored_stage(k)
-        if stored not in loaded:
-            name = schedule.stage_name(task, stored)
-            loaded[stored] = load_stage(run, task, stored, device, name=name)
-    stages = [loaded[schedule.stored_stage(k)] for k in range(task.num_stages)]
+    stored = [schedule.stored_stage(k) for k in range(task.num_stages)]
+    loaded = {
+        k: load_stage(run, task, k, device, schedule.stage_name(task, k))
+        for k in dict.fromkeys(stored)
+    }
+    stages = [loaded[k] for k in stored]
     missing = [run.stage_file(k).name for k, s in enumerate(stages) if s is None]
     if missing:
         raise RunDirError(
@@ -159,21 +127,10 @@ def load_run(
 def load_policy(
     run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
 ) -> StackedPolicy:
-    """The greedy stacked policy of a finished run (``trust``: see :func:`load_run`).
-
-    It acts on the task env's TensorDicts as they come: an input without a ``"stage"`` entry
-    gets its stage from the task's stage function (:class:`StackedPolicy`'s ``stage_fn``; the
-    tasks without one, whose envs track their stage, write that entry themselves).
-
-    Examples:
-        >>> from torchrl_stages import load_policy  # doctest: +SKIP
-        >>> policy = load_policy("outputs/2026-11-21/16-00-00")  # doctest: +SKIP
-        >>> GridWorldEnv(batch_size=(8,)).rollout(200, policy)  # doctest: +SKIP
-    """
+    """The greedy stacked policy of a finished run, with its task's stage function."""
     return run_policy(load_run(run_dir, device, trust=trust))
 
 
 def run_policy(run: LoadedRun) -> StackedPolicy:
-    """The greedy stacked policy of a loaded run, with its task's stage function."""
     stage_fn = getattr(run.task.spec_env, "stage_fn", None)
     return StackedPolicy([learner.policy for learner in run.learners], stage_fn=stage_fn)

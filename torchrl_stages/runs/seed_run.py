@@ -1,13 +1,14 @@
-"""One seed's run directory, from its checks to its ``eval.json`` (:class:`SeedRun`), and the
-task a config builds (:func:`build_task`)."""
+"""One seed's run directory, from its checks to its ``eval.json``, and the task a config
+builds."""
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,7 @@ import torch
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig, open_dict
 
+from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import (
     ConfigError,
     apply_all_stages,
@@ -26,26 +28,27 @@ from torchrl_stages.config.env_checks import check_env_keys
 from torchrl_stages.learners import ALGORITHMS, Learner, learner_class
 from torchrl_stages.loggers import Observer, make_logger
 from torchrl_stages.metric_names import FINAL, TASK, metric_name
+from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import stop_if_asked
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.evaluation import evaluate_run, probe_task
-from torchrl_stages.runs.keeper import RunKeeper
 from torchrl_stages.runs.layout import METRICS_FILE, STATUS_FILE, RunDirError
+from torchrl_stages.runs.loading import load_stage
 from torchrl_stages.runs.stage_store import StageReuse
 from torchrl_stages.runs.trust import RESUMABLE_CHANGES, config_differences
 from torchrl_stages.schedules import Probe, Trained, get_schedule
 from torchrl_stages.seeding import TASK_EVAL_OFFSET
+from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = ["SeedRun", "build_task", "compile_mode", "with_env_stages"]
+__all__ = ["RunOptions", "SeedRun", "build_task", "compile_mode", "with_env_stages"]
 
 
 def compile_mode(cfg: DictConfig) -> str:
-    """``cfg.compile`` with ``auto`` resolved for the run's device: ``off`` on CPU (compiling
-    the small update costs more than it saves, see docs/speed.md),
-    ``reduce-overhead`` (CUDA graphs) on a GPU."""
+    """``cfg.compile``, ``auto`` resolved: ``off`` on CPU (compiling the small update costs more
+    than it saves, see docs/speed.md), ``reduce-overhead`` (CUDA graphs) on a GPU."""
     mode = str(cfg.get("compile", "auto"))
     if mode != "auto":
         return mode
@@ -53,10 +56,8 @@ def compile_mode(cfg: DictConfig) -> str:
 
 
 def with_env_stages(cfg: DictConfig) -> DictConfig:
-    """``cfg`` with its stages from ``task.stage_template`` when it has one: as many as the
-    env's ``num_stages`` (the env is built once to ask), each the template with the stage's
-    own keys over it (:func:`~torchrl_stages.config.expand_stage_template`); ``cfg`` itself
-    otherwise. Raises :class:`ConfigError` before any training."""
+    """``cfg`` with its stages from ``task.stage_template`` when it has one, as many as the env's
+    ``num_stages`` (the env is built once to ask)."""
     if not cfg.task.get("stage_template"):
         return cfg
     check_env_keys(cfg)
@@ -78,9 +79,7 @@ def _env_error(cfg: DictConfig, err: BaseException) -> ConfigError:
 
 
 def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
-    """Validates ``cfg`` (unless already ``validated``) and builds its task; raises
-    :class:`ConfigError` before any training. A task with a stage template gets its stages
-    from the env here (:func:`with_env_stages`; the task's ``cfg`` holds them)."""
+    """Validates ``cfg`` (unless ``validated``) and builds its task, before any training."""
     schedule = get_schedule(str(cfg.schedule.name))
     if not validated:
         cfg = with_env_stages(cfg)
@@ -93,25 +92,28 @@ def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
     return task
 
 
-class SeedRun:
-    """One seed's run of ``cfg`` in the run directory ``run_dir``, from its checks to its
-    ``eval.json``: what :class:`~torchrl_stages.runs.experiment.Experiment` makes for each seed it
-    trains.
+@dataclass(frozen=True)
+class RunOptions:
+    """How a launch treats its run directories.
 
-    Everything is checked when it is built, before anything is written: the config
-    (:class:`~torchrl_stages.config.ConfigError`) and the run directory
-    (:class:`~torchrl_stages.runs.layout.RunDirError`), which it locks until the run ends (one
-    process per directory). A directory that already holds a run is refused unless ``resume``
-    (continue it: finished stages are loaded, the stage in progress goes on from its last
-    checkpoint; keys of stages that no finished stage depends on may change, and those stages
-    restart) or ``overwrite`` (replace it: exactly the files its record lists are deleted).
-    Both default to ``cfg.resume`` / ``cfg.overwrite``. With ``resume`` and no run in the
-    directory, a new run starts (the same command can be relaunched after any interruption).
-    ``hydra_files`` (``{name: config}``) are written to ``.hydra/`` when the run starts or its
-    config changes (what ``stages-train`` records of Hydra). ``observers``
-    (:data:`~torchrl_stages.loggers.Observer`) see the metrics as the run logs them.
-    :meth:`start` begins a launch (the keeper its schedule trains into), :meth:`finish` ends it
-    (the whole-task evaluation), :meth:`ended` records one that did not finish.
+    ``resume`` continues a run (finished stages loaded, the one in progress from its last
+    checkpoint; stages no finished stage depends on may change and restart) and ``overwrite``
+    replaces one (exactly the files its record lists); both default to the config's.
+    ``hydra_files`` (``{name: config}``) go to ``.hydra/``; ``observers`` see the metrics."""
+
+    resume: bool | None = None
+    overwrite: bool | None = None
+    hydra_files: dict[str, Any] | None = None
+    observers: Sequence[Observer] = ()
+
+
+class SeedRun:
+    """One seed's run of ``cfg`` in ``run_dir``, from its checks to its ``eval.json``, and the
+    :class:`~torchrl_stages.schedules.StageKeeper` its schedule trains into.
+
+    The config and the directory are checked before anything is written, and the directory is
+    locked until :meth:`close`. :meth:`start` begins a launch, :meth:`finish` ends it with the
+    whole-task evaluation, :meth:`ended` records one that did not finish.
 
     Examples:
         >>> import tempfile
@@ -122,25 +124,17 @@ class SeedRun:
         >>> with initialize_config_module("torchrl_stages.conf", version_base="1.3"):
         ...     cfg = compose("config", overrides=["experiment=smoke"])
         >>> run = SeedRun(cfg, tempfile.mkdtemp())
-        >>> run.resuming, run.task.stage_names
-        (False, ['s0', 's1', 's2', 's3', 's4'])
+        >>> run.resuming, run.task.stage_names, run.finished(0)
+        (False, ['s0', 's1', 's2', 's3', 's4'], None)
         >>> run.close()
     """
 
     def __init__(
-        self,
-        cfg: DictConfig,
-        run_dir: str | Path,
-        *,
-        resume: bool | None = None,
-        overwrite: bool | None = None,
-        hydra_files: dict[str, Any] | None = None,
-        observers: Sequence[Observer] = (),
+        self, cfg: DictConfig, run_dir: str | Path, options: RunOptions = RunOptions()
     ) -> None:
         self.cfg = cfg = with_env_stages(apply_all_stages(cfg))
-        self.hydra_files = dict(hydra_files or {})
-        self.observers = tuple(observers)
-        self.run_dir = RunDir(run_dir)
+        self.options, self.run_dir = options, RunDir(run_dir)
+        resume, overwrite = options.resume, options.overwrite
         self.resume = bool(cfg.get("resume", False) if resume is None else resume)
         self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
         validate_config(cfg, get_schedule(str(cfg.schedule.name)), learner_class, ALGORITHMS)
@@ -149,8 +143,11 @@ class SeedRun:
                 "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "
                 "overwrite=true replaces it"
             )
+        self.schedule = get_schedule(str(cfg.schedule.name))
         self.restarted: dict[int, list[str]] = {}  # resumed stages whose config changed
         self.reuse: StageReuse | None = None
+        self.log = MetricsLog(None)
+        self.seed: int | None = None  # of a launch of several seeds: its log lines name it
         self._lock = self.run_dir.lock()
         try:
             self.resuming = self._check_run_dir()
@@ -160,11 +157,9 @@ class SeedRun:
         except BaseException:
             self._lock.release(remove=self._lock.created_dir)
             raise
-        self.logger = None
 
     def close(self) -> None:
-        """Releases the run directory, and the stage store's locks it holds (:meth:`run` does
-        it when it ends)."""
+        """Releases the run directory and the stage store's locks it holds."""
         if self.reuse is not None:
             self.reuse.close()
         self._lock.release()
@@ -188,7 +183,7 @@ class SeedRun:
         if names != list(saved.task.stages):  # the same keys in another order
             changed = ["task.stages (their order)", *changed]
         finished = {k for k in range(len(names)) if run.stage_file(k).is_file()}
-        frozen = get_schedule(str(self.cfg.schedule.name)).frozen_stages(finished, len(names))
+        frozen = self.schedule.frozen_stages(finished, len(names))
         refused = []
         for key in changed:
             parts = key.split(".")
@@ -208,111 +203,170 @@ class SeedRun:
             )
         return True
 
-    # ------------------------------------------------------------------ a launch
     def ended(self, outcome: str, reason: str, **extra: Any) -> None:
-        """Records how a launch that did not finish ended (best effort: the disk may be the
-        cause)."""
-        try:
+        """Records how a launch that did not finish ended (best effort: the disk may be why)."""
+        with contextlib.suppress(OSError):
             self.run_dir.update_launch(outcome)
             self.run_dir.write_status(outcome, reason, **extra)
-        except OSError:
-            pass
 
     def _prepare(self) -> None:
-        """Writes what a run starts with: a fresh record and config, or the changes a resumed
-        run may make."""
-        cfg, run = self.cfg, self.run_dir
+        """Writes a fresh record and config, or the changes a resumed run may make."""
+        cfg, run, hydra_files = self.cfg, self.run_dir, self.options.hydra_files
         self._lock.announce()
         if self.overwrite and run.holds_run():
             removed = run.clear()
             log.info("overwrite=true: removed %s", ", ".join(removed) or "nothing")
         if self.resuming and not run.has_record():
             run.adopt_legacy()  # a run of a version without a record
-        if self.hydra_files and (not self.resuming or self.restarted):
-            run.write_hydra_files(self.hydra_files)
+        if hydra_files and (not self.resuming or self.restarted):
+            run.write_hydra_files(hydra_files)
         if not self.resuming:
             run.write_config(cfg)
         elif not run.config_file.is_file():  # checked against .hydra/config.yaml: the same
             log.warning("%s was missing: restored from .hydra/config.yaml", run.config_file)
             run.write_config(cfg)
         if self.restarted:
-            schedule = get_schedule(str(cfg.schedule.name))
             for stage, keys in sorted(self.restarted.items()):
+                changed = ", ".join(keys)
                 log.info(
-                    "resume=true: %s changed; stage %d had not finished and restarts",
-                    ", ".join(keys),
-                    stage,
+                    f"resume=true: {changed} changed; stage {stage} had not finished and restarts"
                 )
-                run.clear_checkpoints(schedule.checkpoint_scope(stage))
+                run.clear_checkpoints(self.schedule.checkpoint_scope(stage))
             run.write_config(cfg)
         run.begin_launch()
 
-    def start(self) -> RunKeeper:
-        """The start of a launch: what the run starts with is written (:meth:`_prepare`), then
-        the logger and the keeper of the run's stages that the schedule trains into are made."""
+    def start(self) -> SeedRun:
+        """Begins a launch: writes what it starts with and makes its logger."""
         self._prepare()
         cfg, run = self.cfg, self.run_dir
         logging.getLogger("torchrl").setLevel(logging.WARNING)
         run.claim(METRICS_FILE, *(["csv"] if cfg.logger.backend == "csv" else []))
         before = run.listing()
-        self.logger = make_logger(cfg, run.path, observers=self.observers)
+        self.log = MetricsLog(make_logger(cfg, run.path, observers=self.options.observers))
         run.claim_new(before)  # a backend's own files
         self._start = time.perf_counter()
-        return RunKeeper(
-            run,
-            self.task,
-            get_schedule(str(cfg.schedule.name)),
-            logger=self.logger,
-            resuming=self.resuming,
-            device=str(cfg.device),
-            checkpoint_every=int(cfg.checkpoint_every),
-            checkpoint_keep=int(cfg.checkpoint_keep),
-            reuse=self.reuse,
-        )
+        return self
 
     def probe(self) -> Probe | None:
         """``eval.probe``: the whole task followed during training (``eval/task/...``)."""
-        cfg, start = self.cfg, self._start
+        cfg, start, logger = self.cfg, self._start, self.log.logger
         if not cfg.eval.get("probe", False):
             return None
 
         def probe(learners: list[Learner], frames: int) -> None:
-            seed = int(cfg.seed) + TASK_EVAL_OFFSET
-            metrics = {**probe_task(self.task, learners, seed)}
+            metrics = probe_task(self.task, learners, int(cfg.seed) + TASK_EVAL_OFFSET)
             metrics["seconds"] = time.perf_counter() - start
-            if self.logger is not None:
+            if logger is not None:
                 for key, value in metrics.items():
-                    self.logger.log_scalar(metric_name("eval", TASK, None, key), value, frames)
+                    logger.log_scalar(metric_name("eval", TASK, None, key), value, frames)
 
         return probe
 
-    def finish(self, trained: Trained, keeper: RunKeeper) -> dict[str, Any]:
-        """The end of a launch: records it done, evaluates the trained stages and writes
-        ``eval.json``; returns it."""
-        cfg, run, schedule = self.cfg, self.run_dir, keeper.schedule
+    def _info(self, message: str, level: int = logging.INFO) -> None:
+        log.log(level, message if self.seed is None else f"seed {self.seed}: {message}")
+
+    @property
+    def reused(self) -> dict[str, str]:
+        """``{stage name: where it was taken from}`` over every launch."""
+        return dict(self.run_dir.record.get("reused", {}))
+
+    def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
+        """Stage ``stage`` as an earlier launch trained it, or taken from ``reuse``."""
+        name, device = self.schedule.stage_name(self.task, stage), str(self.cfg.device)
+        if self.resuming:
+            loaded = load_stage(self.run_dir, self.task, stage, device, name)
+            if loaded is not None:
+                self._info(f"stage {stage} ({name}): finished earlier, loaded")
+                return loaded[0], StageResult(**loaded[1])
+        taken = None if self.reuse is None else self.reuse.take(self.task, stage, device)
+        if taken is None:
+            return None
+        learner, result, where = taken
+        self.run_dir.record.setdefault("reused", {})[name] = where
+        self._write(stage, name, learner, result)
+        self._info(f"stage {stage} ({name}): reused from {where}")
+        return learner, result
+
+    def _write(self, stage: int, name: str, learner: Learner, result: StageResult) -> None:
+        self.run_dir.save_stage(stage, name, learner, result, log=self.log.position())
+        self.run_dir.clear_checkpoints(stage)
+        self.run_dir.update_launch()
+
+    def checkpoints(self, scope: int | str) -> StageCheckpoints:
+        every, keep = int(self.cfg.checkpoint_every), int(self.cfg.checkpoint_keep)
+        return self.run_dir.checkpoints(scope, every, keep)
+
+    def begin(self, scope: int | str) -> None:
+        """The loop ``scope`` starts afresh: a resumed run's logs are rewound to where stage
+        ``scope + 1`` ended (a backward stage starts there), else to the start."""
+        if not self.resuming:
+            return
+        later = None
+        if isinstance(scope, int) and scope + 1 < self.task.num_stages:
+            later = self.run_dir.read_stage(scope + 1)
+        self.log.rewind({} if later is None else later.get("log", {}))
+
+    def save(self, stage: int, learner: Learner, result: StageResult) -> None:
+        name = self.schedule.stage_name(self.task, stage)
+        self._write(stage, name, learner, result)
+        if self.reuse is not None:
+            self.reuse.trained(self.task, stage, learner, result)
+        quality = "not evaluated"
+        if result.success_rate is not None:
+            quality = (
+                f"stage success {result.success_rate:.2f}, value error {result.value_error:.3f}"
+            )
+        note = " (early stop)" if result.early_stopped else ""
+        if result.restored_best:
+            note = " (best evaluation restored)"
+        self._info(
+            f"stage {stage} ({name}, {learner.algo}): {result.frames} frames, {result.updates} "
+            f"updates, {result.seconds:.1f}s, {quality}{note}"
+        )
+        threshold = self.task.stage_cfg(stage).success_threshold
+        if self.schedule.stage_early_stop and threshold is not None and not result.early_stopped:
+            key = self.task.stage_names[stage]
+            self._info(
+                f"stage {stage} ({key}) did not meet its early-stop criterion within its budget "
+                f"of {result.frames} frames; the run goes on with its best evaluation. Fix: raise "
+                f"task.stages.{key}.frames",
+                logging.WARNING,
+            )
+
+    def keep(self, key: str, value: Any) -> None:
+        """Keeps ``value`` in the run's record (written with the next stage or launch)."""
+        self.run_dir.record[key] = value
+
+    def kept(self, key: str) -> Any:
+        return self.run_dir.record.get(key)
+
+    def clear(self, scope: int | str) -> None:
+        self.run_dir.clear_checkpoints(scope)
+
+    def finish(self, trained: Trained) -> dict[str, Any]:
+        """Ends a launch: records it done, evaluates and returns ``eval.json``."""
+        cfg, run = self.cfg, self.run_dir
         learners, results = trained.learners, trained.results
         stop_if_asked("the whole-task evaluation")  # a stop asked for during the last stage's save
         run.update_launch("done")
-        training = {"schedule": schedule.name, **run.training_time()}
+        training = {"schedule": self.schedule.name, **run.training_time()}
         training["stages"] = [asdict(r) for r in results]
         training.update(trained.extra)
         if self.reuse is not None:
-            training["reused"] = keeper.reused
+            training["reused"] = reused = self.reused
             names = self.task.stage_names
-            log.info(
-                "%sreused stages: %s; trained: %s",
-                "" if keeper.seed is None else f"seed {keeper.seed}: ",
-                ", ".join(n for n in names if n in keeper.reused) or "none",
-                ", ".join(n for n in names if n not in keeper.reused) or "none",
+            self._info(
+                f"reused stages: {', '.join(n for n in names if n in reused) or 'none'}; "
+                f"trained: {', '.join(n for n in names if n not in reused) or 'none'}"
             )
         before = run.listing()
         run.claim("eval.json")
         result = evaluate_run(cfg, self.task, learners, run.path, training=training)
         run.claim_new(before)  # the task's figures
-        if self.resuming and keeper.log.logger is not None:  # an earlier final evaluation's rows
-            keeper.log.rewind(run.read_stage(0)["log"])
+        if self.resuming and self.log.logger is not None:  # an earlier final evaluation's rows
+            self.log.rewind(run.read_stage(0)["log"])
         frames = sum(r.frames for r in results)  # the whole-task evaluation, after all frames
         keys = ("success_rate", "mean_return", "mean_steps")
-        keeper.log({metric_name("eval", FINAL, None, key): result[key] for key in keys}, frames)
+        self.log({metric_name("eval", FINAL, None, key): result[key] for key in keys}, frames)
         (run.path / STATUS_FILE).unlink(missing_ok=True)  # an earlier launch's outcome
         return result

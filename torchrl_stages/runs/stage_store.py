@@ -1,25 +1,9 @@
-"""Finished stages as reusable artifacts: their identity, a store shared by runs, and the
-stages a backward run takes instead of training them.
-
-Under the backward schedule a stage is determined, bit for bit, by its own config, the task's
-env, the seed and the stages after it (whose frozen values its transition reward reads).
-:func:`stage_identities` hashes exactly that, recursively, so stage k's identity changes when a
-key of stage k or of a later stage changes, and never when an earlier stage's does.
-
-* :class:`SharedStageStore` (``stage_store=DIR``) keeps one entry per identity, shared by the
-  jobs of a sweep (a local directory, or one on a cluster file system): a job loads a stage that
-  another job trained, and jobs that need the same missing stage at once train it once (one
-  lock per identity; the others wait, then load it). Entries are checksummed; a damaged one is
-  never served (it is removed and the stage trained again).
-* ``init_from=RUN_DIR`` takes the stages of another run whose identity is unchanged.
-
-:class:`StageReuse` combines both for one run; :class:`~torchrl_stages.runs.keeper.RunKeeper`
-asks it before training a stage and hands it every stage it trains.
-"""
+"""Finished stages shared by runs (``stage_store=DIR``, one entry per stage identity) and the
+stages a backward run takes from there or from ``init_from=RUN_DIR`` instead of training."""
 
 from __future__ import annotations
 
-import hashlib
+import contextlib
 import io
 import json
 import logging
@@ -28,18 +12,18 @@ import shutil
 import time
 import uuid
 from dataclasses import asdict, dataclass
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from torchrl_stages.config import ConfigError
 from torchrl_stages.integrity import DamagedFileError, verify_checksums, write_checksums
 from torchrl_stages.learners import Learner
 from torchrl_stages.preemption import stop_if_asked
 from torchrl_stages.runs.directory import RunDir
+from torchrl_stages.runs.identity import digest, stage_identities, stage_identity_inputs
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.runs.loading import restore_learner
 from torchrl_stages.runs.lock import RunLock
@@ -49,137 +33,58 @@ from torchrl_stages.task import StagedTask
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = [
-    "STAGE_SEMANTICS",
-    "SharedStageStore",
-    "StageEntry",
-    "StageReuse",
-    "StoreError",
-    "stage_identities",
-    "stage_identity_inputs",
-]
+__all__ = ["SharedStageStore", "StageEntry", "StageReuse", "StoreError"]
 
-#: the version of what training a stage means: bumped by any change of the package that alters
-#: the weights a stage config trains to (networks, losses, RNG use, the loop), so that entries
-#: written before it are never served after it
-STAGE_SEMANTICS = 1
 ENTRIES, LOCKS, TMP = "entries", "locks", "tmp"
 STAGE_FILE, ENTRY_FILE = "stage.pt", "entry.json"
 ENTRY_FORMAT = "torchrl-stages stage"
-#: seconds between two looks at a stage another job is training
-POLL_S = 0.5
-
+ENTRY_META = (
+    "task",
+    "stage",
+    "name",
+    "algo",
+    "seed",
+    "frames",
+    "success_rate",
+    "created",
+    "trained_in",
+)
+POLL_S = 0.5  # seconds between two looks at a stage another job is training
 
 #: a stage taken instead of trained: its learner, its result, and where it came from
 Reused = tuple[Learner, StageResult, str]
 
 
 class StoreError(ConfigError):
-    """A stage store or an ``init_from`` run that cannot be used as asked (found before any
-    training)."""
-
-
-def _versions() -> dict[str, str]:
-    out = {"torch": torch.__version__}
-    for package in ("torchrl", "tensordict"):
-        try:
-            out[package] = version(package)
-        except PackageNotFoundError:  # pragma: no cover - both are dependencies
-            out[package] = "unknown"
-    return out
-
-
-def stage_identity_inputs(cfg: DictConfig) -> list[dict[str, Any]]:
-    """What determines each stage of ``cfg`` (a resolved ``stages-train`` config, its stages
-    expanded) under the backward schedule, in stage order, with the identity of the stage after
-    it under ``"next"``: what :func:`stage_identities` hashes.
-
-    Keys that do not change what a stage trains to (the logger, progress bars, checkpoint
-    cadence, the whole-task evaluation) are left out; keys that might (threads, compile mode,
-    the device type, library versions) are in.
-    """
-    task = cfg.task
-    names = list(task.stages)
-    common = {
-        "semantics": STAGE_SEMANTICS,
-        # a stage the joint schedule trained is not the one the backward schedule trains
-        "schedule": OmegaConf.to_container(cfg.schedule, resolve=True),
-        "versions": _versions(),
-        "env": OmegaConf.to_container(task.env, resolve=True),
-        "stage_starts": bool(task.get("stage_starts", True)),
-        "num_stages": len(names),
-        "seed": int(cfg.seed),
-        "device": torch.device(str(cfg.device)).type,
-        "compile": str(cfg.get("compile", "auto")),
-        "threads": int(cfg.threads),
-    }
-    inputs: list[dict[str, Any]] = [{} for _ in names]
-    following = None
-    for k in reversed(range(len(names))):
-        stage = {
-            **common,
-            "stage": k,
-            "config": OmegaConf.to_container(task.stages[names[k]], resolve=True),
-        }
-        if k == 0 and cfg.eval.get("probe", False):  # its evaluations run the whole task too
-            stage["probe"] = True
-        stage["next"] = following
-        inputs[k] = stage
-        following = _digest(stage)
-    return inputs
-
-
-def stage_identities(cfg: DictConfig) -> list[str]:
-    """The identity of each stage of ``cfg`` (hex digests, stage order): equal identities train
-    to the same weights, bit for bit.
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> def config(lr0):
-        ...     stages = {"s0": {"lr": lr0}, "s1": {"lr": 1e-3}}
-        ...     return OmegaConf.create({"task": {"env": {"size": 5}, "stages": stages},
-        ...                              "schedule": {"name": "backward"}, "seed": 0,
-        ...                              "device": "cpu", "threads": 1, "eval": {}})
-        >>> a, b = stage_identities(config(1e-3)), stage_identities(config(2e-3))
-        >>> a[0] == b[0], a[1] == b[1]  # stage 0 changed; stage 1 does not depend on it
-        (False, True)
-    """
-    return [_digest(stage) for stage in stage_identity_inputs(cfg)]
-
-
-def _digest(inputs: dict[str, Any]) -> str:
-    text = json.dumps(inputs, sort_keys=True, separators=(",", ":"), default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:32]
+    """A stage store or an ``init_from`` run that cannot be used (found before training)."""
 
 
 @dataclass
 class StageEntry:
-    """One stored stage, as ``stages-store ls`` lists it."""
+    """One stored stage, as ``stages-store ls`` lists it (``damaged``: why it is not served)."""
 
     identity: str
     path: Path
-    task: str
-    stage: int
-    name: str
-    algo: str
-    seed: int
-    frames: int
-    success_rate: float | None
-    created: str
     last_used: float
     size: int
-    trained_in: str
-    damaged: str | None = None  # why it cannot be served (``None``: it can)
+    damaged: str | None = None
+    task: str = "?"
+    stage: int = -1
+    name: str = "?"
+    algo: str = "?"
+    seed: int = -1
+    frames: int = 0
+    success_rate: float | None = None
+    created: str = "?"
+    trained_in: str = "?"
 
 
 class SharedStageStore:
-    """A directory of finished stages, one entry per identity (``stage_store=DIR``).
+    """A directory of finished stages, one entry per identity, shared by the jobs of a sweep.
 
-    ``DIR/entries/<identity>/`` holds ``stage.pt`` (the learner's weights, optimizers and
-    exploration state, and the stage's result), ``entry.json`` (what it is, what determined it,
-    which run trained it) and ``sha256.json``. An entry is written whole in ``DIR/tmp/`` and
-    renamed into place, so a reader sees all of it or nothing. ``DIR/locks/<identity>`` is the
-    lock a job holds while it trains that stage.
+    ``entries/<identity>/`` holds ``stage.pt``, ``entry.json`` and ``sha256.json``; an entry
+    is written whole in ``tmp/`` and renamed into place, so a reader sees all of it or nothing.
+    ``locks/<identity>`` is held by the job training that stage; the others wait, then load it.
 
     Examples:
         >>> import tempfile
@@ -203,25 +108,19 @@ class SharedStageStore:
         return self.root / ENTRIES / identity
 
     def get(self, identity: str, map_location: Any = "cpu") -> dict[str, Any] | None:
-        """The content of ``stage.pt`` of the entry ``identity`` (``None``: no entry). A
-        damaged entry is removed with a warning and ``None`` returned: it is never served."""
+        """``stage.pt`` of entry ``identity`` (``None``: none); a damaged entry is removed."""
         entry = self.path(identity)
         if not entry.exists() and not entry.is_symlink():
             return None
         try:
             state = self._read(entry, identity, map_location)
         except DamagedFileError as err:
-            log.warning(
-                "stage store: entry %s is damaged (%s); removed, the stage is trained again",
-                entry,
-                err.reason,
-            )
+            why = f"{entry} is damaged ({err.reason})"
+            log.warning(f"stage store: entry {why}; removed, the stage is trained again")
             self._discard(entry)
             return None
-        try:
+        with contextlib.suppress(OSError):  # a read-only store still serves
             os.utime(entry / ENTRY_FILE)  # when it was last used, for `stages-store prune`
-        except OSError:  # a read-only store still serves
-            pass
         return state
 
     def _read(self, entry: Path, identity: str, map_location: Any = "cpu") -> dict[str, Any]:
@@ -246,8 +145,7 @@ class SharedStageStore:
         return state
 
     def put(self, identity: str, state: dict[str, Any], meta: dict[str, Any]) -> Path:
-        """Writes the entry ``identity`` (``state``: what ``stage.pt`` holds); an entry that
-        another job wrote first is kept."""
+        """Writes entry ``identity``; an entry that another job wrote first is kept."""
         entry = self.path(identity)
         tmp = self.root / TMP / f"{identity}.{os.getpid()}-{uuid.uuid4().hex[:8]}"
         try:
@@ -268,11 +166,10 @@ class SharedStageStore:
         return entry
 
     def lock(self, identity: str) -> RunLock:
-        """The lock a job holds while it trains stage ``identity`` (not taken yet)."""
         return RunLock(self.root, file=self.root / LOCKS / identity)
 
     def _discard(self, entry: Path) -> None:
-        """Removes an entry: renamed out of ``entries/`` first, so no reader finds half of it."""
+        """Removes an entry, renamed out of ``entries/`` first so no reader finds half of it."""
         gone = self.root / TMP / f"removed-{entry.name}-{uuid.uuid4().hex[:8]}"
         try:
             os.rename(entry, gone)
@@ -283,9 +180,8 @@ class SharedStageStore:
         else:
             shutil.rmtree(gone, ignore_errors=True)
 
-    # ------------------------------------------------------------------ stages-store
     def entries(self) -> list[StageEntry]:
-        """Every entry, damaged ones included (with the reason), oldest use first."""
+        """Every entry, damaged ones included, oldest use first."""
         out = []
         for entry in sorted((self.root / ENTRIES).iterdir()):
             damaged, meta = None, {}
@@ -294,34 +190,17 @@ class SharedStageStore:
                 meta = json.loads((entry / ENTRY_FILE).read_text())
             except DamagedFileError as err:
                 damaged = err.reason
-            size = sum(p.stat().st_size for p in entry.rglob("*") if p.is_file())
             try:
                 used = (entry / ENTRY_FILE).stat().st_mtime
             except OSError:
                 used = entry.lstat().st_mtime
-            out.append(
-                StageEntry(
-                    identity=entry.name,
-                    path=entry,
-                    task=str(meta.get("task", "?")),
-                    stage=int(meta.get("stage", -1)),
-                    name=str(meta.get("name", "?")),
-                    algo=str(meta.get("algo", "?")),
-                    seed=int(meta.get("seed", -1)),
-                    frames=int(meta.get("frames", 0)),
-                    success_rate=meta.get("success_rate"),
-                    created=str(meta.get("created", "?")),
-                    last_used=used,
-                    size=size,
-                    trained_in=str(meta.get("trained_in", "?")),
-                    damaged=damaged,
-                )
-            )
+            known = {k: meta[k] for k in ENTRY_META if k in meta}
+            size = sum(p.stat().st_size for p in entry.rglob("*") if p.is_file())
+            out.append(StageEntry(entry.name, entry, used, size, damaged, **known))
         return sorted(out, key=lambda e: e.last_used)
 
-    def find(self, prefix: str) -> Path:
-        """The entry whose identity starts with ``prefix`` (:class:`StoreError` unless exactly
-        one does)."""
+    def remove(self, prefix: str) -> Path:
+        """Removes the one entry whose identity starts with ``prefix``."""
         found = [p for p in (self.root / ENTRIES).iterdir() if p.name.startswith(prefix)]
         if len(found) != 1:
             what = "no entry" if not found else f"{len(found)} entries"
@@ -329,18 +208,12 @@ class SharedStageStore:
                 f"{self.root}: {what} with an identity starting {prefix!r}. Fix: give more of "
                 "the identity (stages-store ls lists them)"
             )
+        self._discard(found[0])
         return found[0]
 
-    def remove(self, prefix: str) -> Path:
-        """Removes the entry whose identity starts with ``prefix``."""
-        entry = self.find(prefix)
-        self._discard(entry)
-        return entry
-
     def prune(self, older_than_s: float | None = None, dry_run: bool = False) -> list[Path]:
-        """Removes damaged entries, entries not used for ``older_than_s`` seconds (``None``:
-        none for that reason), what interrupted writes left in ``tmp/`` and locks nobody holds;
-        returns what it removed (``dry_run``: would remove)."""
+        """Removes damaged entries, those unused for ``older_than_s`` seconds, leftovers of
+        interrupted writes and locks nobody holds; returns what it removed (would remove)."""
         now, removed = time.time(), []
         for entry in self.entries():
             stale = older_than_s is not None and now - entry.last_used > older_than_s
@@ -379,45 +252,31 @@ def _alive(pid: int) -> bool:
 
 
 class StageReuse:
-    """The stages one backward run takes instead of training them: from ``init_from`` (another
-    run directory) where its stage has this run's identity, else from ``store``.
+    """The stages one backward run takes instead of training them: from ``init_from`` where
+    its stage has this run's identity, else from ``store``.
 
-    :meth:`take` returns a stage to reuse, or ``None`` with the stage's lock held when there is
-    a store (another job needing it waits); :meth:`trained` stores the stage and releases the
-    lock; :meth:`close` releases what is still held (a run that failed).
-    """
+    :meth:`take` returns a stage, or ``None`` with the stage's store lock held (other jobs
+    needing it wait) until :meth:`trained` stores it; :meth:`close` releases what is held."""
 
-    def __init__(
-        self,
-        cfg: DictConfig,
-        *,
-        store: SharedStageStore | None = None,
-        init_from: str | Path | None = None,
-        run_dir: str | Path | None = None,
-    ) -> None:
+    def __init__(self, cfg: DictConfig, run_dir: str | Path) -> None:
         self.inputs = stage_identity_inputs(cfg)
-        self.identities = [_digest(stage) for stage in self.inputs]
-        self.store, self.cfg = store, cfg
-        self.run_dir = None if run_dir is None else str(Path(run_dir).resolve())
+        self.identities = [digest(stage) for stage in self.inputs]
+        self.cfg, self.run_dir = cfg, str(Path(run_dir).resolve())
+        self.store = SharedStageStore(cfg.stage_store) if cfg.get("stage_store") else None
         self.init_run: RunDir | None = None
         self.init_identities: list[str] = []
-        if init_from is not None:
-            self.init_run, self.init_identities = self._open_init(Path(init_from), cfg)
+        if cfg.get("init_from"):
+            self._open_init(Path(cfg.init_from), cfg)
         self._held: dict[int, RunLock] = {}
 
     @classmethod
     def from_config(cls, cfg: DictConfig, run_dir: str | Path) -> StageReuse | None:
-        """The reuse ``cfg.stage_store`` and ``cfg.init_from`` ask for (``None``: neither);
-        :class:`StoreError` before any training when they cannot be used."""
-        store_dir, init_from = cfg.get("stage_store"), cfg.get("init_from")
-        if not store_dir and not init_from:
-            return None
-        store = SharedStageStore(store_dir) if store_dir else None
-        return cls(cfg, store=store, init_from=init_from or None, run_dir=run_dir)
+        """What ``cfg.stage_store`` and ``cfg.init_from`` ask for (``None``: neither)."""
+        return cls(cfg, run_dir) if cfg.get("stage_store") or cfg.get("init_from") else None
 
-    def _open_init(self, path: Path, cfg: DictConfig) -> tuple[RunDir, list[str]]:
+    def _open_init(self, path: Path, cfg: DictConfig) -> None:
         run = RunDir(path)
-        if self.run_dir is not None and path.resolve() == Path(self.run_dir):
+        if path.resolve() == Path(self.run_dir):
             raise StoreError(
                 f"init_from={path}: that is this run's own directory. Fix: resume=true "
                 "continues a run; init_from names another one"
@@ -440,43 +299,29 @@ class StageReuse:
                 path,
                 ", ".join(differ) or "the library versions",
             )
-        return run, identities
+        self.init_run, self.init_identities = run, identities
 
-    def take(
-        self, task: StagedTask, stage: int, device: str
-    ) -> tuple[Learner, StageResult, str] | None:
-        """Stage ``stage`` from ``init_from`` or the store: ``(learner, result, where)``, or
-        ``None`` (train it; with a store, its lock is then held until :meth:`trained`)."""
-        identity = self.identities[stage]
-        if self.init_run is not None and stage < len(self.init_identities):
-            if self.init_identities[stage] == identity:
-                state = self.init_run.read_stage(stage, map_location=device)
-                if state is not None:
-                    fix = f"retrain it: drop init_from, or delete {self.init_run.stage_file(stage)}"
-                    source = self.init_run.stage_file(stage)
-                    learner = restore_learner(task, stage, state, device, source, fix)
-                    return (
-                        learner,
-                        StageResult(**state["result"]),
-                        f"init_from {self.init_run.path}",
-                    )
+    def take(self, task: StagedTask, stage: int, device: str) -> Reused | None:
+        """Stage ``stage`` from ``init_from`` or the store, or ``None``: train it."""
+        identity, init = self.identities[stage], self.init_run
+        if init is not None and self.init_identities[stage : stage + 1] == [identity]:
+            state = init.read_stage(stage, map_location=device)
+            if state is not None:
+                source = init.stage_file(stage)
+                fix = f"retrain it: drop init_from, or delete {source}"
+                learner = restore_learner(task, stage, state, device, source, fix)
+                return learner, StageResult(**state["result"]), f"init_from {init.path}"
         if self.store is None:
             return None
         found = self._from_store(task, stage, device)
         if found is not None:
             return found
-        lock = self.store.lock(identity)
-        announced = []
+        lock, root, announced = self.store.lock(identity), self.store.root, []
 
         def waiting(holder: str) -> None:
             if not announced:
-                log.info(
-                    "stage %d (%s): waiting for %s, which trains it (stage store %s)",
-                    stage,
-                    task.stage_names[stage],
-                    holder,
-                    self.store.root,
-                )
+                where = f"stage {stage} ({task.stage_names[stage]})"
+                log.info(f"{where}: waiting for {holder}, which trains it (stage store {root})")
                 announced.append(True)
             stop_if_asked(f"waiting for stage {stage} in the stage store")
 

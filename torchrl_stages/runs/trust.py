@@ -1,7 +1,5 @@
-"""What a run directory may make this package do: a resumed run's config may change only what
-its finished stages do not depend on (:func:`config_differences`), and a loaded config may only
-instantiate what its task ships with (:func:`check_trusted`): a run directory is untrusted
-data."""
+"""What a run directory (untrusted data) may make the package do: which config keys a resumed
+run may change, and what a loaded config may instantiate."""
 
 from __future__ import annotations
 
@@ -42,16 +40,7 @@ RESUMABLE_CHANGES = (
 
 
 def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...] = ()) -> list[str]:
-    """Dotted keys whose resolved values differ between two configs (``ignore``: key prefixes
-    that may differ).
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> a = OmegaConf.create({"seed": 0, "eval": {"plots": True}, "task": {"lr": 1.0}})
-        >>> b = OmegaConf.create({"seed": 0, "eval": {"plots": False}, "task": {"lr": 2.0}})
-        >>> config_differences(a, b, ignore=("eval",))
-        ['task.lr']
-    """
+    """Dotted keys whose resolved values differ (``ignore``: key prefixes that may differ)."""
     flat_old = dict(_flatten(OmegaConf.to_container(old, resolve=True)))
     flat_new = dict(_flatten(OmegaConf.to_container(new, resolve=True)))
     keys = sorted(set(flat_old) | set(flat_new))
@@ -67,12 +56,11 @@ def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...]
 ADDED_KEYS: dict[str, Any] = {"all_stages": {}}
 
 
-# ---------------------------------------------------------------------- what a config may run
 _TASK_NAME = re.compile(r"^[A-Za-z0-9_]+$")
 
 
 def _interpolations(node: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
-    """``(dotted key, text)`` of every string under ``node`` that holds ``${``."""
+    """``(dotted key, text)`` of every string under ``node`` holding ``${``."""
     if isinstance(node, dict):
         for key, item in node.items():
             yield from _interpolations(item, f"{prefix}.{key}" if prefix else str(key))
@@ -84,9 +72,8 @@ def _interpolations(node: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
 
 
 def shippedtargets(task_name: str) -> dict[str, str] | None:
-    """What the package's own ``conf/task/<task_name>.yaml`` instantiates (its env and
-    whole-task eval env, ``{dotted key: _target_}``), or ``None`` when that is not fixed by
-    the package: no such task, or a task that leaves its env to the user (``???``)."""
+    """``{dotted key: _target_}`` of the package's ``conf/task/<task_name>.yaml`` env and
+    eval env; ``None`` for no such task, or one that leaves its env to the user (``???``)."""
     if not _TASK_NAME.match(task_name):
         return None
     source = resources.files("torchrl_stages.conf").joinpath("task", f"{task_name}.yaml")
@@ -100,24 +87,8 @@ def shippedtargets(task_name: str) -> dict[str, str] | None:
 
 
 def check_trusted(cfg: DictConfig, source: Path) -> None:
-    """Refuses a loaded config that would instantiate anything its task does not ship with.
-
-    Every ``_target_`` of the config (at any depth, env keyword arguments included) must be
-    one of the package's own task config (:func:`shipped_targets`), at the same key. Runs of
-    your own env (``task=gym``, ``task=custom``, a config directory of yours) name code of
-    yours to import: loading them needs ``trust=True``.
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"task": {"name": "gridworld", "env": {
-        ...     "_target_": "torchrl_stages.envs.GridWorldEnv", "size": 25}}})
-        >>> check_trusted(cfg, Path("run/config.yaml"))
-        >>> cfg.task.env.size = {"_target_": "os.system", "_args_": ["echo hi"]}
-        >>> check_trusted(cfg, Path("run/config.yaml"))
-        Traceback (most recent call last):
-        ...
-        torchrl_stages.runs.layout.RunDirError: run/config.yaml: task.env.size._target_=...
-    """
+    """Refuses a loaded config with any ``_target_`` (at any depth) other than its shipped
+    task's at the same key; runs of your own env need ``trust=True``."""
     container = OmegaConf.to_container(cfg, resolve=False)
     task_name = str((container.get("task") or {}).get("name", ""))
     allowed = shippedtargets(task_name)
