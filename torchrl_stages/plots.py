@@ -1,5 +1,5 @@
-"""A run's learning curves, and what the tasks' figures share. Figures are drawn on a
-:class:`matplotlib.figure.Figure`, never pyplot: the user's matplotlib backend is left alone."""
+"""A run's learning curves, and what the tasks' figures share (drawn on a matplotlib ``Figure``,
+never pyplot: the user's backend is left alone)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ _PANEL = (3.6, 2.7)
 
 
 def save_figure(fig: Figure, out: str | Path) -> Path:
-    """Writes ``fig`` as PNG to ``out`` (and its parent folders)."""
+    """Writes ``fig`` as PNG to ``out``, making its parent folders."""
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=DPI, format="png")
@@ -77,9 +77,8 @@ def _stage_panels(series: Series, names: Sequence[str] | None) -> list[tuple[str
 def plot_learning_curves(
     metrics_csv: str | Path, out: str | Path, names: Sequence[str] | None = None
 ) -> Path | None:
-    """One row of panels per stage of a ``metrics.csv`` (:func:`_stage_panels`) against the
-    stage's frames; a joint phase's evaluations dashed in its stage's row. ``names`` keeps only
-    those metrics; ``None`` when nothing matches."""
+    """One row of panels per stage of a ``metrics.csv`` against the stage's frames, a joint
+    phase's evaluations dashed in its stage's row; ``names`` keeps only those metrics."""
     stages = read_stage_metrics(metrics_csv)
     rows = [(k, _stage_panels(stages[k], names)) for k in sorted(stages)]
     rows = [(k, panels) for k, panels in rows if panels]
@@ -91,8 +90,7 @@ def plot_learning_curves(
 
     width, height = _PANEL[0] * ncols, _PANEL[1] * len(rows) + 0.4
     fig = Figure(figsize=(width, height))
-    # fixed margins, in inches, rather than tight_layout, which draws the whole figure once
-    # more to measure it: about a third of the figure's cost (the grid world's 25 panels)
+    # fixed margins in inches: tight_layout draws the figure once more (a third of its cost)
     axes = fig.subplots(
         len(rows),
         ncols,

@@ -1,5 +1,5 @@
-"""A sweep's figures: learning curves and final metrics per configuration, and performance
-profiles, drawn on a matplotlib ``Figure`` (no pyplot state: safe in a Hydra callback)."""
+"""A sweep's figures: learning curves, final metrics and performance profiles per configuration
+(on a matplotlib ``Figure``, no pyplot state: safe in a Hydra callback)."""
 
 from __future__ import annotations
 
@@ -59,10 +59,9 @@ def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
 
 
 def _curve_order(name: str) -> tuple[int, str, int]:
+    """The whole task first, then stages, then other loops' phases."""
     curve = _curve(name)
-    if curve.index is None:  # the whole task first, then stages, then other loops' phases
-        return (0, "", 0)
-    return (1 if curve.scope == STAGE else 2, curve.scope, curve.index)
+    return (0, "", 0) if curve.index is None else (curve.scope != STAGE, curve.scope, curve.index)
 
 
 def _curve_title(name: str) -> str:
@@ -84,8 +83,8 @@ def _forward_fill(points: list[tuple[float, float]], grid: np.ndarray) -> np.nda
 def plot_sweep_curves(
     jobs: Sequence[Job], out: str | Path, labels: dict[str, str] | None = None
 ) -> Path | None:
-    """Evaluation success against frames, a panel per stage (and the whole-task probe), a line
-    per configuration (mean over seeds, band min-max); ``None`` without such curves."""
+    """Evaluation success against frames, a panel per stage and the whole-task probe, a line per
+    configuration (mean over seeds, band min-max); ``None`` without such curves."""
     from matplotlib.figure import Figure
 
     per_job = {j.name: _read_curves(j.path / "metrics.csv") for j in jobs if j.status == "done"}
@@ -135,8 +134,7 @@ def plot_sweep_final(
     out: str | Path,
     labels: dict | None = None,
 ) -> Path | None:
-    """The final whole-task metrics per configuration: seeds, mean and its 95% CI; ``None``
-    when no job finished."""
+    """The final whole-task metrics per configuration: seeds, mean and its 95% CI."""
     from matplotlib.figure import Figure
 
     done = [j for j in jobs if j.status == "done"]
@@ -179,8 +177,8 @@ def plot_performance_profile(
     metric: str = "success_rate",
     seed: int = 0,
 ) -> Path | None:
-    """The performance profile of ``metric`` per configuration with its 95% band (drawn here:
-    ``rliable.plot_utils`` imports pyplot); ``None`` when no job finished."""
+    """The performance profile of ``metric`` per configuration with its 95% band (not
+    ``rliable.plot_utils``: it imports pyplot)."""
     from matplotlib.figure import Figure
 
     taus = np.linspace(0.0, 1.0, 101)

@@ -52,9 +52,8 @@ class Aggregate:
     """One metric of one configuration across its finished seeds: mean and IQM with intervals.
 
     Examples:
-        >>> agg = Aggregate("lr=1e-3", "success_rate", 3, 1, 0.5, 0.25, 0.75, 0.5, 0.0, 1.0)
-        >>> agg.n, agg.failed, (agg.ci_low, agg.ci_high)
-        (3, 1, (0.25, 0.75))
+        >>> Aggregate("lr=1e-3", "success_rate", 3, 1, 0.5, 0.25, 0.75, 0.5, 0.0, 1.0).ci_high
+        0.75
     """
 
     config: str

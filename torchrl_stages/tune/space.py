@@ -1,5 +1,4 @@
-"""A study's search space: ``tune.params`` read into :class:`ParamSpec` s, and each trial's
-values as ``stages-train`` overrides."""
+"""A study's search space: ``tune.params`` as :class:`ParamSpec` s, values as overrides."""
 
 from __future__ import annotations
 
@@ -48,10 +47,8 @@ class ParamSpec:
         >>> spec = ParamSpec.parse("task.stages.s3.lr", {"low": 1e-4, "high": 1e-2, "log": True})
         >>> spec.kind, spec.override(0.003), spec.candidates()
         ('float', 'task.stages.s3.lr=0.003', [0.0001, 0.01])
-        >>> ParamSpec.parse("task.stages.s3.batch_size", {"low": 32, "high": 256}).kind
-        'int'
-        >>> ParamSpec.parse("algo@task.stages.s0", {"choices": ["dqn", "sac"]}).kind
-        'categorical'
+        >>> ParamSpec.parse("algo@task.stages.s0", {"choices": ["dqn", "sac"]}).group
+        'algo'
         >>> ParamSpec.parse("task.stages.s3.lr", {"low": 0.0, "high": 1e-2, "log": True})
         Traceback (most recent call last):
         ...
