@@ -33,20 +33,25 @@ _LOSS_ORDER = ("loss", "loss_value", "loss_qvalue", "loss_actor")
 Series = dict[tuple[str, str, str], list[tuple[float, float]]]  # (kind, scope, metric) -> points
 
 
-def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
-    """A ``metrics.csv``'s rows of each stage (or joint phase) by stage index."""
-    out: dict[int, Series] = defaultdict(lambda: defaultdict(list))
+def read_metrics(metrics_csv: str | Path) -> dict[str, list[tuple[float, float]]]:
+    """A ``metrics.csv``'s points (step, value) by metric name, rows without numbers left out."""
+    out: dict[str, list[tuple[float, float]]] = defaultdict(list)
     with open(metrics_csv, newline="") as handle:
         for row in csv.DictReader(handle):
-            # a loop's rows (train/stage_3/loss, eval/joint_1/success_rate: phase 1), by index
-            name = parse_metric(row.get("name") or "")
-            if name is None or name.index is None:
-                continue
             try:
-                step, value = float(row["step"]), float(row["value"])
+                out[row.get("name") or ""].append((float(row["step"]), float(row["value"])))
             except (KeyError, TypeError, ValueError):
                 continue
-            out[name.index][(name.kind, name.scope, name.metric)].append((step, value))
+    return out
+
+
+def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
+    """A ``metrics.csv``'s rows of each stage (or joint phase: ``eval/joint_1/...``) by index."""
+    out: dict[int, Series] = defaultdict(lambda: defaultdict(list))
+    for name, points in read_metrics(metrics_csv).items():
+        parsed = parse_metric(name)
+        if parsed is not None and parsed.index is not None:
+            out[parsed.index][(parsed.kind, parsed.scope, parsed.metric)] = points
     return out
 
 

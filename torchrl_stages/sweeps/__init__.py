@@ -94,12 +94,6 @@ class SweepSummary:
     aggregates: list[Aggregate]
     files: dict[str, Path]
 
-    def aggregate(self, config: str, metric: str = "success_rate") -> Aggregate:
-        for agg in self.aggregates:
-            if (agg.config, agg.metric) == (config, metric):
-                return agg
-        raise KeyError((config, metric))
-
 
 def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0) -> SweepSummary:
     """Reads the jobs under ``sweep_dir`` and writes the summary there; ``seed`` seeds the

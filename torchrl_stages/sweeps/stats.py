@@ -95,12 +95,9 @@ def aggregate_jobs(
 
 
 def performance_profiles(
-    jobs: Sequence[Job],
-    taus: np.ndarray,
-    metric: str = "success_rate",
-    seed: int = 0,
+    jobs: Sequence[Job], taus: np.ndarray, seed: int = 0
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per configuration, the fraction of its runs with ``metric`` above each of ``taus``
+    """Per configuration, the fraction of its runs with a success rate above each of ``taus``
     (rliable's score distribution) and its bootstrap interval."""
     taus = np.asarray(taus, dtype=float)
 
@@ -110,7 +107,7 @@ def performance_profiles(
 
     out = {}
     for config in configs(jobs):
-        scores = finished_scores(jobs, config, metric)
+        scores = finished_scores(jobs, config, "success_rate")
         if scores.size:
             out[config] = interval_estimates(scores, profile, seed)
     return out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -21,10 +22,8 @@ Compose = Callable[[list[str]], DictConfig]
 
 def hydra_value(value: Any) -> str:
     """``value`` as a Hydra command-line value."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if value is None:
-        return "null"
+    if value is None or isinstance(value, bool):
+        return json.dumps(value)  # null, true, false
     if isinstance(value, int | float):
         return repr(value)
     text = str(value)
