@@ -190,11 +190,11 @@ def _load_study(cfg: DictConfig, location: str) -> Any:
     ``tune.seed`` plus the trials it has, so that a rerun draws new values."""
     import optuna
 
-    storage: Any = location  # an RDB URL, or a journal file
     file = location if "://" not in location else _sqlite_file(location)
     if file is not None:
         Path(file).parent.mkdir(parents=True, exist_ok=True)
-    if "://" not in location:
+    storage: Any = location  # an RDB URL
+    if "://" not in location:  # a journal file
         storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(file))
     tune, objective = cfg.tune, cfg.objective
     name, direction = str(tune.study_name), str(objective.direction)
