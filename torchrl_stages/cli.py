@@ -1,6 +1,6 @@
-"""The console scripts (``stages-train``, ``-tune``, ``-eval``, ``-report``, ``-store``) and
-their Hydra callbacks. Exit codes: 0 done, 1 failed, 2 invalid config, refused directory or
-unwritable file, 3 diverged, 128 + N stopped by signal N with a checkpoint."""
+"""The console scripts ``stages-train``, ``-tune``, ``-eval``, ``-report`` and ``-store``. Exit
+codes: 0 done, 1 failed, 2 invalid config, refused directory or unwritable file, 3 diverged,
+128 + N stopped by signal N with a checkpoint."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import re
 import sys
 import time
 import traceback
+from functools import partial
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -73,8 +74,7 @@ def _hydra_files(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _fail(run_dir: Path, message: str, code: int, status: str | None = None) -> NoReturn:
-    """Reports a failed job in one line (and ``status.json`` with ``status``); in a multirun it
-    raises, so the sweep goes on; a refused run takes away the directories Hydra made for it."""
+    """Reports a failed job in one line; in a multirun it raises, so the sweep goes on."""
     if HydraConfig.get().mode == RunMode.MULTIRUN:
         print(f"stages-train: {message}", file=sys.stderr)
         if status is not None:
@@ -129,18 +129,16 @@ def _train_app(cfg: DictConfig) -> float:
 
 
 def _cannot_write(err: OSError, run_dir: Path) -> str:
-    """One line for a file that could not be written."""
-    where = err.filename or run_dir
     return (
-        f"cannot write {where}: {err.strerror or err}. Fix: free space on that disk or make it "
-        f"writable, then rerun with resume=true (or pick another hydra.run.dir)"
+        f"cannot write {err.filename or run_dir}: {err.strerror or err}. Fix: free space on that "
+        "disk or make it writable, then rerun with resume=true (or pick another hydra.run.dir)"
     )
 
 
 def train() -> None:
     """``stages-train [OVERRIDES...]``: train a task (Hydra CLI)."""
     register_configs(ALGORITHMS)
-    if not _shows_config(sys.argv[1:]):
+    if get_args_parser().parse_known_args(sys.argv[1:])[0].cfg not in ("job", "all"):
         _train_app()
         return
     shown = io.StringIO()  # --cfg job|all: Hydra's YAML, with the stages of a template task
@@ -153,14 +151,9 @@ def train() -> None:
     sys.stdout.write(with_template_stages(shown.getvalue()))
 
 
-def _shows_config(args: list[str]) -> bool:
-    """Whether the command line asks for the job's config (``--cfg job|all``)."""
-    return get_args_parser().parse_known_args(args)[0].cfg in ("job", "all")
-
-
 def with_template_stages(text: str) -> str:
-    """``--cfg job``'s YAML with ``task.stages`` made from ``task.stage_template`` as a run makes
-    them, or, where the env cannot be built, a comment on ``stages:`` saying why."""
+    """``--cfg job``'s YAML with ``task.stages`` made from ``task.stage_template``, or, where the
+    env cannot be built, a comment on ``stages:`` saying why."""
     try:
         cfg = OmegaConf.create(text)
     except Exception:  # noqa: BLE001 - not one YAML document (--package, a value): as given
@@ -188,15 +181,11 @@ def tune_app(cfg: DictConfig) -> None:
     """Exit codes: 0 done, 1 every trial failed, 2 invalid config or a study that cannot go on,
     128 + N stopped by signal N."""
     hydra_cfg = HydraConfig.get()
-
-    def compose(overrides: list[str]) -> DictConfig:
-        return hydra.compose(config_name="config", overrides=overrides)
-
     context = StudyContext(
         study_dir=Path(hydra_cfg.runtime.output_dir),
         cwd=Path(hydra_cfg.runtime.cwd),
         overrides=list(hydra_cfg.overrides.task),
-        compose=compose,
+        compose=partial(hydra.compose, "config"),
         hydra_cfg=hydra_cfg,
     )
     try:
@@ -246,29 +235,26 @@ def evaluate(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     directory = RunDir(args.run_dir)
-    lock = None
-    try:
-        if directory.holds_run():  # a second process would write the same files
-            lock = directory.lock()
-        run = load_run(args.run_dir, trust=args.trust)
-        if args.episodes is not None:
-            run.cfg.eval.episodes = args.episodes
-        if args.no_plots:
-            run.cfg.eval.plots = False
-        training = (directory.read_eval() or {}).get("training")
-        if not isinstance(training, dict):  # rebuilt from what the run directory keeps
-            training = {**directory.training_time(), "stages": run.results}
-        before = directory.listing()
-        result = evaluate_run(run.cfg, run.task, run.learners, args.run_dir, training=training)
-        if directory.has_record():
-            directory.claim_new(before)
-    except RunDirError as err:
-        _exit("stages-eval", str(err))
-    except OSError as err:
-        _exit("stages-eval", _cannot_write(err, args.run_dir))
-    finally:
-        if lock is not None:
-            lock.release()
+    with contextlib.ExitStack() as stack:
+        try:
+            if directory.holds_run():  # a second process would write the same files
+                stack.callback(directory.lock().release)
+            run = load_run(args.run_dir, trust=args.trust)
+            if args.episodes is not None:
+                run.cfg.eval.episodes = args.episodes
+            if args.no_plots:
+                run.cfg.eval.plots = False
+            training = (directory.read_eval() or {}).get("training")
+            if not isinstance(training, dict):  # rebuilt from what the run directory keeps
+                training = {**directory.training_time(), "stages": run.results}
+            before = directory.listing()
+            result = evaluate_run(run.cfg, run.task, run.learners, args.run_dir, training=training)
+            if directory.has_record():
+                directory.claim_new(before)
+        except RunDirError as err:
+            _exit("stages-eval", str(err))
+        except OSError as err:
+            _exit("stages-eval", _cannot_write(err, args.run_dir))
     print(format_summary(result, args.run_dir))
 
 
@@ -276,11 +262,9 @@ def report(argv: list[str] | None = None) -> None:
     """``stages-report SWEEP_DIR``: (re)write the summary of a directory of runs."""
     parser = argparse.ArgumentParser(
         prog="stages-report",
-        description="Summarize a directory of stages-train runs (a multirun sweep directory, "
-        "made by any launcher, or runs gathered by hand): writes summary.csv (one row per job), "
-        "summary_configs.csv and summary.md (mean and interquartile mean across seeds per "
-        "configuration, with rliable's stratified-bootstrap 95%% confidence intervals) and "
-        "summary_curves.png / summary_final.png / summary_profile.png into it.",
+        description="Summarize a directory of stages-train runs (a sweep directory, or runs "
+        "gathered by hand): writes summary.csv, summary_configs.csv, summary.md (mean and IQM "
+        "across seeds, with 95%% confidence intervals) and summary_*.png into it.",
     )
     parser.add_argument("sweep_dir", type=Path, help="the sweep directory (hydra.sweep.dir)")
     parser.add_argument("--no-plots", action="store_true", help="skip the figures")
@@ -310,7 +294,7 @@ def _age(text: str) -> float:
     """``30d``, ``12h``, ``90m`` or seconds, as seconds."""
     units = {"d": 86400.0, "h": 3600.0, "m": 60.0, "s": 1.0}
     try:
-        if text and text[-1] in units:
+        if text[-1:] in units:
             return float(text[:-1]) * units[text[-1]]
         return float(text)
     except ValueError:
@@ -364,10 +348,9 @@ def stage_store(argv: list[str] | None = None) -> None:
 
 def format_entries(entries: list[StageEntry]) -> str:
     """The table ``stages-store ls`` prints."""
-    header = (
+    rows = [
         "identity      task        stage  algo          seed    frames  success  size     last used"
-    )
-    rows = [header]
+    ]
     for e in entries:
         used = time.strftime("%Y-%m-%d %H:%M", time.localtime(e.last_used))
         success = "-" if e.success_rate is None else f"{e.success_rate:.2f}"

@@ -1,5 +1,5 @@
-"""A run's logger: every scalar to the run's ``metrics.csv`` (which the learning curves and
-sweep summaries read) and to the torchrl backend ``logger.backend`` names, shown to observers."""
+"""A run's logger: every scalar to the run's ``metrics.csv`` (read by the learning curves and
+sweep summaries) and to the torchrl backend ``logger.backend`` names."""
 
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ class StopRun(Exception):  # noqa: N818 - an outcome, not an error
     """Raised by an :data:`Observer` to end a run early; ``status.json`` records both strings.
 
     Examples:
-        >>> err = StopRun("pruned", "stage 4's success rate 0.1 is below the median")
+        >>> err = StopRun("pruned", "below the median")
         >>> err.status, str(err)
-        ('pruned', "stage 4's success rate 0.1 is below the median")
+        ('pruned', 'below the median')
     """
 
     def __init__(self, status: str, reason: str) -> None:
@@ -35,12 +35,11 @@ class StopRun(Exception):  # noqa: N818 - an outcome, not an error
 
 class RunLogger(Logger):
     """Appends every scalar to ``metrics_file`` and forwards every call to a torchrl
-    ``backend`` (``None``: none). :meth:`position` and :meth:`rewind` let a resumed run log
-    nothing twice (``metrics.csv`` and a ``CSVLogger`` backend's files).
+    ``backend`` (``None``: none); :meth:`rewind` lets a resumed run log nothing twice.
 
     Examples:
-        >>> import tempfile, pathlib
-        >>> d = pathlib.Path(tempfile.mkdtemp())
+        >>> import tempfile
+        >>> d = Path(tempfile.mkdtemp())
         >>> logger = RunLogger(d / "metrics.csv")
         >>> logger.log_scalar("eval/stage_1/success_rate", 1.0, step=512)
         >>> (d / "metrics.csv").read_text().splitlines()
@@ -65,13 +64,11 @@ class RunLogger(Logger):
     def _create_experiment(self) -> Any:
         return None if self.backend is None else self.backend.experiment
 
-    def _append(self, row: list) -> None:
-        # opened per row: nothing stays open, and a crashed run keeps every row written
+    def _append(self, row: list) -> None:  # opened per row: a crashed run keeps every row
         with self.metrics_file.open("a", newline="") as f:
             csv.writer(f).writerow(row)
 
     def notify(self, metrics: dict[str, float], step: int) -> None:
-        """Shows a group of scalars just logged (at ``step``) to every observer."""
         for observer in self.observers:
             observer(metrics, step)
 
@@ -118,17 +115,11 @@ class RunLogger(Logger):
 
 def make_logger(cfg: DictConfig, run_dir: Path, observers: Sequence[Observer] = ()) -> Logger:
     """The :class:`RunLogger` of ``cfg.logger`` in ``run_dir``."""
-    backend = cfg.logger.backend
-    if backend == "none":
-        external = None
-    elif backend == "csv":
+    backend, external = cfg.logger.backend, None
+    if backend == "csv":
         external = CSVLogger("csv", log_dir=str(run_dir))
-    else:
+    elif backend != "none":
         kwargs = {"project": cfg.logger.project} if backend == "wandb" else {}
-        external = get_logger(
-            backend,
-            logger_name=str(run_dir),
-            experiment_name=cfg.logger.exp_name,
-            wandb_kwargs=kwargs,
-        )
+        name = cfg.logger.exp_name
+        external = get_logger(backend, str(run_dir), name, wandb_kwargs=kwargs)
     return RunLogger(run_dir / "metrics.csv", external, observers=observers)

@@ -1,5 +1,5 @@
-"""A run's learning curves, and what the tasks' figures share. Figures are drawn on a
-:class:`matplotlib.figure.Figure`, never pyplot: the user's matplotlib backend is left alone."""
+"""A run's learning curves, and what the tasks' figures share (drawn on a matplotlib ``Figure``,
+never pyplot: the user's backend is left alone)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ _PANEL = (3.6, 2.7)
 
 
 def save_figure(fig: Figure, out: str | Path) -> Path:
-    """Writes ``fig`` as PNG to ``out`` (and its parent folders)."""
+    """Writes ``fig`` as PNG to ``out``, making its parent folders."""
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=DPI, format="png")
@@ -33,20 +33,25 @@ _LOSS_ORDER = ("loss", "loss_value", "loss_qvalue", "loss_actor")
 Series = dict[tuple[str, str, str], list[tuple[float, float]]]  # (kind, scope, metric) -> points
 
 
-def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
-    """A ``metrics.csv``'s rows of each stage (or joint phase) by stage index."""
-    out: dict[int, Series] = defaultdict(lambda: defaultdict(list))
+def read_metrics(metrics_csv: str | Path) -> dict[str, list[tuple[float, float]]]:
+    """A ``metrics.csv``'s points (step, value) by metric name, rows without numbers left out."""
+    out: dict[str, list[tuple[float, float]]] = defaultdict(list)
     with open(metrics_csv, newline="") as handle:
         for row in csv.DictReader(handle):
-            # a loop's rows (train/stage_3/loss, eval/joint_1/success_rate: phase 1), by index
-            name = parse_metric(row.get("name") or "")
-            if name is None or name.index is None:
-                continue
             try:
-                step, value = float(row["step"]), float(row["value"])
+                out[row.get("name") or ""].append((float(row["step"]), float(row["value"])))
             except (KeyError, TypeError, ValueError):
                 continue
-            out[name.index][(name.kind, name.scope, name.metric)].append((step, value))
+    return out
+
+
+def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
+    """A ``metrics.csv``'s rows of each stage (or joint phase: ``eval/joint_1/...``) by index."""
+    out: dict[int, Series] = defaultdict(lambda: defaultdict(list))
+    for name, points in read_metrics(metrics_csv).items():
+        parsed = parse_metric(name)
+        if parsed is not None and parsed.index is not None:
+            out[parsed.index][(parsed.kind, parsed.scope, parsed.metric)] = points
     return out
 
 
@@ -77,9 +82,8 @@ def _stage_panels(series: Series, names: Sequence[str] | None) -> list[tuple[str
 def plot_learning_curves(
     metrics_csv: str | Path, out: str | Path, names: Sequence[str] | None = None
 ) -> Path | None:
-    """One row of panels per stage of a ``metrics.csv`` (:func:`_stage_panels`) against the
-    stage's frames; a joint phase's evaluations dashed in its stage's row. ``names`` keeps only
-    those metrics; ``None`` when nothing matches."""
+    """One row of panels per stage of a ``metrics.csv`` against the stage's frames, a joint
+    phase's evaluations dashed in its stage's row; ``names`` keeps only those metrics."""
     stages = read_stage_metrics(metrics_csv)
     rows = [(k, _stage_panels(stages[k], names)) for k in sorted(stages)]
     rows = [(k, panels) for k, panels in rows if panels]
@@ -91,8 +95,7 @@ def plot_learning_curves(
 
     width, height = _PANEL[0] * ncols, _PANEL[1] * len(rows) + 0.4
     fig = Figure(figsize=(width, height))
-    # fixed margins, in inches, rather than tight_layout, which draws the whole figure once
-    # more to measure it: about a third of the figure's cost (the grid world's 25 panels)
+    # fixed margins in inches: tight_layout draws the figure once more (a third of its cost)
     axes = fig.subplots(
         len(rows),
         ncols,

@@ -1,6 +1,5 @@
 """SIGTERM, SIGINT and SIGUSR1 end a run cleanly: the loops write a checkpoint at the next safe
-point and raise :class:`Interrupted` (exit code 128 + signal); ``resume=true`` continues bitwise.
-A second signal gets the previous handler; a launcher's handler runs once the state is saved."""
+point and raise :class:`Interrupted`; ``resume=true`` continues bitwise."""
 
 from __future__ import annotations
 
@@ -26,13 +25,12 @@ class Interrupted(Exception):  # noqa: N818 - an outcome, not an error
         return signal.Signals(self.signum).name
 
     @property
-    def exit_code(self) -> int:
-        """``128 + signal number``: 143 for SIGTERM, 130 for SIGINT, 138 for SIGUSR1."""
+    def exit_code(self) -> int:  # 143 for SIGTERM, 130 for SIGINT, 138 for SIGUSR1
         return 128 + self.signum
 
 
 def requested() -> int | None:
-    """The signal that asked the run to stop (``None``: none did)."""
+    """The signal that asked the run to stop, if any."""
     return _requested
 
 
@@ -44,7 +42,8 @@ def stop_if_asked(where: str) -> None:
 
 @contextmanager
 def handle_signals() -> Iterator[None]:
-    """Records :data:`SIGNALS` as stop requests in the block (main thread only).
+    """Records :data:`SIGNALS` as stop requests in the block (main thread only). A second
+    signal gets the previous handler; a launcher's handler runs once the state is saved.
 
     Examples:
         >>> import os, signal

@@ -1,6 +1,5 @@
 """The run's torch thread count, held against torchrl's batched envs, which reset it when they
-close: a run asked for one thread would otherwise train with more, 10-40 times slower on a
-machine whose other cores are busy."""
+close (more threads than asked train 10-40 times slower on a busy machine)."""
 
 from __future__ import annotations
 
@@ -13,7 +12,7 @@ _held: int | None = None
 
 
 def keep_threads() -> None:
-    """Puts the held thread count back if something changed it (nothing held: no-op)."""
+    """Puts the held thread count back if something changed it."""
     if _held is not None and torch.get_num_threads() != _held:
         torch.set_num_threads(_held)
 

@@ -38,20 +38,7 @@ def _write_csv(path: Path, header: Sequence[str], rows: Iterable[dict[str, Any]]
     with path.open("w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(header))
         writer.writeheader()
-        for row in rows:
-            writer.writerow({k: "" if row.get(k) is None else row[k] for k in header})
-
-
-def write_jobs_csv(path: Path, jobs: Sequence[Job]) -> None:
-    """``summary.csv``: a row per job (:meth:`~torchrl_stages.sweeps.jobs.Job.row`)."""
-    metrics = result_metrics(jobs)
-    header = list(Job(Path(), "", [], None, "").row(metrics))
-    _write_csv(path, header, (job.row(metrics) for job in jobs))
-
-
-def write_configs_csv(path: Path, aggregates: Sequence[Aggregate]) -> None:
-    """``summary_configs.csv``: a row per :class:`~torchrl_stages.sweeps.stats.Aggregate`."""
-    _write_csv(path, [f.name for f in fields(Aggregate)], (vars(agg) for agg in aggregates))
+        writer.writerows(rows)  # None as an empty cell
 
 
 def _interval(low: float | None, high: float | None) -> str:
@@ -107,12 +94,6 @@ class SweepSummary:
     aggregates: list[Aggregate]
     files: dict[str, Path]
 
-    def aggregate(self, config: str, metric: str = "success_rate") -> Aggregate:
-        for agg in self.aggregates:
-            if (agg.config, agg.metric) == (config, metric):
-                return agg
-        raise KeyError((config, metric))
-
 
 def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0) -> SweepSummary:
     """Reads the jobs under ``sweep_dir`` and writes the summary there; ``seed`` seeds the
@@ -123,25 +104,22 @@ def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0)
     jobs = [read_job(path, root) for path in find_jobs(root)]
     aggregates = aggregate_jobs(jobs, seed=seed)
     files = {name: root / name for name in ("summary.csv", "summary_configs.csv")}
-    write_jobs_csv(files["summary.csv"], jobs)
-    write_configs_csv(files["summary_configs.csv"], aggregates)
+    metrics = result_metrics(jobs)
+    header = list(Job(Path(), "", [], None, "").row(metrics))
+    _write_csv(files["summary.csv"], header, (job.row(metrics) for job in jobs))
+    header = [f.name for f in fields(Aggregate)]
+    _write_csv(files["summary_configs.csv"], header, (vars(agg) for agg in aggregates))
     figures = []
     if plots:
         labels = short_labels(configs(jobs))
-        for name, made in (
-            ("summary_curves.png", plot_sweep_curves(jobs, root / "summary_curves.png", labels)),
-            (
-                "summary_final.png",
-                plot_sweep_final(jobs, aggregates, root / "summary_final.png", labels),
-            ),
-            (
-                "summary_profile.png",
-                plot_performance_profile(jobs, root / "summary_profile.png", labels, seed=seed),
-            ),
+        for made in (
+            plot_sweep_curves(jobs, root / "summary_curves.png", labels),
+            plot_sweep_final(jobs, aggregates, root / "summary_final.png", labels),
+            plot_performance_profile(jobs, root / "summary_profile.png", labels, seed=seed),
         ):
             if made is not None:
-                files[name] = made
-                figures.append(name)
+                files[made.name] = made
+                figures.append(made.name)
     files["summary.md"] = root / "summary.md"
     files["summary.md"].write_text(markdown(root, jobs, aggregates, figures))
     return SweepSummary(root, jobs, aggregates, files)

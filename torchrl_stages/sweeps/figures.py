@@ -1,21 +1,19 @@
-"""A sweep's figures: learning curves and final metrics per configuration, and performance
-profiles, drawn on a matplotlib ``Figure`` (no pyplot state: safe in a Hydra callback)."""
+"""A sweep's figures: learning curves, final metrics and performance profiles per configuration
+(on a matplotlib ``Figure``, no pyplot state: safe in a Hydra callback)."""
 
 from __future__ import annotations
 
-import csv
 import math
 import textwrap
 import warnings
-from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from torchrl_stages.metric_names import STAGE, TASK, MetricName, parse_metric
-from torchrl_stages.plots import save_figure
-from torchrl_stages.sweeps.jobs import Job, finite_float, result_metrics
+from torchrl_stages.plots import read_metrics, save_figure
+from torchrl_stages.sweeps.jobs import Job, result_metrics
 from torchrl_stages.sweeps.jobs import configs as configs_of
 from torchrl_stages.sweeps.stats import Aggregate, finished_scores, performance_profiles
 
@@ -43,26 +41,17 @@ def short_labels(names: Sequence[str]) -> dict[str, str]:
 
 
 def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
-    curves: dict[str, list[tuple[float, float]]] = defaultdict(list)
     try:
-        with metrics_csv.open(newline="") as handle:
-            for row in csv.DictReader(handle):
-                name = row.get("name") or ""
-                if _curve(name) is None:
-                    continue
-                step, value = finite_float(row.get("step")), finite_float(row.get("value"))
-                if step is not None and value is not None:
-                    curves[name].append((step, value))
+        points = read_metrics(metrics_csv)
     except OSError:
         return {}
-    return {name: sorted(points) for name, points in curves.items()}
+    return {name: sorted(p) for name, p in points.items() if _curve(name) is not None}
 
 
 def _curve_order(name: str) -> tuple[int, str, int]:
+    """The whole task first, then stages, then other loops' phases."""
     curve = _curve(name)
-    if curve.index is None:  # the whole task first, then stages, then other loops' phases
-        return (0, "", 0)
-    return (1 if curve.scope == STAGE else 2, curve.scope, curve.index)
+    return (0, "", 0) if curve.index is None else (curve.scope != STAGE, curve.scope, curve.index)
 
 
 def _curve_title(name: str) -> str:
@@ -84,8 +73,8 @@ def _forward_fill(points: list[tuple[float, float]], grid: np.ndarray) -> np.nda
 def plot_sweep_curves(
     jobs: Sequence[Job], out: str | Path, labels: dict[str, str] | None = None
 ) -> Path | None:
-    """Evaluation success against frames, a panel per stage (and the whole-task probe), a line
-    per configuration (mean over seeds, band min-max); ``None`` without such curves."""
+    """Evaluation success against frames, a panel per stage and the whole-task probe, a line per
+    configuration (mean over seeds, band min-max); ``None`` without such curves."""
     from matplotlib.figure import Figure
 
     per_job = {j.name: _read_curves(j.path / "metrics.csv") for j in jobs if j.status == "done"}
@@ -135,8 +124,7 @@ def plot_sweep_final(
     out: str | Path,
     labels: dict | None = None,
 ) -> Path | None:
-    """The final whole-task metrics per configuration: seeds, mean and its 95% CI; ``None``
-    when no job finished."""
+    """The final whole-task metrics per configuration: seeds, mean and its 95% CI."""
     from matplotlib.figure import Figure
 
     done = [j for j in jobs if j.status == "done"]
@@ -176,15 +164,14 @@ def plot_performance_profile(
     jobs: Sequence[Job],
     out: str | Path,
     labels: dict[str, str] | None = None,
-    metric: str = "success_rate",
     seed: int = 0,
 ) -> Path | None:
-    """The performance profile of ``metric`` per configuration with its 95% band (drawn here:
-    ``rliable.plot_utils`` imports pyplot); ``None`` when no job finished."""
+    """The performance profile of the success rate per configuration with its 95% band (not
+    ``rliable.plot_utils``: it imports pyplot)."""
     from matplotlib.figure import Figure
 
     taus = np.linspace(0.0, 1.0, 101)
-    profiles = performance_profiles(jobs, taus, metric, seed)
+    profiles = performance_profiles(jobs, taus, seed)
     if not profiles:
         return None
     labels = labels or short_labels(list(profiles))
@@ -198,8 +185,8 @@ def plot_performance_profile(
         ax.plot(taus, profile, color=color, linewidth=2, label=text)
         ax.fill_between(taus, low, high, color=color, alpha=0.15, linewidth=0)
     ax.set(
-        xlabel=f"{metric} threshold tau",
-        ylabel=f"fraction of runs with {metric} > tau",
+        xlabel="success_rate threshold tau",
+        ylabel="fraction of runs with success_rate > tau",
         xlim=(0.0, 1.0),
         ylim=(-0.02, 1.02),
     )

@@ -1,5 +1,4 @@
-"""The job directories of a sweep, whatever launched them, read as data: overrides, status and
-the numbers of ``eval.json``."""
+"""The job directories of a sweep, whatever launched them, read as data."""
 
 from __future__ import annotations
 
@@ -24,8 +23,7 @@ SEED = re.compile(r"^\+{0,2}seed=(?P<seed>.*)$")
 
 @dataclass
 class Job:
-    """One job directory of a sweep (:func:`read_job`); ``metrics`` holds :data:`METRICS` and
-    the task's headline metrics.
+    """One job directory of a sweep (:func:`read_job`).
 
     Examples:
         >>> from pathlib import Path
@@ -68,7 +66,7 @@ class Job:
 
 
 def configs(jobs: Iterable[Job]) -> list[str]:
-    """The configurations of ``jobs``, in the order they first appear."""
+    """The configurations of ``jobs`` in the order they first appear."""
     return list(dict.fromkeys(job.config for job in jobs))
 
 
@@ -89,8 +87,8 @@ def _is_job(path: Path) -> bool:
 
 
 def find_jobs(sweep_dir: str | Path) -> list[Path]:
-    """The job directories at any depth under ``sweep_dir`` (not in hidden folders or in a job),
-    in natural order; ``sweep_dir`` itself when it holds no job below it."""
+    """The job directories under ``sweep_dir`` (not in hidden folders or in a job) in natural
+    order; ``sweep_dir`` itself when it holds no job below it."""
     root = Path(sweep_dir)
     jobs: list[Path] = []
     for current, dirs, _files in os.walk(root):
@@ -114,7 +112,6 @@ def _read(path: Path, load: Callable[[str], Any] = yaml.safe_load) -> Any:
 
 
 def finite_float(value: Any) -> float | None:
-    """``value`` as a finite float, else ``None``."""
     try:
         out = float(value)
     except (TypeError, ValueError):
@@ -136,8 +133,8 @@ def _read_seed(path: Path, overrides: list[str]) -> int | None:
 
 
 def _status(job: Job, eval_file: Path, status_file: Path) -> dict[str, Any] | None:
-    """Sets ``job.status`` and ``job.reason``; returns ``eval.json`` if the job finished (and
-    no newer ``status.json`` says otherwise)."""
+    """Sets ``job.status`` and ``job.reason``; returns ``eval.json`` if the job finished and no
+    newer ``status.json`` says otherwise."""
     result, status = _read(eval_file, json.loads), _read(status_file, json.loads)
     result = result if isinstance(result, dict) else None
     if isinstance(status, dict) and (

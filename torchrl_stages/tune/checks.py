@@ -1,5 +1,4 @@
-"""A study's settings and search space, checked before any trial runs: a bad one is refused in
-one line naming the key and the fix."""
+"""A study's settings and search space, checked before any trial runs."""
 
 from __future__ import annotations
 
@@ -72,9 +71,8 @@ def _fail(where: str, problem: str, fix: str) -> None:
 
 
 def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> None:
-    """Checks each entry of ``space`` against the config of ``base`` (the command's overrides):
-    the key (or group and options) exists, the command does not set it, and each bound or
-    choice makes a valid config."""
+    """Checks each entry of ``space`` against the config of the command's overrides ``base``:
+    the key or group exists, the command does not set it, each bound or choice is valid."""
     try:
         cfg = train_config(compose, base)
     except (HydraException, OmegaConfBaseException) as err:
@@ -84,41 +82,29 @@ def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> No
     for spec in space:
         where = f"tune.params.{spec.key}"
         if spec.name.split(".")[0] in ("tune", "hydra"):
-            _fail(
-                where,
-                "tune.* and hydra.* keys are not searched",
-                "search keys of the run's config (stages-train --cfg job lists them)",
-            )
+            fix = "search keys of the run's config (stages-train --cfg job lists them)"
+            _fail(where, "tune.* and hydra.* keys are not searched", fix)
         if spec.name in set_by_command:
-            _fail(
-                where,
-                "the command line sets this key too",
-                f"drop {spec.name}=... from the command line, or drop it from tune.params",
-            )
+            fix = f"drop {spec.name}=... from the command line, or drop it from tune.params"
+            _fail(where, "the command line sets this key too", fix)
         group = spec.group or spec.name
         options = config_group_options(group)
         if spec.group is not None or (options and "." not in spec.name):
             if not options:
-                _fail(
-                    where,
-                    f"no config group '{group}'",
-                    "name a group (algo@task.stages.<stage>, schedule, task/gammas) or a key",
-                )
+                fix = "name a group (algo@task.stages.<stage>, schedule, task/gammas) or a key"
+                _fail(where, f"no config group '{group}'", fix)
             if spec.kind != "categorical" or not all(c in options for c in spec.choices):
-                _fail(
-                    where,
-                    f"a config group takes choices among its options ({', '.join(options)})",
-                    f"write {{choices: [...]}} with some of {', '.join(options)}",
-                )
+                known = ", ".join(options)
+                problem = f"a config group takes choices among its options ({known})"
+                _fail(where, problem, f"write {{choices: [...]}} with some of {known}")
         elif not spec.key.startswith("+"):
             node = OmegaConf.select(cfg, spec.name, default=_MISSING, throw_on_missing=False)
             if node is _MISSING:
-                _fail(
-                    where,
-                    "no such key in the config",
+                fix = (
                     "check its spelling (stages-train <your overrides> --cfg job prints the "
-                    f"config), or write +{spec.name} to add a key to a mapping",
+                    f"config), or write +{spec.name} to add a key to a mapping"
                 )
+                _fail(where, "no such key in the config", fix)
             if OmegaConf.is_config(node):
                 _fail(where, "names a block of keys, not one value", "name one key under it")
         for value in spec.candidates():
@@ -126,15 +112,8 @@ def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> No
             try:
                 train_config(compose, [*base, override])
             except (HydraException, OmegaConfBaseException) as err:
-                _fail(
-                    where,
-                    f"{override} does not fit the config ({compose_error(err)})",
-                    "give the key values of its type",
-                )
+                problem = f"{override} does not fit the config ({compose_error(err)})"
+                _fail(where, problem, "give the key values of its type")
             except ConfigError as err:
-                problem = str(err).split(". Fix: ")[0]
-                _fail(
-                    where,
-                    f"{override} makes an invalid config ({problem})",
-                    "narrow the range to values the key accepts",
-                )
+                problem = f"{override} makes an invalid config ({str(err).split('. Fix: ')[0]})"
+                _fail(where, problem, "narrow the range to values the key accepts")

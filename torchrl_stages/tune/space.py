@@ -1,8 +1,8 @@
-"""A study's search space: ``tune.params`` read into :class:`ParamSpec` s, and each trial's
-values as ``stages-train`` overrides."""
+"""A study's search space: ``tune.params`` as :class:`ParamSpec` s, values as overrides."""
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -22,10 +22,8 @@ Compose = Callable[[list[str]], DictConfig]
 
 def hydra_value(value: Any) -> str:
     """``value`` as a Hydra command-line value."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if value is None:
-        return "null"
+    if value is None or isinstance(value, bool):
+        return json.dumps(value)  # null, true, false
     if isinstance(value, int | float):
         return repr(value)
     text = str(value)
@@ -48,10 +46,8 @@ class ParamSpec:
         >>> spec = ParamSpec.parse("task.stages.s3.lr", {"low": 1e-4, "high": 1e-2, "log": True})
         >>> spec.kind, spec.override(0.003), spec.candidates()
         ('float', 'task.stages.s3.lr=0.003', [0.0001, 0.01])
-        >>> ParamSpec.parse("task.stages.s3.batch_size", {"low": 32, "high": 256}).kind
-        'int'
-        >>> ParamSpec.parse("algo@task.stages.s0", {"choices": ["dqn", "sac"]}).kind
-        'categorical'
+        >>> ParamSpec.parse("algo@task.stages.s0", {"choices": ["dqn", "sac"]}).group
+        'algo'
         >>> ParamSpec.parse("task.stages.s3.lr", {"low": 0.0, "high": 1e-2, "log": True})
         Traceback (most recent call last):
         ...

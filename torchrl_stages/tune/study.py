@@ -1,6 +1,5 @@
-"""An Optuna study whose trial ``n`` is the ``stages-train`` run of the command's overrides and
-the trial's values, in ``<study dir>/<n>/``, pruned on its stage evaluations; the study directory
-gets the sweep summary and ``best.yaml``. Optuna is imported only when a study runs."""
+"""An Optuna study whose trial ``n`` is a ``stages-train`` run in ``<study dir>/<n>/``, pruned on
+its stage evaluations; the study directory gets the sweep summary and ``best.yaml``."""
 
 from __future__ import annotations
 
@@ -48,14 +47,11 @@ class StudyError(RuntimeError):
 
 @dataclass
 class StudyContext:
-    """Where a study runs: its directory (``hydra.run.dir``), the launch directory, the
-    command's overrides, how configs are composed and Hydra's config for each trial's
-    ``.hydra/hydra.yaml`` (``None``: none written).
+    """Where a study runs; ``hydra_cfg`` is written to each trial's ``.hydra/hydra.yaml``.
 
     Examples:
-        >>> context = StudyContext(Path("tune/grid"), Path("."), ["tune.n_trials=4"], print)
-        >>> context.study_dir / "0", train_overrides(context.overrides)
-        (PosixPath('tune/grid/0'), [])
+        >>> StudyContext(Path("tune/grid"), Path("."), ["tune.n_trials=4"], print).study_dir
+        PosixPath('tune/grid')
     """
 
     study_dir: Path
@@ -67,26 +63,16 @@ class StudyContext:
 
 class TrialPruning:
     """A run's :data:`~torchrl_stages.loggers.Observer` that reports each loop evaluation's
-    success rate to an Optuna ``trial`` (step: the evaluation's index in the run; the failure
-    rate when the objective is minimized) and raises ``StopRun("pruned")`` when it should stop.
+    success rate (the failure rate when minimizing) to an Optuna ``trial``, step: the
+    evaluation's index in the run, and raises ``StopRun("pruned")`` when the trial should stop.
 
     Examples:
-        >>> class Trial:  # what it uses of an optuna.Trial
-        ...     reported = []
-        ...     def report(self, value, step):
-        ...         self.reported.append((step, value))
-        ...     def should_prune(self):
-        ...         return len(self.reported) >= 2
-        >>> trial = Trial()
-        >>> pruning = TrialPruning(trial)
-        >>> pruning({"eval/stage_4/success_rate": 0.5, "eval/stage_4/value_error": 0.1}, 512)
-        >>> pruning({"train/stage_4/loss": 0.2}, 768)  # not an evaluation
-        >>> pruning({"eval/stage_4/success_rate": 0.25}, 1024)
+        >>> from types import SimpleNamespace
+        >>> trial = SimpleNamespace(report=lambda value, step: None, should_prune=lambda: True)
+        >>> TrialPruning(trial)({"eval/stage_4/success_rate": 0.25}, 1024)
         Traceback (most recent call last):
         ...
-        torchrl_stages.loggers.StopRun: pruned at stage evaluation 1 (...=0.25 at 1024 frames ...)
-        >>> trial.reported
-        [(0, 0.5), (1, 0.25)]
+        torchrl_stages.loggers.StopRun: pruned at stage evaluation 0 (...=0.25 at 1024 frames ...)
     """
 
     def __init__(self, trial: Any, direction: str = "maximize") -> None:
@@ -104,14 +90,6 @@ class TrialPruning:
             if self.trial.should_prune():
                 where = f"{name}={success:g} at {step} frames of the stage"
                 raise StopRun("pruned", f"pruned at stage evaluation {index} ({where})")
-
-
-def make_sampler(name: str, seed: int) -> Any:
-    """The seeded Optuna sampler ``tune.sampler`` names."""
-    import optuna
-
-    samplers = optuna.samplers
-    return (samplers.RandomSampler if name == "random" else samplers.TPESampler)(seed=seed)
 
 
 def make_pruner(tune: DictConfig, direction: str) -> Any:
@@ -132,7 +110,7 @@ def make_pruner(tune: DictConfig, direction: str) -> Any:
 
 
 def print_results(experiment: Experiment, results: list, run_dir: Path, cfg: DictConfig) -> float:
-    """Prints each seed's summary; returns the mean of the seeds' objectives."""
+    """Prints each seed's summary; returns the mean of their objectives."""
     for seed, result in zip(experiment.seeds, results, strict=True):
         where = seed_dir(run_dir, seed) if experiment.stacked else run_dir
         print(format_summary(result, where), flush=True)
@@ -164,28 +142,21 @@ def _run_trial(
     trial.set_user_attr("run_dir", str(run_dir))
     trial.set_user_attr("overrides", overrides)
     print(f"stages-tune: trial {trial.number}: {' '.join(overrides[len(base) :])}", flush=True)
-    invalid = None
     try:
         run_cfg = apply_all_stages(context.compose(overrides), keep=stage_keys_set(overrides))
-    except (ConfigError, HydraException, OmegaConfBaseException) as err:
-        invalid = err if isinstance(err, ConfigError) else compose_error(err)
-    else:
         files = _trial_hydra_files(context, run_cfg, overrides, run_dir, trial.number)
         pruning = TrialPruning(trial, str(cfg.objective.direction))
-        try:
-            experiment = Experiment(run_cfg, run_dir, hydra_files=files, observers=[pruning])
-        except RunDirError as err:
-            raise StudyError(f"{err} (trial {trial.number})") from None
-        except ConfigError as err:
-            invalid = err
-        except OSError as err:
-            where = err.filename or run_dir
-            raise StudyError(f"cannot write {where}: {err.strerror or err}") from None
-    if invalid is not None:  # the trial's own directory: the summary shows why
-        directory = RunDir(run_dir)
+        experiment = Experiment(run_cfg, run_dir, hydra_files=files, observers=[pruning])
+    except RunDirError as err:
+        raise StudyError(f"{err} (trial {trial.number})") from None
+    except OSError as err:
+        raise StudyError(f"cannot write {err.filename or run_dir}: {err.strerror or err}") from None
+    except (ConfigError, HydraException, OmegaConfBaseException) as err:
+        invalid = err if isinstance(err, ConfigError) else compose_error(err)
+        directory = RunDir(run_dir)  # the trial's own directory: the summary shows why
         directory.write_hydra_files({"overrides.yaml": overrides})
         directory.write_status("invalid", f"invalid config: {invalid}")
-        raise TrialFailed(f"invalid config: {invalid}")
+        raise TrialFailed(f"invalid config: {invalid}") from None
     try:  # how a run that does not finish ended is in its status.json (Experiment.run)
         results = experiment.run()
     except StopRun as err:
@@ -201,27 +172,17 @@ def _run_trial(
     return print_results(experiment, results, run_dir, cfg)
 
 
+def _sqlite_file(storage: str) -> str | None:
+    path = storage.removeprefix("sqlite:///")
+    return path if path != storage and path not in ("", ":memory:") else None
+
+
 def storage_location(storage: str, cwd: str | Path) -> str:
     """``tune.storage`` with a relative SQLite or journal file made absolute against ``cwd``."""
     if "://" not in storage:
         return str(Path(cwd) / Path(storage).expanduser())
-    if storage.startswith("sqlite:///"):
-        path = storage[len("sqlite:///") :]
-        if path and path != ":memory:" and not Path(path).is_absolute():
-            return "sqlite:///" + str(Path(cwd) / path)
-    return storage
-
-
-def _open_storage(location: str) -> Any:
-    """An RDB URL as it is (a SQLite file's directory made), a journal file's storage."""
-    import optuna
-
-    if "://" in location:
-        if location.startswith("sqlite:///") and location != "sqlite:///:memory:":
-            Path(location[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
-        return location
-    Path(location).parent.mkdir(parents=True, exist_ok=True)
-    return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(location))
+    path = _sqlite_file(storage)
+    return storage if path is None else "sqlite:///" + str(Path(cwd) / path)
 
 
 def _load_study(cfg: DictConfig, location: str) -> Any:
@@ -229,8 +190,13 @@ def _load_study(cfg: DictConfig, location: str) -> Any:
     ``tune.seed`` plus the trials it has, so that a rerun draws new values."""
     import optuna
 
+    file = location if "://" not in location else _sqlite_file(location)
+    if file is not None:
+        Path(file).parent.mkdir(parents=True, exist_ok=True)
+    storage: Any = location  # an RDB URL
+    if "://" not in location:  # a journal file
+        storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(file))
     tune, objective = cfg.tune, cfg.objective
-    storage = _open_storage(location)
     name, direction = str(tune.study_name), str(objective.direction)
     study = optuna.create_study(
         storage=storage, study_name=name, direction=direction, load_if_exists=True
@@ -246,8 +212,10 @@ def _load_study(cfg: DictConfig, location: str) -> Any:
     if metric is None:
         study.set_user_attr("objective.metric", str(objective.metric))
     seed = int(tune.seed) + len(study.get_trials(deepcopy=False))
-    sampler, pruner = make_sampler(str(tune.sampler), seed), make_pruner(tune, direction)
-    return optuna.load_study(study_name=name, storage=storage, sampler=sampler, pruner=pruner)
+    samplers = optuna.samplers
+    sampler = samplers.RandomSampler if tune.sampler == "random" else samplers.TPESampler
+    study.sampler, study.pruner = sampler(seed=seed), make_pruner(tune, direction)
+    return study
 
 
 def _best(study: Any, cfg: DictConfig, location: str) -> dict[str, Any]:
