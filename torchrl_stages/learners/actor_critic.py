@@ -97,6 +97,9 @@ class ActorCriticLearner(Learner):
         }
         self.make_losses()
 
+    def make_losses(self) -> None:
+        self._losses = self.compiled(self._plain_losses)
+
     def make_exploration(self) -> TensorDictModuleBase:
         return self.actor
 

@@ -129,9 +129,9 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
 
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
+        super().validate(checks)
         check_loss_function(checks)
         checks.positive("actor_lr", 1e-3)
-        cls.validate_entropy(checks)
         checks.fraction("target_entropy_weight")
 
     def _plain_losses(self, batch: TensorDictBase):

@@ -35,8 +35,9 @@ class EntropyRegularized:
         log_alpha = per_seed(seed_rows(self.loss.log_alpha), entropy_gap)
         return self.batch_mean(-log_alpha * entropy_gap)
 
-    @staticmethod
-    def validate_entropy(checks: StageChecks) -> None:
+    @classmethod
+    def validate(cls, checks: StageChecks) -> None:
+        super().validate(checks)
         checks.positive("alpha_init", 0.01)
         checks.positive("alpha_lr", 3e-4)
 

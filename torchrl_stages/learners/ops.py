@@ -15,8 +15,7 @@ from torchrl.objectives import SoftUpdate
 
 
 class FusedSoftUpdate(SoftUpdate):
-    """torchrl's ``SoftUpdate`` (``target += tau (online - target)``) as one fused
-    ``torch._foreach_lerp_`` over all parameter pairs.
+    """torchrl's ``SoftUpdate`` as one ``torch._foreach_lerp_`` over all parameter pairs.
 
     Examples:
         >>> from torchrl.modules import QValueActor
@@ -44,10 +43,9 @@ class FusedSoftUpdate(SoftUpdate):
 
 
 class FusedAdam(torch.optim.Adam):
-    """torch's ``Adam(fused=True)`` with :meth:`direct_step`: the same ``torch._fused_adam_``
-    call as ``step``, bit for bit, without its hooks, profiling and grouping (Python that costs
-    more than the kernel on small networks). Its state is ``Adam``'s: checkpoints load into
-    either class.
+    """``Adam(fused=True)`` with :meth:`direct_step`: ``step``'s ``torch._fused_adam_`` call,
+    bit for bit, without the Python around it that costs more than the kernel on small networks.
+    Its state is ``Adam``'s.
 
     Examples:
         >>> net = nn.Linear(3, 1)
@@ -60,9 +58,8 @@ class FusedAdam(torch.optim.Adam):
         super().__init__(params, lr=lr, fused=True, **kwargs)
 
     def _direct(self) -> bool:
-        """Whether :meth:`direct_step` is ``step``'s kernel call: no hooks, fused plain Adam
-        with a float lr, every parameter with a gradient and state, one device and dtype."""
-        # the hook registries are torch's own (private, stable in the pinned torch 2.13)
+        """Whether ``step`` is one kernel call: no hooks, plain fused Adam, float lr, every
+        parameter with a gradient and state, one device and dtype."""
         if self._optimizer_step_pre_hooks or self._optimizer_step_post_hooks:
             return False
         if _global_optimizer_pre_hooks or _global_optimizer_post_hooks:
@@ -114,8 +111,7 @@ class FusedAdam(torch.optim.Adam):
 
 
 def total_grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
-    """``torch.nn.utils.get_total_norm(grads)``, without its grouping of plain tensors on one
-    CPU or CUDA device and dtype."""
+    """``torch.nn.utils.get_total_norm(grads)``, without its grouping for plain tensors."""
     kinds = {(g.device, g.dtype) for g in grads}
     plain = all(type(g) is torch.Tensor and g.device.type in ("cpu", "cuda") for g in grads)
     if len(kinds) != 1 or not plain:
@@ -165,7 +161,10 @@ def distance(pred: torch.Tensor, target: torch.Tensor, loss_function: str) -> to
 
 
 def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tensor) -> list:
-    """``module(*inputs)`` with each parameter set of the stacked ``params`` (twin critics)."""
+    """``module(*inputs)`` with each parameter set of the stacked ``params`` (twin critics),
+    or the one set of unstacked ``params``."""
+    if not params.batch_dims:
+        params = params.unsqueeze(0)
     flat = dict(params.flatten_keys(".").items())
     return [
         functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
@@ -174,18 +173,12 @@ def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tens
 
 
 def taken(values: torch.Tensor, action: torch.Tensor, one_hot: bool, lead: int = 0):
-    """The values (``[..., num_actions]``) of the actions taken (one-hot or indices), ``[..., 1]``;
-    ``lead``: leading dimensions of ``values`` that ``action`` lacks (twin critics)."""
+    """The values (``[..., num_actions]``) of the actions taken, ``[..., 1]``; ``lead``: leading
+    dimensions of ``values`` that ``action`` lacks (twin critics)."""
     if one_hot:
         return (values * action.to(values.dtype)).sum(-1, keepdim=True)
     index = action.reshape(*values.shape[lead:-1], 1).expand(*values.shape[:-1], 1)
     return values.gather(-1, index)
-
-
-def detached_copy(loss: torch.Tensor) -> torch.Tensor:
-    """A copy of ``loss`` that outlives the update: under ``compile=reduce-overhead`` the loss
-    is a CUDA graph's output, which the graph's next replay overwrites."""
-    return loss.detach().clone()
 
 
 def linear_schedule(start: float, end: float, frames: int, horizon: int) -> float:

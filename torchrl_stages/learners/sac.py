@@ -112,7 +112,6 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
         super().validate(checks)
-        cls.validate_entropy(checks)
         checks.positive("value_samples", 16)
 
     def make_actor(self, actor_net: nn.Module, spec: TensorSpec) -> TensorDictModuleBase:
@@ -146,9 +145,6 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         )
         loss.set_keys(action=self.specs.action_key)
         return loss
-
-    def make_losses(self) -> None:
-        self._losses = self.compiled(self._plain_losses)
 
     def _dist(self, out: torch.Tensor) -> TanhNormal:
         """The policy's distribution from the actor network's output."""
