@@ -11,9 +11,8 @@ __all__ = ["value_from_loss"]
 
 
 def value_from_loss(loss: LossModule, *, live: bool = False) -> TensorDictModuleBase:
-    """The frozen ``V(s)`` (``"state_value"``) of stage k+1 from the *target* networks of its
-    torchrl loss (built with ``delay_value``/``delay_actor``/``delay_qvalue``), for
-    ``StageTransform(next_value=...)``; ``live`` reads the targets in place.
+    """The frozen ``V(s)`` (``"state_value"``) of stage k+1 from the target networks of its
+    torchrl loss, for ``StageTransform(next_value=...)``; ``live`` reads the targets in place.
 
     Examples:
         >>> import torch

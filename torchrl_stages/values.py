@@ -1,5 +1,5 @@
-"""State-value adapters: TensorDict modules that write a trained stage's ``V(s)`` as
-``"state_value"`` (``[*batch, 1]``) for the stage before it."""
+"""TensorDict modules that write a trained stage's ``V(s)`` as ``"state_value"``
+(``[*batch, 1]``) for the stage before it."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from torchrl.modules import QValueActor
 
 def with_params(module: nn.Module, params: TensorDictBase, *, live: bool = False) -> nn.Module:
     """A deep copy of ``module`` holding a copy of ``params``; with ``live`` it reads ``params``
-    themselves (no gradients) and follows their in-place updates, e.g. a target updater's."""
+    themselves (no gradients), following their in-place updates."""
     module = copy.deepcopy(module)
     if not live:
         TensorDict.from_module(module).data.update_(params.data)
@@ -26,10 +26,8 @@ def with_params(module: nn.Module, params: TensorDictBase, *, live: bool = False
 
 
 class QMaxValue(TensorDictModuleBase):
-    """``V(s) = max_a Q(s, a)`` of a module writing ``action_value_key`` (DQN).
-
-    On a ``QValueActor`` it calls the Q-network on the input tensors directly: the same values
-    bit for bit, without the TensorDict overhead on every env step that leaves a stage.
+    """``V(s) = max_a Q(s, a)`` of a module writing ``action_value_key`` (DQN); a
+    ``QValueActor``'s network is called on the tensors directly (the same values, faster).
 
     Examples:
         >>> q = TensorDictModule(lambda obs: obs * 2, ["observation"], ["action_value"])
@@ -62,26 +60,15 @@ class QMaxValue(TensorDictModuleBase):
         return tensordict
 
     def _network(self) -> TensorDictModule | None:
-        """A ``QValueActor``'s plain network module, when calling it is all the actor does."""
-        net = self.qvalue_net
-        if not isinstance(net, QValueActor):
-            return None
-        first = net.module[0]
-        if (
-            type(first) is not TensorDictModule
-            or first.method is not None
-            or first.method_kwargs
-            or list(first.out_keys) != [self.action_value_key]
-        ):
-            return None
-        return first
+        """A ``QValueActor``'s network module, when calling it is all the actor does."""
+        first = self.qvalue_net.module[0] if isinstance(self.qvalue_net, QValueActor) else None
+        plain = type(first) is TensorDictModule and first.method is None and not first.method_kwargs
+        return first if plain and list(first.out_keys) == [self.action_value_key] else None
 
 
 class ActorCriticValue(TensorDictModuleBase):
-    """``V(s) = min_i Q_i(s, mu(s))`` over one critic (DDPG) or several (TD3's twins).
-
-    ``actor`` writes the action (no exploration noise) that the ``critics`` read; they write
-    ``value_key``.
+    """``V(s) = min_i Q_i(s, mu(s))`` over one critic (DDPG) or several (TD3's twins); the
+    ``critics`` read the action ``actor`` writes and write ``value_key``.
 
     Examples:
         >>> actor = TensorDictModule(lambda o: -o, ["observation"], ["action"])

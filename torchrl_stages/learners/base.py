@@ -244,10 +244,7 @@ class Learner(nn.Module, ABC):
             self.grad_norms[name] = norm.detach()
         for name in names:
             optimizer = self.optimizers[name]
-            if isinstance(optimizer, FusedAdam):
-                optimizer.direct_step()
-            else:
-                optimizer.step()
+            getattr(optimizer, "direct_step", optimizer.step)()
             optimizer.zero_grad(set_to_none=True)
 
     def _seed_axes_of(self, name: str, params: list[torch.Tensor]) -> list[int]:

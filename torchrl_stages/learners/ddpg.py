@@ -8,27 +8,27 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
+from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticConfig,
     DeterministicActorCriticLearner,
 )
 from torchrl_stages.learners.base import register_algorithm
-from torchrl_stages.learners.ops import distance, td0_target
+from torchrl_stages.learners.ops import td0_target
 
 
 @dataclass
 class DDPGConfig(DeterministicActorCriticConfig):
-    """DDPG stage (continuous, bounded actions): ``DDPGLoss``'s objective with Gaussian
-    exploration."""
+    """DDPG stage (continuous, bounded actions) with Gaussian exploration."""
 
     algo: str = "ddpg"
 
 
 @register_algorithm
 class DDPGLearner(DeterministicActorCriticLearner):
-    """DDPG for one stage: its parameters and targets in torchrl's ``DDPGLoss``, its update on
-    :meth:`_plain_losses`, what that loss computes on plain tensors.
+    """DDPG for one stage: parameters and targets in torchrl's ``DDPGLoss``, the update on
+    plain tensors.
 
     Examples:
         >>> from torchrl.data import Bounded
@@ -54,8 +54,8 @@ class DDPGLearner(DeterministicActorCriticLearner):
         )
 
     def _plain_losses(self, batch: TensorDictBase):
-        """``DDPGLoss`` on plain tensors: the actor's ``-Q(s, mu(s))`` (the critic and a shared
-        encoder detached), the critic's loss, and the saturation penalty."""
+        """``DDPGLoss``: the actor's ``-Q(s, mu(s))`` (critic and shared encoder detached), the
+        critic's loss and the saturation penalty."""
         critic = self.loss.value_network_params
         features = self.features(self.inputs(batch))
         (pred,) = self.critic_values(critic, features, batch.get(self.specs.action_key))
@@ -65,7 +65,7 @@ class DDPGLearner(DeterministicActorCriticLearner):
             targets = self.loss.target_value_network_params
             (next_value,) = self.critic_values(targets, next_features, next_action)
             target = td0_target(batch, next_value, self.cfg.gamma)
-        loss_value = self.batch_mean(distance(pred, target, self.cfg.loss_function))
+        loss_value = self.batch_mean(distance_loss(pred, target, self.cfg.loss_function))
         features = [f.detach() for f in features]
         u = self.actor_head(features)
         (q,) = self.critic_values(critic.detach(), features, self.squash(u))

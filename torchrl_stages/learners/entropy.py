@@ -13,9 +13,8 @@ from torchrl_stages.values import with_params
 
 
 class EntropyRegularized:
-    """A :class:`~torchrl_stages.learners.Learner` mixin: its ``loss`` has a ``log_alpha``
-    (one per seed when stacked) and ``_losses(batch)`` returns the actor's, the critics' and
-    ``alpha``'s losses, stepped together (their gradients do not overlap)."""
+    """A :class:`~torchrl_stages.learners.Learner` mixin: ``loss.log_alpha`` (one per seed) and
+    ``_losses(batch)``, the actor's, critics' and alpha's losses, stepped together."""
 
     lr_keys = ("lr", "actor_lr", "alpha_lr")
 
@@ -58,9 +57,8 @@ class EntropyRegularized:
 
 
 def soft_value(module: type[nn.Module], loss, actor, critic, critics, live: bool, *args):
-    """``module`` (a soft value) as a ``TensorDictModule`` over ``actor``'s observations, with
-    ``loss``'s actor parameters, the stacked ``critics`` of ``critic`` and its ``log_alpha``
-    (read in place with ``live``, else copies)."""
+    """``module`` (a soft value) of ``loss``'s actor, the ``critics`` parameters of ``critic``
+    and ``log_alpha`` (read in place with ``live``, else copies) as a ``TensorDictModule``."""
     network = actor[0]
     params = loss.actor_network_params["module", "0", "module"]
     value = module(

@@ -6,7 +6,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDictBase
 from torch import nn
 from torch.func import functional_call
@@ -31,21 +30,15 @@ class FusedSoftUpdate(SoftUpdate):
         if self._pairs is None:
             if not self.initialized:
                 self.init_()
-            sources, targets = [], []
-            for key, params in self._sources.items():
-                target = self._targets.get(f"target_{key}")
-                for name, value in params.items(True, True):
-                    sources.append(value.data)
-                    targets.append(target.get(name).data)
-            self._pairs = (sources, targets)
+            sources = [p.data for p in self._sources.values(True, True)]
+            self._pairs = (sources, [p.data for p in self._targets.values(True, True)])
         sources, targets = self._pairs
         torch._foreach_lerp_(targets, sources, 1.0 - float(self.eps))
 
 
 class FusedAdam(torch.optim.Adam):
     """``Adam(fused=True)`` with :meth:`direct_step`: ``step``'s ``torch._fused_adam_`` call,
-    bit for bit, without the Python around it that costs more than the kernel on small networks.
-    Its state is ``Adam``'s.
+    bit for bit, without the Python around it (which costs more than the kernel on small nets).
 
     Examples:
         >>> net = nn.Linear(3, 1)
@@ -149,15 +142,6 @@ def td0_target(batch: TensorDictBase, next_value: torch.Tensor, gamma: float) ->
     discount = gamma if steps is None else gamma ** steps.view_as(reward)
     alive = (~next_td.get("terminated")).to(reward.dtype)
     return reward + discount * alive * next_value
-
-
-def distance(pred: torch.Tensor, target: torch.Tensor, loss_function: str) -> torch.Tensor:
-    """torchrl's ``distance_loss`` (l1, l2 or smooth_l1), elementwise."""
-    if loss_function == "l2":
-        return (pred - target).pow(2)
-    if loss_function == "l1":
-        return (pred - target).abs()
-    return F.smooth_l1_loss(pred, target, reduction="none")
 
 
 def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tensor) -> list:

@@ -127,15 +127,7 @@ def _setting(var: ContextVar, value) -> Iterator[None]:
 
 
 def stacked_networks(num_seeds: int | None) -> AbstractContextManager[None]:
-    """Networks built inside are stacked for ``num_seeds`` seeds (``None``: not stacked).
-
-    Examples:
-        >>> from torchrl_stages.learners.networks import mlp
-        >>> with stacked_networks(3):
-        ...     net = mlp(4, 2, [8])
-        >>> net(torch.zeros(3 * 7, 4)).shape, type(net[0]).__name__
-        (torch.Size([21, 2]), 'StackedLinear')
-    """
+    """Networks built inside are stacked for ``num_seeds`` seeds (``None``: not stacked)."""
     return _setting(_SEEDS, num_seeds)
 
 
@@ -145,15 +137,7 @@ def current_rows() -> torch.Tensor | None:
 
 def update_rows(rows: torch.Tensor | None) -> AbstractContextManager[None]:
     """Inside, stacked layers compute only the seeds ``rows`` (``None``: all), the others'
-    gradients zero (a stage updates only its seeds that have not stopped).
-
-    Examples:
-        >>> layer = StackedLinear(nn.Linear(3, 2), num_seeds=4)
-        >>> with update_rows(torch.tensor([1, 3])):
-        ...     layer(torch.randn(2, 5, 3)).sum().backward()
-        >>> layer.weight.grad[[0, 2]].abs().sum().item()
-        0.0
-    """
+    gradients zero (a stage updates only its seeds that have not stopped)."""
     return _setting(_ROWS, rows)
 
 
@@ -206,17 +190,7 @@ def stack_for_seeds(module: nn.Module) -> nn.Module:
 
 def seed_axes(learner: Learner) -> dict[str, int | None]:
     """The seeds' axis of each ``state_dict`` entry of a seed-stacked ``learner`` (``None``:
-    shared), read off twins built for 1 and 2 seeds.
-
-    Examples:
-        >>> from torchrl.data import Bounded
-        >>> from torchrl_stages.learners import StageSpecs, make_learner
-        >>> from torchrl_stages.learners.td3 import TD3Config
-        >>> specs = StageSpecs(["observation"], 3, "action", Bounded(-1, 1, (2,)))
-        >>> axes = seed_axes(make_learner(TD3Config(num_cells=[8]), specs, seeds=3))
-        >>> axes["critic.module.0.weight"], axes["loss.qvalue_network_params.module.0.weight"]
-        (0, 1)
-    """
+    shared), read off twins built for 1 and 2 seeds."""
     cached = learner.__dict__.get("_seed_axes")
     if cached is not None:
         return cached
