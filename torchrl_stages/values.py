@@ -37,17 +37,12 @@ class QMaxValue(TensorDictModuleBase):
     """
 
     def __init__(
-        self,
-        qvalue_net: TensorDictModuleBase,
-        *,
-        action_value_key: NestedKey = "action_value",
-        out_key: NestedKey = "state_value",
+        self, qvalue_net: TensorDictModuleBase, *, action_value_key: NestedKey = "action_value"
     ) -> None:
         super().__init__()
         self.qvalue_net = qvalue_net
         self.action_value_key = action_value_key
-        self.in_keys = list(qvalue_net.in_keys)
-        self.out_keys = [out_key]
+        self.in_keys, self.out_keys = list(qvalue_net.in_keys), ["state_value"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         network = self._network()
@@ -56,7 +51,7 @@ class QMaxValue(TensorDictModuleBase):
         else:
             td = self.qvalue_net(tensordict.select(*self.in_keys).clone(False))
             q = td.get(self.action_value_key)
-        tensordict.set(self.out_keys[0], q.max(-1, keepdim=True).values)
+        tensordict.set("state_value", q.max(-1, keepdim=True).values)
         return tensordict
 
     def _network(self) -> TensorDictModule | None:
@@ -68,7 +63,7 @@ class QMaxValue(TensorDictModuleBase):
 
 class ActorCriticValue(TensorDictModuleBase):
     """``V(s) = min_i Q_i(s, mu(s))`` over one critic (DDPG) or several (TD3's twins); the
-    ``critics`` read the action ``actor`` writes and write ``value_key``.
+    ``critics`` read the action ``actor`` writes and write ``"state_action_value"``.
 
     Examples:
         >>> actor = TensorDictModule(lambda o: -o, ["observation"], ["action"])
@@ -80,25 +75,18 @@ class ActorCriticValue(TensorDictModuleBase):
     """
 
     def __init__(
-        self,
-        actor: TensorDictModuleBase,
-        critics: Sequence[TensorDictModuleBase],
-        *,
-        value_key: NestedKey = "state_action_value",
-        out_key: NestedKey = "state_value",
+        self, actor: TensorDictModuleBase, critics: Sequence[TensorDictModuleBase]
     ) -> None:
         super().__init__()
         if not critics:
             raise ValueError("ActorCriticValue needs at least one critic.")
-        self.actor = actor
-        self.critics = nn.ModuleList(critics)
-        self.value_key = value_key
+        self.actor, self.critics = actor, nn.ModuleList(critics)
         critic_keys = [k for c in critics for k in c.in_keys if k not in actor.out_keys]
         self.in_keys = list(dict.fromkeys([*actor.in_keys, *critic_keys]))
-        self.out_keys = [out_key]
+        self.out_keys = ["state_value"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         td = self.actor(tensordict.select(*self.in_keys).clone(False))
-        values = [critic(td.clone(False)).get(self.value_key) for critic in self.critics]
-        tensordict.set(self.out_keys[0], torch.stack(values).amin(0))
+        values = [critic(td.clone(False)).get("state_action_value") for critic in self.critics]
+        tensordict.set("state_value", torch.stack(values).amin(0))
         return tensordict

@@ -1,5 +1,6 @@
-"""What the actor-critic learners (DDPG, TD3, SAC) share: an actor, ``Q(s, a)`` critics in the
-torchrl loss module and optionally one input encoder for both."""
+"""What the actor-critic learners share: an actor, ``Q(s, a)`` critics in the torchrl loss
+module, optionally one input encoder for both (DDPG, TD3, SAC), a learned entropy coefficient
+(SAC, discrete SAC)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from torchrl_stages.config import StageChecks, StageConfig
 from torchrl_stages.learners.base import Learner, StageSpecs, check_loss_function
 from torchrl_stages.learners.networks import SharedEncoderCritic
 from torchrl_stages.learners.ops import FusedSoftUpdate, linear_schedule, stacked_calls
+from torchrl_stages.learners.stacking import per_seed, seed_rows
 from torchrl_stages.values import ActorCriticValue, with_params
 
 SATURATION = 2.0  # pre-tanh magnitude beyond which `saturation_penalty` applies (tanh(2) = 0.96)
@@ -225,3 +227,62 @@ def _value(loss, actor, critic, critics: TensorDictBase, live: bool) -> ActorCri
         with_params(actor, loss.target_actor_network_params, live=live),
         [with_params(critic, params, live=live) for params in rows],
     )
+
+
+class EntropyRegularized:
+    """A :class:`~torchrl_stages.learners.Learner` mixin: ``loss.log_alpha`` (one per seed) and
+    ``_losses(batch)``, the actor's, critics' and alpha's losses, stepped together."""
+
+    lr_keys = ("lr", "actor_lr", "alpha_lr")
+
+    def stack_alpha(self) -> None:
+        """Gives a seed-stacked learner one ``log_alpha`` per seed (``[N]``)."""
+        if self.seeds is not None:
+            log_alpha = self.loss.log_alpha.detach()
+            self.loss.log_alpha = nn.Parameter(log_alpha.expand(self.seeds).clone())
+
+    def alpha(self, like: torch.Tensor) -> torch.Tensor:
+        """The entropy coefficient, detached, shaped to broadcast against ``like``."""
+        return per_seed(seed_rows(self.loss.log_alpha).detach().exp(), like)
+
+    def alpha_loss(self, log_prob: torch.Tensor) -> torch.Tensor:
+        """``-log_alpha (log pi + target_entropy)`` over the batch."""
+        entropy_gap = log_prob.detach() + self.loss.target_entropy
+        log_alpha = per_seed(seed_rows(self.loss.log_alpha), entropy_gap)
+        return self.batch_mean(-log_alpha * entropy_gap)
+
+    @classmethod
+    def validate(cls, checks: StageChecks) -> None:
+        super().validate(checks)
+        checks.positive("alpha_init", 0.01)
+        checks.positive("alpha_lr", 3e-4)
+
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        loss_actor, loss_q, loss_alpha = self._losses(batch)
+        losses = {"loss_actor": loss_actor, "loss_qvalue": loss_q, "loss_alpha": loss_alpha}
+        out = self._apply(losses, loss_actor + loss_q + loss_alpha)
+        self.num_updates += 1
+        return {
+            **out,
+            "alpha": seed_rows(self.loss.log_alpha).detach().exp().clone(),
+            "grad_norm_actor": self.grad_norms["actor"],
+            "grad_norm_critic": self.grad_norms["critic"],
+        }
+
+    def anneal_exploration(self, frames: int) -> None:
+        """Nothing to anneal: the entropy coefficient is learned."""
+
+
+def soft_value(module: type[nn.Module], loss, actor, critic, critics, live: bool, *args):
+    """``module`` (a soft value) of ``loss``'s actor, the ``critics`` parameters of ``critic``
+    and ``log_alpha`` (read in place with ``live``, else copies) as a ``TensorDictModule``."""
+    network = actor[0]
+    params = loss.actor_network_params["module", "0", "module"]
+    value = module(
+        with_params(network.module, params, live=live),
+        critic,
+        critics if live else critics.detach().clone(),
+        loss.log_alpha if live else loss.log_alpha.detach().clone(),
+        *args,
+    )
+    return TensorDictModule(value, in_keys=list(network.in_keys), out_keys=["state_value"])

@@ -14,13 +14,13 @@ from torchrl.objectives import DiscreteSACLoss, ValueEstimators
 from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config import StageChecks, StageConfig
+from torchrl_stages.learners.actor_critic import EntropyRegularized, soft_value
 from torchrl_stages.learners.base import (
     Learner,
     StageSpecs,
     check_loss_function,
     register_algorithm,
 )
-from torchrl_stages.learners.entropy import EntropyRegularized, soft_value
 from torchrl_stages.learners.ops import FusedSoftUpdate, stacked_calls, taken, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 

@@ -15,9 +15,13 @@ from torchrl.objectives import SACLoss
 from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config import StageChecks
-from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
+from torchrl_stages.learners.actor_critic import (
+    ActorCriticConfig,
+    ActorCriticLearner,
+    EntropyRegularized,
+    soft_value,
+)
 from torchrl_stages.learners.base import register_algorithm
-from torchrl_stages.learners.entropy import EntropyRegularized, soft_value
 from torchrl_stages.learners.networks import Chain
 from torchrl_stages.learners.ops import stacked_calls, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
