@@ -11,20 +11,17 @@ __all__ = ["value_from_loss"]
 
 
 def value_from_loss(loss: LossModule, *, live: bool = False) -> TensorDictModuleBase:
-    """The frozen ``V(s)`` (``"state_value"``) of stage k+1 from the *target* networks of its
-    torchrl loss (built with ``delay_value``/``delay_actor``/``delay_qvalue``), for
-    ``StageTransform(next_value=...)``; ``live`` reads the targets in place.
+    """The frozen ``V(s)`` (``"state_value"``) of stage k+1 from the target networks of its
+    torchrl loss, for ``StageTransform(next_value=...)``; ``live`` reads the targets in place.
 
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from torchrl.data import Categorical
-        >>> from torchrl.modules import MLP, QValueActor
+        >>> from torchrl.modules import QValueActor
         >>> from torchrl.objectives import DQNLoss, SoftUpdate
-        >>> qnet = QValueActor(MLP(in_features=2, out_features=3, num_cells=[16]),
-        ...                    in_keys=["observation"], spec=Categorical(3))
+        >>> qnet = QValueActor(torch.nn.Linear(2, 3), action_space="categorical")
         >>> loss = DQNLoss(qnet, action_space="categorical", delay_value=True)
-        >>> updater = SoftUpdate(loss, tau=0.05)
+        >>> updater = SoftUpdate(loss, tau=0.05)  # the target networks' updater
         >>> value = value_from_loss(loss)
         >>> value(TensorDict(observation=torch.zeros(5, 2), batch_size=[5]))["state_value"].shape
         torch.Size([5, 1])

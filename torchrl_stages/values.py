@@ -1,5 +1,5 @@
-"""State-value adapters: TensorDict modules that write a trained stage's ``V(s)`` as
-``"state_value"`` (``[*batch, 1]``) for the stage before it."""
+"""TensorDict modules that write a trained stage's ``V(s)`` as ``"state_value"``
+(``[*batch, 1]``) for the stage before it."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from torchrl.modules import QValueActor
 
 def with_params(module: nn.Module, params: TensorDictBase, *, live: bool = False) -> nn.Module:
     """A deep copy of ``module`` holding a copy of ``params``; with ``live`` it reads ``params``
-    themselves (no gradients) and follows their in-place updates, e.g. a target updater's."""
+    themselves (no gradients), following their in-place updates."""
     module = copy.deepcopy(module)
     if not live:
         TensorDict.from_module(module).data.update_(params.data)
@@ -26,10 +26,8 @@ def with_params(module: nn.Module, params: TensorDictBase, *, live: bool = False
 
 
 class QMaxValue(TensorDictModuleBase):
-    """``V(s) = max_a Q(s, a)`` of a module writing ``action_value_key`` (DQN).
-
-    On a ``QValueActor`` it calls the Q-network on the input tensors directly: the same values
-    bit for bit, without the TensorDict overhead on every env step that leaves a stage.
+    """``V(s) = max_a Q(s, a)`` of a module writing ``action_value_key`` (DQN); a
+    ``QValueActor``'s network is called on the tensors directly (the same values, faster).
 
     Examples:
         >>> q = TensorDictModule(lambda obs: obs * 2, ["observation"], ["action_value"])
@@ -39,17 +37,12 @@ class QMaxValue(TensorDictModuleBase):
     """
 
     def __init__(
-        self,
-        qvalue_net: TensorDictModuleBase,
-        *,
-        action_value_key: NestedKey = "action_value",
-        out_key: NestedKey = "state_value",
+        self, qvalue_net: TensorDictModuleBase, *, action_value_key: NestedKey = "action_value"
     ) -> None:
         super().__init__()
         self.qvalue_net = qvalue_net
         self.action_value_key = action_value_key
-        self.in_keys = list(qvalue_net.in_keys)
-        self.out_keys = [out_key]
+        self.in_keys, self.out_keys = list(qvalue_net.in_keys), ["state_value"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         network = self._network()
@@ -58,30 +51,19 @@ class QMaxValue(TensorDictModuleBase):
         else:
             td = self.qvalue_net(tensordict.select(*self.in_keys).clone(False))
             q = td.get(self.action_value_key)
-        tensordict.set(self.out_keys[0], q.max(-1, keepdim=True).values)
+        tensordict.set("state_value", q.max(-1, keepdim=True).values)
         return tensordict
 
     def _network(self) -> TensorDictModule | None:
-        """A ``QValueActor``'s plain network module, when calling it is all the actor does."""
-        net = self.qvalue_net
-        if not isinstance(net, QValueActor):
-            return None
-        first = net.module[0]
-        if (
-            type(first) is not TensorDictModule
-            or first.method is not None
-            or first.method_kwargs
-            or list(first.out_keys) != [self.action_value_key]
-        ):
-            return None
-        return first
+        """A ``QValueActor``'s network module, when calling it is all the actor does."""
+        first = self.qvalue_net.module[0] if isinstance(self.qvalue_net, QValueActor) else None
+        plain = type(first) is TensorDictModule and first.method is None and not first.method_kwargs
+        return first if plain and list(first.out_keys) == [self.action_value_key] else None
 
 
 class ActorCriticValue(TensorDictModuleBase):
-    """``V(s) = min_i Q_i(s, mu(s))`` over one critic (DDPG) or several (TD3's twins).
-
-    ``actor`` writes the action (no exploration noise) that the ``critics`` read; they write
-    ``value_key``.
+    """``V(s) = min_i Q_i(s, mu(s))`` over one critic (DDPG) or several (TD3's twins); the
+    ``critics`` read the action ``actor`` writes and write ``"state_action_value"``.
 
     Examples:
         >>> actor = TensorDictModule(lambda o: -o, ["observation"], ["action"])
@@ -93,25 +75,18 @@ class ActorCriticValue(TensorDictModuleBase):
     """
 
     def __init__(
-        self,
-        actor: TensorDictModuleBase,
-        critics: Sequence[TensorDictModuleBase],
-        *,
-        value_key: NestedKey = "state_action_value",
-        out_key: NestedKey = "state_value",
+        self, actor: TensorDictModuleBase, critics: Sequence[TensorDictModuleBase]
     ) -> None:
         super().__init__()
         if not critics:
             raise ValueError("ActorCriticValue needs at least one critic.")
-        self.actor = actor
-        self.critics = nn.ModuleList(critics)
-        self.value_key = value_key
+        self.actor, self.critics = actor, nn.ModuleList(critics)
         critic_keys = [k for c in critics for k in c.in_keys if k not in actor.out_keys]
         self.in_keys = list(dict.fromkeys([*actor.in_keys, *critic_keys]))
-        self.out_keys = [out_key]
+        self.out_keys = ["state_value"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         td = self.actor(tensordict.select(*self.in_keys).clone(False))
-        values = [critic(td.clone(False)).get(self.value_key) for critic in self.critics]
-        tensordict.set(self.out_keys[0], torch.stack(values).amin(0))
+        values = [critic(td.clone(False)).get("state_action_value") for critic in self.critics]
+        tensordict.set("state_value", torch.stack(values).amin(0))
         return tensordict

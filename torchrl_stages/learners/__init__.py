@@ -1,5 +1,5 @@
-"""Per-stage learners: one module per algorithm, each registering itself in :data:`ALGORITHMS`
-on import; a learner class of your own trains a stage through ``learner._target_``."""
+"""Per-stage learners: one module per algorithm, each registering itself in :data:`ALGORITHMS`;
+a learner class of your own trains a stage through ``learner._target_``."""
 
 import contextlib
 import importlib
@@ -20,13 +20,12 @@ for _module in pkgutil.iter_modules(__path__):  # each algorithm module register
 
 
 def _field(cfg: Any, name: str) -> Any:
-    """A key of a stage config: a mapping (``DictConfig``, dict) or its dataclass."""
+    """A key of a stage config, a mapping or a dataclass."""
     return cfg.get(name) if isinstance(cfg, Mapping) else getattr(cfg, name, None)
 
 
 def learner_class(cfg: Any) -> type[Learner]:
-    """The class ``cfg.learner._target_`` names (a learner of your own), else the registered
-    algorithm ``cfg.algo``.
+    """The class ``cfg.learner._target_`` names, else the registered algorithm ``cfg.algo``.
 
     Examples:
         >>> learner_class({"algo": "dqn"}).algo
@@ -71,8 +70,8 @@ def make_learner(
     seeds: int | None = None,
 ) -> Learner:
     """The learner of stage config ``cfg`` (a ``learner`` node's other keys are its keyword
-    arguments), its tensors on ``device``; ``compile``: the ``torch.compile`` mode of its
-    losses; ``seeds``: that many seeds stacked in one learner (:mod:`.stacking`)."""
+    arguments); ``compile``: the ``torch.compile`` mode of its losses; ``seeds``: that many
+    seeds stacked in one learner (:mod:`.stacking`)."""
     cls = learner_class(cfg)
     if seeds is not None and not cls.stacks_seeds:
         stacked = ", ".join(n for n, c in ALGORITHMS.items() if c.stacks_seeds)

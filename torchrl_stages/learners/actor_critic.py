@@ -1,5 +1,6 @@
-"""What the actor-critic learners (DDPG, TD3, SAC) share: an actor, ``Q(s, a)`` critics kept
-by the torchrl loss module, optionally one input encoder for both, optimizers and targets."""
+"""What the actor-critic learners share: an actor, ``Q(s, a)`` critics in the torchrl loss
+module, optionally one input encoder for both (DDPG, TD3, SAC), a learned entropy coefficient
+(SAC, discrete SAC)."""
 
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from torchrl_stages.learners.base import (
 )
 from torchrl_stages.learners.networks import SharedEncoderCritic
 from torchrl_stages.learners.ops import FusedSoftUpdate, linear_schedule, stacked_calls
+from torchrl_stages.learners.stacking import per_seed, seed_rows
 from torchrl_stages.values import ActorCriticValue, with_params
 
 SATURATION = 2.0  # pre-tanh magnitude beyond which `saturation_penalty` applies (tanh(2) = 0.96)
@@ -56,16 +58,12 @@ class DeterministicActorCriticConfig(ActorCriticConfig):
 
 
 class ActorCriticLearner(Learner):
-    """An actor and ``Q(s, a)`` critics, the parameters in the torchrl loss module.
-
-    Subclasses build the policy around the actor network (``make_actor(net, spec)``), the loss
-    module (``make_loss(cfg, spec)``) and the update's loss functions (``make_losses()``).
-    """
+    """An actor and ``Q(s, a)`` critics, the parameters in the torchrl loss module: subclasses
+    implement ``make_actor(net, spec)``, ``make_loss(cfg, spec)`` and ``_plain_losses(batch)``."""
 
     action_spaces = ("continuous",)
     lr_keys = ("lr", "actor_lr")
-    #: where the actor network's parameters sit in the loss module's actor parameters
-    ACTOR_PATH: tuple[str, ...] = ("module", "0", "module")
+    ACTOR_PATH: tuple[str, ...] = ("module", "0", "module")  #: the actor network in the loss
     CRITIC = "qvalue_network"  #: the loss module's name of its critic (twin critics)
     ACTOR_OUTPUTS = 1  #: the actor network's outputs per action dimension
 
@@ -74,7 +72,9 @@ class ActorCriticLearner(Learner):
         spec = specs.action_spec
         action_dim = spec.shape[-1]
         actor_net = self.network(self.ACTOR_OUTPUTS * action_dim)
-        self.__dict__["_actor_net"] = actor_net  # a sub-module of self.actor, not a second one
+        # the actor network: observation tensors in, e.g. the pre-tanh action out (a
+        # sub-module of self.actor, not a second one)
+        self.__dict__["actor_module"] = actor_net
         self.actor = self.make_actor(actor_net, spec)
         self.shared_encoder = bool(cfg.shared_encoder) and hasattr(actor_net, "encoder")
         self.critic = ValueOperator(
@@ -103,6 +103,9 @@ class ActorCriticLearner(Learner):
         }
         self.make_losses()
 
+    def make_losses(self) -> None:
+        self._losses = self.compiled(self._plain_losses)
+
     def make_exploration(self) -> TensorDictModuleBase:
         return self.actor
 
@@ -112,17 +115,12 @@ class ActorCriticLearner(Learner):
         checks.positive("actor_lr", 1e-3)
 
     @property
-    def actor_module(self) -> nn.Module:
-        """The actor network: observation tensors in, e.g. the pre-tanh action out."""
-        return self._actor_net
-
-    @property
     def critic_module(self) -> nn.Module:
         """The critic network: observation and action tensors in, ``Q(s, a)`` out."""
         return self.critic.module
 
     def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """The (actor, critic) optimizers' parameters: a shared encoder goes to the critic's."""
+        """The (actor, critic) optimizers' parameters; a shared encoder is the critic's."""
         actor = self.loss.actor_network_params.flatten_keys(".")
         critic = getattr(self.loss, f"{self.CRITIC}_params").flatten_keys(".")
         if not self.shared_encoder:
@@ -143,8 +141,7 @@ class ActorCriticLearner(Learner):
         return out
 
     def features(self, obs: list[torch.Tensor], target: bool = False) -> list[torch.Tensor]:
-        """What the actor and critic heads read: the shared encoder's features of ``obs`` (the
-        target actor's encoder with ``target``), else ``obs`` themselves."""
+        """The shared encoder's features of ``obs`` (the target's with ``target``), else ``obs``."""
         if not self.shared_encoder:
             return obs
         return [(self._target_actor if target else self.actor_module).encoder(*obs)]
@@ -155,7 +152,7 @@ class ActorCriticLearner(Learner):
         return (net.body if self.shared_encoder else net)(*features)
 
     def critic_values(self, params: TensorDictBase, features, action) -> list[torch.Tensor]:
-        """``Q_i(s, a)`` of each critic of the stacked loss ``params`` on :meth:`features`."""
+        """``Q_i(s, a)`` of each critic of the loss ``params`` on :meth:`features`."""
         inputs = (*features, action)
         if self.shared_encoder:
             body = self.critic_module.body
@@ -164,8 +161,8 @@ class ActorCriticLearner(Learner):
 
 
 class DeterministicActorCriticLearner(ActorCriticLearner):
-    """A tanh actor into the action bounds with Gaussian exploration noise, and the saturation
-    penalty that keeps it out of the tanh's flat ends (DDPG, TD3)."""
+    """A tanh actor into the action bounds with Gaussian exploration noise and a penalty on
+    tanh saturation (DDPG, TD3)."""
 
     def __init__(
         self, cfg: DeterministicActorCriticConfig, specs: StageSpecs, *, compile: str = "off"
@@ -199,7 +196,7 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
             checks.non_negative(field)
 
     def squash(self, u: torch.Tensor) -> torch.Tensor:
-        """The actor's tanh into the action bounds (what its ``TanhModule`` does)."""
+        """The actor's ``TanhModule``: tanh into the action bounds."""
         low, high, scaled = self._bounds
         action = u.tanh()
         return low + (high - low) * (action + 1) / 2 if scaled else action
@@ -229,10 +226,69 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
 
 
 def _value(loss, actor, critic, critics: TensorDictBase, live: bool) -> ActorCriticValue:
-    """:class:`ActorCriticValue` of ``actor`` and ``critic`` with the target parameters, one
-    critic per row of ``critics`` (stacked twins) or one."""
+    """:class:`ActorCriticValue` with the target parameters, a critic per row of stacked
+    ``critics``."""
     rows = [critics[i] for i in range(critics.shape[0])] if critics.batch_dims else [critics]
     return ActorCriticValue(
         with_params(actor, loss.target_actor_network_params, live=live),
         [with_params(critic, params, live=live) for params in rows],
     )
+
+
+class EntropyRegularized:
+    """A :class:`~torchrl_stages.learners.Learner` mixin: ``loss.log_alpha`` (one per seed) and
+    ``_losses(batch)``, the actor's, critics' and alpha's losses, stepped together."""
+
+    lr_keys = ("lr", "actor_lr", "alpha_lr")
+
+    def stack_alpha(self) -> None:
+        """Gives a seed-stacked learner one ``log_alpha`` per seed (``[N]``)."""
+        if self.seeds is not None:
+            log_alpha = self.loss.log_alpha.detach()
+            self.loss.log_alpha = nn.Parameter(log_alpha.expand(self.seeds).clone())
+
+    def alpha(self, like: torch.Tensor) -> torch.Tensor:
+        """The entropy coefficient, detached, shaped to broadcast against ``like``."""
+        return per_seed(seed_rows(self.loss.log_alpha).detach().exp(), like)
+
+    def alpha_loss(self, log_prob: torch.Tensor) -> torch.Tensor:
+        """``-log_alpha (log pi + target_entropy)`` over the batch."""
+        entropy_gap = log_prob.detach() + self.loss.target_entropy
+        log_alpha = per_seed(seed_rows(self.loss.log_alpha), entropy_gap)
+        return self.batch_mean(-log_alpha * entropy_gap)
+
+    @classmethod
+    def validate(cls, checks: StageChecks) -> None:
+        super().validate(checks)
+        checks.positive("alpha_init", 0.01)
+        checks.positive("alpha_lr", 3e-4)
+
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        loss_actor, loss_q, loss_alpha = self._losses(batch)
+        losses = {"loss_actor": loss_actor, "loss_qvalue": loss_q, "loss_alpha": loss_alpha}
+        out = self._apply(losses, loss_actor + loss_q + loss_alpha)
+        self.num_updates += 1
+        return {
+            **out,
+            "alpha": seed_rows(self.loss.log_alpha).detach().exp().clone(),
+            "grad_norm_actor": self.grad_norms["actor"],
+            "grad_norm_critic": self.grad_norms["critic"],
+        }
+
+    def anneal_exploration(self, frames: int) -> None:
+        """Nothing to anneal: the entropy coefficient is learned."""
+
+
+def soft_value(module: type[nn.Module], loss, actor, critic, critics, live: bool, *args):
+    """``module`` (a soft value) of ``loss``'s actor, the ``critics`` parameters of ``critic``
+    and ``log_alpha`` (read in place with ``live``, else copies) as a ``TensorDictModule``."""
+    network = actor[0]
+    params = loss.actor_network_params["module", "0", "module"]
+    value = module(
+        with_params(network.module, params, live=live),
+        critic,
+        critics if live else critics.detach().clone(),
+        loss.log_alpha if live else loss.log_alpha.detach().clone(),
+        *args,
+    )
+    return TensorDictModule(value, in_keys=list(network.in_keys), out_keys=["state_value"])

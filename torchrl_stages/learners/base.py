@@ -18,7 +18,6 @@ from torchrl_stages.learners.networks import ConvSpec, mlp
 from torchrl_stages.learners.ops import (
     FusedAdam,
     clip_seed_grads,
-    detached_copy,
     linear_schedule,
     seed_grad_norms,
     total_grad_norm,
@@ -28,11 +27,9 @@ from torchrl_stages.learners.stacking import current_rows, current_seeds, seed_a
 
 @dataclass
 class StageSpecs:
-    """The slice of an env a stage learner is built from.
-
-    ``observation_dim`` is the summed size of the vector entries; ``observation_shapes`` the
-    unbatched shape of each entry, ``(d,)`` or ``(C, H, W)`` for images (``None``: all vectors).
-    """
+    """The slice of an env a stage learner is built from: ``observation_dim`` sums the vector
+    entries; ``observation_shapes`` holds each entry's ``(d,)`` or ``(C, H, W)`` (``None``: all
+    vectors)."""
 
     observation_keys: list[NestedKey]
     observation_dim: int
@@ -42,14 +39,13 @@ class StageSpecs:
 
     @property
     def input_shapes(self) -> list[tuple[int, ...]]:
-        """The shapes network builders take (one flat vector unless shapes are given)."""
         if self.observation_shapes is None:
             return [(self.observation_dim,)]
         return [tuple(s) for s in self.observation_shapes]
 
 
 class NonFiniteError(FloatingPointError):
-    """A learner's loss, gradient or parameter is NaN or infinite (the stage diverged)."""
+    """A loss, gradient or parameter is NaN or infinite (the stage diverged)."""
 
     def __init__(self, what: str, update: int) -> None:
         super().__init__(f"{what} is not finite at update {update}")
@@ -68,14 +64,12 @@ def check_loss_function(checks: StageChecks) -> None:
     )
 
 
-#: every algorithm by its name in configs (``algo: <name>``), filled by :func:`register_algorithm`
+#: every algorithm by its name in configs, filled by :func:`register_algorithm`
 ALGORITHMS: dict[str, type[Learner]] = {}
 
 
 def register_algorithm(cls: type[Learner]) -> type[Learner]:
-    """Class decorator: makes a :class:`Learner` subclass the algorithm ``cls.algo`` of the
-    CLI (``algo@task.stages.<stage>=<name>``), the config store and validation; its
-    :attr:`Learner.Config` is the schema of its stages' keys."""
+    """Class decorator: makes ``cls`` the algorithm ``cls.algo`` of configs and the CLI."""
     name = cls.algo
     if not name or not isinstance(cls.Config, type) or cls.Config.algo != name:
         raise TypeError(
@@ -88,34 +82,23 @@ def register_algorithm(cls: type[Learner]) -> type[Learner]:
     return cls
 
 
-def action_space_kind(spec: TensorSpec) -> str:
-    """``"discrete"``, ``"continuous"`` (bounded float) or the spec's class name."""
-    if isinstance(spec, (Categorical, OneHot)):
-        return "discrete"
-    if isinstance(spec, Bounded) and spec.dtype.is_floating_point:
-        return "continuous"
-    return type(spec).__name__
-
-
 class Learner(nn.Module, ABC):
     """One stage's algorithm: networks, exploration, loss, optimizers and target updater.
 
-    A subclass sets the class attributes below, builds its networks from a
-    :class:`~torchrl_stages.config.StageConfig` and :class:`StageSpecs`, sets ``policy``
-    (greedy), ``exploration_policy`` (what the collector runs) and ``optimizers`` (saved with
-    checkpoints), and implements :meth:`update`, :meth:`anneal_exploration` and :meth:`value`.
+    A subclass sets the class attributes below and ``policy`` (greedy), ``exploration_policy``
+    and ``optimizers`` (saved with checkpoints); it implements :meth:`update`,
+    :meth:`anneal_exploration` and :meth:`value`.
     """
 
     algo: str = ""  #: the algorithm's name in configs
     Config: type[StageConfig] = StageConfig  #: the schema of its stages' keys
-    action_spaces: tuple[str, ...] = ()  #: the kinds it acts in (:func:`action_space_kind`)
+    action_spaces: tuple[str, ...] = ()  #: "discrete" and/or "continuous"
     lr_keys: tuple[str, ...] = ("lr",)  #: what a diverged stage's message suggests lowering
     torchrl_loss: type | None = None  #: the loss module :meth:`value_from_loss` reads
-    #: whether :meth:`update` draws from torch's global generator; if not, the stage loop
-    #: samples all of a batch's minibatches in one draw
+    #: whether :meth:`update` draws from torch's global generator (else the stage loop
+    #: samples all of a batch's minibatches in one draw)
     update_draws_random: bool = False
-    #: whether it trains seed-stacked: networks from :mod:`.networks`, losses :meth:`batch_mean`
-    stacks_seeds: bool = False
+    stacks_seeds: bool = False  #: networks from :mod:`.networks`, losses :meth:`batch_mean`
 
     def __init__(self, cfg: StageConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__()
@@ -138,7 +121,7 @@ class Learner(nn.Module, ABC):
 
     @property
     def replay_keys(self) -> list[NestedKey]:
-        """The entries of a transition its update reads, what a stage's replay buffer keeps."""
+        """The entries of a transition its update reads (what the replay buffer keeps)."""
         obs = list(self.specs.observation_keys)
         following = [("next", k) if isinstance(k, str) else ("next", *k) for k in obs]
         done = [("next", "reward"), ("next", "done"), ("next", "terminated")]
@@ -149,8 +132,8 @@ class Learner(nn.Module, ABC):
         return next(self.parameters()).device
 
     def network(self, out_features: int, *extra_inputs: tuple[int, ...], dueling: bool = False):
-        """A network from the observations (then ``extra_inputs``) to ``out_features``, shaped
-        by ``cfg``'s ``num_cells``, ``fourier_features`` and ``cnn_*``."""
+        """A network from the observations and ``extra_inputs`` to ``out_features`` (``cfg``'s
+        ``num_cells``, ``fourier_features`` and ``cnn_*``)."""
         cfg = self.cfg
         return mlp(
             [*self.specs.input_shapes, *extra_inputs],
@@ -164,7 +147,11 @@ class Learner(nn.Module, ABC):
     @classmethod
     def check_action_spec(cls, spec: TensorSpec) -> str | None:
         """Why this algorithm cannot act on ``spec`` (``None`` when it can)."""
-        kind = action_space_kind(spec)
+        kind = type(spec).__name__
+        if isinstance(spec, (Categorical, OneHot)):
+            kind = "discrete"
+        elif isinstance(spec, Bounded) and spec.dtype.is_floating_point:
+            kind = "continuous"
         if not cls.action_spaces or kind in cls.action_spaces:
             return None
         others = [name for name, c in ALGORITHMS.items() if kind in c.action_spaces]
@@ -175,11 +162,11 @@ class Learner(nn.Module, ABC):
 
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
-        """The algorithm's own checks of a stage's keys, beyond every stage's."""
+        """The algorithm's checks of a stage's keys, beyond every stage's."""
 
     @classmethod
     def value_from_loss(cls, loss: Any, live: bool = False) -> TensorDictModuleBase:
-        """``V(s)`` from the target networks of a :attr:`torchrl_loss` of this algorithm."""
+        """``V(s)`` from the target networks of a :attr:`torchrl_loss`."""
         raise NotImplementedError(f"{cls.algo} has no value from a torchrl loss")
 
     @abstractmethod
@@ -187,12 +174,11 @@ class Learner(nn.Module, ABC):
         """One gradient step on a replay batch, target update included; the detached losses."""
 
     def inputs(self, batch: TensorDictBase, nxt: bool = False) -> list[torch.Tensor]:
-        """The network inputs of a batch (of its ``"next"`` states with ``nxt``), in order."""
+        """The network inputs of a batch (of its ``"next"`` states with ``nxt``)."""
         td = batch.get("next") if nxt else batch
         return [td.get(key) for key in self.specs.observation_keys]
 
     def compiled(self, fn):
-        """``fn`` through ``torch.compile`` unless :attr:`compile_mode` is ``"off"``."""
         if self.compile_mode == "off":
             return fn
         return torch.compile(fn, mode=None if self.compile_mode == "default" else self.compile_mode)
@@ -215,8 +201,8 @@ class Learner(nn.Module, ABC):
 
     @abstractmethod
     def value(self, live: bool = False) -> TensorDictModuleBase:
-        """This stage's ``V(s)`` module from its target networks: a copy of their values, or
-        with ``live`` the networks themselves, following their updates (the joint schedule)."""
+        """``V(s)`` from the target networks: a copy, or with ``live`` the networks themselves
+        (the joint schedule)."""
 
     def _check_losses(self, **losses: torch.Tensor) -> None:
         """Raises :class:`NonFiniteError` naming the first loss that is NaN or infinite."""
@@ -225,21 +211,19 @@ class Learner(nn.Module, ABC):
                 raise NonFiniteError(name, self.num_updates + 1)
 
     def _apply(self, losses: dict[str, torch.Tensor], total, *names: str, targets=True) -> dict:
-        """Checks ``losses``, steps ``total`` (:meth:`_step`) and, with ``targets``, the target
-        networks; returns copies of ``losses`` that outlive the update (``detached_copy``)."""
+        """Checks ``losses``, steps ``total`` and, with ``targets``, the target networks."""
         self._check_losses(**losses)
         self._step(total, *names)
         if targets:
             self.target_updater.step()
-        return {name: detached_copy(loss) for name, loss in losses.items()}
+        # copies: under compile=reduce-overhead a loss is a CUDA graph's output, overwritten
+        # by its next replay
+        return {name: loss.detach().clone() for name, loss in losses.items()}
 
     def _step(self, loss: torch.Tensor, *names: str) -> None:
-        """Backward ``loss`` and step the named optimizers (all when none are named).
-
-        Each optimizer's gradient (each seed's, when stacked) is clipped to
-        ``cfg.max_grad_norm`` when set; its norm before clipping goes to :attr:`grad_norms`,
-        and a non-finite one raises :class:`NonFiniteError` before any parameter changes.
-        """
+        """Backward ``loss`` and step the named optimizers (all when none are named), each
+        gradient (each seed's) clipped to ``cfg.max_grad_norm``; a non-finite gradient norm
+        raises :class:`NonFiniteError` before any parameter changes."""
         names = names or tuple(self.optimizers)
         max_norm = self.cfg.max_grad_norm
         (loss.sum() if self.seeds is not None else loss).backward()
@@ -260,10 +244,7 @@ class Learner(nn.Module, ABC):
             self.grad_norms[name] = norm.detach()
         for name in names:
             optimizer = self.optimizers[name]
-            if isinstance(optimizer, FusedAdam):
-                optimizer.direct_step()
-            else:
-                optimizer.step()
+            getattr(optimizer, "direct_step", optimizer.step)()
             optimizer.zero_grad(set_to_none=True)
 
     def _seed_axes_of(self, name: str, params: list[torch.Tensor]) -> list[int]:
@@ -273,21 +254,17 @@ class Learner(nn.Module, ABC):
             names = {id(p): n for n, p in self.named_parameters(remove_duplicate=False)}
             axes = seed_axes(self)
             cache[name] = [axes.get(names.get(id(p), "")) for p in params]
-        out = []
-        for p, axis in zip(params, cache[name], strict=True):
-            if p.grad is None:
-                continue
-            if axis is None:
-                raise RuntimeError(
-                    f"a trained parameter of shape {tuple(p.shape)} has no seeds' axis: "
-                    f"{type(self).__name__} cannot train stacked seeds (stacks_seeds)"
-                )
-            out.append(axis)
-        return out
+        axes = [axis for p, axis in zip(params, cache[name], strict=True) if p.grad is not None]
+        if None in axes:
+            raise RuntimeError(
+                f"{type(self).__name__}: a trained parameter has no seeds' axis, so it cannot "
+                "train stacked seeds (set stacks_seeds=False)"
+            )
+        return axes
 
     def check_finite(self) -> None:
         """Raises :class:`NonFiniteError` if a parameter or buffer is NaN or infinite."""
-        # one check over every tensor at once; the state_dict walk only names the culprit
+        # one check over every tensor at once; the walk only names the culprit
         tensors = [
             t.reshape(-1) for t in (*self.parameters(), *self.buffers()) if t.is_floating_point()
         ]

@@ -6,10 +6,9 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
-from torch import nn
-from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
+from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config.bounds import free
 from torchrl_stages.learners.actor_critic import (
@@ -17,22 +16,20 @@ from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticLearner,
 )
 from torchrl_stages.learners.base import register_algorithm
-from torchrl_stages.learners.ops import distance, td0_target
-from torchrl_stages.values import with_params
+from torchrl_stages.learners.ops import td0_target
 
 
 @dataclass
 class DDPGConfig(DeterministicActorCriticConfig):
-    """DDPG stage (continuous, bounded actions): ``DDPGLoss``'s objective with Gaussian
-    exploration."""
+    """DDPG stage (continuous, bounded actions) with Gaussian exploration."""
 
     algo: str = free("ddpg")
 
 
 @register_algorithm
 class DDPGLearner(DeterministicActorCriticLearner):
-    """DDPG for one stage: its parameters and targets in torchrl's ``DDPGLoss``, its update on
-    :meth:`_plain_losses`, what that loss computes on plain tensors.
+    """DDPG for one stage: parameters and targets in torchrl's ``DDPGLoss``, the update on
+    plain tensors.
 
     Examples:
         >>> from torchrl.data import Bounded
@@ -57,39 +54,22 @@ class DDPGLearner(DeterministicActorCriticLearner):
             delay_value=True,
         )
 
-    def make_losses(self) -> None:
-        target_critic = self.with_target_encoder(self.loss.target_value_network_params)
-        self.__dict__["_target_critic"] = with_params(
-            self.critic_module, target_critic.get("module"), live=True
-        )
-        self._losses = self.compiled(self._plain_losses)
-
-    def q(self, critic: nn.Module, features, action, detached: bool = False) -> torch.Tensor:
-        """``Q(s, a)`` of ``critic`` (online or target) on :meth:`features`, its parameters
-        detached with ``detached``."""
-        inputs = (*features, action)
-        if self.shared_encoder:
-            critic, inputs = critic.body, (torch.cat(inputs, -1),)
-        if not detached:
-            return critic(*inputs)
-        return functional_call(
-            critic, {n: p.detach() for n, p in critic.named_parameters()}, inputs
-        )
-
     def _plain_losses(self, batch: TensorDictBase):
-        """``DDPGLoss`` on plain tensors: the actor's ``-Q(s, mu(s))`` (the critic and a shared
-        encoder detached), the critic's loss, and the saturation penalty."""
+        """``DDPGLoss``: the actor's ``-Q(s, mu(s))`` (critic and shared encoder detached), the
+        critic's loss and the saturation penalty."""
+        critic = self.loss.value_network_params
         features = self.features(self.inputs(batch))
-        pred = self.q(self.critic_module, features, batch.get(self.specs.action_key))
+        (pred,) = self.critic_values(critic, features, batch.get(self.specs.action_key))
         with torch.no_grad():
             next_features = self.features(self.inputs(batch, nxt=True), target=True)
             next_action = self.squash(self.actor_head(next_features, target=True))
-            next_value = self.q(self._target_critic, next_features, next_action)
+            targets = self.loss.target_value_network_params
+            (next_value,) = self.critic_values(targets, next_features, next_action)
             target = td0_target(batch, next_value, self.cfg.gamma)
-        loss_value = self.batch_mean(distance(pred, target, self.cfg.loss_function))
+        loss_value = self.batch_mean(distance_loss(pred, target, self.cfg.loss_function))
         features = [f.detach() for f in features]
         u = self.actor_head(features)
-        q = self.q(self.critic_module, features, self.squash(u), detached=True)
+        (q,) = self.critic_values(critic.detach(), features, self.squash(u))
         return -self.batch_mean(q), loss_value, self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:

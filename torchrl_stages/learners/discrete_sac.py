@@ -11,9 +11,11 @@ from torch import nn
 from torchrl.data import OneHot
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
 from torchrl.objectives import DiscreteSACLoss, ValueEstimators
+from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config import StageChecks, StageConfig
 from torchrl_stages.config.bounds import free, in_range, one_of, positive
+from torchrl_stages.learners.actor_critic import EntropyRegularized, soft_value
 from torchrl_stages.learners.base import (
     LOSS_FUNCTIONS,
     Learner,
@@ -21,8 +23,7 @@ from torchrl_stages.learners.base import (
     check_loss_function,
     register_algorithm,
 )
-from torchrl_stages.learners.entropy import EntropyRegularized, soft_value
-from torchrl_stages.learners.ops import FusedSoftUpdate, distance, stacked_calls, taken, td0_target
+from torchrl_stages.learners.ops import FusedSoftUpdate, stacked_calls, taken, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 
 
@@ -46,14 +47,13 @@ class DiscreteSACConfig(StageConfig):
 
 
 def _log_probs(probs: torch.Tensor) -> torch.Tensor:
-    """``log pi`` as ``DiscreteSACLoss`` takes it for its target (a zero probability as 1e-8)."""
+    """``log pi`` as ``DiscreteSACLoss``'s target takes it (a zero probability as 1e-8)."""
     return torch.log(torch.where(probs == 0, 1e-8, probs))
 
 
 class DiscreteSoftValue(nn.Module):
-    """``V(s) = sum_a pi(a|s) (min_i Q_i(s, a) - alpha log pi(a|s))``, the soft value of
-    discrete SAC's critic targets; ``actor`` maps observations to logits, ``critic`` to every
-    action's value (``critic_params``: the twins' stacked parameters)."""
+    """``V(s) = sum_a pi(a|s) (min_i Q_i(s, a) - alpha log pi(a|s))``; ``actor`` maps
+    observations to logits, ``critic`` to every action's value."""
 
     def __init__(self, actor: nn.Module, critic: nn.Module, critic_params, log_alpha) -> None:
         super().__init__()
@@ -70,9 +70,8 @@ class DiscreteSoftValue(nn.Module):
 
 @register_algorithm
 class DiscreteSACLearner(EntropyRegularized, Learner):
-    """Discrete SAC for one stage: a sampled categorical actor (its most likely action the
-    greedy policy), twin critics of every action's value and a tuned entropy coefficient, the
-    parameters in torchrl's ``DiscreteSACLoss``, its update on :meth:`_plain_losses`.
+    """Discrete SAC for one stage: a categorical actor, twin critics of every action's value
+    and a tuned entropy coefficient in torchrl's ``DiscreteSACLoss``, the update on plain tensors.
 
     Examples:
         >>> from torchrl.data import Categorical
@@ -131,14 +130,13 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
 
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
+        super().validate(checks)
         check_loss_function(checks)
         checks.positive("actor_lr", 1e-3)
-        cls.validate_entropy(checks)
         checks.fraction("target_entropy_weight")
 
     def _plain_losses(self, batch: TensorDictBase):
-        """``DiscreteSACLoss`` on plain tensors: the actor's, the critics' (summed over the
-        twins) and the entropy coefficient's losses."""
+        """``DiscreteSACLoss``: the actor's, the critics' and the entropy coefficient's losses."""
         actor, critic = self.actor[0].module, self.critic.module
         obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
         critics, targets = self.loss.qvalue_network_params, self.loss.target_qvalue_network_params
@@ -150,7 +148,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
         q = torch.stack(stacked_calls(critic, critics["module"], *obs))
         one_hot = isinstance(self.specs.action_spec, OneHot)
         chosen = taken(q, batch.get(self.specs.action_key), one_hot, lead=1)
-        distances = distance(chosen, target.expand_as(chosen), self.cfg.loss_function)
+        distances = distance_loss(chosen, target.expand_as(chosen), self.cfg.loss_function)
         loss_q = self.batch_mean(distances.sum(0))
         dist = torch.distributions.Categorical(logits=actor(*obs))
         probs, log_probs = dist.probs, dist.logits

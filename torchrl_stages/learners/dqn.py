@@ -11,6 +11,7 @@ from torch import nn
 from torchrl.data import OneHot
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, ValueEstimators
+from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config import StageChecks, StageConfig
 from torchrl_stages.config.bounds import flag, free, in_range, one_of
@@ -23,7 +24,6 @@ from torchrl_stages.learners.base import (
 )
 from torchrl_stages.learners.ops import (
     FusedSoftUpdate,
-    distance,
     linear_schedule,
     taken,
     td0_target,
@@ -54,8 +54,8 @@ class DQNConfig(StageConfig):
 
 @register_algorithm
 class DQNLearner(Learner):
-    """DQN for one stage: its parameters and targets in torchrl's ``DQNLoss``, its update on
-    :meth:`_plain_loss`, what that loss computes on plain tensors (``tests/test_losses.py``).
+    """DQN for one stage: parameters and targets in torchrl's ``DQNLoss``, the update on plain
+    tensors.
 
     Examples:
         >>> from torchrl.data import Categorical
@@ -131,7 +131,7 @@ class DQNLearner(Learner):
         )
 
     def _plain_loss(self, batch: TensorDictBase) -> torch.Tensor:
-        """``DQNLoss`` on plain tensors; with ``advantage_learning`` (alpha) the target less
+        """``DQNLoss``; with ``advantage_learning`` (alpha) the target less
         ``alpha (max_b Q_target(s, b) - Q_target(s, a))``."""
         obs = self.inputs(batch)
         action = batch.get(self.specs.action_key)
@@ -149,7 +149,7 @@ class DQNLearner(Learner):
                 q_target = self._target_q(*obs)
                 gap = q_target.max(-1, keepdim=True).values - taken(q_target, action, one_hot)
                 target = target - self.cfg.advantage_learning * gap
-        return self.batch_mean(distance(pred, target, self.cfg.loss_function))
+        return self.batch_mean(distance_loss(pred, target, self.cfg.loss_function))
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss = self._loss_fn(batch)

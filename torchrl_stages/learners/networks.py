@@ -15,8 +15,8 @@ from torchrl_stages.learners.stacking import stack_for_seeds
 
 
 class FourierFeatures(nn.Module):
-    """``x -> [x, sin(2^k pi x), cos(2^k pi x)]`` for ``k < num_octaves``: lets a small MLP
-    represent sharp changes of low-dimensional coordinates (a wall one grid cell away).
+    """``x -> [x, sin(2^k pi x), cos(2^k pi x)]`` for ``k < num_octaves``: sharp changes of
+    low-dimensional coordinates (a wall one grid cell away) for a small MLP.
 
     Examples:
         >>> FourierFeatures(2)(torch.zeros(3, 2)).shape
@@ -55,8 +55,6 @@ class ConvEncoder(nn.Module):
 
     def __init__(self, shape: Shape, spec: ConvSpec) -> None:
         super().__init__()
-        if not len(spec.channels) == len(spec.kernels) == len(spec.strides):
-            raise ValueError(f"ConvSpec fields must have equal lengths, got {spec}.")
         self.shape = tuple(shape)
         layers: list[nn.Module] = []
         in_channels = self.shape[0]

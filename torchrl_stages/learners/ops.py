@@ -6,7 +6,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDictBase
 from torch import nn
 from torch.func import functional_call
@@ -15,8 +14,7 @@ from torchrl.objectives import SoftUpdate
 
 
 class FusedSoftUpdate(SoftUpdate):
-    """torchrl's ``SoftUpdate`` (``target += tau (online - target)``) as one fused
-    ``torch._foreach_lerp_`` over all parameter pairs.
+    """torchrl's ``SoftUpdate`` as one ``torch._foreach_lerp_`` over all parameter pairs.
 
     Examples:
         >>> from torchrl.modules import QValueActor
@@ -32,22 +30,15 @@ class FusedSoftUpdate(SoftUpdate):
         if self._pairs is None:
             if not self.initialized:
                 self.init_()
-            sources, targets = [], []
-            for key, params in self._sources.items():
-                target = self._targets.get(f"target_{key}")
-                for name, value in params.items(True, True):
-                    sources.append(value.data)
-                    targets.append(target.get(name).data)
-            self._pairs = (sources, targets)
+            sources = [p.data for p in self._sources.values(True, True)]
+            self._pairs = (sources, [p.data for p in self._targets.values(True, True)])
         sources, targets = self._pairs
         torch._foreach_lerp_(targets, sources, 1.0 - float(self.eps))
 
 
 class FusedAdam(torch.optim.Adam):
-    """torch's ``Adam(fused=True)`` with :meth:`direct_step`: the same ``torch._fused_adam_``
-    call as ``step``, bit for bit, without its hooks, profiling and grouping (Python that costs
-    more than the kernel on small networks). Its state is ``Adam``'s: checkpoints load into
-    either class.
+    """``Adam(fused=True)`` with :meth:`direct_step`: ``step``'s ``torch._fused_adam_`` call,
+    bit for bit, without the Python around it (which costs more than the kernel on small nets).
 
     Examples:
         >>> net = nn.Linear(3, 1)
@@ -60,9 +51,8 @@ class FusedAdam(torch.optim.Adam):
         super().__init__(params, lr=lr, fused=True, **kwargs)
 
     def _direct(self) -> bool:
-        """Whether :meth:`direct_step` is ``step``'s kernel call: no hooks, fused plain Adam
-        with a float lr, every parameter with a gradient and state, one device and dtype."""
-        # the hook registries are torch's own (private, stable in the pinned torch 2.13)
+        """Whether ``step`` is one kernel call: no hooks, plain fused Adam, float lr, every
+        parameter with a gradient and state, one device and dtype."""
         if self._optimizer_step_pre_hooks or self._optimizer_step_post_hooks:
             return False
         if _global_optimizer_pre_hooks or _global_optimizer_post_hooks:
@@ -114,8 +104,7 @@ class FusedAdam(torch.optim.Adam):
 
 
 def total_grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
-    """``torch.nn.utils.get_total_norm(grads)``, without its grouping of plain tensors on one
-    CPU or CUDA device and dtype."""
+    """``torch.nn.utils.get_total_norm(grads)``, without its grouping for plain tensors."""
     kinds = {(g.device, g.dtype) for g in grads}
     plain = all(type(g) is torch.Tensor and g.device.type in ("cpu", "cuda") for g in grads)
     if len(kinds) != 1 or not plain:
@@ -155,17 +144,11 @@ def td0_target(batch: TensorDictBase, next_value: torch.Tensor, gamma: float) ->
     return reward + discount * alive * next_value
 
 
-def distance(pred: torch.Tensor, target: torch.Tensor, loss_function: str) -> torch.Tensor:
-    """torchrl's ``distance_loss`` (l1, l2 or smooth_l1), elementwise."""
-    if loss_function == "l2":
-        return (pred - target).pow(2)
-    if loss_function == "l1":
-        return (pred - target).abs()
-    return F.smooth_l1_loss(pred, target, reduction="none")
-
-
 def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tensor) -> list:
-    """``module(*inputs)`` with each parameter set of the stacked ``params`` (twin critics)."""
+    """``module(*inputs)`` with each parameter set of the stacked ``params`` (twin critics),
+    or the one set of unstacked ``params``."""
+    if not params.batch_dims:
+        params = params.unsqueeze(0)
     flat = dict(params.flatten_keys(".").items())
     return [
         functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
@@ -174,18 +157,12 @@ def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tens
 
 
 def taken(values: torch.Tensor, action: torch.Tensor, one_hot: bool, lead: int = 0):
-    """The values (``[..., num_actions]``) of the actions taken (one-hot or indices), ``[..., 1]``;
-    ``lead``: leading dimensions of ``values`` that ``action`` lacks (twin critics)."""
+    """The values (``[..., num_actions]``) of the actions taken, ``[..., 1]``; ``lead``: leading
+    dimensions of ``values`` that ``action`` lacks (twin critics)."""
     if one_hot:
         return (values * action.to(values.dtype)).sum(-1, keepdim=True)
     index = action.reshape(*values.shape[lead:-1], 1).expand(*values.shape[:-1], 1)
     return values.gather(-1, index)
-
-
-def detached_copy(loss: torch.Tensor) -> torch.Tensor:
-    """A copy of ``loss`` that outlives the update: under ``compile=reduce-overhead`` the loss
-    is a CUDA graph's output, which the graph's next replay overwrites."""
-    return loss.detach().clone()
 
 
 def linear_schedule(start: float, end: float, frames: int, horizon: int) -> float:

@@ -12,14 +12,19 @@ from torchrl.data import TensorSpec
 from torchrl.modules import ProbabilisticActor, TanhNormal
 from torchrl.modules.distributions.utils import rsample_and_log_prob
 from torchrl.objectives import SACLoss
+from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config import StageChecks
 from torchrl_stages.config.bounds import free, positive
-from torchrl_stages.learners.actor_critic import ActorCriticConfig, ActorCriticLearner
+from torchrl_stages.learners.actor_critic import (
+    ActorCriticConfig,
+    ActorCriticLearner,
+    EntropyRegularized,
+    soft_value,
+)
 from torchrl_stages.learners.base import register_algorithm
-from torchrl_stages.learners.entropy import EntropyRegularized, soft_value
 from torchrl_stages.learners.networks import Chain
-from torchrl_stages.learners.ops import distance, stacked_calls, td0_target
+from torchrl_stages.learners.ops import stacked_calls, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 
 
@@ -43,12 +48,8 @@ class SACConfig(ActorCriticConfig):
 
 class SoftValue(nn.Module):
     """``V(s) = E_{a ~ pi(s)}[min_i Q_i(s, a) - alpha log pi(a|s)]``, SAC's soft value, as the
-    mean over ``samples`` actions of fixed noise (a generator of its own: ``V`` is a function
-    of ``s``). Seed-stacked, each seed's block of states gets that same noise.
-
-    ``actor`` maps observations to ``(loc, scale)``; ``critic_params`` are the twin critics'
-    stacked parameters; ``log_alpha`` is read at every call; ``dist_kwargs`` the bounds.
-    """
+    mean over ``samples`` actions of fixed noise (``V`` is a function of ``s``; every seed gets
+    that noise); ``actor`` maps observations to ``(loc, scale)``."""
 
     def __init__(self, actor, critic, critic_params, log_alpha, dist_kwargs, samples) -> None:
         super().__init__()
@@ -61,8 +62,7 @@ class SoftValue(nn.Module):
         lead, dim = loc.shape[:-1], loc.shape[-1]
         alpha = seed_rows(self.log_alpha).detach().exp()
         n = alpha.shape[0] if alpha.ndim else 1
-        # [seeds, 1, M, d]: each seed's block of M states, the samples' axis behind the seeds
-        # (stacked layers read seed-major inputs)
+        # [seeds, 1, M, d]: the samples' axis behind the seeds (stacked layers read seed-major)
         loc, scale = (t.reshape(n, 1, -1, dim) for t in (loc, scale))
         dist = TanhNormal(loc, scale, **self.dist_kwargs)
         devices = [loc.device] if loc.device.type == "cuda" else []
@@ -85,8 +85,7 @@ class SoftValue(nn.Module):
 @register_algorithm
 class SACLearner(EntropyRegularized, ActorCriticLearner):
     """SAC for one stage: a tanh-Gaussian actor (its mean the greedy policy), twin critics and
-    a tuned entropy coefficient, the parameters in torchrl's ``SACLoss`` (version 2), its update
-    on :meth:`_plain_losses`, what that loss computes on plain tensors.
+    a tuned entropy coefficient in torchrl's ``SACLoss`` (version 2), the update on plain tensors.
 
     Examples:
         >>> from torchrl.data import Bounded
@@ -114,7 +113,6 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
         super().validate(checks)
-        cls.validate_entropy(checks)
         checks.positive("value_samples", 16)
 
     def make_actor(self, actor_net: nn.Module, spec: TensorSpec) -> TensorDictModuleBase:
@@ -149,17 +147,14 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         loss.set_keys(action=self.specs.action_key)
         return loss
 
-    def make_losses(self) -> None:
-        self._losses = self.compiled(self._plain_losses)
-
     def _dist(self, out: torch.Tensor) -> TanhNormal:
         """The policy's distribution from the actor network's output."""
         loc, scale = self.actor[0].module[1](out)  # its NormalParamExtractor
         return TanhNormal(loc, scale, **self.actor[1].distribution_kwargs)
 
     def _plain_losses(self, batch: TensorDictBase):
-        """``SACLoss`` (version 2) on plain tensors, its two draws in its order (the next
-        actions, then the actor's); a shared encoder is trained by the critics' loss alone."""
+        """``SACLoss`` (version 2), its two draws in its order (the next actions, then the
+        actor's); a shared encoder is trained by the critics' loss alone."""
         critics = self.loss.qvalue_network_params
         with torch.no_grad():
             next_obs = self.inputs(batch, nxt=True)
@@ -173,7 +168,7 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
             target = td0_target(batch, soft.min(0).values, self.cfg.gamma)
         features = self.features(self.inputs(batch))
         preds = torch.stack(self.critic_values(critics, features, batch.get(self.specs.action_key)))
-        distances = distance(preds, target.expand_as(preds), self.cfg.loss_function)
+        distances = distance_loss(preds, target.expand_as(preds), self.cfg.loss_function)
         loss_q = self.batch_mean(distances.sum(0))
         features = [f.detach() for f in features]
         action, log_prob = rsample_and_log_prob(self._dist(self.actor_head(features)))

@@ -1,8 +1,5 @@
-"""Seed-stacked learners: N seeds' networks in one set of tensors, inputs laid out seed-major.
-
-Inside :func:`stacked_networks` every ``nn.Linear`` (``nn.Conv2d``) of a built network becomes a
-:class:`StackedLinear` (:class:`StackedConv2d`) holding seed ``i``'s layer in row ``i``.
-"""
+"""Seed-stacked learners: N seeds' networks in one set of tensors (seed ``i``'s layer in row
+``i``), their inputs laid out seed-major."""
 
 from __future__ import annotations
 
@@ -24,7 +21,7 @@ _ROWS: ContextVar[torch.Tensor | None] = ContextVar("torchrl_stages_seed_rows", 
 
 class _StackedLayer(nn.Module):
     """``num_seeds`` freshly initialized twins of ``layer``, their ``weight`` and ``bias``
-    stacked (row ``i``: seed ``i``'s), read for the seeds computed now (:func:`update_rows`)."""
+    stacked, read for the seeds computed now (:func:`update_rows`)."""
 
     def __init__(self, layer: nn.Module, num_seeds: int) -> None:
         super().__init__()
@@ -40,13 +37,10 @@ class _StackedLayer(nn.Module):
             return self.weight, self.bias
         return self.weight[rows], self.bias[rows]
 
-    def extra_repr(self) -> str:
-        return f"weight={tuple(self.weight.shape)}"
-
 
 class StackedLinear(_StackedLayer):
-    """``nn.Linear`` for ``num_seeds`` seeds in one ``baddbmm``, the input's leading dimensions
-    seed-major (``[num_seeds * M, in]`` or ``[num_seeds, M, in]``).
+    """``nn.Linear`` for ``num_seeds`` seeds in one ``baddbmm`` (inputs ``[num_seeds * M, in]``
+    or ``[num_seeds, M, in]``).
 
     Examples:
         >>> layer = StackedLinear(nn.Linear(3, 2), num_seeds=4)
@@ -65,8 +59,7 @@ class StackedLinear(_StackedLayer):
 
 
 class StackedConv2d(_StackedLayer):
-    """``nn.Conv2d`` for ``num_seeds`` seeds as one grouped convolution (seed ``i``'s channels
-    in group ``i``), the input's leading dimensions seed-major.
+    """``nn.Conv2d`` for ``num_seeds`` seeds as one grouped convolution (seed ``i``: group ``i``).
 
     Examples:
         >>> layer = StackedConv2d(nn.Conv2d(1, 4, 3, stride=2, padding=1), num_seeds=3)
@@ -121,7 +114,6 @@ def _stacked(name: str, layer: nn.Module, n: int) -> nn.Module | None:
 
 
 def current_seeds() -> int | None:
-    """The number of seeds networks are stacked for now (``None``: not stacked)."""
     return _SEEDS.get()
 
 
@@ -135,15 +127,7 @@ def _setting(var: ContextVar, value) -> Iterator[None]:
 
 
 def stacked_networks(num_seeds: int | None) -> AbstractContextManager[None]:
-    """Networks built inside are stacked for ``num_seeds`` seeds (``None``: not stacked).
-
-    Examples:
-        >>> from torchrl_stages.learners.networks import mlp
-        >>> with stacked_networks(3):
-        ...     net = mlp(4, 2, [8])
-        >>> net(torch.zeros(3 * 7, 4)).shape, type(net[0]).__name__
-        (torch.Size([21, 2]), 'StackedLinear')
-    """
+    """Networks built inside are stacked for ``num_seeds`` seeds (``None``: not stacked)."""
     return _setting(_SEEDS, num_seeds)
 
 
@@ -152,16 +136,8 @@ def current_rows() -> torch.Tensor | None:
 
 
 def update_rows(rows: torch.Tensor | None) -> AbstractContextManager[None]:
-    """Inside, stacked layers compute only the seeds ``rows`` (1-D indices; ``None``: all), the
-    others' gradients zero: a stage updates only its seeds that have not stopped.
-
-    Examples:
-        >>> layer = StackedLinear(nn.Linear(3, 2), num_seeds=4)
-        >>> with update_rows(torch.tensor([1, 3])):
-        ...     layer(torch.randn(2, 5, 3)).sum().backward()
-        >>> layer.weight.grad[[0, 2]].abs().sum().item()
-        0.0
-    """
+    """Inside, stacked layers compute only the seeds ``rows`` (``None``: all), the others'
+    gradients zero (a stage updates only its seeds that have not stopped)."""
     return _setting(_ROWS, rows)
 
 
@@ -172,8 +148,8 @@ def seed_rows(values: torch.Tensor) -> torch.Tensor:
 
 
 def per_seed(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """``values`` (one per seed computed now, ``[n]``) shaped to broadcast against the
-    seed-major ``like`` (``[n, ...]`` or ``[n * M, ...]``); a scalar as it is.
+    """``values`` (one per seed computed now) shaped to broadcast against the seed-major
+    ``like`` (``[n, ...]`` or ``[n * M, ...]``); a scalar as it is.
 
     Examples:
         >>> alpha = torch.tensor([1.0, 10.0])
@@ -189,8 +165,7 @@ def per_seed(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 
 
 def stack_for_seeds(module: nn.Module) -> nn.Module:
-    """``module`` with its layers stacked for the seeds of :func:`stacked_networks`; raises
-    ``TypeError`` for parameters of another kind."""
+    """``module`` with its layers stacked for the seeds of :func:`stacked_networks`."""
     n = current_seeds()
     if n is None:
         return module
@@ -215,17 +190,7 @@ def stack_for_seeds(module: nn.Module) -> nn.Module:
 
 def seed_axes(learner: Learner) -> dict[str, int | None]:
     """The seeds' axis of each ``state_dict`` entry of a seed-stacked ``learner`` (``None``:
-    shared by the seeds), read off twins built for 1 and 2 seeds (generators left as they were).
-
-    Examples:
-        >>> from torchrl.data import Bounded
-        >>> from torchrl_stages.learners import StageSpecs, make_learner
-        >>> from torchrl_stages.learners.td3 import TD3Config
-        >>> specs = StageSpecs(["observation"], 3, "action", Bounded(-1, 1, (2,)))
-        >>> axes = seed_axes(make_learner(TD3Config(num_cells=[8]), specs, seeds=3))
-        >>> axes["critic.module.0.weight"], axes["loss.qvalue_network_params.module.0.weight"]
-        (0, 1)
-    """
+    shared), read off twins built for 1 and 2 seeds."""
     cached = learner.__dict__.get("_seed_axes")
     if cached is not None:
         return cached
@@ -249,10 +214,13 @@ def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
     if len(learners) != stacked.seeds:
         raise ValueError(f"{len(learners)} learners for {stacked.seeds} seeds")
     states, axes = [learner.state_dict() for learner in learners], seed_axes(stacked)
+    own = stacked.state_dict()
+    if missing := [k for k in own if any(k not in s for s in states)]:
+        raise KeyError(f"{missing[0]}: in the stacked learner, missing from a learner to stack")
     stacked.load_state_dict(
         {
             k: states[0][k] if axes[k] is None else torch.stack([s[k] for s in states], axes[k])
-            for k in stacked.state_dict()
+            for k in own
         }
     )
     stacked.num_updates = max(learner.num_updates for learner in learners)

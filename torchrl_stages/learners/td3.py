@@ -8,6 +8,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import TensorSpec
 from torchrl.objectives import TD3Loss
+from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config import StageChecks
 from torchrl_stages.config.bounds import free, non_negative, positive
@@ -16,7 +17,7 @@ from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticLearner,
 )
 from torchrl_stages.learners.base import register_algorithm
-from torchrl_stages.learners.ops import distance, td0_target
+from torchrl_stages.learners.ops import td0_target
 
 
 @dataclass
@@ -31,8 +32,8 @@ class TD3Config(DeterministicActorCriticConfig):
 
 @register_algorithm
 class TD3Learner(DeterministicActorCriticLearner):
-    """TD3 for one stage: its parameters and targets in torchrl's ``TD3Loss``, its update on
-    what that loss computes, on plain tensors.
+    """TD3 for one stage: parameters and targets in torchrl's ``TD3Loss``, the update on plain
+    tensors.
 
     Examples:
         >>> from torchrl.data import Bounded
@@ -77,8 +78,8 @@ class TD3Learner(DeterministicActorCriticLearner):
         self._actor_loss = self.compiled(self._plain_actor_loss)
 
     def _plain_value_loss(self, batch: TensorDictBase) -> torch.Tensor:
-        """``TD3Loss.value_loss`` on plain tensors: each critic against ``r + gamma (1 -
-        terminated) min_i Q_i,target(s', a')``, ``a'`` with clipped noise (drawn first)."""
+        """``TD3Loss.value_loss``: each critic against ``r + gamma min_i Q_i,target(s', a')``,
+        ``a'`` with clipped noise (drawn first)."""
         cfg, action = self.cfg, batch.get(self.specs.action_key)
         noise = (torch.randn_like(action) * cfg.policy_noise).clamp(-cfg.noise_clip, cfg.noise_clip)
         low, high, _ = self._bounds
@@ -91,10 +92,10 @@ class TD3Learner(DeterministicActorCriticLearner):
             target = td0_target(batch, torch.stack(next_q).min(0).values, cfg.gamma)
         features = self.features(self.inputs(batch))
         preds = self.critic_values(self.loss.qvalue_network_params, features, action)
-        return sum(self.batch_mean(distance(p, target, cfg.loss_function)) for p in preds)
+        return sum(self.batch_mean(distance_loss(p, target, cfg.loss_function)) for p in preds)
 
     def _plain_actor_loss(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        """``-Q_1(s, mu(s))``, the critics and a shared encoder detached, and the penalty."""
+        """``-Q_1(s, mu(s))`` (critics and shared encoder detached) and the penalty."""
         with torch.no_grad():
             features = self.features(self.inputs(batch))
         u = self.actor_head(features)
