@@ -34,15 +34,7 @@ HOOKS = ("batch", "update", "log", "evaluate", "evaluated", "checkpoint")
 
 
 def can_stop_early(cfg: StageConfig) -> bool:
-    """Whether an early stop can end a loop of ``cfg`` before its frame budget.
-
-    Examples:
-        >>> from torchrl_stages.config import StageConfig
-        >>> can_stop_early(StageConfig(success_threshold=0.9, eval_every=1000))
-        True
-        >>> can_stop_early(StageConfig(success_threshold=None, eval_every=1000))
-        False
-    """
+    """Whether an early stop can end a loop of ``cfg`` before its frame budget."""
     return (
         cfg.success_threshold is not None
         and int(cfg.eval_every) > 0
@@ -97,8 +89,7 @@ _END = object()
 
 @dataclass
 class LoopCounters(SavedCounters):
-    """What a loop counts, saved with its checkpoints (a resumed loop rewinds its logs to
-    ``log``).
+    """What a loop counts, saved with its checkpoints (``log``: the logs' positions).
 
     Examples:
         >>> counters = LoopCounters(next_eval=64)
@@ -122,12 +113,11 @@ def _shown(value: float | Sequence[float], digits: int) -> str:
 
 class Trainer:
     """The loop: for every batch of ``collector`` (``seeds`` equal, seed-major parts) the hooks
-    ``batch(batch)``, ``update(frames) -> losses`` (each seed's frames), ``log(batch, losses)``;
-    every ``eval_every`` frames ``evaluate(frames) -> Evaluation`` and ``evaluated(evaluation)``
-    (it ends once every seed has stopped); ``checkpoint()`` before a checkpoint of ``state``,
-    named ``frames_before`` plus each seed's frames, is written (when due, or when a stop was
-    asked for: then :class:`~torchrl_stages.preemption.Interrupted` is raised). ``where`` names
-    the loop; ``open_ended``: an early stop may end it before its budget.
+    ``batch(batch)``, ``update(frames) -> losses``, ``log(batch, losses)``; every ``eval_every``
+    frames ``evaluate(frames) -> Evaluation`` and ``evaluated(evaluation)``; ``checkpoint()``
+    before a checkpoint of ``state`` is written (when due, or when a stop was asked for: then
+    :class:`~torchrl_stages.preemption.Interrupted` is raised). It ends at the budget or once
+    every seed has stopped; ``open_ended``: an early stop may end it before its budget.
 
     Examples:
         >>> import torch
@@ -173,8 +163,7 @@ class Trainer:
         self.ops: dict[str, list[Callable[..., Any]]] = {point: [] for point in HOOKS}
 
     def register_op(self, point: str, op: Callable[..., Any]) -> None:
-        """Runs ``op`` at hook ``point``; ``update`` and ``evaluate`` take one op each, whose
-        result the loop uses."""
+        """Runs ``op`` at hook ``point`` (``update``, ``evaluate``: one op, whose result counts)."""
         if point not in self.ops:
             raise ValueError(f"unknown hook point {point!r} (known: {', '.join(HOOKS)})")
         if point in ("update", "evaluate") and self.ops[point]:
@@ -188,7 +177,6 @@ class Trainer:
         return out
 
     def train(self) -> None:
-        """Runs the loop to the collector's budget or every seed's early stop."""
         collector, counters, watch, n = self.collector, self.counters, self.watch, self.seeds
         budget = int(collector.total_frames)
         desc = f"{self.label} (budget {budget} frames)" if self.open_ended else self.label
@@ -256,8 +244,8 @@ class Trainer:
 
 
 class SeedLoop:
-    """What a schedule's trainer of ``n`` seeds shares: one log per seed (``logs``), its
-    checkpoints, and the :class:`Trainer` it builds with them."""
+    """What a trainer of ``n`` seeds shares: one log per seed, its checkpoints, and the
+    :class:`Trainer` it builds with them."""
 
     def __init__(
         self,
@@ -275,8 +263,8 @@ class SeedLoop:
         self.progress, self.checkpoints = progress, checkpoints
 
     def latest(self, counters: SavedCounters) -> str | None:
-        """The newest checkpoint, its ``counters`` loaded first (a checkpoint of another form
-        is refused before anything else is read)."""
+        """The newest checkpoint, its ``counters`` loaded (a checkpoint of another form is
+        refused before anything else is read)."""
         latest = self.checkpoints.latest() if self.checkpoints is not None else None
         if latest is not None:
             self.checkpoints.load(latest, {"counters": counters})
@@ -299,8 +287,8 @@ class SeedLoop:
         watch: Stopwatch,
         frames_before: int = 0,
     ) -> Trainer:
-        """The :class:`Trainer` of a loop of ``cfg``; before each checkpoint, ``saved`` takes the
-        training seconds (since ``stops.start``) and the logs' positions."""
+        """The :class:`Trainer` of a loop of ``cfg``; ``saved`` takes the training seconds and the
+        logs' positions before each checkpoint."""
 
         def record() -> None:
             saved.seconds = time.perf_counter() - stops.start

@@ -1,6 +1,5 @@
 """The paper's Algorithm 1 (``schedule=joint``): every stage learner keeps learning while the
-start region moves back, phase k collecting whole-task episodes from stage-k starts; several
-seeds train at once, each keeping what a joint run of its own keeps."""
+start region moves back, phase k collecting whole-task episodes from stage-k starts."""
 
 from __future__ import annotations
 
@@ -21,7 +20,7 @@ from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.learners.stacking import unstack_learner
 from torchrl_stages.loop import LoopCounters, Stopwatch
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.schedules.base import Probe, Schedule, SeedRuns, Trained, register_schedule
+from torchrl_stages.schedules.base import Probe, Schedule, SeedGroup, Trained, register_schedule
 from torchrl_stages.seeding import EVAL_OFFSET, phase_seed, stage_seed
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask, tile_starts
@@ -35,36 +34,20 @@ JOINT = "joint"
 
 
 class JointTrainer(StageTeam):
-    """Trains all stage learners of ``task`` together for every seed of ``seeds`` at once;
-    :meth:`train` returns one :class:`~torchrl_stages.schedules.Trained` per seed.
+    """Trains all stage learners of ``task`` together for every seed of ``seeds`` at once.
 
     Phase k (k = N-1, ..., 0; one phase from the task's own starts for an env without stage
-    starts) uses stage k's collection, evaluation and early-stop keys; its evaluations are
-    greedy whole-task episodes from stage-k starts. Every transition goes to the buffer of the
-    stage of s_t; after each batch every stage with enough data takes its gradient steps, last
-    stage first, the transitions leaving stage m rewarded ``r + gamma_m V_{m+1}(s')`` from stage
-    m+1's live target networks. The seeds share the envs' random streams, each stage's
-    exploration schedule and each parameter's Adam step count.
-
-    Examples:
-        >>> from omegaconf import OmegaConf
-        >>> from torchrl_stages.learners.dqn import DQNConfig
-        >>> tiny = DQNConfig(frames=512, frames_per_batch=128, num_envs=16,
-        ...                  init_random_frames=128, batch_size=32, eval_every=0)
-        >>> task = StagedTask(OmegaConf.create({
-        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},
-        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
-        ...             "num_stages": 2},
-        ... }))
-        >>> runs = JointTrainer(task, [0, 1]).train()  # doctest: +SKIP
-        >>> [[p["start_stage"] for p in run.extra["phases"]] for run in runs]  # doctest: +SKIP
-        [[1, 0], [1, 0]]
+    starts) collects whole-task episodes from stage-k starts with stage k's collection,
+    evaluation and early-stop keys. Every transition goes to the buffer of the stage of s_t;
+    after each batch every stage with enough data takes its gradient steps, last stage first,
+    the transitions leaving stage m rewarded ``r + gamma_m V_{m+1}(s')`` from stage m+1's live
+    target networks. The seeds share the envs' random streams, each stage's exploration
+    schedule and each parameter's Adam step count.
     """
 
     def __init__(
         self, task: StagedTask, seeds: Sequence[int] = (0,), *, probe: Probe | None = None, **kwargs
     ) -> None:
-        """``kwargs``: :class:`StageTeam`'s ``logs``, ``progress``, ``checkpoints``, ``compile``."""
         super().__init__(task, seeds, **kwargs)
         self.probe = probe
         self.starts = list(reversed(range(task.num_stages))) if task.stage_starts else [None]
@@ -91,8 +74,7 @@ class JointTrainer(StageTeam):
         return env, eval_env
 
     def train(self) -> list[Trained]:
-        """Runs every phase from the newest checkpoint on; each seed's learners, one result per
-        stage and its phases."""
+        """Runs every phase from the newest checkpoint on; one :class:`Trained` per seed."""
         counters = JointCounters(self.task.num_stages, self.n)
         stateful = {
             "learners": StateOf(self._learner_states, self._load_learner_states),
@@ -207,8 +189,7 @@ class JointTrainer(StageTeam):
     def _evaluated(
         self, k: int, counters: JointCounters, stops: SeedEarlyStops, evaluation: Evaluation
     ) -> None:
-        """A seed that stopped while others train on keeps its Adam moments (the others'
-        updates decay them); the probe follows the whole task."""
+        """A seed that stopped keeps its Adam moments (the others' updates would decay them)."""
         if self.n > 1:
             for i, at in enumerate(stops.stopped_at):
                 if at is not None and "moments" not in at:
@@ -242,9 +223,8 @@ class JointTrainer(StageTeam):
 
 @register_schedule
 class JointSchedule(Schedule):
-    """``schedule=joint`` (:class:`JointTrainer`): every stage trains at once, so the run
-    resumes as a whole (checkpoints ``"joint"``) and its stage files are written when it ends;
-    its phases, not its stages, stop early."""
+    """``schedule=joint`` (:class:`JointTrainer`): the run resumes as a whole (checkpoints
+    ``"joint"``), its stage files are written when it ends; its phases stop early."""
 
     name = "joint"
     stage_early_stop = False
@@ -253,10 +233,9 @@ class JointSchedule(Schedule):
     def checkpoint_scope(self, stage: int) -> str:
         return "joint"
 
-    def run(self, task: StagedTask, runs: SeedRuns) -> list[Trained]:
-        """A run every seed's keeper has finished is loaded, not trained."""
-        seeds, keepers, stages = runs.seeds, runs.keepers, range(task.num_stages)
-        done = [runs.finished(k) for k in stages]
+    def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:
+        seeds, keepers, stages = group.seeds, group.keepers, range(task.num_stages)
+        done = [group.finished(k) for k in stages]
         if all(d is not None for d in done):
             return [
                 Trained(
@@ -266,15 +245,15 @@ class JointSchedule(Schedule):
                 )
                 for i in range(len(seeds))
             ]
-        scope = runs.begin("joint")
+        scope = group.begin("joint")
         trained = JointTrainer(
             task,
             seeds,
-            logs=runs.logs,
-            progress=runs.progress,
+            logs=group.logs,
+            progress=group.progress,
             checkpoints=scope,
-            probe=runs.probe,
-            compile=runs.compile,
+            probe=group.probe,
+            compile=group.compile,
         ).train()
         for seed, keeper, run in zip(seeds, keepers, trained, strict=True):
             phases = run.extra["phases"]
@@ -290,8 +269,7 @@ class JointSchedule(Schedule):
 
 
 def train_joint(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """The joint schedule for every seed of ``seeds`` at once (:meth:`Schedule.train
-    <torchrl_stages.schedules.Schedule.train>`'s arguments)."""
+    """The joint schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s)."""
     return JointSchedule().train(task, seeds, **kwargs)
 
 
