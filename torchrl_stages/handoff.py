@@ -1,6 +1,5 @@
 """Handoff diagnostics: at each boundary k -> k+1, how well ``V_{k+1}`` holds at the states where
-stage k hands over (against the return obtained after them), and whether they lie inside stage
-k+1's training starts (where ``V_{k+1}`` was not extrapolated)."""
+stage k hands over, and whether they lie inside stage k+1's training starts."""
 
 from __future__ import annotations
 

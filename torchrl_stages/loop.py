@@ -21,7 +21,7 @@ from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.early_stop import Evaluation, SeedEarlyStops
 from torchrl_stages.metric_names import STAGE, metric_name
-from torchrl_stages.metrics import MetricsLog, SeedLogs
+from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import Interrupted, requested
 from torchrl_stages.threads import keep_threads
 
@@ -145,21 +145,20 @@ class Trainer:
         eval_every: int = 0,
         checkpoints: StageCheckpoints | None = None,
         state: dict[str, Any] | None = None,
-        seeds: int = 1,
+        seeds: Sequence[int] = (0,),
         frames_before: int = 0,
         where: str = "the loop",
         watch: Stopwatch | None = None,
         progress: bool = False,
         open_ended: bool = False,
-        seed_names: Sequence[int] | None = None,
     ) -> None:
         self.collector, self.early_stop, self.counters = collector, early_stop, counters
         self.eval_every, self.checkpoints, self.state = int(eval_every), checkpoints, state or {}
-        self.seeds, self.frames_before, self.where = int(seeds), int(frames_before), where
+        self.seeds, self.frames_before, self.where = list(seeds), int(frames_before), where
         self.watch = watch if watch is not None else Stopwatch()
         self.progress, self.open_ended = progress, open_ended
-        self.seed_names = list(seed_names) if seed_names is not None else list(range(self.seeds))
-        self.label = where + (f", {self.seeds} seeds" if self.seeds > 1 else "")
+        n = len(self.seeds)
+        self.label = where + (f", {n} seeds" if n > 1 else "")
         self.ops: dict[str, list[Callable[..., Any]]] = {point: [] for point in HOOKS}
 
     def register_op(self, point: str, op: Callable[..., Any]) -> None:
@@ -177,7 +176,7 @@ class Trainer:
         return out
 
     def train(self) -> None:
-        collector, counters, watch, n = self.collector, self.counters, self.watch, self.seeds
+        collector, counters, watch, n = self.collector, self.counters, self.watch, len(self.seeds)
         budget = int(collector.total_frames)
         desc = f"{self.label} (budget {budget} frames)" if self.open_ended else self.label
         shown = self.progress and sys.stderr.isatty()  # elsewhere: a line per evaluation
@@ -222,7 +221,7 @@ class Trainer:
     def _log_lines(self, evaluation: Evaluation, rows: list[int], frames: int, budget: int) -> None:
         seconds = time.perf_counter() - self.early_stop.start
         for i in rows:
-            who = self.where if self.seeds == 1 else f"seed {self.seed_names[i]}: {self.where}"
+            who = self.where if len(self.seeds) == 1 else f"seed {self.seeds[i]}: {self.where}"
             log.info(
                 "%s: %d of %d frames, success %.2f, value error %.3f, %.1fs",
                 who,
@@ -258,7 +257,7 @@ class SeedLoop:
         logs = list(logs) if logs is not None else [MetricsLog(None) for _ in range(n)]
         if len(logs) != n:
             raise ValueError(f"{len(logs)} logs for {n} seeds")
-        self.n, self.logs = n, SeedLogs(logs)
+        self.n, self.logs = n, logs
         self.seeds = list(seeds) if seeds is not None else list(range(n))
         self.progress, self.checkpoints = progress, checkpoints
 
@@ -273,7 +272,12 @@ class SeedLoop:
     def restore(self, latest: str, state: dict[str, Any], counters: SavedCounters) -> None:
         """Loads ``state`` from checkpoint ``latest`` and rewinds the logs to it."""
         self.checkpoints.load(latest, state)
-        self.logs.rewind(counters.log)
+        for i, log in enumerate(self.logs):
+            log.rewind(counters.log.get(str(i), {}))
+
+    def log_position(self) -> dict[str, dict[str, int]]:
+        """Each seed's log position, what :meth:`restore` rewinds to."""
+        return {str(i): log.position() for i, log in enumerate(self.logs)}
 
     def loop(
         self,
@@ -292,7 +296,7 @@ class SeedLoop:
 
         def record() -> None:
             saved.seconds = time.perf_counter() - stops.start
-            saved.log = self.logs.position()
+            saved.log = self.log_position()
 
         loop = Trainer(
             collector,
@@ -301,10 +305,9 @@ class SeedLoop:
             eval_every=int(cfg.eval_every),
             checkpoints=self.checkpoints,
             state=state,
-            seeds=self.n,
+            seeds=self.seeds,
             progress=self.progress,
             open_ended=can_stop_early(cfg),
-            seed_names=self.seeds,
             where=where,
             watch=watch,
             frames_before=frames_before,
@@ -347,7 +350,7 @@ class SeedLoop:
     ) -> None:
         """Each ``active`` seed's episodes of ``batch`` under ``train/<scope>_<index>/``, and
         each stage m's mean ``losses`` and ``updates[seed][m]`` under ``train/stage_<m>/``."""
-        if self.logs.silent:
+        if all(log.logger is None for log in self.logs):
             return
         episodes = MetricsLog.episodes_by_row(batch.reshape(self.n, -1))
         means = {m: loss_means(stage_losses) for m, stage_losses in losses.items()}

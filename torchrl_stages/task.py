@@ -28,11 +28,8 @@ def tile_starts(starts: dict[str, Any], copies: int) -> dict[str, Any]:
 
 
 class StagedTask:
-    """Makes the envs of a task config (``cfg.task``) for training and evaluation.
-
-    ``task.env`` builds a batched :class:`~torchrl_stages.stage_env.StageEnv`. ``copies``
-    arguments hold that many consecutive copies of a batch, one per seed of a seed-stacked
-    learner (:func:`tile_starts`).
+    """Makes the envs of a task config (``cfg.task``) for training and evaluation; ``copies``
+    arguments hold one copy of a batch per seed of a seed-stacked learner.
 
     Examples:
         >>> from omegaconf import OmegaConf

@@ -245,13 +245,10 @@ class StageTransform(_StageView):
 
 
 class StageRewardTransform(_StageView):
-    """Stage k's view of replay-buffer samples, from the *current* next-stage value.
-
-    The storage holds raw transitions tagged by :class:`StageTransform`; every sample gets the
-    transitions that leave stage k marked ``terminated`` with ``r + gamma * V_{k+1}(s_{t+1})``,
+    """Stage k's view of replay-buffer samples, from the *current* next-stage value: the
+    transitions that leave stage k are ``terminated`` with ``r + gamma * V_{k+1}(s_{t+1})``,
     so the next stage may keep learning after the data was stored (the joint schedule).
-    ``next_value`` is held by reference, never copied nor trained here (pass
-    ``learner.value(live=True)`` to follow the next learner's target networks).
+    ``next_value`` is held by reference, never copied nor trained here.
 
     Examples:
         >>> from tensordict import TensorDict
@@ -323,9 +320,8 @@ class StageRewardTransform(_StageView):
 class StageDiscount(Transform):
     """Discounts every stored transition with the gamma of its stage in torchrl's estimators.
 
-    It writes ``steps_to_next_obs = log(gammas[stage]) / log(gamma)``, so that a TD(0) estimator
-    built with ``gamma`` bootstraps with ``gammas[stage(s_t)]``: the flat baseline then optimizes
-    the same stage-discounted objective as the stacked learners.
+    ``steps_to_next_obs = log(gammas[stage]) / log(gamma)`` makes a TD(0) estimator built with
+    ``gamma`` bootstrap with ``gammas[stage(s_t)]``.
 
     Examples:
         >>> from tensordict import TensorDict

@@ -94,7 +94,7 @@ class JointTrainer(StageTeam):
             counters.phase, counters.in_phase = index + 1, False
             if self.checkpoints is not None:  # a phase boundary: learners and buffers
                 counters.seconds = time.perf_counter() - start
-                counters.log = self.logs.position()
+                counters.log = self.log_position()
                 self.checkpoints.save(counters.frames, stateful)
         seconds = time.perf_counter() - start  # every launch's
         return [self._trained(i, counters, seconds, watch) for i in range(self.n)]
@@ -103,25 +103,19 @@ class JointTrainer(StageTeam):
         """Seed ``i``'s learners and results (the last phase's evaluation for every stage)."""
         phases = counters.phases[i]
         last = phases[-1] if phases else {}
+        ended = {key: last.get(key) for key in ("success_rate", "value_error", "discounted_return")}
+        ended |= {key: bool(last.get(key)) for key in ("early_stopped", "restored_best")}
         learners, results = [], []
         for m, learner in enumerate(self.learners):
             if learner.seeds is not None:
                 learner = unstack_learner(learner, i, self.make[m]())
             learner.num_updates = counters.updates[i][m]
             learners.append(learner)
-            result = StageResult(
-                m,
-                counters.stored[i][m],
-                learner.num_updates,
-                seconds,
-                last.get("success_rate"),
-                last.get("value_error"),
-                bool(last.get("early_stopped")),
-                bool(last.get("restored_best")),
-                dict(watch.seconds),
-                last.get("discounted_return"),
+            frames = counters.stored[i][m]
+            timing = dict(watch.seconds)
+            results.append(
+                StageResult(m, frames, learner.num_updates, seconds, timing=timing, **ended)
             )
-            results.append(result)
         return Trained(learners, results, {"phases": phases})
 
     def _phase(self, start_stage, counters: JointCounters, stateful, latest, watch, t0) -> None:
