@@ -38,10 +38,9 @@ class Evaluation:
 
 
 class EarlyStop:
-    """Early stop and best weights over a stage's greedy evaluations: the criterion must hold
-    for ``patience`` consecutive evaluations after ``min_frames``; if the budget runs out first,
-    :meth:`restore_best` puts back the best evaluation's weights (``keep_best``: highest success,
-    then ``keep_best_by`` lowest value error or highest return)."""
+    """Early stop after ``patience`` consecutive evaluations meeting the criterion past
+    ``min_frames``; else :meth:`restore_best` puts back the best evaluation's weights (highest
+    success, then ``keep_best_by`` lowest value error or highest return)."""
 
     def __init__(self, cfg: StageConfig) -> None:
         self.cfg = cfg

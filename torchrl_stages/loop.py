@@ -243,8 +243,7 @@ class Trainer:
 
 
 class SeedLoop:
-    """What a trainer of ``n`` seeds shares: one log per seed, its checkpoints, and the
-    :class:`Trainer` it builds with them."""
+    """What a trainer of ``n`` seeds shares: a log per seed, checkpoints, its :class:`Trainer`."""
 
     def __init__(
         self,
@@ -262,8 +261,7 @@ class SeedLoop:
         self.progress, self.checkpoints = progress, checkpoints
 
     def latest(self, counters: SavedCounters) -> str | None:
-        """The newest checkpoint, its ``counters`` loaded (a checkpoint of another form is
-        refused before anything else is read)."""
+        """The newest checkpoint, its ``counters`` loaded first (its form is checked there)."""
         latest = self.checkpoints.latest() if self.checkpoints is not None else None
         if latest is not None:
             self.checkpoints.load(latest, {"counters": counters})
@@ -291,8 +289,7 @@ class SeedLoop:
         watch: Stopwatch,
         frames_before: int = 0,
     ) -> Trainer:
-        """The :class:`Trainer` of a loop of ``cfg``; ``saved`` takes the training seconds and the
-        logs' positions before each checkpoint."""
+        """The :class:`Trainer` of ``cfg``; ``saved`` takes the seconds and log positions."""
 
         def record() -> None:
             saved.seconds = time.perf_counter() - stops.start
@@ -325,8 +322,7 @@ class SeedLoop:
         frames: list[int],
         updates: list[int],
     ) -> Evaluation:
-        """Each ``active`` seed's evaluation ``summaries`` logged under ``eval/<scope>_<index>/``
-        at its ``steps``; the :class:`Evaluation` of every seed."""
+        """Logs each ``active`` seed's ``summaries`` at its ``steps``; every seed's evaluation."""
         for i in active:
             metrics = {metric_name("eval", scope, index, k): v for k, v in summaries[i].items()}
             self.logs[i](metrics, steps[i])

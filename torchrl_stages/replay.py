@@ -105,8 +105,7 @@ class SeedReplayBuffer:
         self.storage[:, : held.shape[1]] = held
 
     def sample(self, batch_size: int, rows: torch.Tensor | None = None):
-        """``[num_seeds, batch_size]`` transitions; with ``rows`` (seed indices),
-        ``[len(rows), batch_size]`` of those seeds only."""
+        """``[num_seeds, batch_size]`` transitions (``rows``: of those seeds only)."""
         if rows is None:
             rows = torch.arange(self.num_seeds, device=self.device)
         n = rows.numel()

@@ -21,8 +21,7 @@ TASK_EVAL_OFFSET = 20_000
 
 
 def stage_seed(seed: int, stage: int) -> int:
-    """The seed of stage ``stage``'s generator and training env (its evaluation env:
-    ``+ EVAL_OFFSET``)."""
+    """The seed of stage ``stage``'s generator and training env."""
     return seed + stage
 
 

@@ -84,9 +84,8 @@ def gradient_steps(
     watch: Stopwatch,
     transform: Callable[[TensorDictBase], TensorDictBase] | None = None,
 ) -> list[dict[str, torch.Tensor]]:
-    """A batch's gradient steps of ``learner``'s seeds ``rows`` (``None``: all); their per-seed
-    losses. One draw for all the steps (the same indices as a draw per step) unless the update
-    itself draws random numbers (TD3)."""
+    """A batch's gradient steps of ``learner``'s seeds ``rows`` (``None``: all): one draw for all
+    the steps unless the update itself draws random numbers (TD3)."""
     n = int(learner.seeds or 1)
     steps, size = int(cfg.updates_per_batch), int(cfg.batch_size)
     draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)

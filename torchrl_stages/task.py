@@ -110,8 +110,7 @@ class StagedTask:
     def stage_eval_env(
         self, stage: int, next_value: TensorDictModuleBase | None = None, *, copies: int = 1
     ) -> TransformedEnv:
-        """Stage ``stage``'s evaluation env: one episode from each start state where the env
-        lists them, else ``eval_episodes`` random starts in the stage."""
+        """Stage ``stage``'s evaluation env: every start state, else ``eval_episodes`` starts."""
         starts = self.start_states(stage)
         if starts is not None:
             base = self.base_env(**tile_starts(starts, copies))

@@ -11,13 +11,9 @@ from typing import Any
 
 @dataclass(frozen=True)
 class TaskReport:
-    """What a task adds to the whole-task evaluation.
-
-    ``report(task, learners, evaluation, run_dir, plots) -> dict`` gives the task's metrics
-    (``eval.json``'s ``"task_metrics"``) and draws its figures; ``headline`` names the metrics
-    a sweep summary shows beside the success rate; ``probe(task, learners) -> dict`` gives the
-    numbers followed during training with ``eval.probe=true``.
-    """
+    """What a task adds: ``report(task, learners, evaluation, run_dir, plots) -> dict`` its
+    metrics (``eval.json``'s ``"task_metrics"``) and figures; ``headline`` the metrics a sweep
+    summary shows; ``probe(task, learners) -> dict`` what ``eval.probe=true`` follows."""
 
     report: Callable[..., dict[str, Any]] | None = None
     headline: tuple[str, ...] = ()

@@ -27,8 +27,7 @@ def train_backward(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> l
 
 
 def stage_value(task: StagedTask, stage: int, learners: Sequence[Learner]) -> TensorDictModuleBase:
-    """The frozen value of ``stage`` that the stage before it learns against (several seeds:
-    that of their seed-stacked learner)."""
+    """The frozen value of ``stage`` (several seeds: of their seed-stacked learner)."""
     if len(learners) == 1:
         return learners[0].value()
     cfg, specs = task.stage_cfg(stage), task.specs(stage)

@@ -43,9 +43,8 @@ class StageKeeper(Protocol):
 
 @dataclass
 class Trained:
-    """What a schedule returns for a seed: one learner and one result per stage (a flat
-    learner: the same learner in every stage, one result), and what else ``eval.json``'s
-    ``training`` records."""
+    """What a schedule returns for a seed: one learner and one result per stage, and what else
+    ``eval.json``'s ``training`` records."""
 
     learners: list[Learner]
     results: list[StageResult]
@@ -54,9 +53,8 @@ class Trained:
 
 @dataclass
 class SeedGroup:
-    """The seeds one :meth:`Schedule.train` call trains together: each one's keeper (``None``:
-    keeps nothing) and log, the checkpoints of a loop scope (one state for all the seeds), and
-    how the loops run (``probe``: one seed)."""
+    """The seeds one :meth:`Schedule.train` call trains together, each one's keeper and log, the
+    checkpoints of a loop scope (one state for all the seeds), and how the loops run."""
 
     schedule: str
     seeds: list[int]
@@ -130,8 +128,7 @@ class Schedule:
     stacks_seeds: ClassVar[bool] = False
 
     def train(self, task: StagedTask, seeds: Sequence[int] = (0,), **kwargs: Any) -> list[Trained]:
-        """Trains what is left of ``task`` for every seed at once (``kwargs``: :class:`SeedGroup`'s
-        fields)."""
+        """Trains what is left of ``task`` for every seed (``kwargs``: :class:`SeedGroup`'s)."""
         return self.run(task, SeedGroup(self.name, list(seeds), **kwargs))
 
     def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:

@@ -36,13 +36,10 @@ JOINT = "joint"
 class JointTrainer(StageTeam):
     """Trains all stage learners of ``task`` together for every seed of ``seeds`` at once.
 
-    Phase k (k = N-1, ..., 0; one phase from the task's own starts for an env without stage
-    starts) collects whole-task episodes from stage-k starts with stage k's collection,
-    evaluation and early-stop keys. Every transition goes to the buffer of the stage of s_t;
-    after each batch every stage with enough data takes its gradient steps, last stage first,
-    the transitions leaving stage m rewarded ``r + gamma_m V_{m+1}(s')`` from stage m+1's live
-    target networks. The seeds share the envs' random streams, each stage's exploration
-    schedule and each parameter's Adam step count.
+    Phase k (k = N-1, ..., 0; without stage starts: one phase from the task's own) collects
+    whole-task episodes from stage-k starts with stage k's keys; the transitions leaving stage m
+    are rewarded ``r + gamma_m V_{m+1}(s')`` from stage m+1's live target networks. The seeds
+    share the envs' random streams, the exploration schedules and the Adam step counts.
     """
 
     def __init__(
