@@ -78,13 +78,11 @@ class Stopwatch:
         iterator = iter(iterable)
         while True:
             with self(phase):
-                item = next(iterator, _END)
-            if item is _END:
-                return
+                try:
+                    item = next(iterator)
+                except StopIteration:
+                    return
             yield item
-
-
-_END = object()
 
 
 @dataclass

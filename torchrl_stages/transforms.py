@@ -291,14 +291,9 @@ class StageRewardTransform(_StageView):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self.parent is not None:
             raise RuntimeError(self.ENV_ERR)
-        required = [
-            "stage",
-            ("next", "stage_transition"),
-            ("next", "reward"),
-            ("next", "terminated"),
-        ]
-        if self.next_value is not None:
-            required.append(("next", "stage"))
+        needed = ["stage_transition", "reward", "terminated"]
+        needed += ["stage"] if self.next_value is not None else []
+        required = ["stage", *(("next", key) for key in needed)]
         missing = [k for k in required if tensordict.get(k, None) is None]
         if missing:
             names = ", ".join(".".join(k) if isinstance(k, tuple) else k for k in missing)
