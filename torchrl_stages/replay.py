@@ -18,6 +18,8 @@ class SeedReplayBuffer:
         >>> rb.extend(TensorDict(x=torch.tensor([0, 1, 10, 11]), batch_size=[4]))
         >>> len(rb), rb.sample(3)["x"].shape
         (2, torch.Size([2, 3]))
+        >>> bool((rb.sample(5)["x"][1] >= 10).all())  # seed 1 only ever sees its own
+        True
         >>> rb.extend(TensorDict(x=torch.tensor([12, 13, 14]), batch_size=[3]),
         ...           seeds=torch.tensor([1, 1, 1]))  # seed 1 alone, 3 elements
         >>> rb.counts.tolist(), bool((rb.sample(4, rows=torch.tensor([1]))["x"] >= 11).all())
