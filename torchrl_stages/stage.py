@@ -112,6 +112,22 @@ class StageTrainer(SeedLoop):
     schedule passes ``gammas`` (evaluations' stage discounts), ``postproc`` (applied to each
     batch) and ``extra_keys`` (stored too). :meth:`train` returns each seed's ordinary learner
     (``make_learner()`` builds the one a stacked row is taken into) and result.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
+        >>> from torchrl_stages.task import StagedTask
+        >>> task = StagedTask(OmegaConf.create({
+        ...     "name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2},
+        ... }))
+        >>> cfg = OmegaConf.structured(DQNConfig(frames=512, frames_per_batch=64, num_envs=8,
+        ...                                      init_random_frames=64, eval_every=0))
+        >>> learner = DQNLearner(cfg, task.specs(1))
+        >>> trainer = StageTrainer(1, learner, task.stage_env(1, 8), task.stage_env(1, 8), cfg)
+        >>> [result.frames for _, result in trainer.train()]  # doctest: +SKIP
+        [512]
     """
 
     def __init__(

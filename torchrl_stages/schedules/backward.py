@@ -22,7 +22,23 @@ from torchrl_stages.task import StagedTask
 
 
 def train_backward(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """The backward schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s)."""
+    """The backward schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s).
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.learners.dqn import DQNConfig
+        >>> from torchrl_stages.task import StagedTask
+        >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16,
+        ...                  init_random_frames=128, batch_size=32, eval_every=0)
+        >>> task = StagedTask(OmegaConf.create({
+        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},  # stages 0 and 1
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2},
+        ... }))
+        >>> runs = train_backward(task, [0, 1])  # doctest: +SKIP
+        >>> [[r.frames for r in run.results] for run in runs]  # doctest: +SKIP
+        [[256, 256], [256, 256]]
+    """
     return BackwardSchedule().train(task, seeds, **kwargs)
 
 
@@ -49,7 +65,18 @@ def train_stage(
 ) -> list[tuple[Learner, StageResult]]:
     """Trains stage ``stage`` against ``next_value`` (stage ``stage + 1``'s frozen value) for
     every seed of ``seeds``, as a backward run does; each seed's learner and result. A stage is
-    seeded from the seed and its index alone. ``on_evaluate(learner, frames)``: one seed."""
+    seeded from the seed and its index alone. ``on_evaluate(learner, frames)``: one seed.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.learners.dqn import DQNConfig
+        >>> from torchrl_stages.task import StagedTask
+        >>> cfg = DQNConfig(frames=128, frames_per_batch=64, num_envs=8, batch_size=16)
+        >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 5, "num_stages": 1}
+        >>> task = StagedTask(OmegaConf.create({"name": "g", "stages": {"a": cfg}, "env": env}))
+        >>> [(r.frames, r.stage) for _, r in train_stage(task, 0, seeds=[3])]  # doctest: +SKIP
+        [(128, 0)]
+    """
     cfg, specs, n = task.stage_cfg(stage), task.specs(stage), len(seeds)
 
     def make(seeds: int | None = None) -> Learner:

@@ -24,7 +24,23 @@ def flat_config(task: StagedTask) -> DictConfig:
 
 
 def train_flat(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """The flat schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s)."""
+    """The flat schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s).
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.learners.dqn import DQNConfig
+        >>> from torchrl_stages.task import StagedTask
+        >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16, gamma=0.9,
+        ...                  init_random_frames=128, batch_size=32, eval_every=0)
+        >>> task = StagedTask(OmegaConf.create({
+        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2},
+        ... }))
+        >>> [run] = train_flat(task)  # doctest: +SKIP
+        >>> run.learners[0] is run.learners[1], run.results[0].frames  # doctest: +SKIP
+        (True, 512)
+    """
     return FlatSchedule().train(task, seeds, **kwargs)
 
 

@@ -40,6 +40,20 @@ class JointTrainer(StageTeam):
     whole-task episodes from stage-k starts with stage k's keys; the transitions leaving stage m
     are rewarded ``r + gamma_m V_{m+1}(s')`` from stage m+1's live target networks. The seeds
     share the envs' random streams, the exploration schedules and the Adam step counts.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_stages.learners.dqn import DQNConfig
+        >>> tiny = DQNConfig(frames=512, frames_per_batch=128, num_envs=16,
+        ...                  init_random_frames=128, batch_size=32, eval_every=0)
+        >>> task = StagedTask(OmegaConf.create({
+        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},
+        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
+        ...             "num_stages": 2},
+        ... }))
+        >>> runs = JointTrainer(task, [0, 1]).train()  # doctest: +SKIP
+        >>> [[p["start_stage"] for p in run.extra["phases"]] for run in runs]  # doctest: +SKIP
+        [[1, 0], [1, 0]]
     """
 
     def __init__(
