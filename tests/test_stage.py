@@ -7,6 +7,7 @@ from torch import nn
 
 from torchrl_stages.early_stop import EarlyStop
 from torchrl_stages.learners.dqn import DQNConfig
+from torchrl_stages.loop import can_stop_early
 
 
 def _cfg(**kw):
@@ -17,6 +18,11 @@ def _learner(value: float) -> nn.Module:
     module = nn.Linear(1, 1)
     module.weight.data.fill_(value)
     return module
+
+
+def test_a_loop_can_stop_early_with_a_threshold_and_evaluations():
+    assert can_stop_early(_cfg(success_threshold=0.9, eval_every=1000))
+    assert not can_stop_early(_cfg(success_threshold=None, eval_every=1000))
 
 
 def test_early_stop_needs_patience_tolerance_and_min_frames():

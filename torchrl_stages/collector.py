@@ -16,14 +16,12 @@ log = logging.getLogger("torchrl_stages")
 
 
 class StageCollector:
-    """Yields ``[num_envs, T]`` batches of ``frames_per_batch`` steps of a batched env.
+    """Yields ``[num_envs, T]`` batches of ``frames_per_batch`` steps of a batched env, as
+    torchrl's ``Collector`` does (random actions for the first ``init_random_frames``).
 
-    It collects like torchrl's ``Collector`` (``step_and_maybe_reset``, random actions for the
-    first ``init_random_frames``, then ``policy`` under the random exploration type), and its
-    :meth:`state_dict` holds what that collector cannot restore: the running episodes (the
-    carried next-step TensorDict and ``env.base_env.state_dict()``). An interrupted stage so
-    continues bitwise on envs that keep their state in ``state_dict``; others restart their
-    episodes, with a warning.
+    Its :meth:`state_dict` also holds the running episodes (the carried next step and
+    ``env.base_env.state_dict()``), so an interrupted stage continues bitwise on envs that keep
+    their state in ``state_dict``; others restart their episodes, with a warning.
 
     Examples:
         >>> from torchrl_stages.envs import GridWorldEnv
@@ -98,7 +96,6 @@ class StageCollector:
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restores the frames and, where the state holds them, the running episodes."""
         self.frames = int(state["frames"])
         self._carrier = None  # without a saved env state, the episodes start over
         base = self._base

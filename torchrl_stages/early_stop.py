@@ -1,5 +1,5 @@
 """When a loop stops and which weights it keeps, for one seed (:class:`EarlyStop`) or each seed
-of a loop (:class:`SeedEarlyStops`), over the rows of a seed-stacked learner."""
+of a loop (:class:`SeedEarlyStops`)."""
 
 from __future__ import annotations
 
@@ -19,8 +19,7 @@ from torchrl_stages.learners.stacking import seed_axes
 
 def first_evaluation(cfg: StageConfig) -> int:
     """Frames of a stage's first evaluation: ``eval_every``, or, with an early stop, the first of
-    the ``patience`` evaluations that can stop the stage at ``min_frames`` (earlier ones could
-    not)."""
+    the ``patience`` evaluations that can stop the stage at ``min_frames``."""
     first = int(cfg.eval_every)
     if cfg.success_threshold is not None and int(cfg.min_frames) <= int(cfg.frames):
         first = max(first, int(cfg.min_frames) - (int(cfg.patience) - 1) * first)
@@ -39,10 +38,9 @@ class Evaluation:
 
 
 class EarlyStop:
-    """Early stop and best weights over a stage's greedy evaluations: the criterion must hold
-    for ``patience`` consecutive evaluations after ``min_frames``; if the budget runs out first,
-    :meth:`restore_best` puts back the best evaluation's weights (``keep_best``: highest success,
-    then ``keep_best_by`` lowest value error or highest return)."""
+    """Early stop after ``patience`` consecutive evaluations meeting the criterion past
+    ``min_frames``; else :meth:`restore_best` puts back the best evaluation's weights (highest
+    success, then ``keep_best_by`` lowest value error or highest return)."""
 
     def __init__(self, cfg: StageConfig) -> None:
         self.cfg = cfg
@@ -121,8 +119,7 @@ class EarlyStop:
 
 class SeedRow:
     """Seed ``seed``'s row of a seed-stacked learner, or of every learner of a team (entries
-    ``<m>.<key>``), as :class:`EarlyStop` reads and restores it (entries the seeds share, such as
-    the exploration schedule, are left alone).
+    ``<m>.<key>``), as :class:`EarlyStop` reads and restores it (shared entries left alone).
 
     Examples:
         >>> from torchrl.data import Categorical
@@ -145,7 +142,6 @@ class SeedRow:
         ]
 
     def _entries(self):
-        """(learner, its state key, its seed axis, the row's key) of every entry."""
         for m, (learner, axes) in enumerate(zip(self.learners, self.axes, strict=True)):
             for key, axis in axes.items():
                 yield learner, key, axis, f"{m}.{key}" if self.team else key
@@ -166,8 +162,7 @@ class SeedRow:
 
 
 def seed_rows(learners: Learner | Sequence[Learner]) -> list[Any]:
-    """What an early stop keeps and restores of each seed of a learner or of a team of them
-    (ordinary learners: themselves, one row)."""
+    """What an early stop keeps and restores of each seed of a learner or a team of them."""
     one = isinstance(learners, nn.Module)
     seeds = (learners if one else learners[0]).seeds
     if seeds is None:
@@ -181,8 +176,8 @@ def finite(state: dict[str, torch.Tensor]) -> bool:
 
 
 class SeedEarlyStops:
-    """One :class:`EarlyStop` per seed over its row of ``rows``; a seed that stops keeps its
-    row's weights, frames, updates and seconds (:attr:`stopped_at`) while the others train on.
+    """One :class:`EarlyStop` per seed of ``rows``; a seed that stops keeps its weights, frames,
+    updates and seconds (:attr:`stopped_at`) while the others train on.
 
     Examples:
         >>> from torchrl_stages.learners.dqn import DQNConfig
@@ -201,7 +196,7 @@ class SeedEarlyStops:
         self.stopped_at: list[dict | None] = [None] * len(self.rows)
 
     def record(self, evaluation: Evaluation) -> bool:
-        """Records each active seed's evaluation; whether every seed has stopped."""
+        """Whether every seed has stopped."""
         ev = evaluation
         for i, monitor in enumerate(self.monitors):
             if self.stopped_at[i] is not None:
@@ -222,8 +217,7 @@ class SeedEarlyStops:
         return [i for i, at in enumerate(self.stopped_at) if at is None]
 
     def finish(self, i: int) -> dict[str, Any]:
-        """Seed ``i``'s row gets the weights it stopped with, else its best evaluated ones; the
-        evaluation of those weights."""
+        """Seed ``i``'s row gets the weights it stopped with, else its best; their evaluation."""
         at, monitor = self.stopped_at[i], self.monitors[i]
         if at is not None:
             self.rows[i].load_state_dict(at["state"])

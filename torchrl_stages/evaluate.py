@@ -79,7 +79,7 @@ def ended_well(td: TensorDictBase) -> torch.Tensor:
 
 @dataclass
 class EpisodeStats:
-    """Statistics of each batch element's first episode in a rollout."""
+    """Each batch element's first episode in a rollout."""
 
     success: torch.Tensor  # bool [B]: solved (ended_well) on its last step, not unfinished
     length: torch.Tensor  # int64 [B]: steps of the first episode
@@ -105,8 +105,7 @@ class EpisodeStats:
 
 
 def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
-    """Success (:func:`ended_well` on its last step), length and return of each row's first
-    episode in a ``[B, T]`` rollout."""
+    """The :class:`EpisodeStats` of a ``[B, T]`` rollout."""
     done = rollout.get(("next", "done")).squeeze(-1)  # [B, T]
     solved = ended_well(rollout).squeeze(-1)
     reward = rollout.get(("next", "reward")).squeeze(-1)
@@ -156,10 +155,8 @@ def evaluate_greedy(
     *,
     groups: int = 1,
 ) -> list[dict[str, float]]:
-    """A loop's evaluation: one summary per equal, consecutive part of ``env``'s batch (one per
-    seed of a seed-stacked policy), with the mean ``discounted_return`` G and ``value_error``,
-    ``|V(s_0) - G|`` reduced over the starts by ``reduce`` (``mean`` or ``max``): whether the
-    values a stage hands on have converged."""
+    """A loop's evaluation: one summary per equal part of ``env``'s batch (one per seed), with
+    the mean ``discounted_return`` G and ``value_error`` ``|V(s_0) - G|`` (``reduce``: mean|max)."""
     keep_threads()
     stats, rollout = evaluate_policy(env, policy, max_steps)
     returns = discounted_return(rollout, stats.length, gamma)
@@ -220,9 +217,8 @@ def evaluate_task(
     *,
     interruptible: bool = False,
 ) -> TaskEvaluation:
-    """Greedy whole-task episodes of ``policy``: one from every start state where the env lists
-    them, else ``episodes`` random starts in chunks of :data:`CHUNK` seeded from ``seed``.
-    ``interruptible``: a stop asked for by a signal ends it before the next chunk."""
+    """Greedy whole-task episodes: one from every start state where the env lists them, else
+    ``episodes`` random starts in chunks (``interruptible``: a signal stops it between chunks)."""
     all_starts = task.start_states(None) is not None
     sizes = [None] if all_starts else [min(CHUNK, episodes - i) for i in range(0, episodes, CHUNK)]
     stats, per_stage, final, first = [], [], [], None

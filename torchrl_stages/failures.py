@@ -64,9 +64,8 @@ def stage_failure(
     rows: Sequence[Any] = (),
     seeds: Sequence[int] = (),
 ) -> RuntimeError:
-    """The error a non-finite loss, gradient or value becomes: :class:`EnvError` when the env's
-    own data (``held``: the replay buffer's transitions, actions aside) is not finite, else
-    :class:`DivergenceError`, naming the ``seeds`` whose ``rows`` are no longer finite."""
+    """What a non-finite loss, gradient or value becomes: :class:`EnvError` when the env's data
+    (``held``: the replay buffer's, actions aside) is not finite, else :class:`DivergenceError`."""
     if isinstance(err, NonFiniteInputError):
         return EnvError(stage, name, err.key, "the next stage's value of it is not finite")
     bad = non_finite_entries(held, skip=[learner.specs.action_key]) if held is not None else []

@@ -1,5 +1,5 @@
-"""Gymnasium envs as multi-stage tasks (``task=gym``): a batched TorchRL env built from a
-gymnasium id, a stage function and the env's own constructor keys."""
+"""Gymnasium envs as multi-stage tasks (``task=gym``): a batched TorchRL env from a gymnasium id
+and a stage function."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ __all__ = ["GymStageEnv", "SuccessKeyError", "SuccessReader", "threshold_stage"]
 
 _UNSET = object()
 log = logging.getLogger("torchrl_stages")
-# env ids warned about since an env of that id was built: a resume warns once for all its envs
+# env ids whose resume was warned about: once for all the envs of an id
 _WARNED: set[str] = set()
 # the async workers get EpisodeReplay by value: they need not import this package (seconds each)
 cloudpickle.register_pickle_by_value(episode_replay)
@@ -55,7 +55,6 @@ def threshold_stage(
 
 
 def _stage_function(stage_fn: StageFn | str) -> StageFn:
-    """``stage_fn`` (a callable or a dotted path) returning int64 ``[*batch, 1]``."""
     fn = get_method(stage_fn) if isinstance(stage_fn, str) else stage_fn
     if not callable(fn):
         raise TypeError(
@@ -72,15 +71,12 @@ def _stage_function(stage_fn: StageFn | str) -> StageFn:
 
 
 class SuccessKeyError(ValueError):
-    """The env's ``info`` has never carried the success key on an episode's last step."""
+    """The env's ``info`` never carried the success key."""
 
 
 class SuccessReader(BaseInfoDictReader):
-    """Reads a gymnasium env's success flag ``info[info_key]`` into the ``"success"`` entry.
-
-    The env must report it at least on every episode's last step (a step without it reads
-    ``False``); after ``patience`` ended episodes that never reported it,
-    :class:`SuccessKeyError` stops the run (a misspelled key would fail every episode).
+    """Reads a gymnasium env's success flag ``info[info_key]`` (``False`` where absent) into the
+    ``"success"`` entry; :class:`SuccessKeyError` after ``patience`` ended episodes without it.
 
     Examples:
         >>> import numpy as np
@@ -139,13 +135,10 @@ class SuccessReader(BaseInfoDictReader):
 class GymStageEnv(GymWrapper):
     """A gymnasium env as a multi-stage task: ``batch_size[0]`` copies stepped as one vector env.
 
-    A copy resets only when torchrl asks (``autoreset_mode=DISABLED``), and ``state_dict`` holds
-    the copies' running episodes (:class:`~torchrl_stages.episode_replay.EpisodeReplay`), so a
-    resumed run goes on bitwise where the env draws only from its ``np_random``.
-    ``env_id`` ``"module:Id"`` imports ``module`` first; ``stage_fn`` is ``None`` where the env
-    writes ``"stage"``; ``success_key`` names the ``info`` flag read by :class:`SuccessReader`
-    (``None``: solved when terminated); ``vectorize="async"`` steps the copies in worker
-    processes; ``max_steps`` (the env's time limit) caps evaluation episodes.
+    A copy resets only when torchrl asks, and ``state_dict`` holds the copies' running episodes
+    (:class:`~torchrl_stages.episode_replay.EpisodeReplay`), so a resumed run goes on bitwise
+    where the env draws only from its ``np_random``. ``env_id`` ``"module:Id"`` imports
+    ``module`` first; ``success_key``: the ``info`` flag (``None``: solved when terminated).
 
     Examples:
         >>> env = GymStageEnv(
@@ -235,13 +228,11 @@ class GymStageEnv(GymWrapper):
     def load_state_dict(
         self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False
     ) -> Any:
-        """A state without the copies' episodes warns and starts them over instead of failing."""
         if "_extra_state" not in state_dict:
             state_dict = {**state_dict, "_extra_state": {}}
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def get_extra_state(self) -> dict[str, Any]:
-        """The copies' running episodes and the success reader's count, as plain data."""
         if self.is_closed:
             return {}
         reader = self._success_reader
@@ -252,7 +243,6 @@ class GymStageEnv(GymWrapper):
         }
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
-        """Rebuilds the copies' saved episodes, or warns once per env id that they start over."""
         copies = state.get("copies")
         num = self.batch_size[0]
         fix = ""

@@ -1,6 +1,5 @@
 """Handoff diagnostics: at each boundary k -> k+1, how well ``V_{k+1}`` holds at the states where
-stage k hands over (against the return obtained after them), and whether they lie inside stage
-k+1's training starts (where ``V_{k+1}`` was not extrapolated)."""
+stage k hands over, and whether they lie inside stage k+1's training starts."""
 
 from __future__ import annotations
 
@@ -78,9 +77,8 @@ def handoff_diagnostics(
     handoffs: Sequence[Handoffs],
     seed: int,
 ) -> list[dict[str, Any]]:
-    """One record per boundary (``eval.json``'s ``"handoff"``): the value error ``|V_{k+1}(s') -
-    G|`` at the handoff states and, where the env starts inside stages, their distance to stage
-    k+1's training starts; ``values`` and ``returns`` per episode are for the figure."""
+    """One record per boundary (``eval.json``'s ``"handoff"``): ``|V_{k+1}(s') - G|`` at the
+    handoff states and their distance to stage k+1's training starts."""
     records = []
     for k, handoff in enumerate(handoffs):
         name = f"{task.stage_names[k]} -> {task.stage_names[k + 1]}"

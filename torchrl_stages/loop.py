@@ -21,7 +21,7 @@ from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.early_stop import Evaluation, SeedEarlyStops
 from torchrl_stages.metric_names import STAGE, metric_name
-from torchrl_stages.metrics import MetricsLog, SeedLogs
+from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import Interrupted, requested
 from torchrl_stages.threads import keep_threads
 
@@ -34,15 +34,7 @@ HOOKS = ("batch", "update", "log", "evaluate", "evaluated", "checkpoint")
 
 
 def can_stop_early(cfg: StageConfig) -> bool:
-    """Whether an early stop can end a loop of ``cfg`` before its frame budget.
-
-    Examples:
-        >>> from torchrl_stages.config import StageConfig
-        >>> can_stop_early(StageConfig(success_threshold=0.9, eval_every=1000))
-        True
-        >>> can_stop_early(StageConfig(success_threshold=None, eval_every=1000))
-        False
-    """
+    """Whether an early stop can end a loop of ``cfg`` before its frame budget."""
     return (
         cfg.success_threshold is not None
         and int(cfg.eval_every) > 0
@@ -86,19 +78,16 @@ class Stopwatch:
         iterator = iter(iterable)
         while True:
             with self(phase):
-                item = next(iterator, _END)
-            if item is _END:
-                return
+                try:
+                    item = next(iterator)
+                except StopIteration:
+                    return
             yield item
-
-
-_END = object()
 
 
 @dataclass
 class LoopCounters(SavedCounters):
-    """What a loop counts, saved with its checkpoints (a resumed loop rewinds its logs to
-    ``log``).
+    """What a loop counts, saved with its checkpoints (``log``: the logs' positions).
 
     Examples:
         >>> counters = LoopCounters(next_eval=64)
@@ -122,12 +111,11 @@ def _shown(value: float | Sequence[float], digits: int) -> str:
 
 class Trainer:
     """The loop: for every batch of ``collector`` (``seeds`` equal, seed-major parts) the hooks
-    ``batch(batch)``, ``update(frames) -> losses`` (each seed's frames), ``log(batch, losses)``;
-    every ``eval_every`` frames ``evaluate(frames) -> Evaluation`` and ``evaluated(evaluation)``
-    (it ends once every seed has stopped); ``checkpoint()`` before a checkpoint of ``state``,
-    named ``frames_before`` plus each seed's frames, is written (when due, or when a stop was
-    asked for: then :class:`~torchrl_stages.preemption.Interrupted` is raised). ``where`` names
-    the loop; ``open_ended``: an early stop may end it before its budget.
+    ``batch(batch)``, ``update(frames) -> losses``, ``log(batch, losses)``; every ``eval_every``
+    frames ``evaluate(frames) -> Evaluation`` and ``evaluated(evaluation)``; ``checkpoint()``
+    before a checkpoint of ``state`` is written (when due, or when a stop was asked for: then
+    :class:`~torchrl_stages.preemption.Interrupted` is raised). It ends at the budget or once
+    every seed has stopped; ``open_ended``: an early stop may end it before its budget.
 
     Examples:
         >>> import torch
@@ -155,26 +143,24 @@ class Trainer:
         eval_every: int = 0,
         checkpoints: StageCheckpoints | None = None,
         state: dict[str, Any] | None = None,
-        seeds: int = 1,
+        seeds: Sequence[int] = (0,),
         frames_before: int = 0,
         where: str = "the loop",
         watch: Stopwatch | None = None,
         progress: bool = False,
         open_ended: bool = False,
-        seed_names: Sequence[int] | None = None,
     ) -> None:
         self.collector, self.early_stop, self.counters = collector, early_stop, counters
         self.eval_every, self.checkpoints, self.state = int(eval_every), checkpoints, state or {}
-        self.seeds, self.frames_before, self.where = int(seeds), int(frames_before), where
+        self.seeds, self.frames_before, self.where = list(seeds), int(frames_before), where
         self.watch = watch if watch is not None else Stopwatch()
         self.progress, self.open_ended = progress, open_ended
-        self.seed_names = list(seed_names) if seed_names is not None else list(range(self.seeds))
-        self.label = where + (f", {self.seeds} seeds" if self.seeds > 1 else "")
+        n = len(self.seeds)
+        self.label = where + (f", {n} seeds" if n > 1 else "")
         self.ops: dict[str, list[Callable[..., Any]]] = {point: [] for point in HOOKS}
 
     def register_op(self, point: str, op: Callable[..., Any]) -> None:
-        """Runs ``op`` at hook ``point``; ``update`` and ``evaluate`` take one op each, whose
-        result the loop uses."""
+        """Runs ``op`` at hook ``point`` (``update``, ``evaluate``: one op, whose result counts)."""
         if point not in self.ops:
             raise ValueError(f"unknown hook point {point!r} (known: {', '.join(HOOKS)})")
         if point in ("update", "evaluate") and self.ops[point]:
@@ -188,8 +174,7 @@ class Trainer:
         return out
 
     def train(self) -> None:
-        """Runs the loop to the collector's budget or every seed's early stop."""
-        collector, counters, watch, n = self.collector, self.counters, self.watch, self.seeds
+        collector, counters, watch, n = self.collector, self.counters, self.watch, len(self.seeds)
         budget = int(collector.total_frames)
         desc = f"{self.label} (budget {budget} frames)" if self.open_ended else self.label
         shown = self.progress and sys.stderr.isatty()  # elsewhere: a line per evaluation
@@ -234,7 +219,7 @@ class Trainer:
     def _log_lines(self, evaluation: Evaluation, rows: list[int], frames: int, budget: int) -> None:
         seconds = time.perf_counter() - self.early_stop.start
         for i in rows:
-            who = self.where if self.seeds == 1 else f"seed {self.seed_names[i]}: {self.where}"
+            who = self.where if len(self.seeds) == 1 else f"seed {self.seeds[i]}: {self.where}"
             log.info(
                 "%s: %d of %d frames, success %.2f, value error %.3f, %.1fs",
                 who,
@@ -256,8 +241,7 @@ class Trainer:
 
 
 class SeedLoop:
-    """What a schedule's trainer of ``n`` seeds shares: one log per seed (``logs``), its
-    checkpoints, and the :class:`Trainer` it builds with them."""
+    """What a trainer of ``n`` seeds shares: a log per seed, checkpoints, its :class:`Trainer`."""
 
     def __init__(
         self,
@@ -270,13 +254,12 @@ class SeedLoop:
         logs = list(logs) if logs is not None else [MetricsLog(None) for _ in range(n)]
         if len(logs) != n:
             raise ValueError(f"{len(logs)} logs for {n} seeds")
-        self.n, self.logs = n, SeedLogs(logs)
+        self.n, self.logs = n, logs
         self.seeds = list(seeds) if seeds is not None else list(range(n))
         self.progress, self.checkpoints = progress, checkpoints
 
     def latest(self, counters: SavedCounters) -> str | None:
-        """The newest checkpoint, its ``counters`` loaded first (a checkpoint of another form
-        is refused before anything else is read)."""
+        """The newest checkpoint, its ``counters`` loaded first (its form is checked there)."""
         latest = self.checkpoints.latest() if self.checkpoints is not None else None
         if latest is not None:
             self.checkpoints.load(latest, {"counters": counters})
@@ -285,7 +268,12 @@ class SeedLoop:
     def restore(self, latest: str, state: dict[str, Any], counters: SavedCounters) -> None:
         """Loads ``state`` from checkpoint ``latest`` and rewinds the logs to it."""
         self.checkpoints.load(latest, state)
-        self.logs.rewind(counters.log)
+        for i, log in enumerate(self.logs):
+            log.rewind(counters.log.get(str(i), {}))
+
+    def log_position(self) -> dict[str, dict[str, int]]:
+        """Each seed's log position, what :meth:`restore` rewinds to."""
+        return {str(i): log.position() for i, log in enumerate(self.logs)}
 
     def loop(
         self,
@@ -299,12 +287,11 @@ class SeedLoop:
         watch: Stopwatch,
         frames_before: int = 0,
     ) -> Trainer:
-        """The :class:`Trainer` of a loop of ``cfg``; before each checkpoint, ``saved`` takes the
-        training seconds (since ``stops.start``) and the logs' positions."""
+        """The :class:`Trainer` of ``cfg``; ``saved`` takes the seconds and log positions."""
 
         def record() -> None:
             saved.seconds = time.perf_counter() - stops.start
-            saved.log = self.logs.position()
+            saved.log = self.log_position()
 
         loop = Trainer(
             collector,
@@ -313,10 +300,9 @@ class SeedLoop:
             eval_every=int(cfg.eval_every),
             checkpoints=self.checkpoints,
             state=state,
-            seeds=self.n,
+            seeds=self.seeds,
             progress=self.progress,
             open_ended=can_stop_early(cfg),
-            seed_names=self.seeds,
             where=where,
             watch=watch,
             frames_before=frames_before,
@@ -334,8 +320,7 @@ class SeedLoop:
         frames: list[int],
         updates: list[int],
     ) -> Evaluation:
-        """Each ``active`` seed's evaluation ``summaries`` logged under ``eval/<scope>_<index>/``
-        at its ``steps``; the :class:`Evaluation` of every seed."""
+        """Logs each ``active`` seed's ``summaries`` at its ``steps``; every seed's evaluation."""
         for i in active:
             metrics = {metric_name("eval", scope, index, k): v for k, v in summaries[i].items()}
             self.logs[i](metrics, steps[i])
@@ -359,7 +344,7 @@ class SeedLoop:
     ) -> None:
         """Each ``active`` seed's episodes of ``batch`` under ``train/<scope>_<index>/``, and
         each stage m's mean ``losses`` and ``updates[seed][m]`` under ``train/stage_<m>/``."""
-        if self.logs.silent:
+        if all(log.logger is None for log in self.logs):
             return
         episodes = MetricsLog.episodes_by_row(batch.reshape(self.n, -1))
         means = {m: loss_means(stage_losses) for m, stage_losses in losses.items()}

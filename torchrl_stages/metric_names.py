@@ -28,14 +28,7 @@ class MetricName:
 
 
 def metric_name(kind: str, scope: str, index: int | None, metric: str) -> str:
-    """The name a metric is logged under.
-
-    Examples:
-        >>> metric_name("eval", STAGE, 3, "success_rate")
-        'eval/stage_3/success_rate'
-        >>> metric_name("eval", FINAL, None, "mean_return")
-        'eval/final/mean_return'
-    """
+    """The name a metric is logged under (``index``: ``None`` for a whole-run scope)."""
     where = scope if index is None else f"{scope}_{index}"
     return f"{kind}/{where}/{metric}"
 
@@ -44,10 +37,10 @@ def parse_metric(name: str) -> MetricName | None:
     """``name`` read back (``None``: not of this scheme).
 
     Examples:
-        >>> parse_metric("train/phase_1/loss")
+        >>> parse_metric(metric_name("train", "phase", 1, "loss"))
         MetricName(kind='train', scope='phase', index=1, metric='loss')
-        >>> parse_metric("eval/task/success_rate").index is None, parse_metric("loss")
-        (True, None)
+        >>> parse_metric(metric_name("eval", TASK, None, "success_rate")).index, parse_metric("x")
+        (None, None)
     """
     match = _NAME.match(name)
     if match is None:
@@ -57,15 +50,8 @@ def parse_metric(name: str) -> MetricName | None:
 
 
 def is_loop_evaluation(name: str, metric: str = "success_rate") -> bool:
-    """Whether ``name`` is ``metric`` of a loop's evaluation (one with an index), what a tuner
-    prunes on.
-
-    Examples:
-        >>> is_loop_evaluation("eval/stage_0/success_rate")
-        True
-        >>> is_loop_evaluation("eval/task/success_rate")  # the whole task: no loop
-        False
-    """
+    """Whether ``name`` is ``metric`` of a loop's evaluation (one with an index): what a tuner
+    prunes on."""
     parsed = parse_metric(name)
     return (
         parsed is not None

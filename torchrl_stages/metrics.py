@@ -1,9 +1,6 @@
-"""A run's metrics as its loops log them: one seed's (:class:`MetricsLog`) and a loop's seeds'
-(:class:`SeedLogs`)."""
+"""A run's metrics as its loops log them, one :class:`MetricsLog` per seed."""
 
 from __future__ import annotations
-
-from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -11,13 +8,12 @@ from torchrl.record.loggers import Logger
 
 from torchrl_stages.evaluate import ended_well
 
-__all__ = ["MetricsLog", "SeedLogs"]
+__all__ = ["MetricsLog"]
 
 
 class MetricsLog:
-    """Scalars to a torchrl ``logger`` (none: dropped), shown together to its observers; the
-    logger's position and rewind where it has them, so that a resumed loop drops the rows of an
-    interrupted attempt.
+    """Scalars to a torchrl ``logger`` (none: dropped); its position and rewind where it has
+    them, so that a resumed loop drops the rows of an interrupted attempt.
 
     Examples:
         >>> log = MetricsLog(None)
@@ -71,31 +67,3 @@ class MetricsLog:
             {"episode_return": total / count, "episode_success": win / count} if count else {}
             for count, total, win in zip(counts, totals, wins, strict=True)
         ]
-
-
-class SeedLogs:
-    """A loop's seeds' logs (one :class:`MetricsLog` each) as one: their positions and rewind.
-
-    Examples:
-        >>> logs = SeedLogs([MetricsLog(None), MetricsLog(None)])
-        >>> logs.position()
-        {'0': {}, '1': {}}
-    """
-
-    def __init__(self, logs: Sequence[MetricsLog]) -> None:
-        self.logs = list(logs)
-
-    def __getitem__(self, seed: int) -> MetricsLog:
-        return self.logs[seed]
-
-    @property
-    def silent(self) -> bool:
-        """Whether no seed's log has a logger."""
-        return all(log.logger is None for log in self.logs)
-
-    def position(self) -> dict[str, dict[str, int]]:
-        return {str(i): log.position() for i, log in enumerate(self.logs)}
-
-    def rewind(self, position: dict[str, dict[str, int]]) -> None:
-        for i, log in enumerate(self.logs):
-            log.rewind(position.get(str(i), {}))

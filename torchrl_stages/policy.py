@@ -12,14 +12,12 @@ from torch import nn
 
 
 class StackedPolicy(TensorDictModuleBase):
-    """Runs, for every batch element, the policy of the stage it is in.
+    """Runs, for every batch element, the policy of its stage (its ``stage_key`` entry, else
+    ``stage_fn(td)``); an output of other stages is zero there.
 
-    Each stage's policy runs on the whole batch (stage policies are small) and its outputs are
-    kept where the element's stage (its ``stage_key`` entry, else ``stage_fn(td)``) is that
-    stage; an output of other stages is zero there. A stage absent from the batch is not run,
-    its outputs zeros of the shapes the first call gave; ``skip_absent=False`` runs every stage
-    at every call, so that the random numbers exploring policies draw do not depend on which
-    stages the batch holds.
+    Each stage's policy runs on the whole batch; a stage absent from the batch is not run
+    (``skip_absent=False``: every stage runs at every call, so that exploring policies draw the
+    same random numbers whichever stages the batch holds).
 
     Examples:
         >>> import torch
@@ -31,11 +29,6 @@ class StackedPolicy(TensorDictModuleBase):
         ...                 batch_size=[3])
         >>> StackedPolicy([p0, p1])(td)["action"].squeeze(-1)
         tensor([0., 1., 0.])
-
-        >>> policy = StackedPolicy([p0, p1], stage_fn=lambda td: td["observation"][..., :1] > 0)
-        >>> policy(TensorDict(observation=torch.tensor([[0.0], [2.0]]), batch_size=[2]))[
-        ...     "action"].squeeze(-1)
-        tensor([0., 1.])
     """
 
     def __init__(
@@ -53,16 +46,12 @@ class StackedPolicy(TensorDictModuleBase):
         self.skip_absent = skip_absent
         # each output's trailing shape and dtype, from the first call (every stage runs in it)
         self._outputs: dict[NestedKey, tuple[torch.Size, torch.dtype]] | None = None
-        in_keys: list[NestedKey] = [] if stage_fn is not None else [stage_key]
-        out_keys: list[NestedKey] = []
-        for policy in policies:
-            in_keys += [k for k in policy.in_keys if k not in in_keys]
-            out_keys += [k for k in policy.out_keys if k not in out_keys]
-        self.in_keys = in_keys
-        self.out_keys = out_keys
+        routing = [] if stage_fn is not None else [stage_key]
+        self.in_keys = list(dict.fromkeys([*routing, *(k for p in policies for k in p.in_keys)]))
+        self.out_keys = list(dict.fromkeys(k for p in policies for k in p.out_keys))
 
     def stage(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The stage of each element of ``tensordict``, int64 ``[*batch]``."""
+        """int64 ``[*batch]``."""
         stage = tensordict.get(self.stage_key, None)
         if stage is not None:
             return stage.squeeze(-1)

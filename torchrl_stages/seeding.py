@@ -21,8 +21,7 @@ TASK_EVAL_OFFSET = 20_000
 
 
 def stage_seed(seed: int, stage: int) -> int:
-    """The seed of stage ``stage``'s generator and training env (its evaluation env:
-    ``+ EVAL_OFFSET``)."""
+    """The seed of stage ``stage``'s generator and training env."""
     return seed + stage
 
 
@@ -37,11 +36,9 @@ def seeded(
     offset: int,
     envs: Callable[[], T],
 ) -> tuple[Learner, T]:
-    """A stage's learner (``make``) and envs (``envs()``): the global generator seeded with
-    ``seeds[0] + offset``, then the envs, then one seed's learner. Several seeds' learner is
-    built first, row ``i`` holding the weights ``make()`` builds right after
-    ``torch.manual_seed(seeds[i] + offset)``, so each seed's run among others is a draw from the
-    distribution of its run alone."""
+    """A stage's learner (``make``) and envs (``envs()``), after ``torch.manual_seed(seeds[0] +
+    offset)``. Several seeds' learner is built first, row ``i`` holding what ``make()`` builds
+    right after ``torch.manual_seed(seeds[i] + offset)``."""
     if len(seeds) == 1:
         torch.manual_seed(seeds[0] + offset)
         built = envs()

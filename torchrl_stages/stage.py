@@ -1,6 +1,5 @@
-"""One stage's training for any number of seeds (:class:`StageTrainer`) and what it returns
-(:class:`StageResult`). Several seeds train as one seed-stacked learner, each keeping what a run
-of its own keeps; they share the env's random streams."""
+"""One stage's training for any number of seeds (:class:`StageTrainer`: several as one seed-stacked
+learner sharing the env's random streams) and what it returns (:class:`StageResult`)."""
 
 from __future__ import annotations
 
@@ -59,8 +58,7 @@ class StageResult:
 def per_seed_metrics(
     metrics: dict[str, torch.Tensor], rows: torch.Tensor | None, n: int
 ) -> dict[str, torch.Tensor]:
-    """An update's metrics per seed (``[n]``): those of ``rows`` alone in their rows, NaN in the
-    others.
+    """An update's metrics per seed (``[n]``): those of ``rows`` alone in their rows, NaN elsewhere.
 
     Examples:
         >>> per_seed_metrics({"loss": torch.tensor(0.5)}, None, 1)["loss"]
@@ -86,9 +84,8 @@ def gradient_steps(
     watch: Stopwatch,
     transform: Callable[[TensorDictBase], TensorDictBase] | None = None,
 ) -> list[dict[str, torch.Tensor]]:
-    """A batch's gradient steps of ``learner``'s seeds ``rows`` (``None``: all) on samples of
-    ``buffer``; their per-seed losses. One draw for all the steps (the same indices as a draw per
-    step, in one storage read) unless the update itself draws random numbers (TD3)."""
+    """A batch's gradient steps of ``learner``'s seeds ``rows`` (``None``: all): one draw for all
+    the steps unless the update itself draws random numbers (TD3)."""
     n = int(learner.seeds or 1)
     steps, size = int(cfg.updates_per_batch), int(cfg.batch_size)
     draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
@@ -111,10 +108,9 @@ def gradient_steps(
 
 class StageTrainer(SeedLoop):
     """Trains stage ``stage`` for every seed of ``learner`` (ordinary: one seed); ``env`` and
-    ``eval_env`` hold one copy of their batch per seed, ``cfg``'s budgets are per seed. With
-    ``checkpoints`` an interrupted stage goes on exactly where it stopped. The flat schedule
-    passes ``gammas`` (evaluations' stage discounts), ``postproc`` (applied to each batch) and
-    ``extra_keys`` (stored too). :meth:`train` returns each seed's ordinary learner
+    ``eval_env`` hold one copy of their batch per seed, ``cfg``'s budgets are per seed. The flat
+    schedule passes ``gammas`` (evaluations' stage discounts), ``postproc`` (applied to each
+    batch) and ``extra_keys`` (stored too). :meth:`train` returns each seed's ordinary learner
     (``make_learner()`` builds the one a stacked row is taken into) and result.
 
     Examples:
@@ -161,7 +157,6 @@ class StageTrainer(SeedLoop):
 
     @functools.cached_property
     def _value(self) -> TensorDictModuleBase:
-        """The learner's live target networks, what evaluations read V from."""
         return self.learner.value(live=True)
 
     def train(self) -> list[tuple[Learner, StageResult]]:
@@ -225,8 +220,7 @@ class StageTrainer(SeedLoop):
         return gradient_steps(self.learner, buffer, self.cfg, rows, watch)
 
     def evaluate(self, frames: int, active: Callable[[], list[int]] | None = None) -> Evaluation:
-        """Greedy episodes from the evaluation env's starts for each seed (the ``active`` ones
-        logged): success, value error ``|V(s_0) - G|`` and mean discounted return G."""
+        """Greedy episodes from the evaluation env's starts for each seed (``active``: logged)."""
         cfg, n = self.cfg, self.n
         max_steps = cfg.eval_max_steps or int(getattr(self.eval_env, "max_steps", 1000))
         summaries = evaluate_greedy(
@@ -254,7 +248,6 @@ class StageTrainer(SeedLoop):
     def _result(
         self, i: int, stops: SeedEarlyStops, collector, start: float, watch: Stopwatch
     ) -> tuple[Learner, StageResult]:
-        """Seed ``i``'s learner (with the weights it stopped with, or its best) and result."""
         at, ended = stops.stopped_at[i], stops.finish(i)
         result = StageResult(
             self.stage,

@@ -1,10 +1,7 @@
 """The env protocol: what every task's env has (:class:`StageEnv`) and may add
-(:class:`StageEnvHooks`, each hook with what it changes).
-
-A task's env is a torchrl ``EnvBase`` built as ``Env(batch_size=..., device=..., start_stage=...,
-**task.env)``; ``start_stage`` (``None``: the task's own starts; ``k``: starts inside stage k) is
-left out for a task with ``stage_starts: false``. Gymnasium envs come through
-:class:`~torchrl_stages.gym_env.GymStageEnv`.
+(:class:`StageEnvHooks`). It is built as ``Env(batch_size=..., device=..., start_stage=...,
+**task.env)``, ``start_stage`` (``None``: the task's own starts; ``k``: inside stage k) left out
+for a task with ``stage_starts: false``.
 
 Examples:
     >>> from torchrl_stages.envs import GridWorldEnv
@@ -32,9 +29,8 @@ class StageEnv(Protocol):
     num_stages: int
 
     def stage_fn(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The stage of each state (a step's ``"next"`` or a reset's output), int64 ``[*batch,
-        1]``, never below the state before it; ``stage_fn = None`` where the env writes its own
-        ``"stage"`` entry."""
+        """The stage of each state, int64 ``[*batch, 1]``, never below the state before it
+        (``stage_fn = None`` where the env writes its own ``"stage"`` entry)."""
         ...
 
 
@@ -66,6 +62,6 @@ class StageEnvHooks(Protocol):
         ...
 
     def state_dict(self) -> dict[str, Any]:
-        """The env's running state and random generator (``load_state_dict`` restores them), so
-        that a resumed stage goes on with the same episodes instead of restarting them."""
+        """The env's running state and generator, so that a resumed stage goes on with the same
+        episodes."""
         ...

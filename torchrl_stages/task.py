@@ -28,11 +28,8 @@ def tile_starts(starts: dict[str, Any], copies: int) -> dict[str, Any]:
 
 
 class StagedTask:
-    """Makes the envs of a task config (``cfg.task``) for training and evaluation.
-
-    ``task.env`` builds a batched :class:`~torchrl_stages.stage_env.StageEnv`. ``copies``
-    arguments hold that many consecutive copies of a batch, one per seed of a seed-stacked
-    learner (:func:`tile_starts`).
+    """Makes the envs of a task config (``cfg.task``) for training and evaluation; ``copies``
+    arguments hold one copy of a batch per seed of a seed-stacked learner.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -113,8 +110,7 @@ class StagedTask:
     def stage_eval_env(
         self, stage: int, next_value: TensorDictModuleBase | None = None, *, copies: int = 1
     ) -> TransformedEnv:
-        """Stage ``stage``'s evaluation env: one episode from each start state where the env
-        lists them, else ``eval_episodes`` random starts in the stage."""
+        """Stage ``stage``'s evaluation env: every start state, else ``eval_episodes`` starts."""
         starts = self.start_states(stage)
         if starts is not None:
             base = self.base_env(**tile_starts(starts, copies))

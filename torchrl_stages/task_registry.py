@@ -1,8 +1,5 @@
-"""The registry of tasks: what a task adds to a run beyond its env and config, by ``task.name``.
-
-A task registers in the module that defines its env (Hydra imports it when it builds the env);
-the package's own tasks register in ``torchrl_stages.envs``.
-"""
+"""What a task adds to a run beyond its env and config, by ``task.name``: registered in the
+module that defines its env (the package's own tasks: in ``torchrl_stages.envs``)."""
 
 from __future__ import annotations
 
@@ -14,18 +11,9 @@ from typing import Any
 
 @dataclass(frozen=True)
 class TaskReport:
-    """What a task adds to the whole-task evaluation.
-
-    ``report(task, learners, evaluation, run_dir, plots) -> dict`` gives the task's metrics
-    (``eval.json``'s ``"task_metrics"``) and draws its figures; ``headline`` names the metrics
-    a sweep summary shows beside the success rate; ``probe(task, learners) -> dict`` gives the
-    numbers followed during training with ``eval.probe=true``.
-
-    Examples:
-        >>> info = TaskReport(report=lambda task, learners, evaluation, run_dir, plots: {})
-        >>> info.headline, info.probe
-        ((), None)
-    """
+    """What a task adds: ``report(task, learners, evaluation, run_dir, plots) -> dict`` its
+    metrics (``eval.json``'s ``"task_metrics"``) and figures; ``headline`` the metrics a sweep
+    summary shows; ``probe(task, learners) -> dict`` what ``eval.probe=true`` follows."""
 
     report: Callable[..., dict[str, Any]] | None = None
     headline: tuple[str, ...] = ()
@@ -43,13 +31,12 @@ def register_task(
     headline: Sequence[str] = (),
     probe: Callable[..., dict[str, float]] | None = None,
 ) -> TaskReport:
-    """Registers what the task ``name`` adds to a run; returns it."""
     TASKS[name] = TaskReport(report, tuple(headline), probe)
     return TASKS[name]
 
 
 def task_report(name: str) -> TaskReport | None:
-    """The registered :class:`TaskReport` of ``name``, or ``None`` (the whole-task numbers only)."""
+    """The registered :class:`TaskReport` of ``name``, or ``None``."""
     if name not in TASKS:
         importlib.import_module("torchrl_stages.envs")  # the package's own tasks register there
     return TASKS.get(name)

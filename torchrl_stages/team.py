@@ -63,9 +63,8 @@ class JointCounters(SavedCounters):
 def seed_moments(
     learners: Sequence[Learner], seed: int, load: dict[str, torch.Tensor] | None = None
 ) -> dict[str, torch.Tensor]:
-    """Seed ``seed``'s rows of the Adam moments of every optimizer of the seed-stacked
-    ``learners``, copied out; with ``load`` (what this returned) written back instead, so that a
-    seed that stopped goes on in the next phase from the optimizer state it stopped with."""
+    """Seed ``seed``'s rows of the Adam moments of the seed-stacked ``learners``, copied out; with
+    ``load`` (what this returned), written back instead."""
     out: dict[str, torch.Tensor] = {}
     for m, learner in enumerate(learners):
         names = {id(p): n for n, p in learner.named_parameters(remove_duplicate=False)}
@@ -88,8 +87,7 @@ def seed_moments(
 
 class StageTeam(SeedLoop):
     """Every stage's learner of ``task`` for each seed of ``seeds`` (several: seed-stacked), with
-    its replay buffer and transition reward; :meth:`_route` stores a batch, :meth:`_update`
-    takes every stage's gradient steps."""
+    its replay buffer and transition reward."""
 
     def __init__(
         self,
@@ -127,8 +125,7 @@ class StageTeam(SeedLoop):
         self.keys = [self._stored_keys(m, self.transforms[m]) for m in range(stages)]
 
     def _seeded_learners(self) -> list[Learner]:
-        """Every stage's learner, built right after ``torch.manual_seed(seed)`` (several seeds:
-        stacked, row i holding what a run of ``seeds[i]`` alone starts from)."""
+        """Every stage's learner; row i of a stacked one: what ``seeds[i]`` alone starts from."""
         stages = range(self.task.num_stages)
         if self.n == 1:
             torch.manual_seed(self.seeds[0])
@@ -141,8 +138,7 @@ class StageTeam(SeedLoop):
         return [stack_learners(self.make[m](seeds=self.n), rows[m]) for m in stages]
 
     def _stored_keys(self, m: int, transform: StageRewardTransform) -> list[NestedKey]:
-        """What stage m's buffer keeps: its loss's entries, the stage tags, and what the next
-        stage's value reads from s_{t+1}."""
+        """Stage m's loss entries, the stage tags, and what the next stage's value reads."""
         keys = [*self.learners[m].replay_keys, *TAGS]
         if transform.next_value is not None:
             keys += [unravel_key(("next", k)) for k in transform.next_value.in_keys]
@@ -154,8 +150,7 @@ class StageTeam(SeedLoop):
         return StackedPolicy([learner.value(live=True) for learner in self.learners])
 
     def _route(self, batch: TensorDictBase, active: list[int], counters: JointCounters) -> None:
-        """Each transition of a seed still training into its seed's ring of the buffer of the
-        stage of its state s_t (a stopped seed's are dropped), and counted."""
+        """Stores each training seed's transitions in the buffer of the stage of s_t, counted."""
         n = self.n
         parts = batch.reshape(n, -1)  # seed-major
         stage = parts.get("stage").reshape(n, -1)
@@ -176,8 +171,7 @@ class StageTeam(SeedLoop):
     def _update(
         self, active: list[int], counters: JointCounters, watch: Stopwatch
     ) -> dict[int, list[dict]]:
-        """Every stage takes its gradient steps, the last stage first, for the seeds still
-        training that hold enough of its transitions."""
+        """Every stage's gradient steps, last stage first, for the training seeds ready for it."""
         stored, losses = counters.stored, {}
         for m in reversed(range(self.task.num_stages)):
             cfg, learner = self.task.stage_cfg(m), self.learners[m]

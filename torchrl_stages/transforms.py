@@ -1,13 +1,11 @@
 """Stage awareness as TorchRL transforms: the stage tag of every step, and stage k's view of its
-transitions, with the reward of the step that leaves stage k bootstrapped from stage k+1's value.
-"""
+transitions (the step that leaves stage k bootstrapped from stage k+1's value)."""
 
 from __future__ import annotations
 
 import copy
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase, unravel_key
@@ -28,27 +26,13 @@ class NonFiniteValueError(FloatingPointError):
 
 
 class NonFiniteInputError(NonFiniteValueError):
-    """The next stage's value is not finite because the env returned a non-finite ``key``."""
+    """The env returned a non-finite ``key`` that the next stage's value reads."""
 
     def __init__(self, key: NestedKey, stage: int) -> None:
         self.key = key
         super().__init__(
             f"the env returned a non-finite {key!r} on a transition out of stage {stage}"
         )
-
-
-@dataclass(frozen=True)
-class StageKeys:
-    """The entries the stage transforms read and write (``transition`` lives under ``"next"``)."""
-
-    stage: NestedKey = "stage"
-    transition: NestedKey = "stage_transition"
-    reward: NestedKey = "reward"
-    terminated: NestedKey = "terminated"
-    truncated: NestedKey = "truncated"
-    done: NestedKey = "done"
-    value: NestedKey = "state_value"  # what the next stage's value module writes
-    success: NestedKey = SUCCESS_KEY
 
 
 def freeze(module: nn.Module) -> nn.Module:
@@ -68,7 +52,6 @@ class _StageView(Transform):
         gamma: float,
         next_value: TensorDictModuleBase | None,
         standalone: bool,
-        keys: StageKeys,
         out_keys: list[NestedKey],
     ) -> None:
         if num_stages < 1:
@@ -90,17 +73,17 @@ class _StageView(Transform):
                 "train the stage on its own rewards only."
             )
         super().__init__(in_keys=[], out_keys=out_keys)
-        self.stage, self.num_stages, self.gamma, self.keys = stage, num_stages, gamma, keys
+        self.stage, self.num_stages, self.gamma = stage, num_stages, gamma
 
     @torch.no_grad()
     def _view(self, stage_t: torch.Tensor, next_td: TensorDictBase) -> None:
         """In place on ``"next"``: a transition that leaves the stage is ``terminated`` and,
         unless the task terminated on it, gains ``gamma * next_value(s_{t+1})``."""
-        stage, keys, next_value = self.stage, self.keys, self.next_value
-        leaving = next_td.get(keys.transition) & (stage_t == stage)
-        task_terminated = next_td.get(keys.terminated)
+        stage, next_value = self.stage, self.next_value
+        leaving = next_td.get("stage_transition") & (stage_t == stage)
+        task_terminated = next_td.get("terminated")
         if next_value is not None and leaving.any():
-            landed = next_td.get(keys.stage)[leaving]
+            landed = next_td.get("stage")[leaving]
             if (landed != stage + 1).any():
                 raise ValueError(
                     f"a transition out of stage {stage} landed in stage "
@@ -108,10 +91,10 @@ class _StageView(Transform):
                     f"may only move to stage {stage + 1} (whose value it gets)."
                 )
             bootstrap = leaving & ~task_terminated
-            reward = next_td.get(keys.reward)
+            reward = next_td.get("reward")
             # the value module runs on a selection: it cannot write into the transition
             inputs = next_td.select(*next_value.in_keys)
-            value = next_value(inputs.clone(False)).get(keys.value)
+            value = next_value(inputs.clone(False)).get("state_value")
             value = value.to(reward.dtype).reshape(reward.shape)
             if not bool(torch.isfinite(value[bootstrap]).all()):
                 for key, entry in inputs.items(True, True):
@@ -122,14 +105,14 @@ class _StageView(Transform):
                     f"out of stage {stage}: stage {stage + 1}'s networks diverged, so stage "
                     f"{stage}'s transition rewards would be NaN or infinite"
                 )
-            next_td.set(keys.reward, torch.where(bootstrap, reward + self.gamma * value, reward))
+            next_td.set("reward", torch.where(bootstrap, reward + self.gamma * value, reward))
         terminated = task_terminated | leaving
-        next_td.set(keys.terminated, terminated)
-        truncated = next_td.get(keys.truncated, None)
+        next_td.set("terminated", terminated)
+        truncated = next_td.get("truncated", None)
         if truncated is None:  # an env without a truncated entry
-            next_td.set(keys.done, next_td.get(keys.done) | terminated)
+            next_td.set("done", next_td.get("done") | terminated)
         else:
-            next_td.set(keys.done, terminated | truncated)
+            next_td.set("done", terminated | truncated)
 
     def __repr__(self) -> str:
         return (
@@ -142,7 +125,7 @@ class StageTransform(_StageView):
     """Tags every step with its stage and, training stage k, gives stage k's view of it.
 
     ``stage_fn(td)`` gives each state's stage, int64 ``[*batch, 1]`` (``None``: the env's own
-    ``keys.stage`` entry); stages only move forward. With ``train_stage=k`` the step that leaves
+    ``"stage"`` entry); stages only move forward. With ``train_stage=k`` the step that leaves
     stage k ends its episode: it is ``terminated`` and gains ``gamma * V_{k+1}(s_{t+1})`` from a
     frozen copy of ``next_value``, unless the task terminated on it (``standalone=True``: never).
     With ``rewrite_in_env=False`` it is ``truncated`` instead and stays raw for a
@@ -168,13 +151,11 @@ class StageTransform(_StageView):
         standalone: bool = False,
         gamma: float = 0.99,
         rewrite_in_env: bool = True,
-        keys: StageKeys = StageKeys(),
     ) -> None:
-        out_keys = [keys.stage, keys.transition]
-        super().__init__(train_stage, num_stages, gamma, next_value, standalone, keys, out_keys)
+        out_keys = ["stage", "stage_transition"]
+        super().__init__(train_stage, num_stages, gamma, next_value, standalone, out_keys)
         self.stage_fn = stage_fn
         self.rewrite_in_env = rewrite_in_env
-        self.next_value = None
         self.set_next_value(next_value)
 
     @property
@@ -197,7 +178,7 @@ class StageTransform(_StageView):
         return self.stage is not None and not self.rewrite_in_env
 
     def _stage(self, td: TensorDictBase) -> torch.Tensor:
-        stage = td.get(self.keys.stage) if self.stage_fn is None else self.stage_fn(td)
+        stage = td.get("stage") if self.stage_fn is None else self.stage_fn(td)
         stage = stage.to(torch.int64).reshape(*td.batch_size, 1)
         bad = (stage < 0) | (stage >= self.num_stages)
         if bad.any():
@@ -210,37 +191,36 @@ class StageTransform(_StageView):
 
     def _learner_view(self, stage_t: torch.Tensor, next_td: TensorDictBase) -> None:
         """Ends stage k's episode where a step leaves stage k, and marks it solved."""
-        keys = self.keys
-        leaving = next_td.get(keys.transition) & (stage_t == self.stage)
-        success = next_td.get(keys.success, None)
+        leaving = next_td.get("stage_transition") & (stage_t == self.stage)
+        success = next_td.get(SUCCESS_KEY, None)
         if success is not None:  # leaving stage k is stage k's success, unless the task failed
-            failed = next_td.get(keys.terminated) & ~success
-            next_td.set(keys.success, success | (leaving & ~failed))
+            failed = next_td.get("terminated") & ~success
+            next_td.set(SUCCESS_KEY, success | (leaving & ~failed))
         if self.rewrite_in_env:
             self._view(stage_t, next_td)
             return
         if success is None:
-            next_td.set(keys.success, next_td.get(keys.terminated) | leaving)
-        truncated = next_td.get(keys.truncated) | leaving
-        next_td.set(keys.truncated, truncated)
-        next_td.set(keys.done, next_td.get(keys.terminated) | truncated)
+            next_td.set(SUCCESS_KEY, next_td.get("terminated") | leaving)
+        truncated = next_td.get("truncated") | leaving
+        next_td.set("truncated", truncated)
+        next_td.set("done", next_td.get("terminated") | truncated)
 
     def _reset(
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
     ) -> TensorDictBase:
         stage = self._stage(tensordict_reset)
         no = torch.zeros_like(stage, dtype=torch.bool)
-        tensordict_reset.set(self.keys.stage, stage)
-        tensordict_reset.set(self.keys.transition, no)
-        if self._writes_success and self.keys.success not in tensordict_reset.keys(True):
-            tensordict_reset.set(self.keys.success, no.clone())
+        tensordict_reset.set("stage", stage)
+        tensordict_reset.set("stage_transition", no)
+        if self._writes_success and SUCCESS_KEY not in tensordict_reset.keys(True):
+            tensordict_reset.set(SUCCESS_KEY, no.clone())
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        stage_t = tensordict.get(self.keys.stage)
+        stage_t = tensordict.get("stage")
         stage_next = torch.maximum(self._stage(next_tensordict), stage_t)
-        next_tensordict.set(self.keys.stage, stage_next)
-        next_tensordict.set(self.keys.transition, stage_next > stage_t)
+        next_tensordict.set("stage", stage_next)
+        next_tensordict.set("stage_transition", stage_next > stage_t)
         if self.stage is not None:
             self._learner_view(stage_t, next_tensordict)
         return next_tensordict
@@ -257,21 +237,18 @@ class StageTransform(_StageView):
             shape = (*observation_spec.shape, 1)
             return Categorical(n, shape=shape, dtype=dtype, device=observation_spec.device)
 
-        observation_spec[self.keys.stage] = spec(self.num_stages, torch.int64)
-        observation_spec[self.keys.transition] = spec(2, torch.bool)
-        if self._writes_success and self.keys.success not in observation_spec.keys(True):
-            observation_spec[self.keys.success] = spec(2, torch.bool)
+        observation_spec["stage"] = spec(self.num_stages, torch.int64)
+        observation_spec["stage_transition"] = spec(2, torch.bool)
+        if self._writes_success and SUCCESS_KEY not in observation_spec.keys(True):
+            observation_spec[SUCCESS_KEY] = spec(2, torch.bool)
         return observation_spec
 
 
 class StageRewardTransform(_StageView):
-    """Stage k's view of replay-buffer samples, from the *current* next-stage value.
-
-    The storage holds raw transitions tagged by :class:`StageTransform`; every sample gets the
-    transitions that leave stage k marked ``terminated`` with ``r + gamma * V_{k+1}(s_{t+1})``,
+    """Stage k's view of replay-buffer samples, from the *current* next-stage value: the
+    transitions that leave stage k are ``terminated`` with ``r + gamma * V_{k+1}(s_{t+1})``,
     so the next stage may keep learning after the data was stored (the joint schedule).
-    ``next_value`` is held by reference, never copied nor trained here (pass
-    ``learner.value(live=True)`` to follow the next learner's target networks).
+    ``next_value`` is held by reference, never copied nor trained here.
 
     Examples:
         >>> from tensordict import TensorDict
@@ -305,9 +282,8 @@ class StageRewardTransform(_StageView):
         next_value: TensorDictModuleBase | None = None,
         standalone: bool = False,
         gamma: float = 0.99,
-        keys: StageKeys = StageKeys(),
     ) -> None:
-        super().__init__(stage, num_stages, gamma, next_value, standalone, keys, [])
+        super().__init__(stage, num_stages, gamma, next_value, standalone, [])
         # not a sub-module: it belongs to the next stage's learner, and must not travel in
         # this transform's (or the replay buffer's) state_dict
         self.__dict__["next_value"] = next_value
@@ -315,11 +291,9 @@ class StageRewardTransform(_StageView):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self.parent is not None:
             raise RuntimeError(self.ENV_ERR)
-        keys = self.keys
-        required = [keys.stage, ("next", keys.transition), ("next", keys.reward)]
-        required.append(("next", keys.terminated))
-        if self.next_value is not None:
-            required.append(("next", keys.stage))
+        needed = ["stage_transition", "reward", "terminated"]
+        needed += ["stage"] if self.next_value is not None else []
+        required = ["stage", *(("next", key) for key in needed)]
         missing = [k for k in required if tensordict.get(k, None) is None]
         if missing:
             names = ", ".join(".".join(k) if isinstance(k, tuple) else k for k in missing)
@@ -328,7 +302,7 @@ class StageRewardTransform(_StageView):
                 'store transitions collected through StageTransform (it writes "stage" and '
                 '("next", "stage_transition")), keeping those entries in the buffer.'
             )
-        self._view(tensordict.get(keys.stage), tensordict.get("next"))
+        self._view(tensordict.get("stage"), tensordict.get("next"))
         return tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase):
@@ -341,9 +315,8 @@ class StageRewardTransform(_StageView):
 class StageDiscount(Transform):
     """Discounts every stored transition with the gamma of its stage in torchrl's estimators.
 
-    It writes ``steps_to_next_obs = log(gammas[stage]) / log(gamma)``, so that a TD(0) estimator
-    built with ``gamma`` bootstraps with ``gammas[stage(s_t)]``: the flat baseline then optimizes
-    the same stage-discounted objective as the stacked learners.
+    ``steps_to_next_obs = log(gammas[stage]) / log(gamma)`` makes a TD(0) estimator built with
+    ``gamma`` bootstrap with ``gammas[stage(s_t)]``.
 
     Examples:
         >>> from tensordict import TensorDict
@@ -357,13 +330,10 @@ class StageDiscount(Transform):
         self,
         gammas: Sequence[float],
         gamma: float,
-        *,
-        stage_key: NestedKey = "stage",
-        out_key: NestedKey = "steps_to_next_obs",
     ) -> None:
         if not 0.0 < gamma < 1.0 and any(g != gamma for g in gammas):
             raise ValueError(f"gamma={gamma} cannot express the stage discounts {list(gammas)}.")
-        super().__init__(in_keys=[stage_key], out_keys=[out_key])
+        super().__init__(in_keys=["stage"], out_keys=["steps_to_next_obs"])
         ratio = [1.0 if g == gamma else math.log(g) / math.log(gamma) for g in gammas]
         self.register_buffer("_steps", torch.tensor(ratio, dtype=torch.float32))
 

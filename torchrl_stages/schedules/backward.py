@@ -15,17 +15,14 @@ from torchrl_stages.config import check
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.stacking import stack_learners
 from torchrl_stages.metrics import MetricsLog
-from torchrl_stages.schedules.base import Schedule, SeedRuns, Trained, register_schedule
+from torchrl_stages.schedules.base import Schedule, SeedGroup, Trained, register_schedule
 from torchrl_stages.seeding import EVAL_OFFSET, seeded, stage_seed
 from torchrl_stages.stage import StageResult, StageTrainer
 from torchrl_stages.task import StagedTask
 
 
 def train_backward(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """Trains stages N-1, ..., 0 of ``task`` in turn, each against the frozen value of the one
-    after it, for every seed of ``seeds`` at once (``kwargs``: those of :meth:`Schedule.train
-    <torchrl_stages.schedules.Schedule.train>`). A stage is seeded from the seed and its index
-    alone, so it does not depend on how the stages after it were reached (trained or loaded).
+    """The backward schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s).
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -46,8 +43,7 @@ def train_backward(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> l
 
 
 def stage_value(task: StagedTask, stage: int, learners: Sequence[Learner]) -> TensorDictModuleBase:
-    """The frozen value of ``stage`` that the stage before it learns against (several seeds:
-    that of their seed-stacked learner)."""
+    """The frozen value of ``stage`` (several seeds: of their seed-stacked learner)."""
     if len(learners) == 1:
         return learners[0].value()
     cfg, specs = task.stage_cfg(stage), task.specs(stage)
@@ -67,10 +63,9 @@ def train_stage(
     on_evaluate: Callable[[Learner, int], None] | None = None,
     compile: str = "off",
 ) -> list[tuple[Learner, StageResult]]:
-    """Trains stage ``stage`` of ``task`` against ``next_value`` (stage ``stage + 1``'s frozen
-    value; ``None`` for the last stage) for every seed of ``seeds``, as a backward run does
-    (what ``scripts/benchmark_stage.py`` relies on); each seed's learner and result.
-    ``on_evaluate(learner, frames)`` runs after each evaluation (one seed).
+    """Trains stage ``stage`` against ``next_value`` (stage ``stage + 1``'s frozen value) for
+    every seed of ``seeds``, as a backward run does; each seed's learner and result. A stage is
+    seeded from the seed and its index alone. ``on_evaluate(learner, frames)``: one seed.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -114,45 +109,45 @@ def train_stage(
 
 @register_schedule
 class BackwardSchedule(Schedule):
-    """``schedule=backward`` (:func:`train_backward`): a finished stage freezes itself and the
-    stages after it; the env must start episodes inside a chosen stage."""
+    """``schedule=backward``: stages N-1, ..., 0 in turn, each against the frozen value of the
+    one after it; a finished stage freezes itself and the stages after it."""
 
     name = "backward"
     reuses_stages = True
     stacks_seeds = True
 
-    def run(self, task: StagedTask, runs: SeedRuns) -> list[Trained]:
+    def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:
         num_stages = task.num_stages
         done: list[list[tuple[Learner, StageResult]]] = [[] for _ in range(num_stages)]
         next_value, frames_before = None, 0
         for k in reversed(range(num_stages)):
-            done[k] = runs.finished(k)
+            done[k] = group.finished(k)
             if done[k] is None:
                 on_evaluate = None
-                if runs.probe is not None and k == 0:
+                if group.probe is not None and k == 0:
 
                     def on_evaluate(learner: Learner, frames: int, before=frames_before) -> None:
                         probe_team = [learner, *(stage[0][0] for stage in done[1:])]
-                        runs.probe(probe_team, before + frames)
+                        group.probe(probe_team, before + frames)
 
-                checkpoints = runs.begin(k)
+                checkpoints = group.begin(k)
                 trained = train_stage(
                     task,
                     k,
                     next_value,
-                    seeds=runs.seeds,
-                    logs=runs.logs,
-                    progress=runs.progress,
+                    seeds=group.seeds,
+                    logs=group.logs,
+                    progress=group.progress,
                     checkpoints=checkpoints,
                     on_evaluate=on_evaluate,
-                    compile=runs.compile,
+                    compile=group.compile,
                 )
-                done[k] = runs.keep(k, trained, checkpoints)
+                done[k] = group.keep(k, trained, checkpoints)
             next_value = stage_value(task, k, [learner for learner, _ in done[k]])
             frames_before += done[k][0][1].frames
         return [
             Trained([stage[i][0] for stage in done], [stage[i][1] for stage in done])
-            for i in range(len(runs.seeds))
+            for i in range(len(group.seeds))
         ]
 
     def frozen_stages(self, finished: set[int], num_stages: int) -> set[int]:

@@ -1,6 +1,5 @@
-"""What a schedule is (:class:`Schedule`), what it is given to train several seeds at once
-(:class:`SeedRuns`), where it keeps their stages (:class:`StageKeeper`) and what it returns
-(:class:`Trained`)."""
+"""What a schedule is (:class:`Schedule`), the seeds it trains together (:class:`SeedGroup`)
+and what it returns (:class:`Trained`)."""
 
 from __future__ import annotations
 
@@ -17,29 +16,26 @@ from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 
-#: ``probe(learners, frames)``: follows the whole task at every evaluation of the stage that
-#: holds the whole-task starts (``eval.probe``), with the frames so far over all stages
+#: ``probe(learners, frames)`` (``eval.probe``): the whole task followed at the evaluations of
+#: the stage that holds its starts, with the frames so far over all stages
 Probe = Callable[[list[Learner], int], None]
 
 
 class StageKeeper(Protocol):
-    """Where a schedule keeps a seed's stages (a run directory's
-    :class:`~torchrl_stages.runs.keeper.RunKeeper`)."""
+    """Where a schedule keeps a seed's stages (:class:`~torchrl_stages.runs.keeper.RunKeeper`)."""
 
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
-        """The stage if it was already trained (a resumed run), else ``None``."""
+        """The stage if a previous launch trained it, else ``None``."""
 
     def begin(self, scope: int | str) -> None:
         """Loop ``scope`` starts afresh: the logs are rewound to where it starts."""
 
-    def save(self, stage: int, learner: Learner, result: StageResult) -> None:
-        """Keeps a stage that just finished."""
+    def save(self, stage: int, learner: Learner, result: StageResult) -> None: ...
 
     def keep(self, key: str, value: Any) -> None:
         """Keeps ``value`` (JSON) for a later launch of the run."""
 
-    def kept(self, key: str) -> Any:
-        """What :meth:`keep` kept under ``key`` (``None``: nothing)."""
+    def kept(self, key: str) -> Any: ...
 
     def clear(self, scope: int | str) -> None:
         """Drops the checkpoints of ``scope``."""
@@ -47,9 +43,8 @@ class StageKeeper(Protocol):
 
 @dataclass
 class Trained:
-    """What a schedule returns for a seed: one learner and one result per stage (a flat
-    learner: the same learner in every stage, one result), and what else ``eval.json``'s
-    ``training`` records."""
+    """What a schedule returns for a seed: one learner and one result per stage, and what else
+    ``eval.json``'s ``training`` records."""
 
     learners: list[Learner]
     results: list[StageResult]
@@ -57,10 +52,9 @@ class Trained:
 
 
 @dataclass
-class SeedRuns:
-    """The seeds a schedule trains at once (:meth:`Schedule.train`'s arguments): each one's
-    keeper (``None``: keeps nothing) and log, the checkpoints of a loop scope (one state for all
-    the seeds), and how the loops run (``probe``: one seed)."""
+class SeedGroup:
+    """The seeds one :meth:`Schedule.train` call trains together, each one's keeper and log, the
+    checkpoints of a loop scope (one state for all the seeds), and how the loops run."""
 
     schedule: str
     seeds: list[int]
@@ -91,8 +85,7 @@ class SeedRuns:
         return done
 
     def begin(self, scope: int | str) -> StageCheckpoints | None:
-        """The checkpoints of loop ``scope``; without one to go on from, each keeper starts the
-        loop afresh."""
+        """The checkpoints of loop ``scope`` (none to go on from: each keeper starts it afresh)."""
         scoped = self.checkpoints(scope) if self.checkpoints is not None else None
         if scoped is None or scoped.latest() is None:
             for keeper in self.keepers:
@@ -106,7 +99,7 @@ class SeedRuns:
         trained: list[tuple[Learner, StageResult]],
         checkpoints: StageCheckpoints | None,
     ) -> list[tuple[Learner, StageResult]]:
-        """Keeps each seed's ``trained`` stage; its ``checkpoints``, which it supersedes, go."""
+        """Keeps each seed's ``trained`` stage and drops its ``checkpoints``."""
         for keeper, (learner, result) in zip(self.keepers, trained, strict=True):
             if keeper is not None:
                 keeper.save(stage, learner, result)
@@ -135,12 +128,11 @@ class Schedule:
     stacks_seeds: ClassVar[bool] = False
 
     def train(self, task: StagedTask, seeds: Sequence[int] = (0,), **kwargs: Any) -> list[Trained]:
-        """Trains (what is left of) ``task``'s stages for every seed of ``seeds`` at once; one
-        :class:`Trained` per seed. ``kwargs``: the fields of :class:`SeedRuns`."""
-        return self.run(task, SeedRuns(self.name, list(seeds), **kwargs))
+        """Trains what is left of ``task`` for every seed (``kwargs``: :class:`SeedGroup`'s)."""
+        return self.run(task, SeedGroup(self.name, list(seeds), **kwargs))
 
-    def run(self, task: StagedTask, runs: SeedRuns) -> list[Trained]:
-        """What :meth:`train` does, for a schedule of its own."""
+    def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:
+        """What each schedule implements: one :class:`Trained` per seed of ``group``."""
         raise NotImplementedError
 
     def frozen_stages(self, finished: set[int], num_stages: int) -> set[int]:
@@ -156,7 +148,6 @@ class Schedule:
         return stage
 
     def stage_name(self, task: StagedTask, stage: int) -> str:
-        """The name stage ``stage``'s file is written with."""
         return task.stage_names[stage]
 
     def validate(self, cfg: DictConfig) -> None:

@@ -1,5 +1,4 @@
-"""The flat schedule: one learner over the whole task, no stages (the paper's end-to-end
-baseline)."""
+"""The flat schedule: one learner over the whole task, no stages (the end-to-end baseline)."""
 
 from __future__ import annotations
 
@@ -10,7 +9,7 @@ from torchrl.envs import EnvBase
 
 from torchrl_stages.config import check
 from torchrl_stages.learners import Learner, make_learner
-from torchrl_stages.schedules.base import Schedule, SeedRuns, Trained, register_schedule
+from torchrl_stages.schedules.base import Schedule, SeedGroup, Trained, register_schedule
 from torchrl_stages.seeding import EVAL_OFFSET, seeded, stage_seed
 from torchrl_stages.stage import StageTrainer
 from torchrl_stages.task import StagedTask
@@ -25,11 +24,7 @@ def flat_config(task: StagedTask) -> DictConfig:
 
 
 def train_flat(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """One learner over the whole task for every seed of ``seeds`` at once (``kwargs``: those
-    of :meth:`Schedule.train <torchrl_stages.schedules.Schedule.train>`): stage 0's config with
-    the stages' budgets summed, every transition discounted with its stage's gamma
-    (:class:`~torchrl_stages.transforms.StageDiscount`), whole-task episodes. Each seed's
-    :class:`Trained` holds its learner once per stage and its one result.
+    """The flat schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s).
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -52,8 +47,8 @@ def train_flat(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[
 def flat_envs(
     task: StagedTask, cfg: DictConfig, seed: int, copies: int = 1
 ) -> tuple[EnvBase, EnvBase]:
-    """The flat learner's training env (the task's own starts) and evaluation env (every
-    whole-task start, else ``eval_episodes``), ``copies`` of each, seeded as stage 0's."""
+    """The training env (the task's own starts) and evaluation env (every whole-task start, else
+    ``eval_episodes``), ``copies`` of each, seeded as stage 0's."""
     env = task.task_env(int(cfg.num_envs), start_stage=None, train=True, copies=copies)
     env.set_seed(stage_seed(seed, 0))
     episodes = None if task.start_states(None) is not None else int(cfg.eval_episodes)
@@ -64,42 +59,41 @@ def flat_envs(
 
 @register_schedule
 class FlatSchedule(Schedule):
-    """``schedule=flat`` (:func:`train_flat`): one learner, stage 0's file and checkpoints,
-    acting in every stage (which must then share their observation and action entries)."""
+    """``schedule=flat``: one learner acting in every stage, in stage 0's file and checkpoints;
+    every transition is discounted with its stage's gamma (:class:`StageDiscount`)."""
 
     name = "flat"
     stacks_seeds = True
 
-    def run(self, task: StagedTask, runs: SeedRuns) -> list[Trained]:
-        done = runs.finished(0)
+    def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:
+        done = group.finished(0)
         if done is None:
-            seeds, n = runs.seeds, len(runs.seeds)
-            cfg, specs = flat_config(task), task.specs(0)
+            seeds, cfg, specs = group.seeds, flat_config(task), task.specs(0)
 
             def make(seeds: int | None = None) -> Learner:
-                return make_learner(cfg, specs, runs.compile, task.device, seeds=seeds)
+                return make_learner(cfg, specs, group.compile, task.device, seeds=seeds)
 
             learner, (env, eval_env) = seeded(
-                make, seeds, 0, lambda: flat_envs(task, cfg, seeds[0], copies=n)
+                make, seeds, 0, lambda: flat_envs(task, cfg, seeds[0], copies=len(seeds))
             )
             on_evaluate = None
-            if runs.probe is not None:
+            if group.probe is not None:
 
                 def on_evaluate(frames: int) -> None:
-                    runs.probe([learner] * task.num_stages, frames)
+                    group.probe([learner] * task.num_stages, frames)
 
             gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
-            checkpoints = runs.begin(0)
+            checkpoints = group.begin(0)
             trainer = StageTrainer(
                 0,
                 learner,
                 env,
                 eval_env,
                 cfg,
-                logs=runs.logs,
+                logs=group.logs,
                 make_learner=make,
                 name="flat",
-                progress=runs.progress,
+                progress=group.progress,
                 seeds=seeds,
                 checkpoints=checkpoints,
                 on_evaluate=on_evaluate,
@@ -107,7 +101,7 @@ class FlatSchedule(Schedule):
                 postproc=StageDiscount(gammas, float(cfg.gamma)),
                 extra_keys=["steps_to_next_obs"],
             )
-            done = runs.keep(0, trainer.train(), checkpoints)
+            done = group.keep(0, trainer.train(), checkpoints)
         return [Trained([learner] * task.num_stages, [result]) for learner, result in done]
 
     def checkpoint_scope(self, stage: int) -> int:

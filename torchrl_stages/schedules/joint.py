@@ -1,6 +1,5 @@
 """The paper's Algorithm 1 (``schedule=joint``): every stage learner keeps learning while the
-start region moves back, phase k collecting whole-task episodes from stage-k starts; several
-seeds train at once, each keeping what a joint run of its own keeps."""
+start region moves back, phase k collecting whole-task episodes from stage-k starts."""
 
 from __future__ import annotations
 
@@ -21,7 +20,7 @@ from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.learners.stacking import unstack_learner
 from torchrl_stages.loop import LoopCounters, Stopwatch
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.schedules.base import Probe, Schedule, SeedRuns, Trained, register_schedule
+from torchrl_stages.schedules.base import Probe, Schedule, SeedGroup, Trained, register_schedule
 from torchrl_stages.seeding import EVAL_OFFSET, phase_seed, stage_seed
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask, tile_starts
@@ -35,16 +34,12 @@ JOINT = "joint"
 
 
 class JointTrainer(StageTeam):
-    """Trains all stage learners of ``task`` together for every seed of ``seeds`` at once;
-    :meth:`train` returns one :class:`~torchrl_stages.schedules.Trained` per seed.
+    """Trains all stage learners of ``task`` together for every seed of ``seeds`` at once.
 
-    Phase k (k = N-1, ..., 0; one phase from the task's own starts for an env without stage
-    starts) uses stage k's collection, evaluation and early-stop keys; its evaluations are
-    greedy whole-task episodes from stage-k starts. Every transition goes to the buffer of the
-    stage of s_t; after each batch every stage with enough data takes its gradient steps, last
-    stage first, the transitions leaving stage m rewarded ``r + gamma_m V_{m+1}(s')`` from stage
-    m+1's live target networks. The seeds share the envs' random streams, each stage's
-    exploration schedule and each parameter's Adam step count.
+    Phase k (k = N-1, ..., 0; without stage starts: one phase from the task's own) collects
+    whole-task episodes from stage-k starts with stage k's keys; the transitions leaving stage m
+    are rewarded ``r + gamma_m V_{m+1}(s')`` from stage m+1's live target networks. The seeds
+    share the envs' random streams, the exploration schedules and the Adam step counts.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -64,7 +59,6 @@ class JointTrainer(StageTeam):
     def __init__(
         self, task: StagedTask, seeds: Sequence[int] = (0,), *, probe: Probe | None = None, **kwargs
     ) -> None:
-        """``kwargs``: :class:`StageTeam`'s ``logs``, ``progress``, ``checkpoints``, ``compile``."""
         super().__init__(task, seeds, **kwargs)
         self.probe = probe
         self.starts = list(reversed(range(task.num_stages))) if task.stage_starts else [None]
@@ -91,8 +85,7 @@ class JointTrainer(StageTeam):
         return env, eval_env
 
     def train(self) -> list[Trained]:
-        """Runs every phase from the newest checkpoint on; each seed's learners, one result per
-        stage and its phases."""
+        """Runs every phase from the newest checkpoint on; one :class:`Trained` per seed."""
         counters = JointCounters(self.task.num_stages, self.n)
         stateful = {
             "learners": StateOf(self._learner_states, self._load_learner_states),
@@ -112,7 +105,7 @@ class JointTrainer(StageTeam):
             counters.phase, counters.in_phase = index + 1, False
             if self.checkpoints is not None:  # a phase boundary: learners and buffers
                 counters.seconds = time.perf_counter() - start
-                counters.log = self.logs.position()
+                counters.log = self.log_position()
                 self.checkpoints.save(counters.frames, stateful)
         seconds = time.perf_counter() - start  # every launch's
         return [self._trained(i, counters, seconds, watch) for i in range(self.n)]
@@ -121,25 +114,19 @@ class JointTrainer(StageTeam):
         """Seed ``i``'s learners and results (the last phase's evaluation for every stage)."""
         phases = counters.phases[i]
         last = phases[-1] if phases else {}
+        ended = {key: last.get(key) for key in ("success_rate", "value_error", "discounted_return")}
+        ended |= {key: bool(last.get(key)) for key in ("early_stopped", "restored_best")}
         learners, results = [], []
         for m, learner in enumerate(self.learners):
             if learner.seeds is not None:
                 learner = unstack_learner(learner, i, self.make[m]())
             learner.num_updates = counters.updates[i][m]
             learners.append(learner)
-            result = StageResult(
-                m,
-                counters.stored[i][m],
-                learner.num_updates,
-                seconds,
-                last.get("success_rate"),
-                last.get("value_error"),
-                bool(last.get("early_stopped")),
-                bool(last.get("restored_best")),
-                dict(watch.seconds),
-                last.get("discounted_return"),
+            frames = counters.stored[i][m]
+            timing = dict(watch.seconds)
+            results.append(
+                StageResult(m, frames, learner.num_updates, seconds, timing=timing, **ended)
             )
-            results.append(result)
         return Trained(learners, results, {"phases": phases})
 
     def _phase(self, start_stage, counters: JointCounters, stateful, latest, watch, t0) -> None:
@@ -207,8 +194,7 @@ class JointTrainer(StageTeam):
     def _evaluated(
         self, k: int, counters: JointCounters, stops: SeedEarlyStops, evaluation: Evaluation
     ) -> None:
-        """A seed that stopped while others train on keeps its Adam moments (the others'
-        updates decay them); the probe follows the whole task."""
+        """A seed that stopped keeps its Adam moments (the others' updates would decay them)."""
         if self.n > 1:
             for i, at in enumerate(stops.stopped_at):
                 if at is not None and "moments" not in at:
@@ -242,9 +228,8 @@ class JointTrainer(StageTeam):
 
 @register_schedule
 class JointSchedule(Schedule):
-    """``schedule=joint`` (:class:`JointTrainer`): every stage trains at once, so the run
-    resumes as a whole (checkpoints ``"joint"``) and its stage files are written when it ends;
-    its phases, not its stages, stop early."""
+    """``schedule=joint`` (:class:`JointTrainer`): the run resumes as a whole (checkpoints
+    ``"joint"``), its stage files are written when it ends; its phases stop early."""
 
     name = "joint"
     stage_early_stop = False
@@ -253,10 +238,9 @@ class JointSchedule(Schedule):
     def checkpoint_scope(self, stage: int) -> str:
         return "joint"
 
-    def run(self, task: StagedTask, runs: SeedRuns) -> list[Trained]:
-        """A run every seed's keeper has finished is loaded, not trained."""
-        seeds, keepers, stages = runs.seeds, runs.keepers, range(task.num_stages)
-        done = [runs.finished(k) for k in stages]
+    def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:
+        seeds, keepers, stages = group.seeds, group.keepers, range(task.num_stages)
+        done = [group.finished(k) for k in stages]
         if all(d is not None for d in done):
             return [
                 Trained(
@@ -266,15 +250,15 @@ class JointSchedule(Schedule):
                 )
                 for i in range(len(seeds))
             ]
-        scope = runs.begin("joint")
+        scope = group.begin("joint")
         trained = JointTrainer(
             task,
             seeds,
-            logs=runs.logs,
-            progress=runs.progress,
+            logs=group.logs,
+            progress=group.progress,
             checkpoints=scope,
-            probe=runs.probe,
-            compile=runs.compile,
+            probe=group.probe,
+            compile=group.compile,
         ).train()
         for seed, keeper, run in zip(seeds, keepers, trained, strict=True):
             phases = run.extra["phases"]
@@ -290,8 +274,7 @@ class JointSchedule(Schedule):
 
 
 def train_joint(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """The joint schedule for every seed of ``seeds`` at once (:meth:`Schedule.train
-    <torchrl_stages.schedules.Schedule.train>`'s arguments)."""
+    """The joint schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s)."""
     return JointSchedule().train(task, seeds, **kwargs)
 
 
