@@ -37,7 +37,7 @@ from torchrl_stages.config import register_configs
 from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.learners.ops import FusedSoftUpdate
 from torchrl_stages.runs.experiment import Experiment
-from torchrl_stages.runs.seed_run import SeedRun as RunKeeper
+from torchrl_stages.runs.seed_run import SeedRun
 
 PHASES = ("collect", "sample", "update", "target_update", "evaluate", "log", "checkpoint")
 
@@ -46,7 +46,7 @@ def profile(task: str, compile: str, threads: int | None, overrides: list[str], 
     """Trains one run; returns its per-stage breakdown."""
     per_stage: dict[int, float] = {}
     current = {"stage": None}
-    step, begin = FusedSoftUpdate.step, RunKeeper.begin
+    step, begin = FusedSoftUpdate.step, SeedRun.begin
 
     def timed_step(self) -> None:
         start = time.perf_counter()
@@ -61,17 +61,17 @@ def profile(task: str, compile: str, threads: int | None, overrides: list[str], 
         threads = int(cfg.threads)
         experiment = Experiment(cfg, out / f"{task}_threads{threads}_{compile}")
 
-        def begin_hook(store: RunKeeper, scope: int | str):  # whose target updates are timed
+        def begin_hook(store: SeedRun, scope: int | str):  # whose target updates are timed
             current["stage"] = scope
             return begin(store, scope)
 
-        RunKeeper.begin = begin_hook
+        SeedRun.begin = begin_hook
         start = time.perf_counter()
         [result] = experiment.run()
         total = time.perf_counter() - start
     finally:
         FusedSoftUpdate.step = step
-        RunKeeper.begin = begin
+        SeedRun.begin = begin
     rows = []
     for stage in result["training"]["stages"]:
         k, timing = stage["stage"], dict(stage["timing"])

@@ -22,7 +22,7 @@ Probe = Callable[[list[Learner], int], None]
 
 
 class StageKeeper(Protocol):
-    """Where a schedule keeps a seed's stages (:class:`~torchrl_stages.runs.keeper.RunKeeper`)."""
+    """Where a schedule keeps a seed's stages (:class:`~torchrl_stages.runs.seed_run.SeedRun`)."""
 
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
         """The stage if a previous launch trained it, else ``None``."""
