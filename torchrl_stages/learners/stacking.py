@@ -7,13 +7,24 @@ import copy
 from collections.abc import Iterator, Sequence
 from contextlib import AbstractContextManager, contextmanager
 from contextvars import ContextVar
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import torch
 from torch import nn
 
-if TYPE_CHECKING:
-    from torchrl_stages.learners.base import Learner
+
+class Learner(Protocol):
+    """What this module reads of a learner (a protocol, so that ``base`` imports it freely)."""
+
+    cfg: Any
+    specs: Any
+    seeds: int | None
+    num_updates: int
+
+    def state_dict(self) -> dict[str, torch.Tensor]: ...
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> Any: ...
+
 
 _SEEDS: ContextVar[int | None] = ContextVar("torchrl_stages_seeds", default=None)
 _ROWS: ContextVar[torch.Tensor | None] = ContextVar("torchrl_stages_seed_rows", default=None)

@@ -21,10 +21,10 @@ from torchrl_stages.learners.stacking import unstack_learner
 from torchrl_stages.loop import LoopCounters, Stopwatch
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.schedules.base import Probe, Schedule, SeedGroup, Trained, register_schedule
+from torchrl_stages.schedules.team import JointCounters, StageTeam, seed_moments
 from torchrl_stages.seeding import EVAL_OFFSET, phase_seed, stage_seed
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask, tile_starts
-from torchrl_stages.team import JointCounters, StageTeam, seed_moments
 from torchrl_stages.transforms import StageTransform
 
 log = logging.getLogger(__name__)
