@@ -48,7 +48,6 @@ class RunLock:
         self.created_dir = False
 
     def acquire(self) -> RunLock:
-        """Takes the lock without waiting; raises :class:`RunLockedError` naming the holder."""
         if self._fd is not None:
             return self
         directory = self.file.parent
@@ -88,7 +87,6 @@ class RunLock:
                 time.sleep(poll)
 
     def announce(self) -> None:
-        """Writes who holds the lock into the lock file."""
         if self._fd is None:
             return
         since, command = time.strftime("%Y-%m-%dT%H:%M:%S%z"), " ".join(sys.argv)[:500]
