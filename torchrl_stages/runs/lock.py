@@ -1,5 +1,5 @@
-"""One writer per run directory: ``fcntl.flock`` on ``.stages/lock`` for the whole run, which
-the kernel releases when the process dies (SIGKILL too); the holder writes who it is there."""
+"""One writer per run directory: ``fcntl.flock`` on ``.stages/lock``, which the kernel releases
+when the process dies (SIGKILL too)."""
 
 from __future__ import annotations
 

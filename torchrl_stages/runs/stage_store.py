@@ -1,5 +1,5 @@
-"""Finished stages shared by runs (``stage_store=DIR``, one entry per stage identity) and the
-stages a backward run takes from there or from ``init_from=RUN_DIR`` instead of training."""
+"""Finished stages shared by runs (``stage_store=DIR``), and the stages a backward run takes
+from there or from ``init_from=RUN_DIR`` instead of training."""
 
 from __future__ import annotations
 
@@ -73,11 +73,9 @@ ENTRY_META = tuple(f.name for f in fields(StageEntry))[5:]
 
 
 class SharedStageStore:
-    """A directory of finished stages, one entry per identity, shared by the jobs of a sweep.
-
-    ``entries/<identity>/`` holds ``stage.pt``, ``entry.json`` and ``sha256.json``; an entry
-    is written whole in ``tmp/`` and renamed into place, so a reader sees all of it or nothing.
-    ``locks/<identity>`` is held by the job training that stage; the others wait, then load it.
+    """Finished stages, one entry per identity, shared by the jobs of a sweep. An entry is
+    written whole in ``tmp/`` and renamed into ``entries/``; ``locks/<identity>`` is held by
+    the job training that stage while the others wait.
 
     Examples:
         >>> import tempfile
@@ -243,11 +241,9 @@ def _alive(pid: int) -> bool:
 
 
 class StageReuse:
-    """The stages one backward run takes instead of training them: from ``init_from`` where
-    its stage has this run's identity, else from ``store``.
-
-    :meth:`take` returns a stage, or ``None`` with the stage's store lock held (other jobs
-    needing it wait) until :meth:`trained` stores it; :meth:`close` releases what is held."""
+    """The stages one backward run takes instead of training them (from ``init_from`` where
+    the identity matches, else from the store). :meth:`take` returning ``None`` holds the
+    stage's store lock until :meth:`trained` stores it."""
 
     def __init__(self, cfg: DictConfig, run_dir: str | Path) -> None:
         self.inputs = stage_identity_inputs(cfg)
