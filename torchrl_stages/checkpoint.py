@@ -1,6 +1,5 @@
-"""Periodic checkpoints of the stage in progress on ``torchrl.checkpoint``: everything the loop
-needs to go on as if it had never stopped, as tensors and JSON (never a pickle) with the SHA-256
-of every file; a damaged checkpoint is skipped for the one before."""
+"""Periodic checkpoints of the stage in progress on ``torchrl.checkpoint``, as tensors and JSON
+(never a pickle) with checksums; a damaged checkpoint is skipped for the one before."""
 
 from __future__ import annotations
 
@@ -14,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch.utils._pytree import tree_leaves
 from torchrl.checkpoint import (
     Checkpoint,
     CheckpointError,
@@ -107,8 +107,8 @@ class TensorStateAdapter(StateDictCheckpointAdapter):
 
 
 def verify_checkpoint(path: Path) -> None:
-    """Raises :class:`DamagedFileError` unless every file of the checkpoint is its manifest or
-    a verified payload file of one of its components."""
+    """Raises :class:`DamagedFileError` unless every file is the manifest or a verified
+    payload of a component."""
     try:
         components = Checkpoint.manifest(path)["components"]
         dirs = {path / record["path"] for record in components.values()}
@@ -153,6 +153,9 @@ class StageCheckpoints:
     def due(self, frames: int) -> bool:
         return self.every > 0 and frames >= self._next
 
+    def _after(self, frames: int) -> None:
+        self._next = (frames // self.every + 1) * self.every if self.every > 0 else 0
+
     def _checkpoint(self, components: Mapping[str, Any]) -> Checkpoint:
         ckpt = Checkpoint(format="directory")
         adapter = TensorStateAdapter()
@@ -163,18 +166,16 @@ class StageCheckpoints:
         return ckpt
 
     def save(self, frames: int, components: Mapping[str, Any]) -> Path:
-        """Writes a checkpoint at ``frames`` (atomically) and prunes the old ones."""
         rotation = CheckpointRotation(self.directory, keep_last=self.keep, prefix=PREFIX)
         path = rotation.save(self._checkpoint(components), step=int(frames))
-        self._next = (frames // self.every + 1) * self.every if self.every > 0 else 0
+        self._after(frames)
         self._verified = path
         if self.on_save is not None:
             self.on_save(path)
         return path
 
     def latest(self) -> Path | None:
-        """The newest whole checkpoint, if any: damaged ones are skipped with a warning, and
-        :class:`CheckpointDamagedError` says what to delete when all are."""
+        """The newest whole checkpoint, if any (damaged ones skipped with a warning)."""
         if not self.directory.is_dir():
             return None
         candidates = sorted(  # every entry of the rotation's form, readable or not
@@ -231,8 +232,7 @@ class StageCheckpoints:
                 f"delete it to resume from the checkpoint before it, or delete {self.directory} "
                 "to restart this stage"
             ) from err
-        frames = _frames(path)
-        self._next = (frames // self.every + 1) * self.every if self.every > 0 else 0
+        self._after(_frames(path))
         return path
 
     def clear(self) -> None:
@@ -245,10 +245,4 @@ def _frames(path: Path) -> int:
 
 
 def _nbytes(state: Any) -> int:
-    if isinstance(state, torch.Tensor):
-        return state.numel() * state.element_size()
-    if isinstance(state, Mapping):
-        return sum(_nbytes(v) for v in state.values())
-    if isinstance(state, list | tuple):
-        return sum(_nbytes(v) for v in state)
-    return 0
+    return sum(t.nbytes for t in tree_leaves(state) if isinstance(t, torch.Tensor))

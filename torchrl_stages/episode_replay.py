@@ -1,6 +1,6 @@
-"""A gymnasium env's running episode rebuilt from plain data (its ``np_random`` state before the
-reset, the reset's seed and options, the actions since): what a resumed run continues. Imports
-only numpy and gymnasium: vector env workers receive :class:`EpisodeReplay` by value."""
+"""A gymnasium env's running episode rebuilt from plain data (generator state, reset seed and
+options, actions since), for a resumed run. Imports only numpy and gymnasium: vector env
+workers receive :class:`EpisodeReplay` by value."""
 
 from __future__ import annotations
 
@@ -35,7 +35,6 @@ def _plain(value: Any) -> Any:
 
 
 def _is_plain(value: Any) -> bool:
-    """Whether ``value`` is JSON values and numeric arrays."""
     if value is None or isinstance(value, bool | int | float | str):
         return True
     if isinstance(value, np.ndarray | np.generic):
@@ -53,8 +52,8 @@ def _rng_state(env: gymnasium.Env) -> dict | None:
 
 
 def _set_rng_state(env: gymnasium.Env, state: Mapping) -> None:
-    """Puts ``state`` into ``env``'s ``np_random`` (the same generator object where it has one
-    of that kind: an env may keep a reference to it)."""
+    """Puts ``state`` into ``env``'s ``np_random``, keeping its generator object where it can
+    (an env may hold a reference to it)."""
     name = state["bit_generator"]
     if name not in _BIT_GENERATORS:
         raise ValueError(f"an unknown bit generator {name!r}")
@@ -71,15 +70,14 @@ def _set_rng_state(env: gymnasium.Env, state: Mapping) -> None:
 
 
 def _digest(obs: Any) -> str:
-    """A SHA-256 of an observation (arrays, scalars, strings, dicts and tuples of them)."""
     text = json.dumps(_plain(obs), sort_keys=True, default=repr)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
 class EpisodeReplay(gymnasium.Wrapper):
-    """Keeps what rebuilds the running episode (:meth:`episode_state`); :meth:`rebuild` puts the
-    generator back, resets, steps the same actions, and checks that the generator and the
-    observation end where they were (true of an env whose every draw is from ``np_random``).
+    """Keeps what rebuilds the running episode (:meth:`episode_state`); :meth:`rebuild` resets
+    and steps the same actions, then checks that the generator and observation end where they
+    were (true of an env whose every draw is from ``np_random``).
 
     Examples:
         >>> env = EpisodeReplay(gymnasium.make("CartPole-v1"))
@@ -153,8 +151,7 @@ class EpisodeReplay(gymnasium.Wrapper):
         }
 
     def rebuild(self, state: Mapping[str, Any]) -> str | None:
-        """Rebuilds the episode; ``None`` if it ends where it was, else why not (the generator is
-        then left in its saved state)."""
+        """Rebuilds the episode: ``None``, or why not (the generator then goes on as saved)."""
         try:
             why_not = self._replay(state)
         except Exception as err:  # an env that cannot take its own actions back

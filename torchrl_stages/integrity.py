@@ -46,8 +46,8 @@ def write_checksums(directory: str | Path) -> dict[str, str]:
 
 
 def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> None:
-    """Checks ``directory`` holds exactly the files of its ``sha256.json``, same bytes (and with
-    ``suffixes``, only those endings); :class:`DamagedFileError` names the first that differs."""
+    """Checks ``directory`` holds exactly the files of its ``sha256.json`` (with ``suffixes``:
+    only those endings), same bytes; :class:`DamagedFileError` names the first that differs."""
     directory = Path(directory)
     record = directory / CHECKSUMS
     try:
@@ -78,8 +78,7 @@ def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> N
 
 
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """Writes ``path`` through a temporary file of this process's own, renamed into place; on
-    any error ``path`` is left as it was (an ``OSError`` names it)."""
+    """Writes ``path`` through a temporary file renamed into place: on error it is unchanged."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
     try:
         write(tmp)

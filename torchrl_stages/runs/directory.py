@@ -67,7 +67,6 @@ class RunDir:
         return bool(self._run_files())
 
     def _run_files(self, names: tuple[str, ...] = RUN_MARKERS) -> list[str]:
-        """Those of ``names`` that exist here, then the stage files, each sorted."""
         found = sorted(n for n in names if (self.path / n).exists())
         return found + sorted(p.name for p in self.path.glob("stage_*.pt"))
 
@@ -92,7 +91,6 @@ class RunDir:
 
     @cached_property
     def record(self) -> dict[str, Any]:
-        """``entries`` (what the package wrote, with checksums), ``launches``, ``phases``."""
         return self._read_record()
 
     def _read_record(self) -> dict[str, Any]:
@@ -122,7 +120,7 @@ class RunDir:
         atomic_write(self.record_file, lambda tmp: tmp.write_text(text))
 
     def claim(self, *names: str) -> None:
-        """Records entries as the package's before they are written (``overwrite`` deletes them)."""
+        """Records entries as the package's before they are written."""
         entries = self.record["entries"]
         new = [name for name in names if name not in entries]
         for name in new:
@@ -134,11 +132,9 @@ class RunDir:
         return {p.name for p in self.path.iterdir()} if self.path.is_dir() else set()
 
     def claim_new(self, before: set[str]) -> None:
-        """Claims the entries that appeared since the ``before`` listing (figures, logs)."""
         self.claim(*sorted(self.listing() - before - {LOCK_DIR}))
 
     def adopt_legacy(self) -> None:
-        """Claims what a run written without a record holds (resuming such a run)."""
         self.claim(*sorted(self._run_files((*LEGACY_ENTRIES, *LEGACY_FIGURES))))
 
     def _write_verified(self, name: str, write: Callable[[Path], None]) -> Path:
@@ -159,7 +155,6 @@ class RunDir:
         return path
 
     def _verify(self, name: str, fix: str) -> None:
-        """Raises :class:`RunDirError` if ``name`` differs from its recorded checksum."""
         try:
             entry = self._read_record()["entries"].get(name, {})
             expected = {entry.get("sha256"), entry.get("previous")} - {None}
@@ -189,7 +184,6 @@ class RunDir:
         self._save_record()
 
     def training_time(self) -> dict[str, Any]:
-        """Every launch (start, seconds, outcome) and their summed ``seconds``."""
         launches = [dict(launch) for launch in self._read_record()["launches"]]
         seconds = sum(float(launch.get("seconds", 0.0)) for launch in launches)
         return {"seconds": seconds, "launches": launches}
@@ -200,13 +194,12 @@ class RunDir:
 
     @property
     def config_source(self) -> Path:
-        """``config.yaml``, or ``.hydra/config.yaml`` when it is missing."""
         hydra = self.path / ".hydra" / CONFIG_FILE
         return hydra if not self.config_file.is_file() and hydra.is_file() else self.config_file
 
     def read_config(self) -> DictConfig:
-        """The run's config, checked against the schema; :class:`RunDirError` when damaged,
-        incomplete, or holding an interpolation (resolving untrusted text can build nodes)."""
+        """The run's config, checked against the schema; refuses interpolations (resolving
+        untrusted text can build nodes)."""
         path = self.config_source
         fix = (
             "restore it from the run's .hydra/config.yaml (or a copy of the run), or retrain "
@@ -257,7 +250,6 @@ class RunDir:
         )
 
     def read_stage(self, stage: int, map_location: Any = "cpu") -> dict[str, Any] | None:
-        """The checked content of ``stage_<k>.pt`` (``None``: not finished)."""
         path = self.stage_file(stage)
         if not path.is_file():
             return None
@@ -285,7 +277,6 @@ class RunDir:
         return state
 
     def checkpoints(self, stage: int | str, every: int, keep: int) -> StageCheckpoints:
-        """The checkpoints of stage ``stage`` (``"joint"``: the joint schedule's)."""
         self.claim(CHECKPOINTS)
         name = stage if isinstance(stage, str) else f"stage_{stage}"
         return StageCheckpoints(
@@ -300,7 +291,6 @@ class RunDir:
             root.rmdir()
 
     def check_no_links(self) -> None:
-        """Raises :class:`RunDirError` if an entry the package reads or writes is a link."""
         entries = [self.path / n for n in (*LEGACY_ENTRIES, LOCK_DIR)]
         entries += [*self.path.glob("stage_*.pt"), *self.path.glob("*.png")]
         entries.append(self.path / "value_map.npy")
@@ -309,7 +299,6 @@ class RunDir:
             refuse_links([entry, *inner])
 
     def write_hydra_files(self, files: dict[str, Any]) -> None:
-        """``.hydra/<name>`` for each ``{name: config}``."""
         self.claim(".hydra")
         out = self.path / ".hydra"
         out.mkdir(parents=True, exist_ok=True)
@@ -317,14 +306,12 @@ class RunDir:
             atomic_write(out / name, lambda tmp, node=node: OmegaConf.save(node, tmp))
 
     def write_status(self, status: str, reason: str | None = None, **extra: Any) -> None:
-        """``status.json``: how and why a run that did not finish ended."""
         self.path.mkdir(parents=True, exist_ok=True)
         text = json.dumps({"status": status, "reason": reason, **extra}, indent=2)
         self.claim(STATUS_FILE)
         atomic_write(self.path / STATUS_FILE, lambda tmp: tmp.write_text(text))
 
     def read_eval(self) -> dict[str, Any] | None:
-        """``eval.json`` if it is a readable JSON object, else ``None``."""
         try:
             data = json.loads((self.path / EVAL_FILE).read_text())
         except (OSError, ValueError, UnicodeDecodeError):
@@ -332,7 +319,6 @@ class RunDir:
         return data if isinstance(data, dict) else None
 
     def check_clearable(self) -> None:
-        """Raises :class:`RunDirError` unless :meth:`clear` would remove every run file."""
         if not self.has_record():
             found = self._run_files((*RUN_MARKERS, STATUS_FILE))
             raise RunDirError(
@@ -373,7 +359,6 @@ class RunDir:
 
 
 def refuse_links(paths: Iterable[Path]) -> None:
-    """Raises :class:`RunDirError` naming the first of ``paths`` that is a symbolic link."""
     for path in paths:
         if path.is_symlink():
             raise RunDirError(

@@ -1,5 +1,4 @@
-"""A training launch, start to end: the library API behind ``stages-train``, for one seed or
-several trained at once (one :class:`~torchrl_stages.runs.seed_run.SeedRun` per seed)."""
+"""A training launch, the library API behind ``stages-train``: one seed, or several at once."""
 
 from __future__ import annotations
 
@@ -95,10 +94,9 @@ def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[
 
 
 class Experiment:
-    """Trains and evaluates ``cfg`` in ``run_dir`` (with ``cfg.seeds``: every seed at once, their
-    networks stacked, seed ``s`` in ``<run_dir>/seed_<s>/``, and a summary over them);
-    :meth:`run` returns each seed's ``eval.json``. The options (:class:`RunOptions`) go to each
-    seed's run. SIGTERM, SIGINT and SIGUSR1 stop it at the next batch with a checkpoint.
+    """Trains and evaluates ``cfg`` in ``run_dir``; with ``cfg.seeds``, every seed at once
+    (networks stacked) in ``<run_dir>/seed_<s>/``. SIGTERM, SIGINT and SIGUSR1 stop it at the
+    next batch with a checkpoint.
 
     Examples:
         >>> from hydra import compose, initialize_config_module
@@ -149,13 +147,11 @@ class Experiment:
         return self.runs[0].task
 
     def close(self) -> None:
-        """Releases every seed's run directory (:meth:`run` does it when it ends)."""
         for run in self.runs:
             run.close()
 
     def run(self) -> list[dict[str, Any]]:
-        """Trains what is left of every seed's stages and evaluates; a launch that does not
-        finish records how it ended (``interrupted``, ``diverged``, ``failed``, ``pruned``)."""
+        """Trains what is left and evaluates: each seed's ``eval.json``."""
         cfg = self.runs[0].cfg
         try:
             with handle_signals(), hold_threads(int(cfg.threads)):
@@ -215,8 +211,7 @@ class Experiment:
         return [run.finish(one) for run, one in zip(runs, trained, strict=True)]
 
     def _checkpoints(self) -> Callable[[int | str], StageCheckpoints]:
-        """Several seeds' checkpoints per scope; a launch drops those of an earlier one, unless
-        it resumes every seed (then only those of the stages whose config changed)."""
+        """Several seeds' checkpoints per scope: kept only when every seed resumes."""
         root, first = self.checkpoint_root, self.runs[0]
         refuse_links([root, *(root.rglob("*") if root.is_dir() else [])])
         if not all(run.resuming for run in self.runs):

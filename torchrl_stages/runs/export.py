@@ -1,6 +1,5 @@
 """A trained stacked policy, stage function included, as one ``torch.export`` ``.pt2`` file
-that runs with PyTorch alone (``stages-export RUN_DIR FILE``); its ``policy.json`` names the
-program's inputs and outputs."""
+that runs with PyTorch alone (``stages-export RUN_DIR FILE``)."""
 
 from __future__ import annotations
 
@@ -81,8 +80,8 @@ def _describe(keys: Sequence[NestedKey], tensors: Sequence[torch.Tensor]) -> lis
 
 
 def input_keys(policy: StackedPolicy, example: TensorDictBase) -> list[NestedKey]:
-    """The stage policies' inputs, and every observation entry of ``example`` when the stage
-    function reads more than those."""
+    """The stage policies' inputs, plus ``example``'s observations if the stage function needs
+    more."""
     keys = list(policy.in_keys)
     if policy.stage_fn is None:
         return keys
@@ -110,10 +109,9 @@ def export_policy(
     out_keys: Sequence[NestedKey] | None = None,
     trust: bool = False,
 ) -> Path:
-    """Exports the greedy policy of a run directory (or a :class:`StackedPolicy`) to ``path``.
-
-    ``example``: an env TensorDict with one batch dimension of at least 2 (default for a run:
-    a reset of its task env). ``out_keys`` default to the action entries.
+    """Exports the greedy policy of a run directory (or a :class:`StackedPolicy`) to ``path``;
+    ``example``: an env TensorDict with one batch dimension of at least 2 (for a run: a reset of
+    its task env by default).
 
     Examples:
         >>> from tensordict.nn import TensorDictModule

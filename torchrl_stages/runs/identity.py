@@ -18,10 +18,8 @@ STAGE_SEMANTICS = 1
 
 
 def stage_identity_inputs(cfg: DictConfig) -> list[dict[str, Any]]:
-    """What determines each stage of a resolved ``stages-train`` config, in stage order.
-
-    Each holds the identity of the stage after it under ``"next"``. Keys that cannot change
-    the weights (logger, progress, checkpoint cadence, whole-task eval) are left out."""
+    """What determines each stage's weights, in stage order (``"next"``: the identity of the
+    stage after it); logger, progress, checkpoint cadence and whole-task eval are left out."""
     task = cfg.task
     names = list(task.stages)
     common = {
@@ -53,7 +51,6 @@ def stage_identity_inputs(cfg: DictConfig) -> list[dict[str, Any]]:
 
 
 def stage_identities(cfg: DictConfig) -> list[str]:
-    """The identity of each stage of ``cfg`` (hex digests, stage order)."""
     return [digest(stage) for stage in stage_identity_inputs(cfg)]
 
 

@@ -1,5 +1,4 @@
-"""The names of a run directory's files (``config.yaml``, ``stage_<k>.pt``, ``checkpoints/``,
-``.stages/`` with the record and lock, ...) and the error a run directory raises."""
+"""The names of a run directory's files, and the error a run directory raises."""
 
 from __future__ import annotations
 

@@ -17,7 +17,7 @@ from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.runs.trust import check_trusted
-from torchrl_stages.schedules import get_schedule
+from torchrl_stages.schedules import Schedule, get_schedule
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 
@@ -57,8 +57,8 @@ def load_stage(
 def restore_learner(
     task: StagedTask, stage: int, state: dict, device: str | torch.device, source: Path, fix: str
 ) -> Learner:
-    """Stage ``stage``'s learner built from the task's config and loaded from ``state`` (read
-    from ``source``); :class:`RunDirError` naming ``source`` and ``fix`` when they differ."""
+    """Stage ``stage``'s learner loaded from ``state``; :class:`RunDirError` names ``source``
+    and ``fix`` when it does not fit the task's config."""
     learner = make_learner(task.stage_cfg(stage), task.specs(stage), device=device)
     try:
         learner.load_checkpoint(state)
@@ -71,16 +71,20 @@ def restore_learner(
     return learner
 
 
-def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> DictConfig:
-    """The run's config, checked as ``stages-train`` checks it (and for trust) on ``device``."""
+def read_run_config(
+    run: RunDir, device: str | torch.device, trust: bool
+) -> tuple[DictConfig, Schedule]:
+    """The run's config and schedule, checked as ``stages-train`` checks them (and for trust)
+    on ``device``."""
     cfg = run.read_config()
     source = run.config_source
     if not trust:
         check_trusted(cfg, source)
     try:
+        schedule = get_schedule(str(cfg.schedule.name))
         checked = cfg.copy()  # as it would run here: on this device, with no logger
         checked.device, checked.logger.backend = str(device), "none"
-        validate_config(checked, get_schedule(str(cfg.schedule.name)), learner_class, ALGORITHMS)
+        validate_config(checked, schedule, learner_class, ALGORITHMS)
     except TargetError as err:  # code of the run's own that is not importable here
         raise RunDirError(f"{source}: {err}") from None
     except (ConfigError, OmegaConfBaseException, AttributeError, TypeError, ValueError) as err:
@@ -88,17 +92,16 @@ def read_run_config(run: RunDir, device: str | torch.device, trust: bool) -> Dic
             f"{source} is not a valid config ({str(err).splitlines()[0]}). Fix: restore it "
             "from the run's .hydra/config.yaml, or retrain into a new directory"
         ) from err
-    return cfg
+    return cfg, schedule
 
 
 def load_run(
     run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
 ) -> LoadedRun:
-    """Config, task, trained learners and results of a finished run directory: checksums are
-    verified, nothing is unpickled, and the config may only instantiate what its task ships
-    with unless ``trust=True`` (runs of your own env)."""
+    """A finished run directory, read as untrusted data: checksums verified, nothing unpickled,
+    and only what its task ships with instantiated unless ``trust=True``."""
     run = RunDir(run_dir)
-    cfg = read_run_config(run, device, trust)
+    cfg, schedule = read_run_config(run, device, trust)
     try:
         task = StagedTask(cfg.task, device=device)
     except Exception as err:  # noqa: BLE001 - the run's env cannot be built here
@@ -107,7 +110,6 @@ def load_run(
             f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}). Fix: "
             "install what the run's env needs (see its config.yaml task.env)"
         ) from err
-    schedule = get_schedule(str(cfg.schedule.name))  # which file holds each stage's learner
     stored = [schedule.stored_stage(k) for k in range(task.num_stages)]
     loaded = {
         k: load_stage(run, task, k, device, schedule.stage_name(task, k))
@@ -127,7 +129,6 @@ def load_run(
 def load_policy(
     run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
 ) -> StackedPolicy:
-    """The greedy stacked policy of a finished run, with its task's stage function."""
     return run_policy(load_run(run_dir, device, trust=trust))
 
 

@@ -1,5 +1,5 @@
-"""One writer per run directory: ``fcntl.flock`` on ``.stages/lock`` for the whole run, which
-the kernel releases when the process dies (SIGKILL too); the holder writes who it is there."""
+"""One writer per run directory: ``fcntl.flock`` on ``.stages/lock``, which the kernel releases
+when the process dies (SIGKILL too)."""
 
 from __future__ import annotations
 
@@ -48,7 +48,6 @@ class RunLock:
         self.created_dir = False
 
     def acquire(self) -> RunLock:
-        """Takes the lock without waiting; raises :class:`RunLockedError` naming the holder."""
         if self._fd is not None:
             return self
         directory = self.file.parent
@@ -88,7 +87,6 @@ class RunLock:
                 time.sleep(poll)
 
     def announce(self) -> None:
-        """Writes who holds the lock into the lock file."""
         if self._fd is None:
             return
         since, command = time.strftime("%Y-%m-%dT%H:%M:%S%z"), " ".join(sys.argv)[:500]

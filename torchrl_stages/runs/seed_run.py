@@ -1,5 +1,4 @@
-"""One seed's run directory, from its checks to its ``eval.json``, and the task a config
-builds."""
+"""One seed's run directory, from its checks to its ``eval.json``."""
 
 from __future__ import annotations
 
@@ -36,7 +35,7 @@ from torchrl_stages.runs.layout import METRICS_FILE, STATUS_FILE, RunDirError
 from torchrl_stages.runs.loading import load_stage
 from torchrl_stages.runs.stage_store import StageReuse
 from torchrl_stages.runs.trust import RESUMABLE_CHANGES, config_differences
-from torchrl_stages.schedules import Probe, Trained, get_schedule
+from torchrl_stages.schedules import Probe, Schedule, Trained, get_schedule
 from torchrl_stages.seeding import TASK_EVAL_OFFSET
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
@@ -56,8 +55,7 @@ def compile_mode(cfg: DictConfig) -> str:
 
 
 def with_env_stages(cfg: DictConfig) -> DictConfig:
-    """``cfg`` with its stages from ``task.stage_template`` when it has one, as many as the env's
-    ``num_stages`` (the env is built once to ask)."""
+    """``cfg`` with its stages from ``task.stage_template``, as many as the env has."""
     if not cfg.task.get("stage_template"):
         return cfg
     check_env_keys(cfg)
@@ -78,11 +76,12 @@ def _env_error(cfg: DictConfig, err: BaseException) -> ConfigError:
     )
 
 
-def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
-    """Validates ``cfg`` (unless ``validated``) and builds its task, before any training."""
-    schedule = get_schedule(str(cfg.schedule.name))
-    if not validated:
+def build_task(cfg: DictConfig, schedule: Schedule | None = None) -> StagedTask:
+    """Validates ``cfg`` and builds its task, before any training; a caller that validated
+    ``cfg`` already passes the ``schedule`` it validated it with."""
+    if schedule is None:
         cfg = with_env_stages(cfg)
+        schedule = get_schedule(str(cfg.schedule.name))
         validate_config(cfg, schedule, learner_class, ALGORITHMS)
     try:
         task = StagedTask(cfg.task, device=cfg.device)
@@ -94,12 +93,8 @@ def build_task(cfg: DictConfig, *, validated: bool = False) -> StagedTask:
 
 @dataclass(frozen=True)
 class RunOptions:
-    """How a launch treats its run directories.
-
-    ``resume`` continues a run (finished stages loaded, the one in progress from its last
-    checkpoint; stages no finished stage depends on may change and restart) and ``overwrite``
-    replaces one (exactly the files its record lists); both default to the config's.
-    ``hydra_files`` (``{name: config}``) go to ``.hydra/``; ``observers`` see the metrics."""
+    """How a launch treats its run directories: ``resume`` and ``overwrite`` default to the
+    config's; ``hydra_files`` (``{name: config}``) go to ``.hydra/``."""
 
     resume: bool | None = None
     overwrite: bool | None = None
@@ -108,12 +103,10 @@ class RunOptions:
 
 
 class SeedRun:
-    """One seed's run of ``cfg`` in ``run_dir``, from its checks to its ``eval.json``, and the
-    :class:`~torchrl_stages.schedules.StageKeeper` its schedule trains into.
-
-    The config and the directory are checked before anything is written, and the directory is
-    locked until :meth:`close`. :meth:`start` begins a launch, :meth:`finish` ends it with the
-    whole-task evaluation, :meth:`ended` records one that did not finish.
+    """One seed's run of ``cfg`` in ``run_dir``: the
+    :class:`~torchrl_stages.schedules.StageKeeper` its schedule trains into. Config and
+    directory are checked before anything is written; the directory is locked until
+    :meth:`close`.
 
     Examples:
         >>> import tempfile
@@ -137,13 +130,13 @@ class SeedRun:
         resume, overwrite = options.resume, options.overwrite
         self.resume = bool(cfg.get("resume", False) if resume is None else resume)
         self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
-        validate_config(cfg, get_schedule(str(cfg.schedule.name)), learner_class, ALGORITHMS)
+        self.schedule = get_schedule(str(cfg.schedule.name))
+        validate_config(cfg, self.schedule, learner_class, ALGORITHMS)
         if self.resume and self.overwrite:
             raise ConfigError(
                 "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "
                 "overwrite=true replaces it"
             )
-        self.schedule = get_schedule(str(cfg.schedule.name))
         self.restarted: dict[int, list[str]] = {}  # resumed stages whose config changed
         self.reuse: StageReuse | None = None
         self.log = MetricsLog(None)
@@ -151,15 +144,15 @@ class SeedRun:
         self._lock = self.run_dir.lock()
         try:
             self.resuming = self._check_run_dir()
-            self.task = build_task(cfg, validated=True)  # validated above
+            self.task = build_task(cfg, self.schedule)
             # stage_store / init_from: checked (and the stage store created) before any training
-            self.reuse = StageReuse.from_config(cfg, self.run_dir.path)
+            if cfg.get("stage_store") or cfg.get("init_from"):
+                self.reuse = StageReuse(cfg, self.run_dir.path)
         except BaseException:
             self._lock.release(remove=self._lock.created_dir)
             raise
 
     def close(self) -> None:
-        """Releases the run directory and the stage store's locks it holds."""
         if self.reuse is not None:
             self.reuse.close()
         self._lock.release()
@@ -210,7 +203,6 @@ class SeedRun:
             self.run_dir.write_status(outcome, reason, **extra)
 
     def _prepare(self) -> None:
-        """Writes a fresh record and config, or the changes a resumed run may make."""
         cfg, run, hydra_files = self.cfg, self.run_dir, self.options.hydra_files
         self._lock.announce()
         if self.overwrite and run.holds_run():
@@ -236,7 +228,6 @@ class SeedRun:
         run.begin_launch()
 
     def start(self) -> SeedRun:
-        """Begins a launch: writes what it starts with and makes its logger."""
         self._prepare()
         cfg, run = self.cfg, self.run_dir
         logging.getLogger("torchrl").setLevel(logging.WARNING)
@@ -297,8 +288,7 @@ class SeedRun:
         return self.run_dir.checkpoints(scope, every, keep)
 
     def begin(self, scope: int | str) -> None:
-        """The loop ``scope`` starts afresh: a resumed run's logs are rewound to where stage
-        ``scope + 1`` ended (a backward stage starts there), else to the start."""
+        """A resumed run's logs rewind to where stage ``scope + 1`` ended (else the start)."""
         if not self.resuming:
             return
         later = None
@@ -334,7 +324,6 @@ class SeedRun:
             )
 
     def keep(self, key: str, value: Any) -> None:
-        """Keeps ``value`` in the run's record (written with the next stage or launch)."""
         self.run_dir.record[key] = value
 
     def kept(self, key: str) -> Any:

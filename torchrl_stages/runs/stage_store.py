@@ -1,5 +1,5 @@
-"""Finished stages shared by runs (``stage_store=DIR``, one entry per stage identity) and the
-stages a backward run takes from there or from ``init_from=RUN_DIR`` instead of training."""
+"""Finished stages shared by runs (``stage_store=DIR``), and the stages a backward run takes
+from there or from ``init_from=RUN_DIR`` instead of training."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import os
 import shutil
 import time
 import uuid
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -38,17 +38,6 @@ __all__ = ["SharedStageStore", "StageEntry", "StageReuse", "StoreError"]
 ENTRIES, LOCKS, TMP = "entries", "locks", "tmp"
 STAGE_FILE, ENTRY_FILE = "stage.pt", "entry.json"
 ENTRY_FORMAT = "torchrl-stages stage"
-ENTRY_META = (
-    "task",
-    "stage",
-    "name",
-    "algo",
-    "seed",
-    "frames",
-    "success_rate",
-    "created",
-    "trained_in",
-)
 POLL_S = 0.5  # seconds between two looks at a stage another job is training
 
 #: a stage taken instead of trained: its learner, its result, and where it came from
@@ -79,12 +68,14 @@ class StageEntry:
     trained_in: str = "?"
 
 
-class SharedStageStore:
-    """A directory of finished stages, one entry per identity, shared by the jobs of a sweep.
+#: what ``entry.json`` holds beyond its format and identity, as :class:`StageEntry` lists it
+ENTRY_META = tuple(f.name for f in fields(StageEntry))[5:]
 
-    ``entries/<identity>/`` holds ``stage.pt``, ``entry.json`` and ``sha256.json``; an entry
-    is written whole in ``tmp/`` and renamed into place, so a reader sees all of it or nothing.
-    ``locks/<identity>`` is held by the job training that stage; the others wait, then load it.
+
+class SharedStageStore:
+    """Finished stages, one entry per identity, shared by the jobs of a sweep. An entry is
+    written whole in ``tmp/`` and renamed into ``entries/``; ``locks/<identity>`` is held by
+    the job training that stage while the others wait.
 
     Examples:
         >>> import tempfile
@@ -108,7 +99,7 @@ class SharedStageStore:
         return self.root / ENTRIES / identity
 
     def get(self, identity: str, map_location: Any = "cpu") -> dict[str, Any] | None:
-        """``stage.pt`` of entry ``identity`` (``None``: none); a damaged entry is removed."""
+        """``stage.pt`` of entry ``identity``, if any; a damaged entry is removed."""
         entry = self.path(identity)
         if not entry.exists() and not entry.is_symlink():
             return None
@@ -169,7 +160,7 @@ class SharedStageStore:
         return RunLock(self.root, file=self.root / LOCKS / identity)
 
     def _discard(self, entry: Path) -> None:
-        """Removes an entry, renamed out of ``entries/`` first so no reader finds half of it."""
+        """Renamed out of ``entries/`` first so no reader finds half of it."""
         gone = self.root / TMP / f"removed-{entry.name}-{uuid.uuid4().hex[:8]}"
         try:
             os.rename(entry, gone)
@@ -181,7 +172,6 @@ class SharedStageStore:
             shutil.rmtree(gone, ignore_errors=True)
 
     def entries(self) -> list[StageEntry]:
-        """Every entry, damaged ones included, oldest use first."""
         out = []
         for entry in sorted((self.root / ENTRIES).iterdir()):
             damaged, meta = None, {}
@@ -200,7 +190,6 @@ class SharedStageStore:
         return sorted(out, key=lambda e: e.last_used)
 
     def remove(self, prefix: str) -> Path:
-        """Removes the one entry whose identity starts with ``prefix``."""
         found = [p for p in (self.root / ENTRIES).iterdir() if p.name.startswith(prefix)]
         if len(found) != 1:
             what = "no entry" if not found else f"{len(found)} entries"
@@ -252,11 +241,9 @@ def _alive(pid: int) -> bool:
 
 
 class StageReuse:
-    """The stages one backward run takes instead of training them: from ``init_from`` where
-    its stage has this run's identity, else from ``store``.
-
-    :meth:`take` returns a stage, or ``None`` with the stage's store lock held (other jobs
-    needing it wait) until :meth:`trained` stores it; :meth:`close` releases what is held."""
+    """The stages one backward run takes instead of training them (from ``init_from`` where
+    the identity matches, else from the store). :meth:`take` returning ``None`` holds the
+    stage's store lock until :meth:`trained` stores it."""
 
     def __init__(self, cfg: DictConfig, run_dir: str | Path) -> None:
         self.inputs = stage_identity_inputs(cfg)
@@ -268,11 +255,6 @@ class StageReuse:
         if cfg.get("init_from"):
             self._open_init(Path(cfg.init_from), cfg)
         self._held: dict[int, RunLock] = {}
-
-    @classmethod
-    def from_config(cls, cfg: DictConfig, run_dir: str | Path) -> StageReuse | None:
-        """What ``cfg.stage_store`` and ``cfg.init_from`` ask for (``None``: neither)."""
-        return cls(cfg, run_dir) if cfg.get("stage_store") or cfg.get("init_from") else None
 
     def _open_init(self, path: Path, cfg: DictConfig) -> None:
         run = RunDir(path)
@@ -302,7 +284,6 @@ class StageReuse:
         self.init_run, self.init_identities = run, identities
 
     def take(self, task: StagedTask, stage: int, device: str) -> Reused | None:
-        """Stage ``stage`` from ``init_from`` or the store, or ``None``: train it."""
         identity, init = self.identities[stage], self.init_run
         if init is not None and self.init_identities[stage : stage + 1] == [identity]:
             state = init.read_stage(stage, map_location=device)
@@ -345,7 +326,6 @@ class StageReuse:
         return learner, StageResult(**state["result"]), f"stage store {entry}"
 
     def trained(self, task: StagedTask, stage: int, learner: Learner, result: StageResult) -> None:
-        """Adds the stage just trained to the store (if any) and releases its lock."""
         if self.store is not None:
             state = {"stage": stage, "algo": learner.algo, "result": asdict(result)}
             meta = {
@@ -366,7 +346,6 @@ class StageReuse:
             lock.release(remove=True)
 
     def close(self) -> None:
-        """Releases the locks of stages that were not trained to the end."""
         for lock in self._held.values():
             lock.release()
         self._held.clear()

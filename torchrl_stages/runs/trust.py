@@ -17,12 +17,13 @@ from torchrl_stages.config.env_checks import missing_keys
 from torchrl_stages.runs.layout import RunDirError
 
 
-def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
-    if isinstance(value, dict):
-        for key, item in value.items():
-            yield from _flatten(item, f"{prefix}{key}.")
+def _flatten(node: Any, prefix: str = "", lists: bool = False) -> Iterator[tuple[str, Any]]:
+    """``(dotted key, value)`` of every leaf under ``node`` (``lists``: items of lists too)."""
+    if isinstance(node, dict) or (lists and isinstance(node, list)):
+        for key, item in node.items() if isinstance(node, dict) else enumerate(node):
+            yield from _flatten(item, f"{prefix}.{key}" if prefix else str(key), lists)
     else:
-        yield prefix.rstrip("."), value
+        yield prefix, node
 
 
 #: top-level keys a resumed run may change: they do not alter what the stages train to
@@ -59,16 +60,9 @@ ADDED_KEYS: dict[str, Any] = {"all_stages": {}}
 _TASK_NAME = re.compile(r"^[A-Za-z0-9_]+$")
 
 
-def _interpolations(node: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
+def _interpolations(node: Any) -> Iterator[tuple[str, str]]:
     """``(dotted key, text)`` of every string under ``node`` holding ``${``."""
-    if isinstance(node, dict):
-        for key, item in node.items():
-            yield from _interpolations(item, f"{prefix}.{key}" if prefix else str(key))
-    elif isinstance(node, list):
-        for index, item in enumerate(node):
-            yield from _interpolations(item, f"{prefix}.{index}")
-    elif isinstance(node, str) and "${" in node:
-        yield prefix, node
+    return ((k, v) for k, v in _flatten(node, lists=True) if isinstance(v, str) and "${" in v)
 
 
 def shippedtargets(task_name: str) -> dict[str, str] | None:
