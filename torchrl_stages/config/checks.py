@@ -221,7 +221,7 @@ def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
         return
     objective = cfg.objective
     direction = sweeper.direction
-    if not isinstance(direction, str) and isinstance(direction, list | tuple | ListConfig):
+    if isinstance(direction, list | tuple | ListConfig):
         check(
             False,
             "hydra.sweeper.direction",
