@@ -148,6 +148,7 @@ def schema_keys(schema: type) -> list[str]:
     return [f.name for f in fields(schema)]
 
 
+@dataclass
 class StageChecks:
     """An algorithm's own checks of one stage's keys (``Learner.validate``).
 
@@ -158,8 +159,8 @@ class StageChecks:
         torchrl_stages.config.ConfigError: task.stages.s0.lr=0.0: must be > 0. Fix: ...
     """
 
-    def __init__(self, key: str, cfg: Any) -> None:
-        self.key, self.cfg = key, cfg
+    key: str
+    cfg: Any
 
     def __call__(self, ok: bool, field: str, rule: str, fix: str) -> None:
         check(ok, f"{self.key}.{field}", self.cfg[field], rule, fix)
