@@ -25,6 +25,7 @@ from torchrl_stages.config import (
     as_dataclass,
 )
 from torchrl_stages.config.bounds import Bound
+from torchrl_stages.config.registration import by_prefix
 from torchrl_stages.config.schema import TuneAppConfig, TuneConfig
 from torchrl_stages.learners import ALGORITHMS, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
@@ -573,3 +574,8 @@ def test_a_target_that_is_not_importable_names_the_module_and_the_fix(tmp_path):
         assert result.returncode == 2, result.stderr[-2000:]
         assert message in result.stderr, result.stderr[-2000:]
         assert "Traceback" not in result.stderr and "Error locating target" not in result.stderr
+
+
+def test_stages_by_prefix_refuses_a_value_that_is_not_a_mapping():
+    with pytest.raises(ValueError, match=r"takes an id \(a string\), a mapping of id prefixes"):
+        by_prefix("MiniGrid-DoorKey-8x8-v0", 0.95, 0.99)

@@ -1,5 +1,5 @@
 """The bound every config field declares (:func:`positive`, :func:`one_of`, ...), the checks
-generated from them, :class:`ConfigError` and the key helpers of its messages."""
+generated from them and :class:`ConfigError`."""
 
 from __future__ import annotations
 
@@ -27,9 +27,9 @@ def check(ok: bool, key: str, value: object, rule: str, fix: str) -> None:
 
 @dataclass(frozen=True)
 class Bound:
-    """The values a config field accepts: a number in ``[low, high]`` (ends open or not), one of
-    ``choices``, a full match of ``pattern`` (``text`` names it), or any (``free``). A list needs
-    one entry at least, each inside; ``None`` is left to the field's type.
+    """The values a config field accepts: a number in ``[low, high]``, one of ``choices``, a
+    full match of ``pattern`` (``text`` names it), or any (``free``). A list needs one entry at
+    least, each inside; ``None`` is left to the field's type.
 
     Examples:
         >>> Bound(low=0, low_open=True).problem(0), Bound(choices=("a", "b")).problem(["a"])
@@ -57,7 +57,6 @@ class Bound:
         return f"must be in {left}{self.low}, {self.high}{right}"
 
     def problem(self, value: Any) -> str | None:
-        """Why ``value`` is refused (``None``: it is allowed)."""
         if self.free or value is None:
             return None
         if isinstance(value, list | ListConfig):
@@ -82,7 +81,6 @@ class Bound:
 
 
 def bound(default: Any = MISSING, *, factory: Callable[[], Any] | None = None, **limits) -> Any:
-    """A dataclass field of ``default`` (or ``factory()``) inside ``limits`` (:class:`Bound`)."""
     metadata = {"bound": Bound(**limits, example=factory() if factory else default)}
     if factory is not None:
         return field(default_factory=factory, metadata=metadata)
@@ -90,7 +88,6 @@ def bound(default: Any = MISSING, *, factory: Callable[[], Any] | None = None, *
 
 
 def in_range(low: float, high: float, default: Any, **kwargs) -> Any:
-    """A number in ``[low, high]``; ``low_open`` / ``high_open`` leave an end out."""
     return bound(default, low=low, high=high, **kwargs)
 
 
@@ -108,9 +105,7 @@ free = functools.partial(bound, free=True)  # any value of the field's type (a n
 
 
 def check_bounds(node: Any, schema: type, prefix: str) -> None:
-    """Refuses every key of ``node`` (at ``prefix``) outside the bound its ``schema`` field
-    declares, in nested blocks too; ``???`` and fields without a bound (a user's own config
-    class) are left alone."""
+    """Refuses every key of ``node`` (at ``prefix``) outside its ``schema`` field's bound."""
     for f in fields(schema):
         if f.name not in node or OmegaConf.is_missing(node, f.name):
             continue
@@ -123,7 +118,6 @@ def check_bounds(node: Any, schema: type, prefix: str) -> None:
 
 
 def nearest(name: str, known: Iterable[str]) -> str | None:
-    """The name of ``known`` closest to ``name`` (a typo of it), ``None`` when none is close."""
     found = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
     return found[0] if found else None
 
@@ -137,8 +131,7 @@ def unknown_key(
     fix: str,
     what: str = "a key",
 ) -> ConfigError | None:
-    """The error of ``{prefix}.{name}`` unless ``name`` is one of ``known`` (``what`` of
-    ``owner``): it names the nearest known key, else ends with ``fix``.
+    """The error of ``{prefix}.{name}`` unless ``name`` is one of ``known``.
 
     Examples:
         >>> print(unknown_key("task.stages.s0", "lrr", 1e-3, ["lr", "gamma"], "dqn", "drop it"))
@@ -155,9 +148,9 @@ def schema_keys(schema: type) -> list[str]:
     return [f.name for f in fields(schema)]
 
 
+@dataclass
 class StageChecks:
-    """An algorithm's own checks of one stage's keys (``Learner.validate``), each error naming
-    ``{key}.{field}`` and the fix.
+    """An algorithm's own checks of one stage's keys (``Learner.validate``).
 
     Examples:
         >>> StageChecks("task.stages.s0", {"lr": 0.0}).positive("lr", 1e-3)
@@ -166,8 +159,8 @@ class StageChecks:
         torchrl_stages.config.ConfigError: task.stages.s0.lr=0.0: must be > 0. Fix: ...
     """
 
-    def __init__(self, key: str, cfg: Any) -> None:
-        self.key, self.cfg = key, cfg
+    key: str
+    cfg: Any
 
     def __call__(self, ok: bool, field: str, rule: str, fix: str) -> None:
         check(ok, f"{self.key}.{field}", self.cfg[field], rule, fix)

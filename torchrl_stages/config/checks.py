@@ -1,9 +1,7 @@
-"""Checks of a composed config before anything trains: every key against its field's bound,
-the cross-field rules, the env's keys and code; every error names the key and the fix."""
+"""Checks of a composed config before anything trains; every error names the key and the fix."""
 
 from __future__ import annotations
 
-import importlib
 import importlib.util
 import math
 from collections.abc import Callable, Collection
@@ -23,18 +21,16 @@ from torchrl_stages.config.bounds import (
     unknown_key,
 )
 from torchrl_stages.config.env_checks import check_env_keys, validate_env_protocol
+from torchrl_stages.config.expansion import leaves
 from torchrl_stages.config.schema import TrainConfig, TuneAppConfig
 
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
 
-
-#: the learner class of a stage node (``torchrl_stages.learners.learner_class``)
 LearnerClass = Callable[[Any], Any]
 
 
 def _check_stage(key: str, s: DictConfig, learner_class: LearnerClass) -> None:
-    """One stage's keys (``key`` is e.g. ``task.stages.s3``): each against its bound, the
-    cross-field rules, then its learner's own checks (``Learner.validate``)."""
+    """One stage's keys (``key`` is e.g. ``task.stages.s3``), then ``Learner.validate``."""
     try:
         learner = learner_class(s)
     except ConfigError as err:
@@ -71,18 +67,15 @@ def _check_stage(key: str, s: DictConfig, learner_class: LearnerClass) -> None:
 
 
 def _check_finite(node: object, prefix: str) -> None:
-    """Refuses a NaN or infinite float anywhere under ``node``: no key means anything by them."""
     if isinstance(node, DictConfig | ListConfig):
-        items = node.items() if isinstance(node, DictConfig) else enumerate(node)
-        for key, value in items:
-            _check_finite(value, f"{prefix}.{key}" if prefix else str(key))
-    elif isinstance(node, float) and not math.isfinite(node):
-        check(False, prefix, node, "must be a finite number", f"set {prefix} to a finite value")
+        node = OmegaConf.to_container(node, resolve=True)
+    for key, value in leaves(node, prefix):
+        ok = not isinstance(value, float) or math.isfinite(value)
+        check(ok, key, value, "must be a finite number", f"set {key} to a finite value")
 
 
 def stage_schema(stage: DictConfig) -> type | None:
-    """The config dataclass of a composed stage node; ``None`` for a plain mapping (a run's
-    saved ``config.yaml``)."""
+    """The dataclass of a composed stage node; ``None`` for a run's saved ``config.yaml``."""
     schema = OmegaConf.get_type(stage)
     return schema if is_dataclass(schema) else None
 
@@ -100,8 +93,6 @@ def _check_known(key: str, node: DictConfig, schema: type | None, cfg: DictConfi
 
 
 def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
-    """Refuses a stage the task does not have, and a key of a stage (or of the template) that
-    its algorithm does not have, naming the nearest one."""
     template = cfg.task.get("stage_template")
     template_schema = stage_schema(template) if template else None
     if template:
@@ -134,7 +125,6 @@ def _is_stage(stage: object) -> bool:
 
 
 def check_device(name: str) -> None:
-    """Refuses a CUDA device that torch does not see on this machine."""
     device = torch.device(name)
     if device.type != "cuda":
         return
@@ -158,9 +148,7 @@ def check_device(name: str) -> None:
 def validate_config(
     cfg: DictConfig, schedule: Any, learner_class: LearnerClass, algorithms: Collection[str]
 ) -> None:
-    """Checks what can be checked without building the env (its code is imported: the
-    ``_target_`` s must be found); ``schedule`` is the one ``cfg.schedule.name`` names, and
-    ``learner_class`` and ``algorithms`` the learners' registry."""
+    """Checks what can be checked without building the env (it imports the env's code)."""
     check_stage_keys(cfg, algorithms)
     _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
     _check_finite(cfg.task.get("stage_template"), "task.stage_template")
@@ -199,8 +187,7 @@ def validate_config(
 
 
 def validate_task(cfg: DictConfig, task, schedule: Any, learner_class: LearnerClass) -> None:
-    """Checks the built env against the task protocol, then the stage list and each stage's
-    algorithm against its specs."""
+    """Checks the built env, the stage list and each stage's algorithm against its specs."""
     validate_env_protocol(cfg, task.spec_env)
     names = list(cfg.task.stages)
     check(
@@ -229,13 +216,12 @@ def _direction_name(direction: object) -> str:
 
 
 def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
-    """Refuses a sweeper direction (Optuna's ``hydra.sweeper.direction``) other than
-    ``objective.direction``: a run returns ``objective.metric``."""
+    """Refuses a ``hydra.sweeper.direction`` other than ``objective.direction``."""
     if sweeper is None or sweeper.get("direction") is None:
         return
     objective = cfg.objective
     direction = sweeper.direction
-    if not isinstance(direction, str) and isinstance(direction, list | tuple | ListConfig):
+    if isinstance(direction, list | tuple | ListConfig):
         check(
             False,
             "hydra.sweeper.direction",

@@ -1,5 +1,4 @@
-"""Checks of a task's env: its keys, the code its ``_target_`` s name, and a built env against
-the stage protocol; every error names the key and the fix."""
+"""Checks of a task's env: its keys, the code its ``_target_`` s name, and a built env."""
 
 from __future__ import annotations
 
@@ -10,7 +9,7 @@ from hydra.utils import get_object
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config.bounds import ConfigError, check, unknown_key
-from torchrl_stages.config.expansion import targets
+from torchrl_stages.config.expansion import leaves, targets
 
 
 class TargetError(ConfigError):
@@ -23,8 +22,7 @@ def _first_line(err: BaseException) -> str:
 
 
 def target_problem(path: str) -> str | None:
-    """What is wrong with the dotted ``path`` a ``_target_`` names (``None``: it is found),
-    found as Hydra's locate does: the longest importable module, then its attributes.
+    """What is wrong with the dotted ``path`` a ``_target_`` names (``None``: it is found).
 
     Examples:
         >>> target_problem("torchrl_stages.envs.GridWorld").split(". Fix")[0]
@@ -62,8 +60,7 @@ def target_problem(path: str) -> str | None:
 
 
 def check_targets(cfg: DictConfig) -> None:
-    """Refuses every ``_target_`` of ``cfg.task`` that cannot be found (:class:`TargetError`).
-    It imports their modules: run it only on configs you trust."""
+    """Refuses every ``_target_`` of ``cfg.task`` that cannot be found; imports their modules."""
     container = OmegaConf.to_container(cfg.task, resolve=False)
     for key, target in targets(container, "task"):
         if not isinstance(target, str) or target == "???" or "${" in target:
@@ -77,8 +74,7 @@ HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
 
 
 def env_arguments(target: str) -> list[str] | None:
-    """The keyword arguments the env ``target`` (a dotted class or function) takes; ``None``
-    when it takes any (``**kwargs``) or cannot be told."""
+    """The keyword arguments the env ``target`` takes; ``None`` for ``**kwargs`` or unknown."""
     try:
         found = get_object(target)
         function = found.__init__ if isinstance(found, type) else found
@@ -92,8 +88,6 @@ def env_arguments(target: str) -> list[str] | None:
 
 
 def check_env_arguments(cfg: DictConfig) -> None:
-    """Refuses a key of ``task.env`` or ``task.eval_env`` that the env takes no argument of,
-    naming the nearest one (or ``task=gym`` for a gymnasium id)."""
     env = cfg.task.get("env")
     target = env.get("_target_") if isinstance(env, DictConfig) else None
     if not isinstance(target, str) or OmegaConf.is_missing(env, "_target_") or "${" in target:
@@ -116,7 +110,7 @@ def check_env_arguments(cfg: DictConfig) -> None:
                     f"takes no env id. Fix: did you mean task=gym? (task=gym "
                     f"task.env.env_id={value} task.env.stage_fn._target_=my_pkg.my_stage)"
                 )
-            error = unknown_key(
+            raise unknown_key(
                 f"task.{node_key}",
                 name,
                 value,
@@ -125,12 +119,10 @@ def check_env_arguments(cfg: DictConfig) -> None:
                 f"drop it ({target} takes: {', '.join(known)})",
                 what="an argument",
             )
-            raise error
 
 
 def check_env_keys(cfg: DictConfig) -> None:
-    """The env's keys can build it: none left ``???``, every ``_target_`` found, every key an
-    argument of the env."""
+    """The env's keys: none left ``???``, every ``_target_`` found, each an argument of the env."""
     for key in missing_keys(cfg.task.get("env"), "task.env"):
         check(
             False,
@@ -147,24 +139,18 @@ def missing_keys(node: object, prefix: str) -> list[str]:
     """Dotted keys under ``node`` whose value is ``???``.
 
     Examples:
-        >>> from omegaconf import OmegaConf
         >>> missing_keys(OmegaConf.create({"env": {"id": "???", "n": 2}}), "task")
         ['task.env.id']
     """
     if not isinstance(node, DictConfig):
         return []
-    out = []
-    for key in node.keys():
-        if OmegaConf.is_missing(node, key):
-            out.append(f"{prefix}.{key}")
-        elif not OmegaConf.is_interpolation(node, key):  # ${...} is set: left unresolved
-            out += missing_keys(node[key], f"{prefix}.{key}")
-    return out
+    plain = OmegaConf.to_container(node, resolve=False)
+    return [key for key, value in leaves(plain, prefix) if value == "???"]
 
 
 def validate_env_protocol(cfg: DictConfig, env) -> None:
-    """Checks what a built stage env (``batch_size=(1,)`` asked) must have: that batch size,
-    ``num_stages`` and ``stage_fn``."""
+    """Checks a built stage env (``batch_size=(1,)`` asked): its batch size, ``num_stages``
+    and ``stage_fn``."""
     num_stages = getattr(env, "num_stages", None)
     rules = [
         (

@@ -1,5 +1,4 @@
-"""What a composed config becomes before it is checked: ``all_stages`` applied to every stage,
-a template task's stages made from ``task.stage_template``."""
+"""A composed config before its checks: ``all_stages`` applied, ``task.stage_template`` expanded."""
 
 from __future__ import annotations
 
@@ -15,8 +14,8 @@ from torchrl_stages.config.bounds import ConfigError, nearest, schema_keys
 
 
 def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> DictConfig:
-    """A copy of ``cfg`` with ``cfg.all_stages``'s keys set in every stage but the ``(stage,
-    key)`` pairs of ``keep`` (set for one stage on the command line), and ``all_stages`` emptied.
+    """A copy of ``cfg`` with ``all_stages`` set in every stage but the ``(stage, key)`` pairs of
+    ``keep`` (set on the command line), and ``all_stages`` emptied.
 
     Examples:
         >>> cfg = OmegaConf.create({"task": {"stages": {"a": {"frames": 9}, "b": {"frames": 9}}},
@@ -60,8 +59,7 @@ def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> D
 
 
 def expand_stage_template(task: DictConfig, num_stages: int) -> DictConfig:
-    """A copy of the task config with stages ``s0..s<num_stages-1>``, each the template with the
-    stage's own ``task.stages.s<k>`` keys over it; ``task`` itself when it has no template.
+    """The task with stages ``s0..s<num_stages-1>``, each the template with its own keys over it.
 
     Examples:
         >>> task = OmegaConf.create({"stage_template": {"algo": "dqn", "lr": 1e-3},
@@ -113,20 +111,20 @@ def stage_keys_set(overrides: Iterable[str]) -> set[tuple[str, str]]:
     return out
 
 
+def leaves(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """``(dotted key, value)`` of every leaf under the plain container ``node``."""
+    if isinstance(node, dict | list):
+        for key, item in node.items() if isinstance(node, dict) else enumerate(node):
+            yield from leaves(item, f"{prefix}.{key}" if prefix else str(key))
+    else:
+        yield prefix, node
+
+
 def targets(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
-    """``(dotted key, value)`` of every ``_target_`` under ``node`` (plain mappings and lists).
+    """``(dotted key, value)`` of every ``_target_`` under the plain container ``node``.
 
     Examples:
         >>> list(targets({"task": {"env": {"_target_": "a.B", "fn": {"_target_": "a.f"}}}}))
         [('task.env._target_', 'a.B'), ('task.env.fn._target_', 'a.f')]
     """
-    if isinstance(node, dict):
-        for key, item in node.items():
-            path = f"{prefix}.{key}" if prefix else str(key)
-            if key == "_target_":
-                yield path, item
-            else:
-                yield from targets(item, path)
-    elif isinstance(node, list):
-        for index, item in enumerate(node):
-            yield from targets(item, f"{prefix}.{index}")
+    return ((key, value) for key, value in leaves(node, prefix) if f".{key}".endswith("._target_"))

@@ -1,10 +1,6 @@
-"""The schemas in Hydra's ConfigStore, and the resolvers ``conf/`` uses.
-
-``conf/config.yaml`` extends ``train_schema``, ``conf/tune.yaml`` ``tune_schema`` and
-``conf/algo/<name>.yaml`` ``<name>_schema``. Of what Hydra composes, ``task.stages``, each stage
-and ``task.env`` stay open, so that one form of a key works on every task (their keys are checked
-before training instead, :func:`~torchrl_stages.config.checks.validate_config`).
-"""
+"""The schemas in Hydra's ConfigStore and the resolvers ``conf/`` uses. ``task.stages``, each
+stage and ``task.env`` stay open (``validate_config`` checks their keys), so that one form of a
+key works on every task."""
 
 from __future__ import annotations
 
@@ -21,8 +17,7 @@ from torchrl_stages.config.schema import LoggerConfig, ScheduleConfig, TrainConf
 
 
 def register_configs(algorithms: Mapping[str, Any]) -> None:
-    """Registers the root schemas and the ``Config`` of every learner of ``algorithms``
-    (``torchrl_stages.learners.ALGORITHMS``), and the ``stages_*`` resolvers.
+    """Registers the root schemas, each learner's ``Config`` and the ``stages_*`` resolvers.
 
     Examples:
         >>> from torchrl_stages.learners import ALGORITHMS
@@ -55,17 +50,12 @@ def _open(schema: type, *keys: str) -> DictConfig:
 
 
 def by_prefix(name: str, values: Mapping[str, Any], default: Any) -> Any:
-    """The value of the first key of ``values`` that ``name`` starts with, else ``default``: the
-    ``stages_by_prefix`` resolver, a value per level id
-    (``${stages_by_prefix:${.env_id},{MiniGrid-KeyCorridor: true},false}``).
+    """The ``stages_by_prefix`` resolver: the value of the first key of ``values`` that
+    ``name`` starts with, else ``default``.
 
     Examples:
         >>> by_prefix("MiniGrid-KeyCorridorS3R3-v0", {"MiniGrid-KeyCorridor": 0.95}, 0.99)
         0.95
-        >>> by_prefix("MiniGrid-DoorKey-8x8-v0", 0.95, 0.99)
-        Traceback (most recent call last):
-        ...
-        ValueError: stages_by_prefix:'MiniGrid-DoorKey-8x8-v0',0.95,...: takes an id (a string), ...
     """
     if not isinstance(name, str) or not isinstance(values, Mapping):
         raise ValueError(
@@ -77,8 +67,7 @@ def by_prefix(name: str, values: Mapping[str, Any], default: Any) -> Any:
 
 
 def config_group_options(group: str) -> list[str]:
-    """The options of config group ``group`` in the running Hydra app, the schemas left out
-    (``[]`` outside one, or for no such group)."""
+    """The options of config group ``group`` in the running Hydra app, schemas left out."""
     hydra = GlobalHydra.instance()
     return list(_options(hydra.config_loader(), group)) if hydra.is_initialized() else []
 
@@ -93,5 +82,4 @@ def _options(loader: Any, group: str) -> tuple[str, ...]:
 
 
 def group_options(group: str) -> str:
-    """``a|b|c`` of :func:`config_group_options` (the ``stages_options`` resolver)."""
     return "|".join(config_group_options(group)) or "?"

@@ -1,5 +1,4 @@
-"""The config dataclasses, each field with its declared bound; ``conf/`` YAML files only pick
-groups and override these defaults."""
+"""The config dataclasses, each field with its bound; ``conf/`` YAML files override them."""
 
 from __future__ import annotations
 
@@ -27,8 +26,7 @@ class StageConfig:
     """Hyper-parameters shared by every stage learner; budgets count env frames."""
 
     algo: str = free()  # a registered algorithm (torchrl_stages.learners.ALGORITHMS)
-    # your own Learner subclass instead of the algorithm's, keeping the keys of `algo`:
-    # {_target_: my_pkg.MyLearner, my_key: 1} calls it with (cfg, specs, compile=, my_key=1)
+    # a Learner subclass with the keys of `algo`: {_target_: my_pkg.MyLearner, my_key: 1}
     learner: dict[str, Any] = free(factory=dict)
     gamma: float = in_range(0, 1, 0.99, low_open=True)  # this stage's discount
     lr: float = positive(1e-3)  # learning rate (the critic's, for actor-critic algorithms)
@@ -39,8 +37,7 @@ class StageConfig:
     fused_adam: bool = flag(False)
     num_cells: list[int] = positive(factory=lambda: [64, 64])  # hidden layers of each MLP
     fourier_features: int = non_negative(0)  # octaves of sin/cos input encoding (0: raw input)
-    # CNN over image observations (C, H, W), one entry per conv layer (padding kernel // 2),
-    # its features joining the vector observations before the MLP
+    # CNN over image observations (C, H, W), one entry per conv layer, before the MLP
     cnn_channels: list[int] = positive(factory=lambda: [16, 32])
     cnn_kernels: list[int] = positive(factory=lambda: [3, 3])
     cnn_strides: list[int] = positive(factory=lambda: [1, 2])
@@ -55,13 +52,11 @@ class StageConfig:
     annealing_frames: int = non_negative(20_000)
     tau: float = in_range(0, 1, 0.005, low_open=True)  # soft target-network update rate
     eval_every: int = non_negative(5_000)  # frames between greedy evaluations (0: never)
-    # greedy episodes per evaluation, from random starts in the stage (or every start state the
-    # env enumerates, e.g. GridWorldEnv.start_states)
+    # greedy episodes per evaluation (or every start state the env enumerates)
     eval_episodes: int = positive(64)
     eval_max_steps: int | None = positive(None)  # longer greedy episodes fail (null: env limit)
     success_threshold: float | None = in_range(0, 1, None)  # early stop at this success (null: off)
-    # ... and |V(s_0) - discounted greedy return| <= this over the evaluation's starts, reduced
-    # by `value_error_reduce` (null: not checked)
+    # ... and |V(s_0) - discounted greedy return| <= this (null: not checked)
     value_tolerance: float | None = non_negative(None)
     value_error_reduce: str = one_of("mean", "max", default="mean")  # over the start states
     patience: int = positive(1)  # consecutive evaluations that must meet the early stop
@@ -76,26 +71,21 @@ class TaskConfig:
     """A multi-stage task: its env and one learner config per stage, in stage order."""
 
     name: str = free()
-    # keyword arguments of the multi-stage env, `_target_` its class (the schedule adds
-    # `batch_size` and `start_stage`)
+    # keyword arguments of the multi-stage env, `_target_` its class
     env: dict[str, Any] = free(factory=dict)
     eval_env: dict[str, Any] = free(factory=dict)  # over `env` in the whole-task evaluation
     stages: dict[str, Any] = free(factory=dict)
-    # every stage's keys when the env's num_stages says how many: stages s0..s<N-1>, each this
-    # template with its own task.stages.s<k> keys over it (empty: `stages` lists them all)
+    # stages s0..s<N-1> (N: the env's num_stages), each this with its own keys over it
     stage_template: dict[str, Any] = free(factory=dict)
     eval_episodes: int = positive(100)  # this task's default for eval.episodes
     threads: int = positive(1)  # this task's default for `threads` (docs/speed.md)
-    # whether the env can start an episode in a chosen stage (`start_stage=k`); without,
-    # only schedule=joint applies, as one phase from the task's own starts
+    # whether the env can start an episode in a chosen stage (else only schedule=joint)
     stage_starts: bool = flag(True)
 
 
 @dataclass
 class ScheduleConfig:
-    """How the stages are trained: ``backward`` (stage N-1 first, then each stage against the
-    frozen next one), ``joint`` (the paper's Algorithm 1) or ``flat`` (one learner over the
-    whole task: the end-to-end baseline)."""
+    """How the stages are trained: ``backward``, ``joint`` or ``flat`` (one learner)."""
 
     name: str = free("backward")  # a registered schedule (get_schedule names them)
 
@@ -115,15 +105,13 @@ class EvalConfig:
 
     episodes: int = positive(II("task.eval_episodes"))  # default: the task's
     plots: bool = flag(True)
-    # log eval/task/{success_rate, seconds} at every evaluation of stage 0 (backward), phase 0
-    # (joint) or the flat learner
+    # log eval/task/{success_rate, seconds} at every evaluation of the first stage or phase
     probe: bool = flag(False)
 
 
 @dataclass
 class ObjectiveConfig:
-    """The entry of ``eval.json`` a run is judged by (:func:`objective_value`), and whether
-    higher is better; a Hydra sweeper's own direction must agree."""
+    """The entry of ``eval.json`` a run is judged by, and whether higher is better."""
 
     metric: str = one_of("success_rate", "mean_return", "mean_steps", default="success_rate")
     direction: str = one_of("maximize", "minimize", default="maximize")
@@ -132,12 +120,10 @@ class ObjectiveConfig:
 @dataclass
 class TuneConfig:
     """The ``tune`` block of ``stages-tune``: an Optuna study of ``objective`` over ``params``,
-    each trial a ``stages-train`` run. ``params`` maps a config key or group to its range:
-    ``{low: 1e-4, high: 1e-2, log: true}`` (optional ``step``) or ``{choices: [dqn, sac]}``."""
+    each a range ``{low: 1e-4, high: 1e-2, log: true}`` or ``{choices: [dqn, sac]}``."""
 
     study_name: str = free("${task.name}")
-    # Optuna storage: an RDB URL (sqlite:///study.db, postgresql://...) or a journal file
-    # (study.log: several processes, NFS)
+    # Optuna storage: an RDB URL (sqlite:///study.db) or a journal file (study.log, for NFS)
     storage: str = free("sqlite:///study.db")
     n_trials: int = positive(20)  # trials this command runs (a rerun adds as many to the study)
     sampler: str = one_of("tpe", "random", default="tpe")
@@ -162,8 +148,7 @@ class TrainConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     seed: int = non_negative(0)
-    # several seeds in one process, their networks stacked (backward and flat; dqn, ddpg, td3):
-    # seeds=[0,1,2] writes one run directory per seed, seed_<s>/ (null: one run, `seed`)
+    # several seeds in one process, networks stacked, run directories seed_<s>/ (null: `seed`)
     seeds: list[int] | None = non_negative(None)
     device: str = torch_device("cpu")  # cpu | cuda | cuda:<index> | mps
     # torch intra-op threads (default: task.threads); 1 per job when jobs share the cores
@@ -171,21 +156,17 @@ class TrainConfig:
     progress: bool = flag(True)  # tqdm bar per stage (hidden anyway when stderr is not a TTY)
     checkpoint_every: int = non_negative(50_000)  # frames between checkpoints (0: none)
     checkpoint_keep: int = positive(2)  # newest checkpoints kept per stage
-    # torch.compile of every learner's loss: auto (off on CPU, reduce-overhead on a GPU) | off |
-    # default | reduce-overhead | max-autotune
+    # torch.compile of every learner's loss (auto: off on CPU, reduce-overhead on a GPU)
     compile: str = one_of(
         "auto", "off", "default", "reduce-overhead", "max-autotune", default="auto"
     )
     resume: bool = flag(False)  # continue the run in hydra.run.dir (same overrides otherwise)
-    # a directory of finished stages shared by runs (schedule=backward): a stage whose identity
-    # (config, env, seed, later stages) is there is loaded, not trained; `stages-store` manages it
+    # a directory of finished stages shared by runs (schedule=backward; see `stages-store`)
     stage_store: str | None = free(None)
-    # a run directory whose finished stages are taken where their identity is unchanged
-    # (schedule=backward)
+    # a run directory whose unchanged finished stages are reused (schedule=backward)
     init_from: str | None = free(None)
     overwrite: bool = flag(False)  # replace the run in hydra.run.dir
-    # keys set in every stage over the task's own, but not over one set for a stage on the
-    # command line; emptied once applied
+    # keys set in every stage, but not over one set for a stage on the command line
     all_stages: dict[str, Any] = free(factory=dict)
 
 
@@ -197,8 +178,7 @@ class TuneAppConfig(TrainConfig):
 
 
 def objective_value(result: dict[str, Any], cfg: Any) -> float:
-    """``eval.json``'s entry named by ``objective.metric`` (NaN when undefined, which Optuna
-    records as a failed trial).
+    """``eval.json``'s entry named by ``objective.metric`` (NaN: a failed Optuna trial).
 
     Examples:
         >>> cfg = OmegaConf.create({"objective": {"metric": "mean_steps"}})
@@ -211,8 +191,7 @@ def objective_value(result: dict[str, Any], cfg: Any) -> float:
 
 
 def as_dataclass(cfg: Any) -> Any:
-    """A structured config node as an instance of its schema, interpolations resolved (a
-    dataclass read costs nanoseconds, a ``DictConfig`` read ~10 us); anything else as given."""
+    """A structured config node as its dataclass (reads ~1000x faster); anything else as is."""
     if isinstance(cfg, DictConfig) and is_dataclass(OmegaConf.get_type(cfg)):
         try:
             return OmegaConf.to_object(cfg)
