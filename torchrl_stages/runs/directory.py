@@ -28,9 +28,9 @@ from torchrl_stages.runs.layout import (
     CONFIG_FILE,
     EVAL_FILE,
     LEGACY_ENTRIES,
-    LEGACY_FIGURES,
     RECORD_FILE,
     RECORD_FORMAT,
+    REPORT_FILES,
     RUN_MARKERS,
     STATUS_FILE,
     RunDirError,
@@ -66,9 +66,12 @@ class RunDir:
     def holds_run(self) -> bool:
         return bool(self._run_files())
 
-    def _run_files(self, names: tuple[str, ...] = RUN_MARKERS) -> list[str]:
-        found = sorted(n for n in names if (self.path / n).exists())
-        return found + sorted(p.name for p in self.path.glob("stage_*.pt"))
+    def _run_files(
+        self, names: Iterable[str] = RUN_MARKERS, globs: Iterable[str] = ()
+    ) -> list[str]:
+        found = {n for n in names if (self.path / n).exists()}
+        found |= {p.name for g in ("stage_*.pt", *globs) for p in self.path.glob(g)}
+        return sorted(found)
 
     def lock(self) -> RunLock:
         """Takes this directory's lock; :class:`RunDirError` names the process holding it."""
@@ -135,7 +138,7 @@ class RunDir:
         self.claim(*sorted(self.listing() - before - {LOCK_DIR}))
 
     def adopt_legacy(self) -> None:
-        self.claim(*sorted(self._run_files((*LEGACY_ENTRIES, *LEGACY_FIGURES))))
+        self.claim(*self._run_files(LEGACY_ENTRIES, REPORT_FILES))
 
     def _write_verified(self, name: str, write: Callable[[Path], None]) -> Path:
         path = self.path / name
@@ -292,8 +295,7 @@ class RunDir:
 
     def check_no_links(self) -> None:
         entries = [self.path / n for n in (*LEGACY_ENTRIES, LOCK_DIR)]
-        entries += [*self.path.glob("stage_*.pt"), *self.path.glob("*.png")]
-        entries.append(self.path / "value_map.npy")
+        entries += [p for g in ("stage_*.pt", *REPORT_FILES) for p in self.path.glob(g)]
         for entry in entries:
             inner = entry.rglob("*") if entry.is_dir() and not entry.is_symlink() else []
             refuse_links([entry, *inner])
