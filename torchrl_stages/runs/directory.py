@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import re
 import shutil
 import time
 from collections.abc import Callable, Iterable
@@ -41,7 +42,26 @@ from torchrl_stages.stage import StageResult
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = ["RunDir", "refuse_links"]
+__all__ = ["RunDir", "drop_checkpoints", "refuse_links", "scope_checkpoints"]
+
+
+def scope_checkpoints(
+    root: Path, scope: int | str, every: int, keep: int, on_save: Callable | None = None
+) -> StageCheckpoints:
+    """The checkpoints of one scope (a stage number or a group's name) under ``root``."""
+    name = scope if isinstance(scope, str) else f"stage_{scope}"
+    return StageCheckpoints(root / name, every, keep, on_save=on_save)
+
+
+def drop_checkpoints(root: Path, every: bool = False) -> None:
+    """Removes ``root`` when empty; ``every``: its scopes' directories first."""
+    if not root.is_dir():
+        return
+    for child in root.iterdir() if every else ():
+        if child.is_dir() and re.fullmatch(r"\w+", child.name):
+            shutil.rmtree(child)
+    if not any(root.iterdir()):
+        root.rmdir()
 
 
 class RunDir:
@@ -279,19 +299,15 @@ class RunDir:
             )
         return state
 
-    def checkpoints(self, stage: int | str, every: int, keep: int) -> StageCheckpoints:
+    def checkpoints(self, stage: int | str, every: int = 0, keep: int = 1) -> StageCheckpoints:
         self.claim(CHECKPOINTS)
-        name = stage if isinstance(stage, str) else f"stage_{stage}"
-        return StageCheckpoints(
-            self.path / CHECKPOINTS / name, every, keep, on_save=lambda _: self.update_launch()
-        )
+        root = self.path / CHECKPOINTS
+        return scope_checkpoints(root, stage, every, keep, lambda _: self.update_launch())
 
     def clear_checkpoints(self, stage: int | str) -> None:
         self.check_no_links()
-        self.checkpoints(stage, 0, 1).clear()
-        root = self.path / CHECKPOINTS
-        if root.is_dir() and not any(root.iterdir()):
-            root.rmdir()
+        self.checkpoints(stage).clear()
+        drop_checkpoints(self.path / CHECKPOINTS)
 
     def check_no_links(self) -> None:
         entries = [self.path / n for n in (*LEGACY_ENTRIES, LOCK_DIR)]
