@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import re
 import shutil
 import time
 from collections.abc import Callable, Iterable
@@ -28,9 +29,9 @@ from torchrl_stages.runs.layout import (
     CONFIG_FILE,
     EVAL_FILE,
     LEGACY_ENTRIES,
-    LEGACY_FIGURES,
     RECORD_FILE,
     RECORD_FORMAT,
+    REPORT_FILES,
     RUN_MARKERS,
     STATUS_FILE,
     RunDirError,
@@ -41,7 +42,26 @@ from torchrl_stages.stage import StageResult
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = ["RunDir", "refuse_links"]
+__all__ = ["RunDir", "drop_checkpoints", "refuse_links", "scope_checkpoints"]
+
+
+def scope_checkpoints(
+    root: Path, scope: int | str, every: int, keep: int, on_save: Callable | None = None
+) -> StageCheckpoints:
+    """The checkpoints of one scope (a stage number or a group's name) under ``root``."""
+    name = scope if isinstance(scope, str) else f"stage_{scope}"
+    return StageCheckpoints(root / name, every, keep, on_save=on_save)
+
+
+def drop_checkpoints(root: Path, every: bool = False) -> None:
+    """Removes ``root`` when empty; ``every``: its scopes' directories first."""
+    if not root.is_dir():
+        return
+    for child in root.iterdir() if every else ():
+        if child.is_dir() and re.fullmatch(r"\w+", child.name):
+            shutil.rmtree(child)
+    if not any(root.iterdir()):
+        root.rmdir()
 
 
 class RunDir:
@@ -66,9 +86,12 @@ class RunDir:
     def holds_run(self) -> bool:
         return bool(self._run_files())
 
-    def _run_files(self, names: tuple[str, ...] = RUN_MARKERS) -> list[str]:
-        found = sorted(n for n in names if (self.path / n).exists())
-        return found + sorted(p.name for p in self.path.glob("stage_*.pt"))
+    def _run_files(
+        self, names: Iterable[str] = RUN_MARKERS, globs: Iterable[str] = ()
+    ) -> list[str]:
+        found = {n for n in names if (self.path / n).exists()}
+        found |= {p.name for g in ("stage_*.pt", *globs) for p in self.path.glob(g)}
+        return sorted(found)
 
     def lock(self) -> RunLock:
         """Takes this directory's lock; :class:`RunDirError` names the process holding it."""
@@ -135,7 +158,7 @@ class RunDir:
         self.claim(*sorted(self.listing() - before - {LOCK_DIR}))
 
     def adopt_legacy(self) -> None:
-        self.claim(*sorted(self._run_files((*LEGACY_ENTRIES, *LEGACY_FIGURES))))
+        self.claim(*self._run_files(LEGACY_ENTRIES, REPORT_FILES))
 
     def _write_verified(self, name: str, write: Callable[[Path], None]) -> Path:
         path = self.path / name
@@ -276,24 +299,19 @@ class RunDir:
             )
         return state
 
-    def checkpoints(self, stage: int | str, every: int, keep: int) -> StageCheckpoints:
+    def checkpoints(self, stage: int | str, every: int = 0, keep: int = 1) -> StageCheckpoints:
         self.claim(CHECKPOINTS)
-        name = stage if isinstance(stage, str) else f"stage_{stage}"
-        return StageCheckpoints(
-            self.path / CHECKPOINTS / name, every, keep, on_save=lambda _: self.update_launch()
-        )
+        root = self.path / CHECKPOINTS
+        return scope_checkpoints(root, stage, every, keep, lambda _: self.update_launch())
 
     def clear_checkpoints(self, stage: int | str) -> None:
         self.check_no_links()
-        self.checkpoints(stage, 0, 1).clear()
-        root = self.path / CHECKPOINTS
-        if root.is_dir() and not any(root.iterdir()):
-            root.rmdir()
+        self.checkpoints(stage).clear()
+        drop_checkpoints(self.path / CHECKPOINTS)
 
     def check_no_links(self) -> None:
         entries = [self.path / n for n in (*LEGACY_ENTRIES, LOCK_DIR)]
-        entries += [*self.path.glob("stage_*.pt"), *self.path.glob("*.png")]
-        entries.append(self.path / "value_map.npy")
+        entries += [p for g in ("stage_*.pt", *REPORT_FILES) for p in self.path.glob(g)]
         for entry in entries:
             inner = entry.rglob("*") if entry.is_dir() and not entry.is_symlink() else []
             refuse_links([entry, *inner])

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import re
-import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -20,7 +18,7 @@ from torchrl_stages.failures import DivergenceError, one_line
 from torchrl_stages.learners import make_learner
 from torchrl_stages.loggers import Observer, StopRun
 from torchrl_stages.preemption import Interrupted, handle_signals
-from torchrl_stages.runs.directory import refuse_links
+from torchrl_stages.runs.directory import drop_checkpoints, refuse_links, scope_checkpoints
 from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
 from torchrl_stages.runs.seed_run import (
     RunOptions,
@@ -205,7 +203,7 @@ class Experiment:
             compile=compile,
         )
         if self.stacked:
-            self._drop_checkpoints(every=False)
+            drop_checkpoints(self.checkpoint_root)
             for one in trained:  # eval.json: its wall-clock is that of all of them
                 one.extra["trained_with_seeds"] = list(self.seeds)
         return [run.finish(one) for run, one in zip(runs, trained, strict=True)]
@@ -215,27 +213,15 @@ class Experiment:
         root, first = self.checkpoint_root, self.runs[0]
         refuse_links([root, *(root.rglob("*") if root.is_dir() else [])])
         if not all(run.resuming for run in self.runs):
-            self._drop_checkpoints(every=True)
+            drop_checkpoints(root, every=True)
         for stage in first.restarted:  # resumed stages whose config changed
             self._at(first.schedule.checkpoint_scope(stage)).clear()
         return self._at
 
     def _at(self, scope: int | str) -> StageCheckpoints:
         cfg = self.runs[0].cfg
-        name = scope if isinstance(scope, str) else f"stage_{scope}"
         every, keep = int(cfg.checkpoint_every), int(cfg.checkpoint_keep)
-        return StageCheckpoints(self.checkpoint_root / name, every, keep)
-
-    def _drop_checkpoints(self, every: bool) -> None:
-        """Removes the checkpoint directory when empty; ``every``: its scopes' directories first."""
-        root = self.checkpoint_root
-        if not root.is_dir():
-            return
-        for child in root.iterdir() if every else ():
-            if child.is_dir() and re.fullmatch(r"\w+", child.name):
-                shutil.rmtree(child)
-        if not any(root.iterdir()):
-            root.rmdir()
+        return scope_checkpoints(self.checkpoint_root, scope, every, keep)
 
     def _ended(self, outcome: str, reason: str, **extra: Any) -> None:
         for run in self.runs:

@@ -16,14 +16,8 @@ RECORD_FILE = "run.json"  # in .stages/
 RUN_MARKERS = (CONFIG_FILE, EVAL_FILE, METRICS_FILE, CHECKPOINTS)
 #: what runs written without a record hold (adopted when such a run is resumed)
 LEGACY_ENTRIES = (*RUN_MARKERS, STATUS_FILE, "csv", ".hydra")
-LEGACY_FIGURES = (
-    "learning_curves.png",
-    "trajectories.png",
-    "value_map.png",
-    "value_map.npy",
-    "manipulator.png",
-    "cargo.png",
-)
+#: the figures and arrays a run's report writes at its top level (adopted with it)
+REPORT_FILES = ("*.png", "*.npy")
 RECORD_FORMAT = "torchrl-stages run"
 SEED_CHECKPOINTS = "seed_checkpoints"
 
