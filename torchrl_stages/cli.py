@@ -145,10 +145,8 @@ def train() -> None:
     try:
         with contextlib.redirect_stdout(shown):
             _train_app()
-    except BaseException:
-        sys.stdout.write(shown.getvalue())
-        raise
-    sys.stdout.write(with_template_stages(shown.getvalue()))
+    finally:
+        sys.stdout.write(with_template_stages(shown.getvalue()))
 
 
 def with_template_stages(text: str) -> str:
@@ -156,10 +154,9 @@ def with_template_stages(text: str) -> str:
     env cannot be built, a comment on ``stages:`` saying why."""
     try:
         cfg = OmegaConf.create(text)
+        if not OmegaConf.select(cfg, "task.stage_template"):
+            return text
     except Exception:  # noqa: BLE001 - not one YAML document (--package, a value): as given
-        return text
-    task = cfg.get("task") if isinstance(cfg, DictConfig) else None
-    if not isinstance(task, DictConfig) or not task.get("stage_template"):
         return text
     try:
         return OmegaConf.to_yaml(with_env_stages(cfg))

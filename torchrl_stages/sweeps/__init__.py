@@ -16,7 +16,6 @@ from torchrl_stages.sweeps.figures import (
     plot_performance_profile,
     plot_sweep_curves,
     plot_sweep_final,
-    short_labels,
 )
 from torchrl_stages.sweeps.jobs import Job, configs, find_jobs, read_job, result_metrics
 from torchrl_stages.sweeps.stats import REPS, Aggregate, aggregate_jobs
@@ -111,11 +110,10 @@ def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0)
     _write_csv(files["summary_configs.csv"], header, (vars(agg) for agg in aggregates))
     figures = []
     if plots:
-        labels = short_labels(configs(jobs))
         for made in (
-            plot_sweep_curves(jobs, root / "summary_curves.png", labels),
-            plot_sweep_final(jobs, aggregates, root / "summary_final.png", labels),
-            plot_performance_profile(jobs, root / "summary_profile.png", labels, seed=seed),
+            plot_sweep_curves(jobs, root / "summary_curves.png"),
+            plot_sweep_final(jobs, aggregates, root / "summary_final.png"),
+            plot_performance_profile(jobs, root / "summary_profile.png", seed=seed),
         ):
             if made is not None:
                 files[made.name] = made
