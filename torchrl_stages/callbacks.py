@@ -67,7 +67,6 @@ class RunDirCallback(Callback):
                 path.rmdir()
             except OSError:  # it holds something else
                 break
-        cls.run_dir, cls.made, cls.held = None, [], frozenset()
 
 
 class SweepSummaryCallback(Callback):

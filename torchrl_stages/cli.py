@@ -87,13 +87,14 @@ def _fail(run_dir: Path, message: str, code: int, status: str | None = None) -> 
 
 @hydra.main(config_path="pkg://torchrl_stages.conf", config_name="config", version_base="1.3")
 def _train_app(cfg: DictConfig) -> float:
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    multirun = HydraConfig.get().mode == RunMode.MULTIRUN
+    hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    multirun = hydra_cfg.mode == RunMode.MULTIRUN
     try:
         if multirun:  # a sweeper that optimizes must optimize the objective's direction
-            validate_sweeper(HydraConfig.get().sweeper, cfg)
+            validate_sweeper(hydra_cfg.sweeper, cfg)
         # all_stages (experiment=smoke) in every stage, but not over a stage's own override
-        cfg = apply_all_stages(cfg, keep=stage_keys_set(HydraConfig.get().overrides.task))
+        cfg = apply_all_stages(cfg, keep=stage_keys_set(hydra_cfg.overrides.task))
         # seeds=[...]: several seeds in one process, one directory each
         experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
     except RunDirError as err:  # the directory holds another run (or process): touch nothing
