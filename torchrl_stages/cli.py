@@ -290,11 +290,9 @@ def report(argv: list[str] | None = None) -> None:
 
 def _age(text: str) -> float:
     """``30d``, ``12h``, ``90m`` or seconds, as seconds."""
-    units = {"d": 86400.0, "h": 3600.0, "m": 60.0, "s": 1.0}
+    scale = {"d": 86400.0, "h": 3600.0, "m": 60.0, "s": 1.0}.get(text[-1:])
     try:
-        if text[-1:] in units:
-            return float(text[:-1]) * units[text[-1]]
-        return float(text)
+        return float(text[:-1]) * scale if scale else float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not an age such as 30d, 12h or 90m: {text!r}") from None
 
