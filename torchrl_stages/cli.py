@@ -24,12 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.callbacks import RunDirCallback
 from torchrl_stages.checkpoint import CheckpointDamagedError
-from torchrl_stages.config import (
-    ConfigError,
-    apply_all_stages,
-    register_configs,
-    stage_keys_set,
-)
+from torchrl_stages.config import ConfigError, apply_all_stages, register_configs, stage_keys_set
 from torchrl_stages.config.checks import validate_sweeper
 from torchrl_stages.failures import (
     EXIT_DIVERGED,

@@ -95,8 +95,7 @@ class SweepSummary:
 
 
 def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0) -> SweepSummary:
-    """Reads the jobs under ``sweep_dir`` and writes the summary there; ``seed`` seeds the
-    bootstrap."""
+    """Reads the jobs under ``sweep_dir`` and writes their summary there (``seed``: bootstrap)."""
     root = Path(sweep_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"{root} is not a directory")
