@@ -88,7 +88,6 @@ def markdown(
 class SweepSummary:
     """What :func:`summarize_sweep` found and wrote: the jobs, the aggregates, the files."""
 
-    sweep_dir: Path
     jobs: list[Job]
     aggregates: list[Aggregate]
     files: dict[str, Path]
@@ -119,7 +118,7 @@ def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0)
                 figures.append(made.name)
     files["summary.md"] = root / "summary.md"
     files["summary.md"].write_text(markdown(root, jobs, aggregates, figures))
-    return SweepSummary(root, jobs, aggregates, files)
+    return SweepSummary(jobs, aggregates, files)
 
 
 def summarize_or_say(sweep_dir: Path, plots: bool, failure: str) -> SweepSummary | None:
