@@ -116,7 +116,7 @@ def test_learning_curves_show_every_loss_and_the_evaluations(tmp_path):
     lines.append("eval/joint_1/success_rate,512,0.25")  # a joint-schedule phase evaluation
     csv_path.write_text("\n".join(lines) + "\n")
     stages = read_stage_metrics(csv_path)
-    titles = {k: [title for title, _ in _stage_panels(stages[k], None)] for k in stages}
+    titles = {k: [title for title, _ in _stage_panels(stages[k])] for k in stages}
     common = [
         "gradient norm",
         "evaluation success rate",
@@ -126,7 +126,7 @@ def test_learning_curves_show_every_loss_and_the_evaluations(tmp_path):
     assert titles[0] == ["loss", *common]
     assert titles[1] == ["loss_value", "loss_actor", *common]
     assert titles[2] == ["loss_qvalue", "loss_actor", *common]
-    success = dict(_stage_panels(stages[1], None))["evaluation success rate"]
+    success = dict(_stage_panels(stages[1]))["evaluation success rate"]
     assert ("eval", "joint", "success_rate") in success  # the phase evaluation joins row 1
     for panels in titles.values():
         assert not any("episode_success" in t or "updates" in t for t in panels)
@@ -148,7 +148,7 @@ def test_learning_curves_empty(tmp_path):
 def test_learning_curves_only_unmatched_rows(tmp_path):
     csv_path = tmp_path / "metrics.csv"
     csv_path.write_text("name,step,value\neval/task/success_rate,0,1.0\n")
-    assert plot_learning_curves(csv_path, tmp_path / "c.png", names=("success_rate",)) is None
+    assert plot_learning_curves(csv_path, tmp_path / "c.png") is None
 
 
 @pytest.mark.parametrize(

@@ -90,16 +90,16 @@ def _jobs(values, config="lr=1"):
 
 def test_mean_iqm_and_their_bootstrap_intervals():
     values = np.random.default_rng(0).normal(1.0, 0.1, size=50)
-    (agg,) = aggregate_jobs(_jobs(values), ["success_rate"])
+    agg = aggregate_jobs(_jobs(values))[0]  # success_rate first
     assert agg.mean == pytest.approx(values.mean()) and agg.n == 50
     assert agg.iqm == pytest.approx(trim_mean(values, 0.25))  # the middle half
     assert agg.ci_low < agg.mean < agg.ci_high and agg.ci_high - agg.ci_low < 0.1
     assert agg.iqm_low < agg.iqm < agg.iqm_high
     assert aggregate_jobs(_jobs(values), seed=3) == aggregate_jobs(_jobs(values), seed=3)
     assert aggregate_jobs(_jobs(values), seed=3) != aggregate_jobs(_jobs(values), seed=4)
-    (outlier,) = aggregate_jobs(_jobs([-100.0, 1.0, 2.0, 100.0]), ["success_rate"])
+    outlier = aggregate_jobs(_jobs([-100.0, 1.0, 2.0, 100.0]))[0]
     assert outlier.iqm == 1.5 and outlier.mean == 0.75
-    (single,) = aggregate_jobs(_jobs([2.0]), ["success_rate"])
+    single = aggregate_jobs(_jobs([2.0]))[0]
     assert (single.mean, single.ci_low, single.ci_high) == (2.0, 2.0, 2.0)
 
 

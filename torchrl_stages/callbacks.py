@@ -67,7 +67,6 @@ class RunDirCallback(Callback):
                 path.rmdir()
             except OSError:  # it holds something else
                 break
-        cls.run_dir, cls.made, cls.held = None, [], frozenset()
 
 
 class SweepSummaryCallback(Callback):
@@ -104,10 +103,7 @@ class SweepSummaryCallback(Callback):
         if sweep_dir is None:
             return
         summary = summarize_or_say(sweep_dir, self.plots, "stages-train: no sweep summary")
-        if summary is None:
-            return
-        done = sum(job.status == "done" for job in summary.jobs)
-        print(
-            f"Sweep summary: {summary.files['summary.md']} ({done} of {len(summary.jobs)} jobs "
-            "finished)"
-        )
+        if summary is not None:
+            done = sum(job.status == "done" for job in summary.jobs)
+            md, total = summary.files["summary.md"], len(summary.jobs)
+            print(f"Sweep summary: {md} ({done} of {total} jobs finished)")

@@ -24,12 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.callbacks import RunDirCallback
 from torchrl_stages.checkpoint import CheckpointDamagedError
-from torchrl_stages.config import (
-    ConfigError,
-    apply_all_stages,
-    register_configs,
-    stage_keys_set,
-)
+from torchrl_stages.config import ConfigError, apply_all_stages, register_configs, stage_keys_set
 from torchrl_stages.config.checks import validate_sweeper
 from torchrl_stages.failures import (
     EXIT_DIVERGED,
@@ -87,13 +82,14 @@ def _fail(run_dir: Path, message: str, code: int, status: str | None = None) -> 
 
 @hydra.main(config_path="pkg://torchrl_stages.conf", config_name="config", version_base="1.3")
 def _train_app(cfg: DictConfig) -> float:
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    multirun = HydraConfig.get().mode == RunMode.MULTIRUN
+    hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    multirun = hydra_cfg.mode == RunMode.MULTIRUN
     try:
         if multirun:  # a sweeper that optimizes must optimize the objective's direction
-            validate_sweeper(HydraConfig.get().sweeper, cfg)
+            validate_sweeper(hydra_cfg.sweeper, cfg)
         # all_stages (experiment=smoke) in every stage, but not over a stage's own override
-        cfg = apply_all_stages(cfg, keep=stage_keys_set(HydraConfig.get().overrides.task))
+        cfg = apply_all_stages(cfg, keep=stage_keys_set(hydra_cfg.overrides.task))
         # seeds=[...]: several seeds in one process, one directory each
         experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
     except RunDirError as err:  # the directory holds another run (or process): touch nothing
@@ -145,10 +141,8 @@ def train() -> None:
     try:
         with contextlib.redirect_stdout(shown):
             _train_app()
-    except BaseException:
-        sys.stdout.write(shown.getvalue())
-        raise
-    sys.stdout.write(with_template_stages(shown.getvalue()))
+    finally:
+        sys.stdout.write(with_template_stages(shown.getvalue()))
 
 
 def with_template_stages(text: str) -> str:
@@ -156,10 +150,9 @@ def with_template_stages(text: str) -> str:
     env cannot be built, a comment on ``stages:`` saying why."""
     try:
         cfg = OmegaConf.create(text)
+        if not OmegaConf.select(cfg, "task.stage_template"):
+            return text
     except Exception:  # noqa: BLE001 - not one YAML document (--package, a value): as given
-        return text
-    task = cfg.get("task") if isinstance(cfg, DictConfig) else None
-    if not isinstance(task, DictConfig) or not task.get("stage_template"):
         return text
     try:
         return OmegaConf.to_yaml(with_env_stages(cfg))
@@ -292,11 +285,9 @@ def report(argv: list[str] | None = None) -> None:
 
 def _age(text: str) -> float:
     """``30d``, ``12h``, ``90m`` or seconds, as seconds."""
-    units = {"d": 86400.0, "h": 3600.0, "m": 60.0, "s": 1.0}
+    scale = {"d": 86400.0, "h": 3600.0, "m": 60.0, "s": 1.0}.get(text[-1:])
     try:
-        if text[-1:] in units:
-            return float(text[:-1]) * units[text[-1]]
-        return float(text)
+        return float(text[:-1]) * scale if scale else float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not an age such as 30d, 12h or 90m: {text!r}") from None
 

@@ -120,6 +120,5 @@ def make_logger(cfg: DictConfig, run_dir: Path, observers: Sequence[Observer] = 
         external = CSVLogger("csv", log_dir=str(run_dir))
     elif backend != "none":
         kwargs = {"project": cfg.logger.project} if backend == "wandb" else {}
-        name = cfg.logger.exp_name
-        external = get_logger(backend, str(run_dir), name, wandb_kwargs=kwargs)
+        external = get_logger(backend, str(run_dir), cfg.logger.exp_name, wandb_kwargs=kwargs)
     return RunLogger(run_dir / "metrics.csv", external, observers=observers)

@@ -55,12 +55,11 @@ def read_stage_metrics(metrics_csv: str | Path) -> dict[int, Series]:
     return out
 
 
-def _stage_panels(series: Series, names: Sequence[str] | None) -> list[tuple[str, list]]:
+def _stage_panels(series: Series) -> list[tuple[str, list]]:
     """One stage's panels: each loss, the gradient norms, evaluations and episode return."""
-    keys = [k for k in series if names is None or k[2] in names]
 
     def pick(kind: str, test) -> list[tuple[str, str, str]]:
-        return sorted(k for k in keys if k[0] == kind and test(k[2]))
+        return sorted(k for k in series if k[0] == kind and test(k[2]))
 
     losses = sorted(
         {k[2] for k in pick("train", lambda m: m.startswith("loss"))},
@@ -79,13 +78,11 @@ def _stage_panels(series: Series, names: Sequence[str] | None) -> list[tuple[str
     return panels
 
 
-def plot_learning_curves(
-    metrics_csv: str | Path, out: str | Path, names: Sequence[str] | None = None
-) -> Path | None:
+def plot_learning_curves(metrics_csv: str | Path, out: str | Path) -> Path | None:
     """One row of panels per stage of a ``metrics.csv`` against the stage's frames, a joint
-    phase's evaluations dashed in its stage's row; ``names`` keeps only those metrics."""
+    phase's evaluations dashed in its stage's row."""
     stages = read_stage_metrics(metrics_csv)
-    rows = [(k, _stage_panels(stages[k], names)) for k in sorted(stages)]
+    rows = [(k, _stage_panels(stages[k])) for k in sorted(stages)]
     rows = [(k, panels) for k, panels in rows if panels]
     if not rows:
         return None

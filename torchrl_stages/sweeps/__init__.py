@@ -16,7 +16,6 @@ from torchrl_stages.sweeps.figures import (
     plot_performance_profile,
     plot_sweep_curves,
     plot_sweep_final,
-    short_labels,
 )
 from torchrl_stages.sweeps.jobs import Job, configs, find_jobs, read_job, result_metrics
 from torchrl_stages.sweeps.stats import REPS, Aggregate, aggregate_jobs
@@ -89,15 +88,13 @@ def markdown(
 class SweepSummary:
     """What :func:`summarize_sweep` found and wrote: the jobs, the aggregates, the files."""
 
-    sweep_dir: Path
     jobs: list[Job]
     aggregates: list[Aggregate]
     files: dict[str, Path]
 
 
 def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0) -> SweepSummary:
-    """Reads the jobs under ``sweep_dir`` and writes the summary there; ``seed`` seeds the
-    bootstrap."""
+    """Reads the jobs under ``sweep_dir`` and writes their summary there (``seed``: bootstrap)."""
     root = Path(sweep_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"{root} is not a directory")
@@ -111,18 +108,17 @@ def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0)
     _write_csv(files["summary_configs.csv"], header, (vars(agg) for agg in aggregates))
     figures = []
     if plots:
-        labels = short_labels(configs(jobs))
         for made in (
-            plot_sweep_curves(jobs, root / "summary_curves.png", labels),
-            plot_sweep_final(jobs, aggregates, root / "summary_final.png", labels),
-            plot_performance_profile(jobs, root / "summary_profile.png", labels, seed=seed),
+            plot_sweep_curves(jobs, root / "summary_curves.png"),
+            plot_sweep_final(jobs, aggregates, root / "summary_final.png"),
+            plot_performance_profile(jobs, root / "summary_profile.png", seed=seed),
         ):
             if made is not None:
                 files[made.name] = made
                 figures.append(made.name)
     files["summary.md"] = root / "summary.md"
     files["summary.md"].write_text(markdown(root, jobs, aggregates, figures))
-    return SweepSummary(root, jobs, aggregates, files)
+    return SweepSummary(jobs, aggregates, files)
 
 
 def summarize_or_say(sweep_dir: Path, plots: bool, failure: str) -> SweepSummary | None:

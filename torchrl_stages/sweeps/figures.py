@@ -31,13 +31,8 @@ def _curve(name: str) -> MetricName | None:
 
 def short_labels(names: Sequence[str]) -> dict[str, str]:
     """Each configuration without the overrides all of them share."""
-    parts = {c: c.split(" ") if c != "(defaults)" else [] for c in names}
-    common = set.intersection(*(set(p) for p in parts.values())) if parts else set()
-    labels = {}
-    for config, items in parts.items():
-        rest = [p for p in items if p not in common]
-        labels[config] = " ".join(rest) if rest else config
-    return labels
+    common = set.intersection(*(set(c.split(" ")) for c in names)) if names else set()
+    return {c: " ".join(p for p in c.split(" ") if p not in common) or c for c in names}
 
 
 def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
@@ -70,9 +65,7 @@ def _forward_fill(points: list[tuple[float, float]], grid: np.ndarray) -> np.nda
     return np.where(idx >= 0, values[np.clip(idx, 0, None)], np.nan)
 
 
-def plot_sweep_curves(
-    jobs: Sequence[Job], out: str | Path, labels: dict[str, str] | None = None
-) -> Path | None:
+def plot_sweep_curves(jobs: Sequence[Job], out: str | Path) -> Path | None:
     """Evaluation success against frames, a panel per stage and the whole-task probe, a line per
     configuration (mean over seeds, band min-max); ``None`` without such curves."""
     from matplotlib.figure import Figure
@@ -82,7 +75,7 @@ def plot_sweep_curves(
     if not names:
         return None
     configs = configs_of(j for j in jobs if j.name in per_job)
-    labels = labels or short_labels(configs)
+    labels = short_labels(configs_of(jobs))
     ncols = min(3, len(names))
     nrows = math.ceil(len(names) / ncols)
     fig = Figure(figsize=(5.2 * ncols, 3.6 * nrows + 0.6))
@@ -102,7 +95,7 @@ def plot_sweep_curves(
                 mean = np.nanmean(values, axis=0)
                 low, high = np.nanmin(values, axis=0), np.nanmax(values, axis=0)
             color = f"C{c % 10}"
-            label = f"{labels.get(config, config)} ({len(seeds)} seed{'s' * (len(seeds) > 1)})"
+            label = f"{labels[config]} ({len(seeds)} seed{'s' * (len(seeds) > 1)})"
             ax.plot(grid, mean, color=color, label=label, marker="o" if grid.size == 1 else None)
             if len(seeds) > 1:
                 ax.fill_between(grid, low, high, color=color, alpha=0.2, linewidth=0)
@@ -119,10 +112,7 @@ def plot_sweep_curves(
 
 
 def plot_sweep_final(
-    jobs: Sequence[Job],
-    aggregates: Sequence[Aggregate],
-    out: str | Path,
-    labels: dict | None = None,
+    jobs: Sequence[Job], aggregates: Sequence[Aggregate], out: str | Path
 ) -> Path | None:
     """The final whole-task metrics per configuration: seeds, mean and its 95% CI."""
     from matplotlib.figure import Figure
@@ -131,7 +121,7 @@ def plot_sweep_final(
     if not done:
         return None
     configs = configs_of(done)
-    labels = labels or short_labels(configs)
+    labels = short_labels(configs_of(jobs))
     shown = [m for m in result_metrics(done) if m != "mean_return"]  # and the task's headline
     metrics = [m for m in shown if any(j.metrics.get(m) is not None for j in done)]
     by_key = {(a.config, a.metric): a for a in aggregates}
@@ -149,7 +139,7 @@ def plot_sweep_final(
                 xerr = [[agg.mean - agg.ci_low], [agg.ci_high - agg.mean]]
                 ax.errorbar(agg.mean, y, xerr=xerr, color="k", capsize=4, linewidth=1.2)
             ax.plot(values, [y] * len(values), "o", color=color, markeredgecolor="k", zorder=3)
-        ax.set_yticks(ys, [labels.get(c, c) for c in configs] if ax is axes[0] else [""] * len(ys))
+        ax.set_yticks(ys, [labels[c] for c in configs] if ax is axes[0] else [""] * len(ys))
         ax.invert_yaxis()
         ax.set_title(metric)
         ax.grid(axis="x", alpha=0.3)
@@ -160,12 +150,7 @@ def plot_sweep_final(
     return save_figure(fig, out)
 
 
-def plot_performance_profile(
-    jobs: Sequence[Job],
-    out: str | Path,
-    labels: dict[str, str] | None = None,
-    seed: int = 0,
-) -> Path | None:
+def plot_performance_profile(jobs: Sequence[Job], out: str | Path, seed: int = 0) -> Path | None:
     """The performance profile of the success rate per configuration with its 95% band (not
     ``rliable.plot_utils``: it imports pyplot)."""
     from matplotlib.figure import Figure
@@ -174,9 +159,9 @@ def plot_performance_profile(
     profiles = performance_profiles(jobs, taus, seed)
     if not profiles:
         return None
-    labels = labels or short_labels(list(profiles))
+    labels = short_labels(configs_of(jobs))
     # the legend below the plot, labels wrapped: long override lists hide no curve
-    texts = [textwrap.fill(labels.get(c, c), _LEGEND_WIDTH) for c in profiles]
+    texts = [textwrap.fill(labels[c], _LEGEND_WIDTH) for c in profiles]
     lines = sum(t.count("\n") + 1 for t in texts)
     fig = Figure(figsize=(7.0, 4.2 + 0.17 * lines), layout="constrained")
     ax = fig.subplots()

@@ -72,10 +72,7 @@ def configs(jobs: Iterable[Job]) -> list[str]:
 
 def result_metrics(jobs: Iterable[Job]) -> list[str]:
     """:data:`METRICS`, then every headline metric some job reports, in the order seen."""
-    names = dict.fromkeys(METRICS)
-    for job in jobs:
-        names.update(dict.fromkeys(job.metrics))
-    return list(names)
+    return list(dict.fromkeys([*METRICS, *(m for job in jobs for m in job.metrics)]))
 
 
 def _natural_key(name: str) -> list:

@@ -13,7 +13,6 @@ from torchrl_stages.sweeps.jobs import Job, configs, result_metrics
 
 #: bootstrap resamples (rliable's default is 50 000: these intervals are for a summary)
 REPS = 2000
-CONFIDENCE = 0.95
 
 
 def finished_scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray:
@@ -37,7 +36,7 @@ def interval_estimates(scores: np.ndarray, func, seed: int = 0) -> tuple[np.ndar
     np.random.seed(seed)
     try:
         points, intervals = rly.get_interval_estimates(
-            {"x": scores}, func, reps=REPS, confidence_interval_size=CONFIDENCE
+            {"x": scores}, func, reps=REPS, confidence_interval_size=0.95
         )
     finally:
         np.random.set_state(state)
@@ -73,14 +72,12 @@ def _mean_and_iqm(scores: np.ndarray) -> np.ndarray:
     return np.array([ordered.mean(), ordered[cut : ordered.size - cut].mean()])
 
 
-def aggregate_jobs(
-    jobs: Sequence[Job], metrics: Sequence[str] | None = None, seed: int = 0
-) -> list[Aggregate]:
-    """The :class:`Aggregate` of each metric (default: all) of each configuration."""
+def aggregate_jobs(jobs: Sequence[Job], seed: int = 0) -> list[Aggregate]:
+    """The :class:`Aggregate` of each metric of each configuration."""
     out = []
     for config in configs(jobs):
         failed = sum(j.status != "done" for j in jobs if j.config == config)
-        for metric in result_metrics(jobs) if metrics is None else metrics:
+        for metric in result_metrics(jobs):
             scores = finished_scores(jobs, config, metric)
             if scores.size == 0:
                 out.append(Aggregate(config, metric, 0, failed, *[None] * 6))
