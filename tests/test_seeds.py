@@ -46,6 +46,7 @@ from torchrl_stages.preemption import Interrupted
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.runs.experiment import Experiment, validate_seeds
 from torchrl_stages.runs.loading import load_run
+from torchrl_stages.schedules import backward as backward_module
 from torchrl_stages.schedules import flat as flat_module
 from torchrl_stages.schedules.backward import train_backward
 from torchrl_stages.schedules.joint import (
@@ -541,12 +542,12 @@ def test_each_flat_seed_starts_from_the_weights_of_its_own_flat_run(monkeypatch)
 
         return trainer
 
-    monkeypatch.setattr(flat_module, "StageTrainer", capture("trainer"))
+    monkeypatch.setattr(backward_module, "StageTrainer", capture("trainer"))
     with pytest.raises(_Captured):
         flat_module.train_flat(task, [4, 1])
     stacked, env, eval_env, kwargs = seen["trainer"]
     assert kwargs["gammas"] == [0.9, 0.5] and kwargs["extra_keys"] == ["steps_to_next_obs"]
-    single_env = flat_module.flat_envs(task, flat_module.flat_config(task), 4)[0]
+    single_env = task.task_env(int(task.stage_cfg(0).num_envs), start_stage=None, train=True)
     assert env.batch_size[0] == 2 * single_env.batch_size[0]
     assert eval_env.batch_size[0] == 2 * task.task_env(None).batch_size[0]
     for i, seed in enumerate([4, 1]):

@@ -170,11 +170,6 @@ def seed_rows(learners: Learner | Sequence[Learner]) -> list[Any]:
     return [SeedRow(learners, i) for i in range(int(seeds))]
 
 
-def finite(state: dict[str, torch.Tensor]) -> bool:
-    """Whether every floating-point entry of ``state`` is finite."""
-    return all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point())
-
-
 class SeedEarlyStops:
     """One :class:`EarlyStop` per seed of ``rows``; a seed that stops keeps its weights, frames,
     updates and seconds (:attr:`stopped_at`) while the others train on.

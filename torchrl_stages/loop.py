@@ -10,6 +10,7 @@ from collections import defaultdict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from statistics import fmean
 from typing import Any
 
 import torch
@@ -75,13 +76,12 @@ class Stopwatch:
 
     def timed(self, phase: str, iterable):
         """Yields from ``iterable``, timing each ``next`` as ``phase``."""
-        iterator = iter(iterable)
+        iterator, end = iter(iterable), object()
         while True:
             with self(phase):
-                try:
-                    item = next(iterator)
-                except StopIteration:
-                    return
+                item = next(iterator, end)
+            if item is end:
+                return
             yield item
 
 
@@ -100,13 +100,6 @@ class LoopCounters(SavedCounters):
     seconds: float = 0.0
     log: dict[str, Any] = field(default_factory=dict)
     format: int = CHECKPOINT_FORMAT  # what a resumed loop checks first
-
-
-def _shown(value: float | Sequence[float], digits: int) -> str:
-    """A progress bar's number: one value, or the mean of one per seed."""
-    if isinstance(value, Sequence):
-        value = sum(value) / len(value)
-    return f"{value:.{digits}f}"
 
 
 class Trainer:
@@ -202,9 +195,9 @@ class Trainer:
                     rows = self.early_stop.active()  # a seed this evaluation stops is logged
                     with watch("evaluate"):
                         evaluation: Evaluation = self._call("evaluate", frames)
-                    bar.set_postfix(
-                        success=_shown(evaluation.success, 2),
-                        value_error=_shown(evaluation.value_error, 3),
+                    bar.set_postfix(  # the mean over the seeds
+                        success=f"{fmean(evaluation.success):.2f}",
+                        value_error=f"{fmean(evaluation.value_error):.3f}",
                     )
                     if report:
                         self._log_lines(evaluation, rows, frames, budget // n)
@@ -258,11 +251,13 @@ class SeedLoop:
         self.seeds = list(seeds) if seeds is not None else list(range(n))
         self.progress, self.checkpoints = progress, checkpoints
 
-    def latest(self, counters: SavedCounters) -> str | None:
+    def latest(self, counters: SavedCounters, where: str) -> str | None:
         """The newest checkpoint, its ``counters`` loaded first (its form is checked there)."""
         latest = self.checkpoints.latest() if self.checkpoints is not None else None
         if latest is not None:
             self.checkpoints.load(latest, {"counters": counters})
+            seeds = f", {self.n} seeds" if self.n > 1 else ""
+            log.info("%s%s: resuming from %s", where, seeds, latest)
         return latest
 
     def restore(self, latest: str, state: dict[str, Any], counters: SavedCounters) -> None:

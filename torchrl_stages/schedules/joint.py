@@ -92,10 +92,7 @@ class JointTrainer(StageTeam):
             "counters": counters,
             **{f"replay_buffer_{m}": b for m, b in enumerate(self.buffers)},
         }
-        latest = self.latest(counters)
-        if latest is not None:
-            seeds = f", {self.n} seeds" if self.n > 1 else ""
-            log.info("joint%s: resuming from %s", seeds, latest)
+        latest = self.latest(counters, "joint")
         start = time.perf_counter() - counters.seconds
         watch = Stopwatch()
         for index in range(counters.phase, len(self.starts)):
