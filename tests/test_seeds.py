@@ -49,12 +49,7 @@ from torchrl_stages.runs.loading import load_run
 from torchrl_stages.schedules import backward as backward_module
 from torchrl_stages.schedules import flat as flat_module
 from torchrl_stages.schedules.backward import train_backward
-from torchrl_stages.schedules.joint import (
-    JointSchedule,
-    JointTrainer,
-    seed_moments,
-    train_joint,
-)
+from torchrl_stages.schedules.joint import JointSchedule, JointTrainer, seed_moments
 from torchrl_stages.task import StagedTask, tile_starts
 
 # a 1 x 6 x 6 occupancy image and a 2-vector, like the cargo stages' window and target
@@ -472,7 +467,7 @@ def test_the_joint_phases_of_stacked_seeds_log_the_seeds_still_training(monkeypa
     # from then on only seed 1's evaluations are logged, until the next phase
     monkeypatch.setattr(sys, "stderr", io.StringIO())
     caplog.set_level(logging.INFO, logger="torchrl_stages")
-    train_joint(_tiny_task(frames=1024), [1, 2], progress=True)
+    JointSchedule().train(_tiny_task(frames=1024), [1, 2], progress=True)
     phase_1 = [line for line in _logged(caplog) if "the joint phase from stage 1 (b)" in line]
     seeds = [line.split(":")[0] for line in phase_1]
     assert seeds == ["seed 1", "seed 2"] * 6 + ["seed 1"] * 2
@@ -688,7 +683,7 @@ def test_an_interrupted_joint_run_of_many_seeds_resumes_bitwise_from_its_checkpo
         def checkpoints(scope):
             return StageCheckpoints(root / scope, every=256, keep=2)
 
-        return train_joint(task, seeds, logs=logs, checkpoints=checkpoints)
+        return JointSchedule().train(task, seeds, logs=logs, checkpoints=checkpoints)
 
     reference = launch(tmp_path / "reference")
     stops = [[(p["frames"], p["early_stopped"]) for p in run.extra["phases"]] for run in reference]

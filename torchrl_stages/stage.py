@@ -182,7 +182,7 @@ class StageTrainer(SeedLoop):
             self.restore(latest, state, counters)
         start = stops.start = time.perf_counter() - counters.seconds
         watch = Stopwatch()
-        loop = self.loop(collector, stops, counters, cfg, state, counters, where, watch)
+        loop = self.loop(collector, stops, counters, state, counters, where, watch)
         loop.register_op("batch", functools.partial(self._store, buffer, watch))
         loop.register_op("update", functools.partial(self._update, buffer, stops, watch))
         loop.register_op("log", functools.partial(self._log_batch, collector, stops))

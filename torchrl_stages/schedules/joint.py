@@ -163,7 +163,7 @@ class JointTrainer(StageTeam):
             if start_stage is None
             else f"stage {start_stage} ({self.task.stage_names[start_stage]})"
         )
-        loop = self.loop(collector, stops, phase, cfg, state, counters, where, watch, frames_before)
+        loop = self.loop(collector, stops, phase, state, counters, where, watch, frames_before)
 
         def on_batch(batch: TensorDictBase) -> None:
             counters.frames = frames_before + collector.frames // n
@@ -268,11 +268,6 @@ class JointSchedule(Schedule):
         if scope is not None:
             scope.clear()
         return trained
-
-
-def train_joint(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """The joint schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s)."""
-    return JointSchedule().train(task, seeds, **kwargs)
 
 
 def log_phases(phases: Sequence[dict[str, Any]], who: str = "joint") -> None:
