@@ -638,9 +638,11 @@ def test_each_joint_seed_starts_from_the_weights_of_its_own_joint_run():
     task = _tiny_task()
     trainer = JointTrainer(task, [4, 1])
     assert trainer.buffers[0].num_seeds == 2
-    assert trainer._env(1, 16).batch_size == (32,)  # one copy of each batch per seed
-    starts = JointTrainer(task)._env(1, 8, eval_env=True).batch_size[0]  # every stage-1 start
-    assert trainer._env(1, 8, eval_env=True).batch_size[0] == 2 * starts
+    cfg = task.stage_cfg(1)
+    env, eval_env = trainer._phase_envs(1, 1, cfg)
+    assert env.batch_size == (2 * int(cfg.num_envs),)  # one copy of each batch per seed
+    starts = JointTrainer(task)._phase_envs(1, 1, cfg)[1].batch_size[0]  # every stage-1 start
+    assert eval_env.batch_size[0] == 2 * starts
     for i, seed in enumerate([4, 1]):
         single = JointTrainer(task, [seed]).learners
         for m, learner in enumerate(single):
