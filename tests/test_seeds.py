@@ -46,14 +46,10 @@ from torchrl_stages.preemption import Interrupted
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.runs.experiment import Experiment, validate_seeds
 from torchrl_stages.runs.loading import load_run
+from torchrl_stages.schedules import backward as backward_module
 from torchrl_stages.schedules import flat as flat_module
 from torchrl_stages.schedules.backward import train_backward
-from torchrl_stages.schedules.joint import (
-    JointSchedule,
-    JointTrainer,
-    seed_moments,
-    train_joint,
-)
+from torchrl_stages.schedules.joint import JointSchedule, JointTrainer, seed_moments
 from torchrl_stages.task import StagedTask, tile_starts
 
 # a 1 x 6 x 6 occupancy image and a 2-vector, like the cargo stages' window and target
@@ -471,7 +467,7 @@ def test_the_joint_phases_of_stacked_seeds_log_the_seeds_still_training(monkeypa
     # from then on only seed 1's evaluations are logged, until the next phase
     monkeypatch.setattr(sys, "stderr", io.StringIO())
     caplog.set_level(logging.INFO, logger="torchrl_stages")
-    train_joint(_tiny_task(frames=1024), [1, 2], progress=True)
+    JointSchedule().train(_tiny_task(frames=1024), [1, 2], progress=True)
     phase_1 = [line for line in _logged(caplog) if "the joint phase from stage 1 (b)" in line]
     seeds = [line.split(":")[0] for line in phase_1]
     assert seeds == ["seed 1", "seed 2"] * 6 + ["seed 1"] * 2
@@ -541,12 +537,12 @@ def test_each_flat_seed_starts_from_the_weights_of_its_own_flat_run(monkeypatch)
 
         return trainer
 
-    monkeypatch.setattr(flat_module, "StageTrainer", capture("trainer"))
+    monkeypatch.setattr(backward_module, "StageTrainer", capture("trainer"))
     with pytest.raises(_Captured):
         flat_module.train_flat(task, [4, 1])
     stacked, env, eval_env, kwargs = seen["trainer"]
     assert kwargs["gammas"] == [0.9, 0.5] and kwargs["extra_keys"] == ["steps_to_next_obs"]
-    single_env = flat_module.flat_envs(task, flat_module.flat_config(task), 4)[0]
+    single_env = task.task_env(int(task.stage_cfg(0).num_envs), start_stage=None, train=True)
     assert env.batch_size[0] == 2 * single_env.batch_size[0]
     assert eval_env.batch_size[0] == 2 * task.task_env(None).batch_size[0]
     for i, seed in enumerate([4, 1]):
@@ -642,9 +638,11 @@ def test_each_joint_seed_starts_from_the_weights_of_its_own_joint_run():
     task = _tiny_task()
     trainer = JointTrainer(task, [4, 1])
     assert trainer.buffers[0].num_seeds == 2
-    assert trainer._env(1, 16).batch_size == (32,)  # one copy of each batch per seed
-    starts = JointTrainer(task)._env(1, 8, eval_env=True).batch_size[0]  # every stage-1 start
-    assert trainer._env(1, 8, eval_env=True).batch_size[0] == 2 * starts
+    cfg = task.stage_cfg(1)
+    env, eval_env = trainer._phase_envs(1, 1, cfg)
+    assert env.batch_size == (2 * int(cfg.num_envs),)  # one copy of each batch per seed
+    starts = JointTrainer(task)._phase_envs(1, 1, cfg)[1].batch_size[0]  # every stage-1 start
+    assert eval_env.batch_size[0] == 2 * starts
     for i, seed in enumerate([4, 1]):
         single = JointTrainer(task, [seed]).learners
         for m, learner in enumerate(single):
@@ -687,7 +685,7 @@ def test_an_interrupted_joint_run_of_many_seeds_resumes_bitwise_from_its_checkpo
         def checkpoints(scope):
             return StageCheckpoints(root / scope, every=256, keep=2)
 
-        return train_joint(task, seeds, logs=logs, checkpoints=checkpoints)
+        return JointSchedule().train(task, seeds, logs=logs, checkpoints=checkpoints)
 
     reference = launch(tmp_path / "reference")
     stops = [[(p["frames"], p["early_stopped"]) for p in run.extra["phases"]] for run in reference]

@@ -5,9 +5,8 @@ import torch
 from omegaconf import OmegaConf
 from torch import nn
 
-from torchrl_stages.early_stop import EarlyStop
+from torchrl_stages.early_stop import EarlyStop, can_stop_early
 from torchrl_stages.learners.dqn import DQNConfig
-from torchrl_stages.loop import can_stop_early
 
 
 def _cfg(**kw):
@@ -35,7 +34,7 @@ def test_early_stop_needs_patience_tolerance_and_min_frames():
     assert not monitor.record(learner, 1.0, 0.01, 300)
     assert monitor.record(learner, 1.0, 0.01, 400)
     assert monitor.stopped and not monitor.restore_best(learner)
-    assert monitor.final == (1.0, 0.01)
+    assert monitor.final == (1.0, 0.01, None)
 
 
 def test_without_value_tolerance_success_alone_stops_the_stage():
@@ -44,7 +43,7 @@ def test_without_value_tolerance_success_alone_stops_the_stage():
     assert not monitor.record(learner, 0.97, 0.0, 100)
     assert not monitor.record(learner, 1.0, 0.9, 200)  # values far off: not checked
     assert monitor.record(learner, 0.98, 0.5, 300)
-    assert monitor.stopped and monitor.final == (0.98, 0.5)
+    assert monitor.stopped and monitor.final == (0.98, 0.5, None)
 
 
 def test_budget_exhausted_restores_best_evaluation():
@@ -55,7 +54,7 @@ def test_budget_exhausted_restores_best_evaluation():
         assert not monitor.record(learner, success, error, 0)
     assert monitor.restore_best(learner)
     assert learner.weight.item() == 2.0
-    assert monitor.final == (1.0, 0.02)
+    assert monitor.final == (1.0, 0.02, None)
 
 
 def test_ties_prefer_lower_value_error_and_last_best_is_kept():
@@ -76,7 +75,7 @@ def test_keep_best_off_keeps_last_weights():
     monitor.record(learner, 0.0, 1.0, 0)
     assert not monitor.restore_best(learner)
     assert torch.equal(learner.weight, torch.full((1, 1), 6.0))
-    assert monitor.final == (0.0, 1.0)
+    assert monitor.final == (0.0, 1.0, None)
 
 
 def test_keep_best_by_return_prefers_the_highest_discounted_return():
@@ -92,25 +91,25 @@ def test_keep_best_by_return_prefers_the_highest_discounted_return():
         learner.weight.data.fill_(value)
         monitor.record(learner, success, error, 0, ret)
     assert monitor.restore_best(learner)  # success first, then return (not value error)
-    assert learner.weight.item() == 3.0 and monitor.final == (1.0, 0.2)
-    assert monitor.final_return == 0.4  # the return of the evaluation it restored
+    assert learner.weight.item() == 3.0
+    assert monitor.final == (1.0, 0.2, 0.4)  # the return of the evaluation it restored
 
 
 def test_final_return_is_that_of_the_evaluation_the_stage_ends_with():
     stopping = EarlyStop(_cfg(success_threshold=1.0, value_tolerance=None, patience=1))
     assert not stopping.record(_learner(0.0), 0.5, 0.1, 0, 0.7)
     assert stopping.record(_learner(0.0), 1.0, 0.1, 0, 0.3)
-    assert stopping.final_return == 0.3  # its stop, not its best return
+    assert stopping.final[2] == 0.3  # its stop, not its best return
     budget = EarlyStop(_cfg(success_threshold=1.0, patience=3))
     budget.record(_learner(0.0), 1.0, 0.02, 0, 0.6)
     budget.record(_learner(0.0), 0.8, 0.01, 0, 0.9)
-    assert budget.final == (1.0, 0.02) and budget.final_return == 0.6  # its best evaluation
+    assert budget.final == (1.0, 0.02, 0.6)  # its best evaluation
     restored = EarlyStop(_cfg(success_threshold=1.0, patience=3))
     restored.load_state_dict(budget.state_dict())
-    assert restored.final_return == 0.6
+    assert restored.final[2] == 0.6
     old = {k: v for k, v in budget.state_dict().items() if not k.endswith("_return")}
     restored.load_state_dict(old)  # a checkpoint from before the returns were kept
-    assert restored.final == (1.0, 0.02) and restored.final_return is None
+    assert restored.final == (1.0, 0.02, None)
 
 
 def test_a_checkpoint_of_an_earlier_version_is_refused_with_the_fix(tmp_path):

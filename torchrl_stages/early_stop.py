@@ -17,11 +17,20 @@ from torchrl_stages.learners import Learner
 from torchrl_stages.learners.stacking import seed_axes
 
 
+def can_stop_early(cfg: StageConfig) -> bool:
+    """Whether an early stop can end a loop of ``cfg`` before its frame budget."""
+    return (
+        cfg.success_threshold is not None
+        and int(cfg.eval_every) > 0
+        and int(cfg.min_frames) <= int(cfg.frames)
+    )
+
+
 def first_evaluation(cfg: StageConfig) -> int:
     """Frames of a stage's first evaluation: ``eval_every``, or, with an early stop, the first of
     the ``patience`` evaluations that can stop the stage at ``min_frames``."""
     first = int(cfg.eval_every)
-    if cfg.success_threshold is not None and int(cfg.min_frames) <= int(cfg.frames):
+    if can_stop_early(cfg):
         first = max(first, int(cfg.min_frames) - (int(cfg.patience) - 1) * first)
     return first
 
@@ -101,20 +110,11 @@ class EarlyStop:
         return changed
 
     @property
-    def final(self) -> tuple[float | None, float | None]:
-        """(success, value error) of the weights the stage ends with."""
-        if self.last is None:
-            return None, None
+    def final(self) -> tuple[float | None, float | None, float | None]:
+        """(success, value error, discounted return) of the weights the stage ends with."""
         if self.stopped or self.best is None:
-            return self.last
-        return self.best  # restore_best puts these weights back
-
-    @property
-    def final_return(self) -> float | None:
-        """Mean discounted return of the evaluation :attr:`final` reports."""
-        if self.stopped or self.best is None:
-            return self.last_return
-        return self.best_return
+            return (*(self.last or (None, None)), self.last_return)
+        return (*self.best, self.best_return)  # restore_best puts these weights back
 
 
 class SeedRow:
@@ -170,11 +170,6 @@ def seed_rows(learners: Learner | Sequence[Learner]) -> list[Any]:
     return [SeedRow(learners, i) for i in range(int(seeds))]
 
 
-def finite(state: dict[str, torch.Tensor]) -> bool:
-    """Whether every floating-point entry of ``state`` is finite."""
-    return all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point())
-
-
 class SeedEarlyStops:
     """One :class:`EarlyStop` per seed of ``rows``; a seed that stops keeps its weights, frames,
     updates and seconds (:attr:`stopped_at`) while the others train on.
@@ -191,6 +186,7 @@ class SeedEarlyStops:
 
     def __init__(self, cfg: StageConfig, rows: Sequence[Any], start: float = 0.0) -> None:
         self.start = start  # what stop times are measured from
+        self.cfg = cfg
         self.rows = list(rows)
         self.monitors = [EarlyStop(cfg) for _ in self.rows]
         self.stopped_at: list[dict | None] = [None] * len(self.rows)
@@ -222,11 +218,11 @@ class SeedEarlyStops:
         if at is not None:
             self.rows[i].load_state_dict(at["state"])
         restored = at is None and monitor.restore_best(self.rows[i])
-        success, value_error = monitor.final
+        success, value_error, ret = monitor.final
         return {
             "success_rate": success,
             "value_error": value_error,
-            "discounted_return": monitor.final_return,
+            "discounted_return": ret,
             "early_stopped": monitor.stopped,
             "restored_best": restored,
         }

@@ -10,7 +10,6 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
-from torchrl_stages.early_stop import finite
 from torchrl_stages.learners import Learner
 from torchrl_stages.transforms import NonFiniteInputError
 
@@ -18,7 +17,12 @@ from torchrl_stages.transforms import NonFiniteInputError
 #: anything is written), a run that diverged
 EXIT_FAILED, EXIT_INVALID, EXIT_DIVERGED = 1, 2, 3
 
-__all__ = ["DivergenceError", "EnvError", "non_finite_entries", "one_line", "stage_failure"]
+__all__ = ["DivergenceError", "EnvError", "one_line", "stage_failure"]
+
+
+def finite(value: torch.Tensor) -> bool:
+    """Whether ``value`` holds no NaN or infinity (any non-floating tensor does not)."""
+    return not value.is_floating_point() or bool(torch.isfinite(value).all())
 
 
 class EnvError(RuntimeError):
@@ -34,25 +38,8 @@ class EnvError(RuntimeError):
         self.stage, self.key = stage, key
 
 
-def non_finite_entries(td: TensorDictBase, skip: Sequence[NestedKey] = ()) -> list[NestedKey]:
-    """The floating-point entries of ``td`` holding a NaN or an infinity (``skip`` aside).
-
-    Examples:
-        >>> from tensordict import TensorDict
-        >>> td = TensorDict(obs=torch.tensor([[0.0, float("nan")]]), action=torch.ones(1, 1),
-        ...                 batch_size=[1])
-        >>> non_finite_entries(td)
-        ['obs']
-    """
-    skip_keys = {(k,) if isinstance(k, str) else tuple(k) for k in skip}
-    found = []
-    for key, value in td.items(True, True):
-        tup = (key,) if isinstance(key, str) else tuple(key)
-        if tup in skip_keys or tup[-1:] in skip_keys or not value.is_floating_point():
-            continue
-        if not bool(torch.isfinite(value).all()):
-            found.append(key)
-    return found
+def _path(key: NestedKey) -> tuple[str, ...]:
+    return (key,) if isinstance(key, str) else tuple(key)
 
 
 def stage_failure(
@@ -68,11 +55,16 @@ def stage_failure(
     (``held``: the replay buffer's, actions aside) is not finite, else :class:`DivergenceError`."""
     if isinstance(err, NonFiniteInputError):
         return EnvError(stage, name, err.key, "the next stage's value of it is not finite")
-    bad = non_finite_entries(held, skip=[learner.specs.action_key]) if held is not None else []
-    if bad:
-        return EnvError(stage, name, bad[0], f"found in the replay buffer after: {err}")
+    action = _path(learner.specs.action_key)
+    for key, value in held.items(True, True) if held is not None else ():
+        if action not in (_path(key), _path(key)[-1:]) and not finite(value):
+            return EnvError(stage, name, key, f"found in the replay buffer after: {err}")
     if len(seeds) > 1:
-        broken = [s for s, row in zip(seeds, rows, strict=True) if not finite(row.state_dict())]
+        broken = [
+            s
+            for s, row in zip(seeds, rows, strict=True)
+            if not all(map(finite, row.state_dict().values()))
+        ]
         if broken:
             err = FloatingPointError(f"{err} (seeds {broken}: their weights are not finite)")
     return DivergenceError(stage, name, learner, err)

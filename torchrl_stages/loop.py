@@ -10,6 +10,7 @@ from collections import defaultdict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from statistics import fmean
 from typing import Any
 
 import torch
@@ -18,28 +19,18 @@ from tqdm.auto import tqdm
 
 from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, SavedCounters, StageCheckpoints
 from torchrl_stages.collector import StageCollector
-from torchrl_stages.config import StageConfig
-from torchrl_stages.early_stop import Evaluation, SeedEarlyStops
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, can_stop_early
 from torchrl_stages.metric_names import STAGE, metric_name
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import Interrupted, requested
 from torchrl_stages.threads import keep_threads
 
-__all__ = ["LoopCounters", "SeedLoop", "Stopwatch", "Trainer", "can_stop_early", "loss_means"]
+__all__ = ["LoopCounters", "SeedLoop", "Stopwatch", "Trainer", "loss_means"]
 
 log = logging.getLogger("torchrl_stages")
 
 #: the hook points of :class:`Trainer`, in the order a batch meets them
 HOOKS = ("batch", "update", "log", "evaluate", "evaluated", "checkpoint")
-
-
-def can_stop_early(cfg: StageConfig) -> bool:
-    """Whether an early stop can end a loop of ``cfg`` before its frame budget."""
-    return (
-        cfg.success_threshold is not None
-        and int(cfg.eval_every) > 0
-        and int(cfg.min_frames) <= int(cfg.frames)
-    )
 
 
 def loss_means(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, list[float]]:
@@ -75,13 +66,12 @@ class Stopwatch:
 
     def timed(self, phase: str, iterable):
         """Yields from ``iterable``, timing each ``next`` as ``phase``."""
-        iterator = iter(iterable)
+        iterator, end = iter(iterable), object()
         while True:
             with self(phase):
-                try:
-                    item = next(iterator)
-                except StopIteration:
-                    return
+                item = next(iterator, end)
+            if item is end:
+                return
             yield item
 
 
@@ -102,20 +92,13 @@ class LoopCounters(SavedCounters):
     format: int = CHECKPOINT_FORMAT  # what a resumed loop checks first
 
 
-def _shown(value: float | Sequence[float], digits: int) -> str:
-    """A progress bar's number: one value, or the mean of one per seed."""
-    if isinstance(value, Sequence):
-        value = sum(value) / len(value)
-    return f"{value:.{digits}f}"
-
-
 class Trainer:
     """The loop: for every batch of ``collector`` (``seeds`` equal, seed-major parts) the hooks
     ``batch(batch)``, ``update(frames) -> losses``, ``log(batch, losses)``; every ``eval_every``
     frames ``evaluate(frames) -> Evaluation`` and ``evaluated(evaluation)``; ``checkpoint()``
     before a checkpoint of ``state`` is written (when due, or when a stop was asked for: then
     :class:`~torchrl_stages.preemption.Interrupted` is raised). It ends at the budget or once
-    every seed has stopped; ``open_ended``: an early stop may end it before its budget.
+    every seed has stopped (``early_stop``'s config: how often it evaluates, whether it may stop).
 
     Examples:
         >>> import torch
@@ -126,7 +109,8 @@ class Trainer:
         ...                           ["observation"], ["action"])
         >>> collector = StageCollector(GridWorldEnv((4,)), policy, frames_per_batch=8,
         ...                            total_frames=32)
-        >>> loop = Trainer(collector, SeedEarlyStops(DQNConfig(), [None]), LoopCounters(0))
+        >>> stops = SeedEarlyStops(DQNConfig(eval_every=0), [None])
+        >>> loop = Trainer(collector, stops, LoopCounters(0))
         >>> seen = []
         >>> loop.register_op("batch", lambda batch: seen.append(batch.numel()))
         >>> loop.train()
@@ -140,7 +124,6 @@ class Trainer:
         early_stop: SeedEarlyStops,
         counters: LoopCounters,
         *,
-        eval_every: int = 0,
         checkpoints: StageCheckpoints | None = None,
         state: dict[str, Any] | None = None,
         seeds: Sequence[int] = (0,),
@@ -148,13 +131,13 @@ class Trainer:
         where: str = "the loop",
         watch: Stopwatch | None = None,
         progress: bool = False,
-        open_ended: bool = False,
     ) -> None:
         self.collector, self.early_stop, self.counters = collector, early_stop, counters
-        self.eval_every, self.checkpoints, self.state = int(eval_every), checkpoints, state or {}
+        self.checkpoints, self.state = checkpoints, state or {}
         self.seeds, self.frames_before, self.where = list(seeds), int(frames_before), where
         self.watch = watch if watch is not None else Stopwatch()
-        self.progress, self.open_ended = progress, open_ended
+        self.eval_every = int(early_stop.cfg.eval_every)
+        self.progress, self.open_ended = progress, can_stop_early(early_stop.cfg)
         n = len(self.seeds)
         self.label = where + (f", {n} seeds" if n > 1 else "")
         self.ops: dict[str, list[Callable[..., Any]]] = {point: [] for point in HOOKS}
@@ -202,9 +185,9 @@ class Trainer:
                     rows = self.early_stop.active()  # a seed this evaluation stops is logged
                     with watch("evaluate"):
                         evaluation: Evaluation = self._call("evaluate", frames)
-                    bar.set_postfix(
-                        success=_shown(evaluation.success, 2),
-                        value_error=_shown(evaluation.value_error, 3),
+                    bar.set_postfix(  # the mean over the seeds
+                        success=f"{fmean(evaluation.success):.2f}",
+                        value_error=f"{fmean(evaluation.value_error):.3f}",
                     )
                     if report:
                         self._log_lines(evaluation, rows, frames, budget // n)
@@ -258,11 +241,13 @@ class SeedLoop:
         self.seeds = list(seeds) if seeds is not None else list(range(n))
         self.progress, self.checkpoints = progress, checkpoints
 
-    def latest(self, counters: SavedCounters) -> str | None:
+    def latest(self, counters: SavedCounters, where: str) -> str | None:
         """The newest checkpoint, its ``counters`` loaded first (its form is checked there)."""
         latest = self.checkpoints.latest() if self.checkpoints is not None else None
         if latest is not None:
             self.checkpoints.load(latest, {"counters": counters})
+            seeds = f", {self.n} seeds" if self.n > 1 else ""
+            log.info("%s%s: resuming from %s", where, seeds, latest)
         return latest
 
     def restore(self, latest: str, state: dict[str, Any], counters: SavedCounters) -> None:
@@ -280,14 +265,13 @@ class SeedLoop:
         collector: StageCollector,
         stops: SeedEarlyStops,
         counters: LoopCounters,
-        cfg: StageConfig,
         state: dict[str, Any],
         saved: SavedCounters,
         where: str,
         watch: Stopwatch,
         frames_before: int = 0,
     ) -> Trainer:
-        """The :class:`Trainer` of ``cfg``; ``saved`` takes the seconds and log positions."""
+        """The :class:`Trainer` of ``stops``; ``saved`` takes the seconds and log positions."""
 
         def record() -> None:
             saved.seconds = time.perf_counter() - stops.start
@@ -297,12 +281,10 @@ class SeedLoop:
             collector,
             stops,
             counters,
-            eval_every=int(cfg.eval_every),
             checkpoints=self.checkpoints,
             state=state,
             seeds=self.seeds,
             progress=self.progress,
-            open_ended=can_stop_early(cfg),
             where=where,
             watch=watch,
             frames_before=frames_before,

@@ -41,44 +41,32 @@ class SeedReplayBuffer:
         element's seed) each element to its seed's ring."""
         n = self.num_seeds
         if seeds is None:
-            batch = batch.reshape(n, -1).to(self.device)
-            m = batch.shape[1]
-            self._allocate(batch, 2)
-            if m > self.size:  # only the newest fit
-                batch, m = batch[:, m - self.size :], self.size
-            cursor = int(self.cursors[0])  # every seed's ring moves together here
-            index = (cursor + torch.arange(m, device=self.device)) % self.size
-            for key, value in batch.items(True, True):
-                self.storage.get(key)[:, index] = value
-            added = torch.full((n,), m, dtype=torch.long)
-        else:
-            batch = batch.reshape(-1).to(self.device)
-            seeds = seeds.reshape(-1).cpu()
-            added = torch.bincount(seeds, minlength=n)
-            if added.numel() != n:
-                raise ValueError(f"a seed index outside 0..{n - 1}")
-            # each element's place among its seed's elements, the newest ``size`` kept
-            order = torch.argsort(seeds, stable=True)
-            rank = torch.empty_like(seeds)
-            rank[order] = torch.arange(seeds.numel()) - (added.cumsum(0) - added)[seeds[order]]
-            keep = rank >= (added - self.size).clamp(min=0)[seeds]
-            slot = (self.cursors[seeds] + rank) % self.size
-            self._allocate(batch, 1)
-            rows, slot = seeds[keep].to(self.device), slot[keep].to(self.device)
-            kept = keep.to(self.device)
-            for key, value in batch.items(True, True):
-                self.storage.get(key)[rows, slot] = value[kept]
+            seeds = torch.arange(n).repeat_interleave(batch.numel() // n)
+        batch = batch.reshape(-1).to(self.device)
+        seeds = seeds.reshape(-1).cpu()
+        added = torch.bincount(seeds, minlength=n)
+        if added.numel() != n:
+            raise ValueError(f"a seed index outside 0..{n - 1}")
+        # each element's place among its seed's elements, the newest ``size`` kept
+        order = torch.argsort(seeds, stable=True)
+        rank = torch.empty_like(seeds)
+        rank[order] = torch.arange(seeds.numel()) - (added.cumsum(0) - added)[seeds[order]]
+        keep = rank >= (added - self.size).clamp(min=0)[seeds]
+        slot = (self.cursors[seeds] + rank) % self.size
+        self._allocate(batch)
+        rows, slot = seeds[keep].to(self.device), slot[keep].to(self.device)
+        kept = keep.to(self.device)
+        for key, value in batch.items(True, True):
+            self.storage.get(key)[rows, slot] = value[kept]
         self.cursors = (self.cursors + added) % self.size
         self.counts = (self.counts + added).clamp(max=self.size)
 
-    def _allocate(self, batch, skip: int) -> None:
-        """The storage, the first time: entries of ``batch`` past its ``skip`` leading dims."""
+    def _allocate(self, batch) -> None:
+        """The storage, the first time, of the entries of the ``[elements]`` ``batch``."""
         if self.storage is None:
             n = self.num_seeds
             self.storage = batch.apply(
-                lambda x: torch.zeros(
-                    (n, self.size, *x.shape[skip:]), dtype=x.dtype, device=x.device
-                ),
+                lambda x: torch.zeros((n, self.size, *x.shape[1:]), dtype=x.dtype, device=x.device),
                 batch_size=[n, self.size],
             )
 
@@ -103,7 +91,7 @@ class SeedReplayBuffer:
         if state["storage"] is None:
             return
         held = TensorDict(state["storage"], batch_size=[n, int(counts.max())], device=self.device)
-        self._allocate(held, 2)
+        self._allocate(held.reshape(-1))
         self.storage[:, : held.shape[1]] = held
 
     def sample(self, batch_size: int, rows: torch.Tensor | None = None):

@@ -4,7 +4,6 @@ learner sharing the env's random streams) and what it returns (:class:`StageResu
 from __future__ import annotations
 
 import functools
-import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -32,8 +31,6 @@ from torchrl_stages.threads import keep_threads
 from torchrl_stages.transforms import NonFiniteValueError
 
 __all__ = ["StageResult", "StageTrainer", "gradient_steps", "per_seed_metrics"]
-
-log = logging.getLogger("torchrl_stages")
 
 
 @dataclass
@@ -179,15 +176,13 @@ class StageTrainer(SeedLoop):
             "monitor": stops,
             "counters": counters,
         }
-        latest = self.latest(counters)
+        where = f"stage {self.stage} ({self.name})"
+        latest = self.latest(counters, where)
         if latest is not None:
             self.restore(latest, state, counters)
-            seeds = f", {n} seeds" if n > 1 else ""
-            log.info("stage %d (%s)%s: resuming from %s", self.stage, self.name, seeds, latest)
         start = stops.start = time.perf_counter() - counters.seconds
         watch = Stopwatch()
-        where = f"stage {self.stage} ({self.name})"
-        loop = self.loop(collector, stops, counters, cfg, state, counters, where, watch)
+        loop = self.loop(collector, stops, counters, state, counters, where, watch)
         loop.register_op("batch", functools.partial(self._store, buffer, watch))
         loop.register_op("update", functools.partial(self._update, buffer, stops, watch))
         loop.register_op("log", functools.partial(self._log_batch, collector, stops))

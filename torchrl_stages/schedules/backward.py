@@ -14,7 +14,6 @@ from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import check
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.stacking import stack_learners
-from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.schedules.base import Schedule, SeedGroup, Trained, register_schedule
 from torchrl_stages.seeding import EVAL_OFFSET, seeded, stage_seed
 from torchrl_stages.stage import StageResult, StageTrainer
@@ -51,21 +50,63 @@ def stage_value(task: StagedTask, stage: int, learners: Sequence[Learner]) -> Te
     return stack_learners(stacked, learners).value()
 
 
+def run_stage(
+    task: StagedTask,
+    stage: int,
+    cfg: DictConfig,
+    train_env: Callable[[int], EnvBase],
+    eval_env: Callable[[int], EnvBase],
+    group: SeedGroup,
+    *,
+    on_evaluate: Callable[[Learner, int], None] | None = None,
+    **kwargs,
+) -> list[tuple[Learner, StageResult]]:
+    """Trains a learner of ``cfg`` as stage ``stage`` for every seed of ``group``, its envs
+    (``train_env(copies)``, ``eval_env(copies)``) seeded by the seeding rule; ``kwargs``:
+    :class:`StageTrainer`'s. ``on_evaluate(learner, frames)``: one seed."""
+    seeds, specs = group.seeds, task.specs(stage)
+
+    def make(seeds: int | None = None) -> Learner:
+        return make_learner(cfg, specs, group.compile, task.device, seeds=seeds)
+
+    def envs() -> tuple[EnvBase, EnvBase]:
+        env = train_env(len(seeds))
+        env.set_seed(stage_seed(seeds[0], stage))
+        evaluation = eval_env(len(seeds))
+        evaluation.set_seed(stage_seed(seeds[0], stage) + EVAL_OFFSET)
+        return env, evaluation
+
+    learner, (env, evaluation) = seeded(make, seeds, stage_seed(0, stage), envs)
+    trainer = StageTrainer(
+        stage,
+        learner,
+        env,
+        evaluation,
+        cfg,
+        logs=group.logs,
+        make_learner=make,
+        progress=group.progress,
+        seeds=seeds,
+        on_evaluate=None if on_evaluate is None else functools.partial(on_evaluate, learner),
+        **kwargs,
+    )
+    return trainer.train()
+
+
 def train_stage(
     task: StagedTask,
     stage: int,
     next_value: TensorDictModuleBase | None = None,
     *,
     seeds: Sequence[int] = (0,),
-    logs: Sequence[MetricsLog] | None = None,
-    progress: bool = False,
     checkpoints: StageCheckpoints | None = None,
     on_evaluate: Callable[[Learner, int], None] | None = None,
-    compile: str = "off",
+    group: SeedGroup | None = None,
+    **kwargs,
 ) -> list[tuple[Learner, StageResult]]:
     """Trains stage ``stage`` against ``next_value`` (stage ``stage + 1``'s frozen value) for
-    every seed of ``seeds``, as a backward run does; each seed's learner and result. A stage is
-    seeded from the seed and its index alone. ``on_evaluate(learner, frames)``: one seed.
+    every seed of ``seeds`` (or of ``group``; ``kwargs``: :class:`SeedGroup`'s), as a backward run
+    does; each seed's learner and result. A stage is seeded from the seed and its index alone.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -77,34 +118,18 @@ def train_stage(
         >>> [(r.frames, r.stage) for _, r in train_stage(task, 0, seeds=[3])]  # doctest: +SKIP
         [(128, 0)]
     """
-    cfg, specs, n = task.stage_cfg(stage), task.specs(stage), len(seeds)
-
-    def make(seeds: int | None = None) -> Learner:
-        return make_learner(cfg, specs, compile, task.device, seeds=seeds)
-
-    def envs() -> tuple[EnvBase, EnvBase]:
-        env = task.stage_env(stage, int(cfg.num_envs), next_value, copies=n)
-        env.set_seed(stage_seed(seeds[0], stage))
-        eval_env = task.stage_eval_env(stage, next_value, copies=n)
-        eval_env.set_seed(stage_seed(seeds[0], stage) + EVAL_OFFSET)
-        return env, eval_env
-
-    learner, (env, eval_env) = seeded(make, seeds, stage_seed(0, stage), envs)
-    trainer = StageTrainer(
+    cfg = task.stage_cfg(stage)
+    return run_stage(
+        task,
         stage,
-        learner,
-        env,
-        eval_env,
         cfg,
-        logs=logs,
-        make_learner=make,
+        lambda copies: task.stage_env(stage, int(cfg.num_envs), next_value, copies=copies),
+        lambda copies: task.stage_eval_env(stage, next_value, copies=copies),
+        group or SeedGroup(BackwardSchedule.name, list(seeds), **kwargs),
+        on_evaluate=on_evaluate,
         name=task.stage_names[stage],
-        progress=progress,
-        seeds=seeds,
         checkpoints=checkpoints,
-        on_evaluate=None if on_evaluate is None else functools.partial(on_evaluate, learner),
     )
-    return trainer.train()
 
 
 @register_schedule
@@ -135,12 +160,9 @@ class BackwardSchedule(Schedule):
                     task,
                     k,
                     next_value,
-                    seeds=group.seeds,
-                    logs=group.logs,
-                    progress=group.progress,
                     checkpoints=checkpoints,
                     on_evaluate=on_evaluate,
-                    compile=group.compile,
+                    group=group,
                 )
                 done[k] = group.keep(k, trained, checkpoints)
             next_value = stage_value(task, k, [learner for learner, _ in done[k]])

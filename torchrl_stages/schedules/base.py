@@ -66,9 +66,7 @@ class SeedGroup:
     compile: str = "off"
 
     def __post_init__(self) -> None:
-        n = len(self.seeds)
-        self.keepers = list(self.keepers) if self.keepers is not None else [None] * n
-        self.logs = list(self.logs) if self.logs is not None else [MetricsLog(None)] * n
+        self.keepers = list(self.keepers or [None] * len(self.seeds))
 
     def finished(self, stage: int) -> list[tuple[Learner, StageResult]] | None:
         """Each seed's finished ``stage`` when every keeper has it, ``None`` when none has."""

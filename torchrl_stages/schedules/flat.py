@@ -5,13 +5,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from omegaconf import DictConfig
-from torchrl.envs import EnvBase
 
 from torchrl_stages.config import check
-from torchrl_stages.learners import Learner, make_learner
+from torchrl_stages.learners import Learner
+from torchrl_stages.schedules.backward import run_stage
 from torchrl_stages.schedules.base import Schedule, SeedGroup, Trained, register_schedule
-from torchrl_stages.seeding import EVAL_OFFSET, seeded, stage_seed
-from torchrl_stages.stage import StageTrainer
 from torchrl_stages.task import StagedTask
 from torchrl_stages.transforms import StageDiscount
 
@@ -44,19 +42,6 @@ def train_flat(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[
     return FlatSchedule().train(task, seeds, **kwargs)
 
 
-def flat_envs(
-    task: StagedTask, cfg: DictConfig, seed: int, copies: int = 1
-) -> tuple[EnvBase, EnvBase]:
-    """The training env (the task's own starts) and evaluation env (every whole-task start, else
-    ``eval_episodes``), ``copies`` of each, seeded as stage 0's."""
-    env = task.task_env(int(cfg.num_envs), start_stage=None, train=True, copies=copies)
-    env.set_seed(stage_seed(seed, 0))
-    episodes = None if task.start_states(None) is not None else int(cfg.eval_episodes)
-    eval_env = task.task_env(episodes, copies=copies)
-    eval_env.set_seed(stage_seed(seed, 0) + EVAL_OFFSET)
-    return env, eval_env
-
-
 @register_schedule
 class FlatSchedule(Schedule):
     """``schedule=flat``: one learner acting in every stage, in stage 0's file and checkpoints;
@@ -68,40 +53,32 @@ class FlatSchedule(Schedule):
     def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:
         done = group.finished(0)
         if done is None:
-            seeds, cfg, specs = group.seeds, flat_config(task), task.specs(0)
-
-            def make(seeds: int | None = None) -> Learner:
-                return make_learner(cfg, specs, group.compile, task.device, seeds=seeds)
-
-            learner, (env, eval_env) = seeded(
-                make, seeds, 0, lambda: flat_envs(task, cfg, seeds[0], copies=len(seeds))
-            )
+            cfg = flat_config(task)
+            num_envs = int(cfg.num_envs)
+            episodes = None if task.start_states(None) is not None else int(cfg.eval_episodes)
             on_evaluate = None
             if group.probe is not None:
 
-                def on_evaluate(frames: int) -> None:
+                def on_evaluate(learner: Learner, frames: int) -> None:
                     group.probe([learner] * task.num_stages, frames)
 
             gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
             checkpoints = group.begin(0)
-            trainer = StageTrainer(
+            trained = run_stage(
+                task,
                 0,
-                learner,
-                env,
-                eval_env,
                 cfg,
-                logs=group.logs,
-                make_learner=make,
-                name="flat",
-                progress=group.progress,
-                seeds=seeds,
-                checkpoints=checkpoints,
+                lambda copies: task.task_env(num_envs, start_stage=None, train=True, copies=copies),
+                lambda copies: task.task_env(episodes, copies=copies),
+                group,
                 on_evaluate=on_evaluate,
+                name="flat",
+                checkpoints=checkpoints,
                 gammas=gammas,
                 postproc=StageDiscount(gammas, float(cfg.gamma)),
                 extra_keys=["steps_to_next_obs"],
             )
-            done = group.keep(0, trainer.train(), checkpoints)
+            done = group.keep(0, trained, checkpoints)
         return [Trained([learner] * task.num_stages, [result]) for learner, result in done]
 
     def checkpoint_scope(self, stage: int) -> int:

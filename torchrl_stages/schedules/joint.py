@@ -63,24 +63,21 @@ class JointTrainer(StageTeam):
         self.probe = probe
         self.starts = list(reversed(range(task.num_stages))) if task.stage_starts else [None]
 
-    def _env(self, start: int | None, batch_size: int, eval_env: bool = False):
-        """Whole-task env from stage ``start``'s starts, its batch repeated once per seed."""
-        task = self.task
-        starts = task.start_states(start) if eval_env else None
-        if starts is not None:
-            base = task.base_env(**tile_starts(starts, self.n))
-        else:
-            base = task.base_env(batch_size * self.n, start_stage=start)
-        tags = StageTransform(base.stage_fn, base.num_stages)
-        return TransformedEnv(base, tags if eval_env else Compose(tags, RewardSum()))
-
     def _phase_envs(self, k: int, start_stage: int | None, cfg) -> tuple[Any, Any]:
-        """Phase ``k``'s training and evaluation envs, seeded (the global generator too)."""
-        seed = self.seeds[0]
+        """Phase ``k``'s whole-task training and evaluation envs from stage ``start_stage``'s
+        starts, their batch repeated once per seed, seeded (the global generator too)."""
+        task, seed, n = self.task, self.seeds[0], self.n
         torch.manual_seed(phase_seed(seed, k))
-        env = self._env(start_stage, int(cfg.num_envs))
+        base = task.base_env(int(cfg.num_envs) * n, start_stage=start_stage)
+        tags = StageTransform(base.stage_fn, base.num_stages)
+        env = TransformedEnv(base, Compose(tags, RewardSum()))
         env.set_seed(stage_seed(seed, k))
-        eval_env = self._env(start_stage, int(cfg.eval_episodes), eval_env=True)
+        starts = task.start_states(start_stage)
+        if starts is not None:
+            base = task.base_env(**tile_starts(starts, n))
+        else:
+            base = task.base_env(int(cfg.eval_episodes) * n, start_stage=start_stage)
+        eval_env = TransformedEnv(base, StageTransform(base.stage_fn, base.num_stages))
         eval_env.set_seed(stage_seed(seed, k) + EVAL_OFFSET)
         return env, eval_env
 
@@ -92,10 +89,7 @@ class JointTrainer(StageTeam):
             "counters": counters,
             **{f"replay_buffer_{m}": b for m, b in enumerate(self.buffers)},
         }
-        latest = self.latest(counters)
-        if latest is not None:
-            seeds = f", {self.n} seeds" if self.n > 1 else ""
-            log.info("joint%s: resuming from %s", seeds, latest)
+        latest = self.latest(counters, "joint")
         start = time.perf_counter() - counters.seconds
         watch = Stopwatch()
         for index in range(counters.phase, len(self.starts)):
@@ -166,7 +160,7 @@ class JointTrainer(StageTeam):
             if start_stage is None
             else f"stage {start_stage} ({self.task.stage_names[start_stage]})"
         )
-        loop = self.loop(collector, stops, phase, cfg, state, counters, where, watch, frames_before)
+        loop = self.loop(collector, stops, phase, state, counters, where, watch, frames_before)
 
         def on_batch(batch: TensorDictBase) -> None:
             counters.frames = frames_before + collector.frames // n
@@ -271,11 +265,6 @@ class JointSchedule(Schedule):
         if scope is not None:
             scope.clear()
         return trained
-
-
-def train_joint(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[Trained]:
-    """The joint schedule for every seed of ``seeds`` (``kwargs``: :class:`SeedGroup`'s)."""
-    return JointSchedule().train(task, seeds, **kwargs)
 
 
 def log_phases(phases: Sequence[dict[str, Any]], who: str = "joint") -> None:
