@@ -155,7 +155,7 @@ def test_evaluate_task_with_a_scripted_policy():
     task = _grid_task()
     evaluation = evaluate_task(task, _right_then_down(), episodes=3, seed=0)
     rows = torch.arange(SIZE)
-    assert evaluation.all_starts  # every column-0 start once, `episodes` ignored
+    assert evaluation.starts == "all"  # every column-0 start once, `episodes` ignored
     assert len(evaluation.stats.length) == SIZE
     assert evaluation.stats.success.all()
     assert evaluation.stats.length.tolist() == (18 - rows).tolist()

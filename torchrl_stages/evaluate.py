@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -28,17 +28,15 @@ CHUNK = 250  # whole-task episodes per batched rollout (bounds the memory of lon
 def can_step_finished(env: EnvBase) -> bool:
     """Whether :func:`rollout_first_episodes` may step ``env``'s finished elements on: its
     class declares ``can_step_finished``, true, under StageTransforms only."""
-    transforms: list = []
-    while isinstance(env, TransformedEnv):
+    if isinstance(env, TransformedEnv):  # torchrl unwraps nested TransformedEnvs into one
         transform = env.transform
-        transforms += list(transform) if isinstance(transform, Compose) else [transform]
+        parts = list(transform) if isinstance(transform, Compose) else [transform]
+        if not all(isinstance(t, StageTransform) for t in parts):
+            return False
         env = env.base_env
-    if not all(isinstance(t, StageTransform) for t in transforms):
-        return False
     # declared by the env's own class: batched envs and wrappers forward unknown attributes
-    if inspect.getattr_static(type(env), "can_step_finished", None) is None:
-        return False
-    return env.can_step_finished is True
+    declared = inspect.getattr_static(type(env), "can_step_finished", None) is not None
+    return declared and env.can_step_finished is True
 
 
 @torch.no_grad()
@@ -59,9 +57,8 @@ def rollout_first_episodes(
             else:  # step_and_maybe_reset without the reset (torchrl's rollout does the same)
                 td = env.step(td)
                 td_next = env._step_mdp(td)
-                hooks = getattr(env, "_post_step_mdp_hooks", None)
-                if hooks is not None:
-                    td, td_next = hooks(td, td_next)
+                if env._post_step_mdp_hooks is not None:
+                    td, td_next = env._post_step_mdp_hooks(td, td_next)
             steps.append(td)
             finished |= td.get(("next", "done")).reshape(env.batch_size)
             if finished.all():
@@ -183,16 +180,14 @@ class TaskEvaluation:
     steps_per_stage: torch.Tensor  # int64 [E, N]: the steps each episode spent in each stage
     final: TensorDictBase  # the "next" content of every episode's last step [E]
     rollout: TensorDictBase  # the first chunk's rollout, for figures
-    all_starts: bool  # every whole-task start state was evaluated once (else random starts)
-    handoffs: list[Handoffs] = field(default_factory=list)  # per boundary k -> k+1
-    one_start: bool = False  # not all_starts, and every episode had the same start observation
+    starts: str  # "all" (every start state once), else "fixed" (one start for all) or "random"
+    handoffs: list[Handoffs]  # per boundary k -> k+1
 
     def summary(self) -> dict[str, Any]:
         """The numbers ``eval.json`` reports for every task."""
-        starts = "all" if self.all_starts else "fixed" if self.one_start else "random"
         return {
             "episodes": len(self.stats.length),
-            "starts": starts,
+            "starts": self.starts,
             **self.stats.summary(),
             "mean_steps_per_stage": self.steps_per_stage.float().mean(0).tolist(),
         }
@@ -221,10 +216,9 @@ def evaluate_task(
     ``episodes`` random starts in chunks (``interruptible``: a signal stops it between chunks)."""
     all_starts = task.start_states(None) is not None
     sizes = [None] if all_starts else [min(CHUNK, episodes - i) for i in range(0, episodes, CHUNK)]
-    stats, per_stage, final, first = [], [], [], None
-    one_start = True  # so far, every episode from the first one's start observation
+    chunks, per_stage, final, handoffs, first = [], [], [], [], None
+    one_start = not all_starts  # so far, every episode from the first one's start observation
     gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
-    handoffs: list[list[Handoffs]] = []
     for i, size in enumerate(sizes):
         if interruptible:  # a resumed run evaluates again
             stop_if_asked("the whole-task evaluation")
@@ -236,18 +230,19 @@ def evaluate_task(
         in_episode = steps < chunk.length.unsqueeze(-1)
         stage = one_hot(rollout.get("stage").squeeze(-1), task.num_stages).bool()
         per_stage.append((stage & in_episode.unsqueeze(-1)).sum(1))
-        stats.append(chunk)
+        chunks.append(chunk)
         rows = torch.arange(rollout.shape[0], device=chunk.length.device)
         final.append(rollout.get("next")[rows, chunk.length - 1])
         handoffs.append(collect_handoffs(rollout, chunk.length, gammas))
         first = rollout if first is None else first
-        one_start = one_start and not all_starts and _same_starts(env, rollout, first[0, 0])
+        one_start = one_start and _same_starts(env, rollout, first[0, 0])
+    stats = EpisodeStats.cat(chunks)
+    one_start = one_start and len(stats.length) > 1
     return TaskEvaluation(
-        EpisodeStats.cat(stats),
+        stats,
         torch.cat(per_stage),
         torch.cat(final),
         first,
-        all_starts,
+        "all" if all_starts else "fixed" if one_start else "random",
         [Handoffs.cat(parts) for parts in zip(*handoffs, strict=True)],
-        one_start=one_start and sum(len(s.length) for s in stats) > 1,
     )

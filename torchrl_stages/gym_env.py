@@ -25,7 +25,6 @@ from torchrl_stages.transforms import SUCCESS_KEY, StageFn
 
 __all__ = ["GymStageEnv", "SuccessKeyError", "SuccessReader", "threshold_stage"]
 
-_UNSET = object()
 log = logging.getLogger("torchrl_stages")
 # env ids whose resume was warned about: once for all the envs of an id
 _WARNED: set[str] = set()
@@ -163,7 +162,6 @@ class GymStageEnv(GymWrapper):
         wrappers: Sequence[Callable[[gymnasium.Env], gymnasium.Env]] = (),
         batch_size: Sequence[int],
         device: str | torch.device = "cpu",
-        start_stage: Any = _UNSET,
         **kwargs: Any,
     ) -> None:
         batch = tuple(int(b) for b in batch_size)
@@ -176,8 +174,6 @@ class GymStageEnv(GymWrapper):
             )
         # torchrl's GymWrapper metaclass adds this key to every constructor call
         native = kwargs.pop("_torchrl_native_autoreset_requested", False)
-        if start_stage is not _UNSET:
-            kwargs["start_stage"] = start_stage
         made = gymnasium.make(env_id, **kwargs)
         for wrap in wrappers:
             made = wrap(made)

@@ -1,16 +1,5 @@
 """The env protocol: what every task's env has (:class:`StageEnv`) and may add
-(:class:`StageEnvHooks`). It is built as ``Env(batch_size=..., device=..., start_stage=...,
-**task.env)``, ``start_stage`` (``None``: the task's own starts; ``k``: inside stage k) left out
-for a task with ``stage_starts: false``.
-
-Examples:
-    >>> from torchrl_stages.envs import GridWorldEnv
-    >>> env = GridWorldEnv((2,))
-    >>> isinstance(env, StageEnv), env.num_stages
-    (True, 5)
-    >>> [hook for hook in ("start_states", "stage_action_key") if hasattr(env, hook)]
-    ['start_states']
-"""
+(:class:`StageEnvHooks`)."""
 
 from __future__ import annotations
 
@@ -24,7 +13,18 @@ from tensordict.utils import NestedKey
 
 @runtime_checkable
 class StageEnv(Protocol):
-    """What every multi-stage env has besides ``EnvBase``: its stages ``0..num_stages-1``."""
+    """What every multi-stage env has besides ``EnvBase``: its stages ``0..num_stages-1``.
+
+    A task builds it as ``Env(batch_size=..., device=..., start_stage=..., **task.env)``;
+    ``start_stage`` (``None``: the task's own starts; ``k``: inside stage k) is left out for a
+    task with ``stage_starts: false``.
+
+    Examples:
+        >>> from torchrl_stages.envs import GridWorldEnv
+        >>> env = GridWorldEnv((2,))
+        >>> isinstance(env, StageEnv), env.num_stages, isinstance(env, StageEnvHooks)
+        (True, 5, False)
+    """
 
     num_stages: int
 

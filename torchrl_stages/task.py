@@ -9,7 +9,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import Compose, EnvBase, RewardSum, Transform, TransformedEnv
+from torchrl.envs import Compose, EnvBase, RewardSum, TransformedEnv
 
 from torchrl_stages.learners import StageSpecs
 from torchrl_stages.transforms import SUCCESS_KEY, StageTransform
@@ -86,14 +86,15 @@ class StagedTask:
         hook = getattr(self.spec_env, "start_states", None)
         return None if hook is None else hook(stage)
 
-    def _stage_view(
-        self, stage: int, base: EnvBase, next_value: TensorDictModuleBase | None, *more: Transform
+    def _tagged(
+        self, base: EnvBase, stage: int | None, next_value: TensorDictModuleBase | None, train: bool
     ) -> TransformedEnv:
-        gamma = float(self.stage_cfg(stage).gamma)
+        """``base`` with stage tags (stage ``stage``'s view), episode returns with ``train``."""
+        gamma = 0.99 if stage is None else float(self.stage_cfg(stage).gamma)
         tags = StageTransform(
             base.stage_fn, base.num_stages, train_stage=stage, next_value=next_value, gamma=gamma
         )
-        return TransformedEnv(base, Compose(tags, *more))
+        return TransformedEnv(base, Compose(tags, RewardSum()) if train else Compose(tags))
 
     def stage_env(
         self,
@@ -105,7 +106,7 @@ class StagedTask:
     ) -> TransformedEnv:
         """Stage ``stage``'s training env, with the episode returns the training logs read."""
         base = self.base_env(batch_size * copies, start_stage=stage)
-        return self._stage_view(stage, base, next_value, RewardSum())
+        return self._tagged(base, stage, next_value, True)
 
     def stage_eval_env(
         self, stage: int, next_value: TensorDictModuleBase | None = None, *, copies: int = 1
@@ -116,7 +117,7 @@ class StagedTask:
             base = self.base_env(**tile_starts(starts, copies))
         else:
             base = self.base_env(int(self.stage_cfg(stage).eval_episodes) * copies, stage)
-        return self._stage_view(stage, base, next_value)
+        return self._tagged(base, stage, next_value, False)
 
     def task_env(
         self, batch_size: int | None = None, *, train: bool = False, copies: int = 1, **overrides
@@ -132,9 +133,7 @@ class StagedTask:
             kwargs = {**tile_starts(starts, copies), **kwargs}
         else:
             kwargs["batch_size"] = batch_size * copies
-        base = self.base_env(**kwargs)
-        tags = StageTransform(base.stage_fn, base.num_stages)
-        return TransformedEnv(base, Compose(tags, RewardSum()) if train else tags)
+        return self._tagged(self.base_env(**kwargs), None, None, train)
 
     def specs(self, stage: int) -> StageSpecs:
         """Observation and action entries of ``stage``'s learner, read from the env's specs."""

@@ -163,7 +163,6 @@ class StageTransform(_StageView):
         return self.stage
 
     def set_next_value(self, module: TensorDictModuleBase | None) -> None:
-        """Installs a frozen snapshot of the next stage's value module (or removes it)."""
         self.next_value = None if module is None else freeze(module)
 
     def train(self, mode: bool = True) -> StageTransform:
@@ -289,8 +288,6 @@ class StageRewardTransform(_StageView):
         self.__dict__["next_value"] = next_value
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if self.parent is not None:
-            raise RuntimeError(self.ENV_ERR)
         needed = ["stage_transition", "reward", "terminated"]
         needed += ["stage"] if self.next_value is not None else []
         required = ["stage", *(("next", key) for key in needed)]
@@ -326,11 +323,7 @@ class StageDiscount(Transform):
         tensor([0.9000, 0.9900])
     """
 
-    def __init__(
-        self,
-        gammas: Sequence[float],
-        gamma: float,
-    ) -> None:
+    def __init__(self, gammas: Sequence[float], gamma: float) -> None:
         if not 0.0 < gamma < 1.0 and any(g != gamma for g in gammas):
             raise ValueError(f"gamma={gamma} cannot express the stage discounts {list(gammas)}.")
         super().__init__(in_keys=["stage"], out_keys=["steps_to_next_obs"])
