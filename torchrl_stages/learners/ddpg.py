@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
+from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
 from torchrl.objectives.utils import distance_loss
@@ -64,7 +65,6 @@ class DDPGLearner(DeterministicActorCriticLearner):
     def _plain_losses(self, batch: TensorDictBase):
         """``DDPGLoss``: the actor's ``-Q(s, mu(s))`` (critic and shared encoder detached), the
         critic's loss and the saturation penalty."""
-        critic = self.loss.value_network_params
         features = self.features(self.inputs(batch))
         pred = self.critic_net(*self.critic_inputs(features, batch.get(self.specs.action_key)))
         with torch.no_grad():
@@ -75,7 +75,9 @@ class DDPGLearner(DeterministicActorCriticLearner):
         loss_value = self.batch_mean(distance_loss(pred, target, self.cfg.loss_function))
         features = [f.detach() for f in features]
         u = self.actor_head(features)
-        (q,) = self.critic_values(critic.detach(), features, self.squash(u))
+        net = self.critic_net
+        detached = {n: p.detach() for n, p in net.named_parameters()}
+        q = functional_call(net, detached, self.critic_inputs(features, self.squash(u)))
         return -self.batch_mean(q), loss_value, self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
