@@ -151,13 +151,21 @@ class ActorCriticLearner(Learner):
         net = self._target_actor if target else self.actor_module
         return (net.body if self.shared_encoder else net)(*features)
 
+    def critic_inputs(self, features: list[torch.Tensor], action: torch.Tensor) -> tuple:
+        """What :meth:`critic_net` reads: :meth:`features` and the action."""
+        if self.shared_encoder:
+            return (torch.cat([*features, action], -1),)
+        return (*features, action)
+
+    @property
+    def critic_net(self) -> nn.Module:
+        """The critic network after the shared encoder (the whole critic without one)."""
+        return self.critic_module.body if self.shared_encoder else self.critic_module
+
     def critic_values(self, params: TensorDictBase, features, action) -> list[torch.Tensor]:
         """``Q_i(s, a)`` of each critic of the loss ``params`` on :meth:`features`."""
-        inputs = (*features, action)
-        if self.shared_encoder:
-            body = self.critic_module.body
-            return stacked_calls(body, params["module", "body"], torch.cat(inputs, -1))
-        return stacked_calls(self.critic_module, params["module"], *inputs)
+        params = params["module", "body"] if self.shared_encoder else params["module"]
+        return stacked_calls(self.critic_net, params, *self.critic_inputs(features, action))
 
 
 class DeterministicActorCriticLearner(ActorCriticLearner):

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
+from torch.func import functional_call
 from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
 from torchrl.objectives.utils import distance_loss
@@ -17,6 +18,7 @@ from torchrl_stages.learners.actor_critic import (
 )
 from torchrl_stages.learners.base import register_algorithm
 from torchrl_stages.learners.ops import td0_target
+from torchrl_stages.values import with_params
 
 
 @dataclass
@@ -54,22 +56,28 @@ class DDPGLearner(DeterministicActorCriticLearner):
             delay_value=True,
         )
 
+    def make_losses(self) -> None:
+        targets = self.loss.target_value_network_params["module"]
+        targets = targets["body"] if self.shared_encoder else targets
+        self.__dict__["_target_critic"] = with_params(self.critic_net, targets, live=True)
+        super().make_losses()
+
     def _plain_losses(self, batch: TensorDictBase):
         """``DDPGLoss``: the actor's ``-Q(s, mu(s))`` (critic and shared encoder detached), the
         critic's loss and the saturation penalty."""
-        critic = self.loss.value_network_params
         features = self.features(self.inputs(batch))
-        (pred,) = self.critic_values(critic, features, batch.get(self.specs.action_key))
+        pred = self.critic_net(*self.critic_inputs(features, batch.get(self.specs.action_key)))
         with torch.no_grad():
             next_features = self.features(self.inputs(batch, nxt=True), target=True)
             next_action = self.squash(self.actor_head(next_features, target=True))
-            targets = self.loss.target_value_network_params
-            (next_value,) = self.critic_values(targets, next_features, next_action)
+            next_value = self._target_critic(*self.critic_inputs(next_features, next_action))
             target = td0_target(batch, next_value, self.cfg.gamma)
         loss_value = self.batch_mean(distance_loss(pred, target, self.cfg.loss_function))
         features = [f.detach() for f in features]
         u = self.actor_head(features)
-        (q,) = self.critic_values(critic.detach(), features, self.squash(u))
+        net = self.critic_net
+        detached = {n: p.detach() for n, p in net.named_parameters()}
+        q = functional_call(net, detached, self.critic_inputs(features, self.squash(u)))
         return -self.batch_mean(q), loss_value, self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:

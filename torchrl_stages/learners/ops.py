@@ -147,9 +147,9 @@ def td0_target(batch: TensorDictBase, next_value: torch.Tensor, gamma: float) ->
 def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tensor) -> list:
     """``module(*inputs)`` with each parameter set of the stacked ``params`` (twin critics),
     or the one set of unstacked ``params``."""
-    if not params.batch_dims:
-        params = params.unsqueeze(0)
     flat = dict(params.flatten_keys(".").items())
+    if not params.batch_dims:
+        return [functional_call(module, flat, inputs)]
     return [
         functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
         for i in range(params.batch_size[0])
