@@ -138,7 +138,7 @@ class SharedStageStore:
     def put(self, identity: str, state: dict[str, Any], meta: dict[str, Any]) -> Path:
         """Writes entry ``identity``; an entry that another job wrote first is kept."""
         entry = self.path(identity)
-        tmp = self.root / TMP / f"{identity}.{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        tmp = self.root / TMP / f"{identity}.{uuid.uuid4().hex}"
         try:
             tmp.mkdir()
             buffer = io.BytesIO()  # a full disk raises OSError naming the file, not RuntimeError
@@ -200,43 +200,33 @@ class SharedStageStore:
         return found[0]
 
     def prune(self, older_than_s: float | None = None, dry_run: bool = False) -> list[Path]:
-        """Removes damaged entries, those unused for ``older_than_s`` seconds, leftovers of
-        interrupted writes and locks nobody holds; returns what it removed (would remove)."""
-        now, removed = time.time(), []
+        """Removes damaged entries, those unused for ``older_than_s`` seconds, locks nobody
+        holds and what interrupted writes left in ``tmp/``; returns what it removed (would
+        remove). A stage is written in ``tmp/`` under its lock only."""
+        now, removed, held = time.time(), [], set()
         for entry in self.entries():
             stale = older_than_s is not None and now - entry.last_used > older_than_s
             if entry.damaged is not None or stale:
                 removed.append(entry.path)
                 if not dry_run:
                     self._discard(entry.path)
-        for leftover in (self.root / TMP).iterdir():
-            writer = leftover.name.split(".")[-1].split("-")[0]
-            if writer.isdigit() and _alive(int(writer)) and now - leftover.lstat().st_mtime < 86400:
-                continue  # a write in progress
-            removed.append(leftover)
-            if not dry_run:
-                shutil.rmtree(leftover, ignore_errors=True)
         for lock_file in (self.root / LOCKS).iterdir():
-            lock = RunLock(self.root, file=lock_file)
+            lock = self.lock(lock_file.name)
             try:
                 lock.acquire()
-            except RuntimeError:
-                continue  # a job trains that stage now
+            except RunLockedError:
+                held.add(lock_file.name)  # a job trains that stage now
+                continue
             removed.append(lock_file)
             if not dry_run:
                 lock_file.unlink(missing_ok=True)
             lock.release()
+        for leftover in (self.root / TMP).iterdir():
+            if leftover.name.split(".")[0] not in held:
+                removed.append(leftover)
+                if not dry_run:
+                    shutil.rmtree(leftover, ignore_errors=True)
         return removed
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 class StageReuse:
