@@ -47,9 +47,6 @@ def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...]
 ADDED_KEYS: dict[str, Any] = {"all_stages": {}}
 
 
-_TASK_NAME = re.compile(r"^[A-Za-z0-9_]+$")
-
-
 def _interpolations(node: Any) -> Iterator[tuple[str, str]]:
     """``(dotted key, text)`` of every string under ``node`` holding ``${``."""
     return ((k, v) for k, v in leaves(node) if isinstance(v, str) and "${" in v)
@@ -58,7 +55,7 @@ def _interpolations(node: Any) -> Iterator[tuple[str, str]]:
 def shippedtargets(task_name: str) -> dict[str, str] | None:
     """``{dotted key: _target_}`` of the package's ``conf/task/<task_name>.yaml`` env and
     eval env; ``None`` for no such task, or one that leaves its env to the user (``???``)."""
-    if not _TASK_NAME.match(task_name):
+    if not re.fullmatch(r"[A-Za-z0-9_]+", task_name):  # a file name under conf/task
         return None
     source = resources.files("torchrl_stages.conf").joinpath("task", f"{task_name}.yaml")
     if not source.is_file():
