@@ -14,10 +14,12 @@ import pytest
 import torch
 from helpers import TINY_STAGE, hydra_config
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_stages import Experiment, load_policy, load_run
+from torchrl_stages import Experiment, StackedPolicy, load_policy, load_run
+from torchrl_stages.envs import GridWorldEnv
 from torchrl_stages.runs.export import METADATA, export_policy, main
 from torchrl_stages.transforms import StageTransform
 
@@ -104,6 +106,21 @@ def _key(entry: dict):
 
 def _name(entry: dict) -> str:
     return entry["key"] if isinstance(entry["key"], str) else ".".join(entry["key"])
+
+
+def test_a_stacked_policy_exports_with_an_example(tmp_path):
+    """Without a run: the stage function is in the program, which acts on each row's stage."""
+    env = GridWorldEnv(batch_size=(4,), size=10, num_stages=2)
+
+    def move(action: int) -> TensorDictModule:  # 3: right, 1: down
+        return TensorDictModule(
+            lambda o: o[..., 0].long() * 0 + action, ["observation"], ["action"]
+        )
+
+    policy = StackedPolicy([move(3), move(1)], stage_fn=env.stage_fn)
+    file = export_policy(policy, tmp_path / "p.pt2", env.reset())
+    (actions,) = torch.export.load(file).module()(torch.tensor([[0.0, 0.0], [0.0, 1.8]]))
+    assert actions.tolist() == [3, 1]  # cells (0, 0) and (0, 9): stages 0 and 1
 
 
 @pytest.mark.parametrize("task", list(STAGES))

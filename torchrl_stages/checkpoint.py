@@ -82,14 +82,16 @@ class SavedCounters:
 
 
 class TensorStateAdapter(StateDictCheckpointAdapter):
-    """torchrl's state-dict adapter in its tensor + JSON format, with checksums."""
+    """torchrl's state-dict adapter in its tensor + JSON format, with checksums (verified by
+    :func:`verify_checkpoint` before any load)."""
 
     def __init__(self) -> None:
         super().__init__(payload_format="directory")
 
     def save(self, component: Any, path: Path, *, args: tuple, kwargs: Mapping) -> Any:
         state = component.state_dict(*args, **kwargs)
-        ensure_free_space(path.parent, _nbytes(state))
+        nbytes = sum(t.nbytes for t in tree_leaves(state) if isinstance(t, torch.Tensor))
+        ensure_free_space(path.parent, nbytes)
         try:
             super().save(StateOf(lambda: state, None), path, args=(), kwargs={})
         except RuntimeError as err:  # tensordict's memory-mapped writes report OS errors so
@@ -100,10 +102,6 @@ class TensorStateAdapter(StateDictCheckpointAdapter):
             raise OSError(err.errno, err.strerror or str(err), str(path)) from err
         write_checksums(path)
         return state
-
-    def load(self, component: Any, path: Path, **kwargs: Any) -> Any:
-        verify_checksums(path, PAYLOAD_SUFFIXES)
-        return super().load(component, path, **kwargs)
 
 
 def verify_checkpoint(path: Path) -> None:
@@ -220,12 +218,11 @@ class StageCheckpoints:
                 f"checkpoint before it, or delete {self.directory} to restart this stage"
             ) from err
         except (CheckpointError, OSError, RuntimeError, ValueError, KeyError, TypeError) as err:
-            cause = err if isinstance(err, CheckpointFormatError) else err.__cause__
-            if isinstance(cause, CheckpointFormatError):  # torchrl's CheckpointError wraps it
+            if isinstance(err.__cause__, CheckpointFormatError):  # wrapped by torchrl
                 raise CheckpointDamagedError(
                     f"{path} was written by an earlier version of torchrl-stages, whose loops "
-                    f"kept another state ({cause}). Fix: delete {self.directory} to restart "
-                    "this stage, or finish the run with the version that wrote it"
+                    f"kept another state ({err.__cause__}). Fix: delete {self.directory} to "
+                    "restart this stage, or finish the run with the version that wrote it"
                 ) from err
             raise CheckpointDamagedError(
                 f"{path} cannot be read back ({type(err).__name__}: {str(err)[:200]}). Fix: "
@@ -242,7 +239,3 @@ class StageCheckpoints:
 
 def _frames(path: Path) -> int:
     return int(path.name.removeprefix(f"{PREFIX}-").removesuffix(".torchrl"))
-
-
-def _nbytes(state: Any) -> int:
-    return sum(t.nbytes for t in tree_leaves(state) if isinstance(t, torch.Tensor))

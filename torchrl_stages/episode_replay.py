@@ -18,9 +18,7 @@ __all__ = ["MAX_REPLAY_STEPS", "EpisodeReplay"]
 
 #: the longest episode whose actions are kept (a longer one cannot be rebuilt on resume)
 MAX_REPLAY_STEPS = 100_000
-_BIT_GENERATORS = {
-    name: getattr(np.random, name) for name in ("PCG64", "PCG64DXSM", "MT19937", "Philox", "SFC64")
-}
+_BIT_GENERATORS = ("PCG64", "PCG64DXSM", "MT19937", "Philox", "SFC64")
 
 
 def _plain(value: Any) -> Any:
@@ -59,13 +57,8 @@ def _set_rng_state(env: gymnasium.Env, state: Mapping) -> None:
         raise ValueError(f"an unknown bit generator {name!r}")
     generator = getattr(env, "_np_random", None)
     if generator is None or type(generator.bit_generator).__name__ != name:
-        generator = np.random.Generator(_BIT_GENERATORS[name]())
+        generator = np.random.Generator(getattr(np.random, name)())
         env.np_random = generator
-    if name == "MT19937":  # its key is an array
-        state = {
-            **state,
-            "state": {**state["state"], "key": np.asarray(state["state"]["key"], np.uint32)},
-        }
     generator.bit_generator.state = dict(state)
 
 
@@ -102,7 +95,7 @@ class EpisodeReplay(gymnasium.Wrapper):
         self._why_not: str | None = "it was never reset"
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        kept = None if options is None or not _is_plain(options) else copy.deepcopy(options)
+        kept = copy.deepcopy(options) if _is_plain(options) else None
         self._start = {"seed": seed, "rng": _rng_state(self.env.unwrapped), "options": kept}
         self._actions = []
         self._why_not = None
@@ -122,10 +115,8 @@ class EpisodeReplay(gymnasium.Wrapper):
             if len(self._actions) >= self.max_steps:
                 self._why_not = f"its episode is longer than {self.max_steps} steps"
                 self._actions = []
-            elif isinstance(action, np.generic | int | float):  # immutable
-                self._actions.append(action)
-            elif isinstance(action, np.ndarray):
-                self._actions.append(action.copy())
+            elif isinstance(action, np.ndarray | np.generic | int | float):
+                self._actions.append(np.array(action))  # a copy: the caller may reuse its array
             else:
                 self._why_not, self._actions = "its actions are not numeric arrays", []
         self._obs = out[0]

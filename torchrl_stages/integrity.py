@@ -37,12 +37,11 @@ def _files(directory: Path) -> list[str]:
     )
 
 
-def write_checksums(directory: str | Path) -> dict[str, str]:
+def write_checksums(directory: str | Path) -> None:
     """Records the SHA-256 of every file under ``directory`` in its ``sha256.json``."""
     directory = Path(directory)
     sums = {name: sha256_file(directory / name) for name in _files(directory) if name != CHECKSUMS}
     (directory / CHECKSUMS).write_text(json.dumps(sums, indent=1, sort_keys=True))
-    return sums
 
 
 def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> None:
@@ -60,20 +59,18 @@ def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> N
         ) from None
     except (OSError, ValueError, UnicodeDecodeError) as err:
         raise DamagedFileError(record, f"unreadable ({type(err).__name__})") from err
-    present = [name for name in _files(directory) if name != CHECKSUMS]
-    for name in present:
+    present = {name for name in _files(directory) if name != CHECKSUMS}
+    for name in sorted(present | sums.keys()):
         path = directory / name
         if name not in sums:
             raise DamagedFileError(path, "a file that was never written there")
+        if name not in present:
+            raise DamagedFileError(path, "missing")
         if path.is_symlink():
             raise DamagedFileError(path, "a link where a file was written")
         if suffixes and not name.endswith(suffixes):
             raise DamagedFileError(path, f"not a payload file ({', '.join(suffixes)})")
-    for name, expected in sums.items():
-        path = directory / name
-        if name not in present:
-            raise DamagedFileError(path, "missing")
-        if sha256_file(path) != expected:
+        if sha256_file(path) != sums[name]:
             raise DamagedFileError(path, "its bytes differ from those written")
 
 

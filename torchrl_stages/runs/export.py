@@ -64,17 +64,14 @@ class TensorPolicy(nn.Module):
         return tuple(out.get(key) for key in self.out_keys)
 
 
-def _key(key: NestedKey) -> str | list[str]:
-    return key if isinstance(key, str) else list(key)
-
-
 def _last(key: NestedKey) -> str:
     return key if isinstance(key, str) else key[-1]
 
 
 def _describe(keys: Sequence[NestedKey], tensors: Sequence[torch.Tensor]) -> list[dict[str, Any]]:
+    """Each key (a nested one: a JSON list) with its tensor's shape and dtype."""
     return [
-        {"key": _key(k), "shape": ["batch", *t.shape[1:]], "dtype": str(t.dtype).split(".")[-1]}
+        {"key": k, "shape": ["batch", *t.shape[1:]], "dtype": str(t.dtype).split(".")[-1]}
         for k, t in zip(keys, tensors, strict=True)
     ]
 
@@ -111,22 +108,7 @@ def export_policy(
 ) -> Path:
     """Exports the greedy policy of a run directory (or a :class:`StackedPolicy`) to ``path``;
     ``example``: an env TensorDict with one batch dimension of at least 2 (for a run: a reset of
-    its task env by default).
-
-    Examples:
-        >>> from tensordict.nn import TensorDictModule
-        >>> from torchrl_stages.envs import GridWorldEnv
-        >>> env = GridWorldEnv(batch_size=(4,), size=10, num_stages=2)
-        >>> def move(a):  # 3: right, 1: down
-        ...     return TensorDictModule(lambda o: o[..., 0].long() * 0 + a,
-        ...                             ["observation"], ["action"])
-        >>> policy = StackedPolicy([move(3), move(1)], stage_fn=env.stage_fn)
-        >>> import tempfile
-        >>> file = export_policy(policy, Path(tempfile.mkdtemp()) / "p.pt2", env.reset())
-        >>> program = torch.export.load(file).module()
-        >>> program(torch.tensor([[0.0, 0.0], [0.0, 1.8]]))  # cells (0, 0) and (0, 9)
-        (tensor([3, 1]),)
-    """
+    its task env by default)."""
     path = Path(path)
     if path.suffix != ".pt2":
         raise ValueError(f"{path}: the file must end in .pt2. Fix: name it e.g. policy.pt2")

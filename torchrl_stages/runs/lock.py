@@ -4,17 +4,12 @@ when the process dies (SIGKILL too)."""
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import socket
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
-
-try:
-    import fcntl
-except ImportError:  # pragma: no cover - Windows: no advisory locks, one writer is on you
-    fcntl = None
 
 LOCK_DIR = ".stages"
 
@@ -22,7 +17,7 @@ LOCK_DIR = ".stages"
 class RunLockedError(RuntimeError):
     """Another process holds the lock (``holder``: who, in words)."""
 
-    holder: str = "holder unknown"
+    holder: str
 
 
 class RunLock:
@@ -54,9 +49,7 @@ class RunLock:
         self.created_dir = not directory.exists()
         directory.mkdir(parents=True, exist_ok=True)
         while True:
-            fd = os.open(self.file, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
-            if fcntl is None:
-                break
+            fd = os.open(self.file, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -77,18 +70,7 @@ class RunLock:
         self._fd = fd
         return self
 
-    def wait(self, poll: float, waiting: Callable[[str], None]) -> RunLock:
-        """Takes the lock, calling ``waiting(holder)`` (which may raise) every ``poll`` s."""
-        while True:
-            try:
-                return self.acquire()
-            except RunLockedError as err:
-                waiting(err.holder)
-                time.sleep(poll)
-
     def announce(self) -> None:
-        if self._fd is None:
-            return
         since, command = time.strftime("%Y-%m-%dT%H:%M:%S%z"), " ".join(sys.argv)[:500]
         holder = f"process {os.getpid()} on {socket.gethostname()} since {since}: {command}"
         os.ftruncate(self._fd, 0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import itertools
 import json
 import logging
 import os
@@ -26,7 +27,7 @@ from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.identity import digest, stage_identities, stage_identity_inputs
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.runs.loading import restore_learner
-from torchrl_stages.runs.lock import RunLock
+from torchrl_stages.runs.lock import RunLock, RunLockedError
 from torchrl_stages.runs.trust import RESUMABLE_CHANGES, config_differences
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
@@ -101,10 +102,10 @@ class SharedStageStore:
     def get(self, identity: str, map_location: Any = "cpu") -> dict[str, Any] | None:
         """``stage.pt`` of entry ``identity``, if any; a damaged entry is removed."""
         entry = self.path(identity)
-        if not entry.exists() and not entry.is_symlink():
+        if not os.path.lexists(entry):
             return None
         try:
-            state = self._read(entry, identity, map_location)
+            state, _ = self._read(entry, identity, map_location)
         except DamagedFileError as err:
             why = f"{entry} is damaged ({err.reason})"
             log.warning(f"stage store: entry {why}; removed, the stage is trained again")
@@ -114,7 +115,8 @@ class SharedStageStore:
             os.utime(entry / ENTRY_FILE)  # when it was last used, for `stages-store prune`
         return state
 
-    def _read(self, entry: Path, identity: str, map_location: Any = "cpu") -> dict[str, Any]:
+    def _read(self, entry: Path, identity: str, map_location: Any = "cpu") -> tuple[dict, dict]:
+        """The entry's stage file and ``entry.json``, verified."""
         if entry.is_symlink() or not entry.is_dir():
             raise DamagedFileError(entry, "not a directory written by the store")
         verify_checksums(entry, suffixes=(".pt", ".json"))
@@ -129,19 +131,17 @@ class SharedStageStore:
                 raise ValueError("its stage file holds another stage")
             if not isinstance(state.get("result"), dict):
                 raise ValueError("its stage file holds no result")
-        except FileNotFoundError as err:
-            raise DamagedFileError(entry, f"{Path(str(err.filename)).name} is missing") from err
         except Exception as err:  # noqa: BLE001 - unreadable in any way: damaged
             raise DamagedFileError(entry, f"{type(err).__name__}: {err}") from err
-        return state
+        return state, meta
 
     def put(self, identity: str, state: dict[str, Any], meta: dict[str, Any]) -> Path:
         """Writes entry ``identity``; an entry that another job wrote first is kept."""
         entry = self.path(identity)
-        tmp = self.root / TMP / f"{identity}.{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        tmp = self.root / TMP / f"{identity}.{uuid.uuid4().hex}"
         try:
             tmp.mkdir()
-            buffer = io.BytesIO()
+            buffer = io.BytesIO()  # a full disk raises OSError naming the file, not RuntimeError
             torch.save({**state, "identity": identity}, buffer)
             (tmp / STAGE_FILE).write_bytes(buffer.getbuffer())
             meta = {"format": ENTRY_FORMAT, "identity": identity, **meta}
@@ -176,8 +176,7 @@ class SharedStageStore:
         for entry in sorted((self.root / ENTRIES).iterdir()):
             damaged, meta = None, {}
             try:
-                self._read(entry, entry.name)
-                meta = json.loads((entry / ENTRY_FILE).read_text())
+                _, meta = self._read(entry, entry.name)
             except DamagedFileError as err:
                 damaged = err.reason
             try:
@@ -201,43 +200,33 @@ class SharedStageStore:
         return found[0]
 
     def prune(self, older_than_s: float | None = None, dry_run: bool = False) -> list[Path]:
-        """Removes damaged entries, those unused for ``older_than_s`` seconds, leftovers of
-        interrupted writes and locks nobody holds; returns what it removed (would remove)."""
-        now, removed = time.time(), []
+        """Removes damaged entries, those unused for ``older_than_s`` seconds, locks nobody
+        holds and what interrupted writes left in ``tmp/``; returns what it removed (would
+        remove). A stage is written in ``tmp/`` under its lock only."""
+        now, removed, held = time.time(), [], set()
         for entry in self.entries():
             stale = older_than_s is not None and now - entry.last_used > older_than_s
             if entry.damaged is not None or stale:
                 removed.append(entry.path)
                 if not dry_run:
                     self._discard(entry.path)
-        for leftover in (self.root / TMP).iterdir():
-            writer = leftover.name.split(".")[-1].split("-")[0]
-            if writer.isdigit() and _alive(int(writer)) and now - leftover.lstat().st_mtime < 86400:
-                continue  # a write in progress
-            removed.append(leftover)
-            if not dry_run:
-                shutil.rmtree(leftover, ignore_errors=True)
         for lock_file in (self.root / LOCKS).iterdir():
-            lock = RunLock(self.root, file=lock_file)
+            lock = self.lock(lock_file.name)
             try:
                 lock.acquire()
-            except RuntimeError:
-                continue  # a job trains that stage now
+            except RunLockedError:
+                held.add(lock_file.name)  # a job trains that stage now
+                continue
             removed.append(lock_file)
             if not dry_run:
                 lock_file.unlink(missing_ok=True)
             lock.release()
+        for leftover in (self.root / TMP).iterdir():
+            if leftover.name.split(".")[0] not in held:
+                removed.append(leftover)
+                if not dry_run:
+                    shutil.rmtree(leftover, ignore_errors=True)
         return removed
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 class StageReuse:
@@ -297,16 +286,20 @@ class StageReuse:
         found = self._from_store(task, stage, device)
         if found is not None:
             return found
-        lock, root, announced = self.store.lock(identity), self.store.root, []
-
-        def waiting(holder: str) -> None:
-            if not announced:
-                where = f"stage {stage} ({task.stage_names[stage]})"
-                log.info(f"{where}: waiting for {holder}, which trains it (stage store {root})")
-                announced.append(True)
-            stop_if_asked(f"waiting for stage {stage} in the stage store")
-
-        lock.wait(POLL_S, waiting)
+        lock = self.store.lock(identity)
+        for waited in itertools.count():
+            try:
+                lock.acquire()
+                break
+            except RunLockedError as err:
+                if not waited:
+                    where = f"stage {stage} ({task.stage_names[stage]})"
+                    root = self.store.root
+                    log.info(
+                        f"{where}: waiting for {err.holder}, which trains it (stage store {root})"
+                    )
+                stop_if_asked(f"waiting for stage {stage} in the stage store")
+                time.sleep(POLL_S)
         found = self._from_store(task, stage, device)  # trained while this job waited
         if found is not None:
             lock.release()

@@ -14,17 +14,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config import targets
 from torchrl_stages.config.env_checks import missing_keys
+from torchrl_stages.config.expansion import leaves
 from torchrl_stages.runs.layout import RunDirError
-
-
-def _flatten(node: Any, prefix: str = "", lists: bool = False) -> Iterator[tuple[str, Any]]:
-    """``(dotted key, value)`` of every leaf under ``node`` (``lists``: items of lists too)."""
-    if isinstance(node, dict) or (lists and isinstance(node, list)):
-        for key, item in node.items() if isinstance(node, dict) else enumerate(node):
-            yield from _flatten(item, f"{prefix}.{key}" if prefix else str(key), lists)
-    else:
-        yield prefix, node
-
 
 #: top-level keys a resumed run may change: they do not alter what the stages train to
 RESUMABLE_CHANGES = (
@@ -42,12 +33,11 @@ RESUMABLE_CHANGES = (
 
 def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...] = ()) -> list[str]:
     """Dotted keys whose resolved values differ (``ignore``: key prefixes that may differ)."""
-    flat_old = dict(_flatten(OmegaConf.to_container(old, resolve=True)))
-    flat_new = dict(_flatten(OmegaConf.to_container(new, resolve=True)))
-    keys = sorted(set(flat_old) | set(flat_new))
+    flat_old = dict(leaves(OmegaConf.to_container(old, resolve=True)))
+    flat_new = dict(leaves(OmegaConf.to_container(new, resolve=True)))
     return [
         k
-        for k in keys
+        for k in sorted(flat_old.keys() | flat_new.keys())
         if flat_old.get(k, "<unset>") != flat_new.get(k, "<unset>")
         and not any(k == p or k.startswith(f"{p}.") for p in ignore)
     ]
@@ -57,18 +47,15 @@ def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...]
 ADDED_KEYS: dict[str, Any] = {"all_stages": {}}
 
 
-_TASK_NAME = re.compile(r"^[A-Za-z0-9_]+$")
-
-
 def _interpolations(node: Any) -> Iterator[tuple[str, str]]:
     """``(dotted key, text)`` of every string under ``node`` holding ``${``."""
-    return ((k, v) for k, v in _flatten(node, lists=True) if isinstance(v, str) and "${" in v)
+    return ((k, v) for k, v in leaves(node) if isinstance(v, str) and "${" in v)
 
 
 def shippedtargets(task_name: str) -> dict[str, str] | None:
     """``{dotted key: _target_}`` of the package's ``conf/task/<task_name>.yaml`` env and
     eval env; ``None`` for no such task, or one that leaves its env to the user (``???``)."""
-    if not _TASK_NAME.match(task_name):
+    if not re.fullmatch(r"[A-Za-z0-9_]+", task_name):  # a file name under conf/task
         return None
     source = resources.files("torchrl_stages.conf").joinpath("task", f"{task_name}.yaml")
     if not source.is_file():
