@@ -131,12 +131,7 @@ def unknown_key(
     fix: str,
     what: str = "a key",
 ) -> ConfigError | None:
-    """The error of ``{prefix}.{name}`` unless ``name`` is one of ``known``.
-
-    Examples:
-        >>> print(unknown_key("task.stages.s0", "lrr", 1e-3, ["lr", "gamma"], "dqn", "drop it"))
-        task.stages.s0.lrr=0.001: not a key of dqn. Fix: did you mean task.stages.s0.lr?
-    """
+    """The error of ``{prefix}.{name}`` (naming the nearest) unless ``name`` is in ``known``."""
     if name in known:
         return None
     close = nearest(name, known)

@@ -22,12 +22,7 @@ def _first_line(err: BaseException) -> str:
 
 
 def target_problem(path: str) -> str | None:
-    """What is wrong with the dotted ``path`` a ``_target_`` names (``None``: it is found).
-
-    Examples:
-        >>> target_problem("torchrl_stages.envs.GridWorld").split(". Fix")[0]
-        'module `torchrl_stages.envs` has no `GridWorld`'
-    """
+    """What is wrong with the dotted ``path`` a ``_target_`` names (``None``: it is found)."""
     parts = path.split(".")
     if not all(parts):
         return f"`{path}` is not a dotted path. Fix: name it as my_module.MyClass"
@@ -73,28 +68,19 @@ def check_targets(cfg: DictConfig) -> None:
 HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
 
 
-def env_arguments(target: str) -> list[str] | None:
-    """The keyword arguments the env ``target`` takes; ``None`` for ``**kwargs`` or unknown."""
+def check_env_arguments(cfg: DictConfig) -> None:
+    """Refuses a key of ``task.env`` or ``task.eval_env`` the env takes no argument for."""
+    target = cfg.task.env.get("_target_")  # check_env_keys refused a missing one
     try:
         found = get_object(target)
         function = found.__init__ if isinstance(found, type) else found
         parameters = inspect.signature(function).parameters.values()
     except Exception:  # noqa: BLE001 - not found or no signature: check_targets says which
-        return None
+        return
     if any(p.kind is p.VAR_KEYWORD for p in parameters):
-        return None
+        return
     named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-    return [p.name for p in parameters if p.kind in named and p.name != "self"]
-
-
-def check_env_arguments(cfg: DictConfig) -> None:
-    env = cfg.task.get("env")
-    target = env.get("_target_") if isinstance(env, DictConfig) else None
-    if not isinstance(target, str) or OmegaConf.is_missing(env, "_target_") or "${" in target:
-        return
-    known = env_arguments(target)
-    if known is None:
-        return
+    known = [p.name for p in parameters if p.kind in named and p.name != "self"]
     task = cfg.task.get("name")
     for node_key in ("env", "eval_env"):
         node = cfg.task.get(node_key)
