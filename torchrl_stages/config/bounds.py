@@ -79,6 +79,10 @@ class Bound:
             return f"set {key} to a value in that range"
         return f"set {key}={shown}"
 
+    def check(self, key: str, value: Any) -> None:
+        problem = self.problem(value)
+        check(problem is None, key, value, str(problem), self.fix(key))
+
 
 def bound(default: Any = MISSING, *, factory: Callable[[], Any] | None = None, **limits) -> Any:
     metadata = {"bound": Bound(**limits, example=factory() if factory else default)}
@@ -113,8 +117,7 @@ def check_bounds(node: Any, schema: type, prefix: str) -> None:
         if is_dataclass(f.default_factory) and value is not None:
             check_bounds(value, f.default_factory, key)
         elif "bound" in f.metadata:
-            problem = f.metadata["bound"].problem(value)
-            check(problem is None, key, value, str(problem), f.metadata["bound"].fix(key))
+            f.metadata["bound"].check(key, value)
 
 
 def nearest(name: str, known: Iterable[str]) -> str | None:
@@ -161,8 +164,7 @@ class StageChecks:
         check(ok, f"{self.key}.{field}", self.cfg[field], rule, fix)
 
     def bound(self, field: str, bound: Bound) -> None:
-        problem = bound.problem(self.cfg[field])
-        self(problem is None, field, str(problem), bound.fix(f"{self.key}.{field}"))
+        bound.check(f"{self.key}.{field}", self.cfg[field])
 
     def positive(self, field: str, example: object) -> None:
         self.bound(field, Bound(low=0, low_open=True, example=example))
