@@ -121,8 +121,7 @@ def check_bounds(node: Any, schema: type, prefix: str) -> None:
 
 
 def nearest(name: str, known: Iterable[str]) -> str | None:
-    found = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
-    return found[0] if found else None
+    return next(iter(difflib.get_close_matches(name, list(known), n=1)), None)
 
 
 def unknown_key(

@@ -208,10 +208,10 @@ def _direction_name(direction: object) -> str:
 
 def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
     """Refuses a ``hydra.sweeper.direction`` other than ``objective.direction``."""
-    if sweeper is None or sweeper.get("direction") is None:
+    direction = None if sweeper is None else sweeper.get("direction")
+    if direction is None:
         return
     objective = cfg.objective
-    direction = sweeper.direction
     if isinstance(direction, list | tuple | ListConfig):
         check(
             False,
