@@ -66,14 +66,6 @@ def _check_stage(key: str, s: DictConfig, learner_class: LearnerClass) -> None:
     learner.validate(checks)
 
 
-def _check_finite(node: object, prefix: str) -> None:
-    if isinstance(node, DictConfig | ListConfig):
-        node = OmegaConf.to_container(node, resolve=True)
-    for key, value in leaves(node, prefix):
-        ok = not isinstance(value, float) or math.isfinite(value)
-        check(ok, key, value, "must be a finite number", f"set {key} to a finite value")
-
-
 def stage_schema(stage: DictConfig) -> type | None:
     """The dataclass of a composed stage node; ``None`` for a run's saved ``config.yaml``."""
     schema = OmegaConf.get_type(stage)
@@ -143,8 +135,12 @@ def validate_config(
 ) -> None:
     """Checks what can be checked without building the env (it imports the env's code)."""
     check_stage_keys(cfg, algorithms)
-    for key in ("task.stages", "task.stage_template", "eval", "objective"):  # not the env's
-        _check_finite(OmegaConf.select(cfg, key), key)
+    for prefix in ("task.stages", "task.stage_template", "eval", "objective"):  # not the env's
+        node = OmegaConf.select(cfg, prefix)
+        plain = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+        for key, value in leaves(plain, prefix):
+            ok = not isinstance(value, float) or math.isfinite(value)
+            check(ok, key, value, "must be a finite number", f"set {key} to a finite value")
     check_env_keys(cfg)
     check_bounds(cfg, TuneAppConfig if "tune" in cfg else TrainConfig, "")
     package = LOGGER_PACKAGES.get(cfg.logger.backend)

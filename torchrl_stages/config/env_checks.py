@@ -54,28 +54,17 @@ def target_problem(path: str) -> str | None:
     return None
 
 
-def check_targets(cfg: DictConfig) -> None:
-    """Refuses every ``_target_`` of ``cfg.task`` that cannot be found; imports their modules."""
-    container = OmegaConf.to_container(cfg.task, resolve=False)
-    for key, target in targets(container, "task"):
-        if not isinstance(target, str) or target == "???" or "${" in target:
-            continue
-        problem = target_problem(target)
-        if problem is not None:
-            raise TargetError(f"{key}={target}: {problem}")
-
-
 HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
 
 
 def check_env_arguments(cfg: DictConfig) -> None:
     """Refuses a key of ``task.env`` or ``task.eval_env`` the env takes no argument for."""
-    target = cfg.task.env.get("_target_")  # check_env_keys refused a missing one
+    target = cfg.task.env.get("_target_")
     try:
         found = get_object(target)
         function = found.__init__ if isinstance(found, type) else found
         parameters = inspect.signature(function).parameters.values()
-    except Exception:  # noqa: BLE001 - not found or no signature: check_targets says which
+    except Exception:  # noqa: BLE001 - no _target_, or no signature
         return
     if any(p.kind is p.VAR_KEYWORD for p in parameters):
         return
@@ -84,9 +73,7 @@ def check_env_arguments(cfg: DictConfig) -> None:
     task = cfg.task.get("name")
     for node_key in ("env", "eval_env"):
         node = cfg.task.get(node_key)
-        if not isinstance(node, DictConfig):
-            continue
-        values = OmegaConf.to_container(node, resolve=False)
+        values = OmegaConf.to_container(node, resolve=False) if node is not None else {}
         for name, value in values.items():
             if name in HYDRA_KEYS or name in known:
                 continue
@@ -108,7 +95,8 @@ def check_env_arguments(cfg: DictConfig) -> None:
 
 
 def check_env_keys(cfg: DictConfig) -> None:
-    """The env's keys: none left ``???``, every ``_target_`` found, each an argument of the env."""
+    """The env's keys: none left ``???``, every ``_target_`` of the task found (its module
+    imported), each an argument of the env."""
     for key in missing_keys(cfg.task.get("env"), "task.env"):
         check(
             False,
@@ -117,7 +105,12 @@ def check_env_keys(cfg: DictConfig) -> None:
             f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)",
             f"set it on the command line: {key}=...",
         )
-    check_targets(cfg)
+    for key, target in targets(OmegaConf.to_container(cfg.task, resolve=False), "task"):
+        if not isinstance(target, str) or target == "???" or "${" in target:
+            continue
+        problem = target_problem(target)
+        if problem is not None:
+            raise TargetError(f"{key}={target}: {problem}")
     check_env_arguments(cfg)
 
 
