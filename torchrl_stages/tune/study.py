@@ -118,20 +118,6 @@ def print_results(experiment: Experiment, results: list, run_dir: Path, cfg: Dic
     return sum(map(float, values)) / len(values)
 
 
-def _trial_hydra_files(
-    context: StudyContext, cfg: DictConfig, overrides: list[str], run_dir: Path, number: int
-) -> dict[str, Any]:
-    files: dict[str, Any] = {"config.yaml": cfg, "overrides.yaml": overrides}
-    if context.hydra_cfg is not None:
-        hydra_cfg = copy.deepcopy(context.hydra_cfg)
-        with read_write(hydra_cfg), open_dict(hydra_cfg):
-            hydra_cfg.overrides.task = overrides
-            hydra_cfg.runtime.output_dir = str(run_dir)
-            hydra_cfg.job.num = number
-        files["hydra.yaml"] = OmegaConf.create({"hydra": hydra_cfg})
-    return files
-
-
 def _run_trial(
     trial: Any, cfg: DictConfig, space: list[ParamSpec], base: list[str], context: StudyContext
 ) -> float:
@@ -144,7 +130,14 @@ def _run_trial(
     print(f"stages-tune: trial {trial.number}: {' '.join(overrides[len(base) :])}", flush=True)
     try:
         run_cfg = apply_all_stages(context.compose(overrides), keep=stage_keys_set(overrides))
-        files = _trial_hydra_files(context, run_cfg, overrides, run_dir, trial.number)
+        files: dict[str, Any] = {"config.yaml": run_cfg, "overrides.yaml": overrides}
+        if context.hydra_cfg is not None:
+            hydra_cfg = copy.deepcopy(context.hydra_cfg)
+            with read_write(hydra_cfg), open_dict(hydra_cfg):
+                hydra_cfg.overrides.task = overrides
+                hydra_cfg.runtime.output_dir = str(run_dir)
+                hydra_cfg.job.num = trial.number
+            files["hydra.yaml"] = OmegaConf.create({"hydra": hydra_cfg})
         pruning = TrialPruning(trial, str(cfg.objective.direction))
         experiment = Experiment(run_cfg, run_dir, hydra_files=files, observers=[pruning])
     except RunDirError as err:
