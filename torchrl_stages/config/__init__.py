@@ -15,7 +15,6 @@ from torchrl_stages.config.schema import (
     StageConfig,
     TrainConfig,
     as_dataclass,
-    objective_value,
 )
 
 __all__ = [
@@ -28,7 +27,6 @@ __all__ = [
     "as_dataclass",
     "check",
     "expand_stage_template",
-    "objective_value",
     "register_configs",
     "stage_keys_set",
     "targets",

@@ -79,6 +79,10 @@ class Bound:
             return f"set {key} to a value in that range"
         return f"set {key}={shown}"
 
+    def check(self, key: str, value: Any) -> None:
+        problem = self.problem(value)
+        check(problem is None, key, value, str(problem), self.fix(key))
+
 
 def bound(default: Any = MISSING, *, factory: Callable[[], Any] | None = None, **limits) -> Any:
     metadata = {"bound": Bound(**limits, example=factory() if factory else default)}
@@ -113,13 +117,11 @@ def check_bounds(node: Any, schema: type, prefix: str) -> None:
         if is_dataclass(f.default_factory) and value is not None:
             check_bounds(value, f.default_factory, key)
         elif "bound" in f.metadata:
-            problem = f.metadata["bound"].problem(value)
-            check(problem is None, key, value, str(problem), f.metadata["bound"].fix(key))
+            f.metadata["bound"].check(key, value)
 
 
 def nearest(name: str, known: Iterable[str]) -> str | None:
-    found = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
-    return found[0] if found else None
+    return next(iter(difflib.get_close_matches(name, list(known), n=1)), None)
 
 
 def unknown_key(
@@ -131,12 +133,7 @@ def unknown_key(
     fix: str,
     what: str = "a key",
 ) -> ConfigError | None:
-    """The error of ``{prefix}.{name}`` unless ``name`` is one of ``known``.
-
-    Examples:
-        >>> print(unknown_key("task.stages.s0", "lrr", 1e-3, ["lr", "gamma"], "dqn", "drop it"))
-        task.stages.s0.lrr=0.001: not a key of dqn. Fix: did you mean task.stages.s0.lr?
-    """
+    """The error of ``{prefix}.{name}`` (naming the nearest) unless ``name`` is in ``known``."""
     if name in known:
         return None
     close = nearest(name, known)
@@ -166,8 +163,7 @@ class StageChecks:
         check(ok, f"{self.key}.{field}", self.cfg[field], rule, fix)
 
     def bound(self, field: str, bound: Bound) -> None:
-        problem = bound.problem(self.cfg[field])
-        self(problem is None, field, str(problem), bound.fix(f"{self.key}.{field}"))
+        bound.check(f"{self.key}.{field}", self.cfg[field])
 
     def positive(self, field: str, example: object) -> None:
         self.bound(field, Bound(low=0, low_open=True, example=example))

@@ -66,58 +66,43 @@ def _check_stage(key: str, s: DictConfig, learner_class: LearnerClass) -> None:
     learner.validate(checks)
 
 
-def _check_finite(node: object, prefix: str) -> None:
-    if isinstance(node, DictConfig | ListConfig):
-        node = OmegaConf.to_container(node, resolve=True)
-    for key, value in leaves(node, prefix):
-        ok = not isinstance(value, float) or math.isfinite(value)
-        check(ok, key, value, "must be a finite number", f"set {key} to a finite value")
-
-
 def stage_schema(stage: DictConfig) -> type | None:
     """The dataclass of a composed stage node; ``None`` for a run's saved ``config.yaml``."""
     schema = OmegaConf.get_type(stage)
     return schema if is_dataclass(schema) else None
 
 
-def _check_known(key: str, node: DictConfig, schema: type | None, cfg: DictConfig) -> None:
-    if schema is None:
-        return
-    known = schema_keys(schema)
-    owner = getattr(schema, "algo", None) or schema.__name__
-    listing = f"stages-train task={cfg.task.get('name')} --cfg job"
-    for name, value in OmegaConf.to_container(node, resolve=False).items():
-        error = unknown_key(key, name, value, known, owner, f"drop it (its keys: {listing})")
-        if error is not None:
-            raise error
-
-
 def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
+    """Refuses a key no stage's schema has, naming the nearest, and a stage the task lacks."""
     template = cfg.task.get("stage_template")
-    template_schema = stage_schema(template) if template else None
-    if template:
-        _check_known("task.stage_template", template, template_schema, cfg)
+    nodes = {"task.stage_template": (template, template)} if template else {}
     stages = cfg.task.get("stages") or {}
     named = [name for name, stage in stages.items() if _is_stage(stage)]
     for name, stage in stages.items():
-        key = f"task.stages.{name}"
-        if _is_stage(stage):
-            _check_known(key, stage, stage_schema(stage), cfg)
-        elif template and isinstance(stage, DictConfig):  # its own keys over the template
-            _check_known(key, stage, template_schema, cfg)
-        else:
-            close = nearest(str(name), named)
-            check(
-                False,
-                key,
-                stage,
-                f"task '{cfg.task.get('name')}' has no stage {name} (its stages: "
-                f"{', '.join(named)})",
-                f"did you mean task.stages.{close}?"
-                if close
-                else f"set a key of one of them, or add the stage with "
-                f"+algo@task.stages.{name}=<algo> ({'|'.join(algorithms)})",
-            )
+        if _is_stage(stage) or (template and isinstance(stage, DictConfig)):
+            nodes[f"task.stages.{name}"] = (stage, stage if _is_stage(stage) else template)
+            continue
+        close = nearest(str(name), named)
+        check(
+            False,
+            f"task.stages.{name}",
+            stage,
+            f"task '{cfg.task.get('name')}' has no stage {name} (its stages: {', '.join(named)})",
+            f"did you mean task.stages.{close}?"
+            if close
+            else f"set a key of one of them, or add the stage with "
+            f"+algo@task.stages.{name}=<algo> ({'|'.join(algorithms)})",
+        )
+    listing = f"stages-train task={cfg.task.get('name')} --cfg job"
+    for key, (node, typed) in nodes.items():
+        schema = stage_schema(typed)  # a template's stage: its own keys over the template
+        if schema is None:
+            continue
+        owner, known = getattr(schema, "algo", None) or schema.__name__, schema_keys(schema)
+        for name, value in OmegaConf.to_container(node, resolve=False).items():
+            error = unknown_key(key, name, value, known, owner, f"drop it (its keys: {listing})")
+            if error is not None:
+                raise error
 
 
 def _is_stage(stage: object) -> bool:
@@ -150,10 +135,12 @@ def validate_config(
 ) -> None:
     """Checks what can be checked without building the env (it imports the env's code)."""
     check_stage_keys(cfg, algorithms)
-    _check_finite(cfg.task.get("stages"), "task.stages")  # the env's own keys are its own
-    _check_finite(cfg.task.get("stage_template"), "task.stage_template")
-    for name in ("eval", "objective"):
-        _check_finite(cfg.get(name), name)
+    for prefix in ("task.stages", "task.stage_template", "eval", "objective"):  # not the env's
+        node = OmegaConf.select(cfg, prefix)
+        plain = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+        for key, value in leaves(plain, prefix):
+            ok = not isinstance(value, float) or math.isfinite(value)
+            check(ok, key, value, "must be a finite number", f"set {key} to a finite value")
     check_env_keys(cfg)
     check_bounds(cfg, TuneAppConfig if "tune" in cfg else TrainConfig, "")
     package = LOGGER_PACKAGES.get(cfg.logger.backend)
@@ -217,10 +204,10 @@ def _direction_name(direction: object) -> str:
 
 def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
     """Refuses a ``hydra.sweeper.direction`` other than ``objective.direction``."""
-    if sweeper is None or sweeper.get("direction") is None:
+    direction = None if sweeper is None else sweeper.get("direction")
+    if direction is None:
         return
     objective = cfg.objective
-    direction = sweeper.direction
     if isinstance(direction, list | tuple | ListConfig):
         check(
             False,

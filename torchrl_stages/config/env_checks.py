@@ -22,12 +22,7 @@ def _first_line(err: BaseException) -> str:
 
 
 def target_problem(path: str) -> str | None:
-    """What is wrong with the dotted ``path`` a ``_target_`` names (``None``: it is found).
-
-    Examples:
-        >>> target_problem("torchrl_stages.envs.GridWorld").split(". Fix")[0]
-        'module `torchrl_stages.envs` has no `GridWorld`'
-    """
+    """What is wrong with the dotted ``path`` a ``_target_`` names (``None``: it is found)."""
     parts = path.split(".")
     if not all(parts):
         return f"`{path}` is not a dotted path. Fix: name it as my_module.MyClass"
@@ -59,48 +54,26 @@ def target_problem(path: str) -> str | None:
     return None
 
 
-def check_targets(cfg: DictConfig) -> None:
-    """Refuses every ``_target_`` of ``cfg.task`` that cannot be found; imports their modules."""
-    container = OmegaConf.to_container(cfg.task, resolve=False)
-    for key, target in targets(container, "task"):
-        if not isinstance(target, str) or target == "???" or "${" in target:
-            continue
-        problem = target_problem(target)
-        if problem is not None:
-            raise TargetError(f"{key}={target}: {problem}")
-
-
 HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
 
 
-def env_arguments(target: str) -> list[str] | None:
-    """The keyword arguments the env ``target`` takes; ``None`` for ``**kwargs`` or unknown."""
+def check_env_arguments(cfg: DictConfig) -> None:
+    """Refuses a key of ``task.env`` or ``task.eval_env`` the env takes no argument for."""
+    target = cfg.task.env.get("_target_")
     try:
         found = get_object(target)
         function = found.__init__ if isinstance(found, type) else found
         parameters = inspect.signature(function).parameters.values()
-    except Exception:  # noqa: BLE001 - not found or no signature: check_targets says which
-        return None
+    except Exception:  # noqa: BLE001 - no _target_, or no signature
+        return
     if any(p.kind is p.VAR_KEYWORD for p in parameters):
-        return None
+        return
     named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-    return [p.name for p in parameters if p.kind in named and p.name != "self"]
-
-
-def check_env_arguments(cfg: DictConfig) -> None:
-    env = cfg.task.get("env")
-    target = env.get("_target_") if isinstance(env, DictConfig) else None
-    if not isinstance(target, str) or OmegaConf.is_missing(env, "_target_") or "${" in target:
-        return
-    known = env_arguments(target)
-    if known is None:
-        return
+    known = [p.name for p in parameters if p.kind in named and p.name != "self"]
     task = cfg.task.get("name")
     for node_key in ("env", "eval_env"):
         node = cfg.task.get(node_key)
-        if not isinstance(node, DictConfig):
-            continue
-        values = OmegaConf.to_container(node, resolve=False)
+        values = OmegaConf.to_container(node, resolve=False) if node is not None else {}
         for name, value in values.items():
             if name in HYDRA_KEYS or name in known:
                 continue
@@ -122,7 +95,8 @@ def check_env_arguments(cfg: DictConfig) -> None:
 
 
 def check_env_keys(cfg: DictConfig) -> None:
-    """The env's keys: none left ``???``, every ``_target_`` found, each an argument of the env."""
+    """The env's keys: none left ``???``, every ``_target_`` of the task found (its module
+    imported), each an argument of the env."""
     for key in missing_keys(cfg.task.get("env"), "task.env"):
         check(
             False,
@@ -131,7 +105,12 @@ def check_env_keys(cfg: DictConfig) -> None:
             f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)",
             f"set it on the command line: {key}=...",
         )
-    check_targets(cfg)
+    for key, target in targets(OmegaConf.to_container(cfg.task, resolve=False), "task"):
+        if not isinstance(target, str) or target == "???" or "${" in target:
+            continue
+        problem = target_problem(target)
+        if problem is not None:
+            raise TargetError(f"{key}={target}: {problem}")
     check_env_arguments(cfg)
 
 

@@ -15,15 +15,7 @@ from torchrl_stages.config.bounds import ConfigError, nearest, schema_keys
 
 def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> DictConfig:
     """A copy of ``cfg`` with ``all_stages`` set in every stage but the ``(stage, key)`` pairs of
-    ``keep`` (set on the command line), and ``all_stages`` emptied.
-
-    Examples:
-        >>> cfg = OmegaConf.create({"task": {"stages": {"a": {"frames": 9}, "b": {"frames": 9}}},
-        ...                         "all_stages": {"frames": 1024}})
-        >>> cfg = apply_all_stages(cfg, keep=[("b", "frames")])
-        >>> cfg.task.stages.a.frames, cfg.task.stages.b.frames, dict(cfg.all_stages)
-        (1024, 9, {})
-    """
+    ``keep`` (set on the command line), and ``all_stages`` emptied."""
     if not cfg.get("all_stages"):
         return cfg
     cfg = copy.deepcopy(cfg)
@@ -59,15 +51,7 @@ def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> D
 
 
 def expand_stage_template(task: DictConfig, num_stages: int) -> DictConfig:
-    """The task with stages ``s0..s<num_stages-1>``, each the template with its own keys over it.
-
-    Examples:
-        >>> task = OmegaConf.create({"stage_template": {"algo": "dqn", "lr": 1e-3},
-        ...                          "stages": {"s2": {"lr": 5e-4}}})
-        >>> stages = expand_stage_template(task, 3).stages
-        >>> list(stages), stages.s0.lr, stages.s2.lr, stages.s2.algo
-        (['s0', 's1', 's2'], 0.001, 0.0005, 'dqn')
-    """
+    """The task with stages ``s0..s<num_stages-1>``, each the template with its own keys over it."""
     if not task.get("stage_template"):
         return task
     names = [f"s{k}" for k in range(num_stages)]
@@ -103,12 +87,16 @@ def stage_keys_set(overrides: Iterable[str]) -> set[tuple[str, str]]:
         [('s0', 'frames'), ('s1', 'lr')]
     """
     out = set()
-    for override in overrides:
-        key = override.split("=", 1)[0].lstrip("+~")
+    for key in map(override_key, overrides):
         parts = key.split(".")
         if len(parts) >= 4 and parts[:2] == ["task", "stages"] and "@" not in key:
             out.add((parts[2], parts[3]))
     return out
+
+
+def override_key(override: str) -> str:
+    """The key a command-line override sets (``+a.b=1``: ``a.b``)."""
+    return override.split("=", 1)[0].lstrip("+~")
 
 
 def leaves(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:

@@ -4,6 +4,7 @@ key works on every task."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Mapping
 from typing import Any
@@ -17,14 +18,7 @@ from torchrl_stages.config.schema import LoggerConfig, ScheduleConfig, TrainConf
 
 
 def register_configs(algorithms: Mapping[str, Any]) -> None:
-    """Registers the root schemas, each learner's ``Config`` and the ``stages_*`` resolvers.
-
-    Examples:
-        >>> from torchrl_stages.learners import ALGORITHMS
-        >>> register_configs(ALGORITHMS)
-        >>> "dqn_schema.yaml" in ConfigStore.instance().repo["algo"]
-        True
-    """
+    """Registers the root schemas, each learner's ``Config`` and the ``stages_*`` resolvers."""
     cs = ConfigStore.instance()
     cs.store(name="train_schema", node=_open(TrainConfig, "task.stages", "task.env"))
     cs.store(name="tune_schema", node=_open(TuneAppConfig, "task.stages", "task.env"))
@@ -74,11 +68,9 @@ def config_group_options(group: str) -> list[str]:
 
 @functools.lru_cache(maxsize=64)  # Hydra resolves the help template twice a run
 def _options(loader: Any, group: str) -> tuple[str, ...]:
-    try:
-        names = loader.get_group_options(group)
-    except HydraException:
-        return ()
-    return tuple(name for name in names if not name.endswith("_schema"))
+    with contextlib.suppress(HydraException):
+        return tuple(n for n in loader.get_group_options(group) if not n.endswith("_schema"))
+    return ()
 
 
 def group_options(group: str) -> str:

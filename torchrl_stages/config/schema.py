@@ -177,19 +177,6 @@ class TuneAppConfig(TrainConfig):
     tune: TuneConfig = field(default_factory=TuneConfig)
 
 
-def objective_value(result: dict[str, Any], cfg: Any) -> float:
-    """``eval.json``'s entry named by ``objective.metric`` (NaN: a failed Optuna trial).
-
-    Examples:
-        >>> cfg = OmegaConf.create({"objective": {"metric": "mean_steps"}})
-        >>> objective_value({"success_rate": 1.0, "mean_steps": 12.5}, cfg)
-        12.5
-    """
-    objective = cfg.get("objective")
-    value = result.get("success_rate" if objective is None else objective.metric)
-    return float("nan") if value is None else float(value)
-
-
 def as_dataclass(cfg: Any) -> Any:
     """A structured config node as its dataclass (reads ~1000x faster); anything else as is."""
     if isinstance(cfg, DictConfig) and is_dataclass(OmegaConf.get_type(cfg)):

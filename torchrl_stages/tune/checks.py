@@ -14,38 +14,29 @@ from torchrl_stages.config import (
     validate_config,
 )
 from torchrl_stages.config.bounds import check_bounds
+from torchrl_stages.config.expansion import override_key
 from torchrl_stages.config.registration import config_group_options
 from torchrl_stages.config.schema import TuneConfig
 from torchrl_stages.learners import ALGORITHMS, learner_class
 from torchrl_stages.runs.seed_run import with_env_stages
 from torchrl_stages.schedules import get_schedule
-from torchrl_stages.tune.space import Compose, ParamSpec, override_key
+from torchrl_stages.tune.space import Compose, ParamSpec
 
-SAMPLERS = ("tpe", "random")
-PRUNERS = ("median", "threshold", "none")
 _MISSING = object()
 
 
 def check_settings(tune: DictConfig) -> None:
-    """Checks the ``tune`` keys other than ``params``."""
+    """Checks the ``tune`` keys other than ``params``: their bounds, then what relates them."""
     check_bounds(tune, TuneConfig, "tune")
     check(bool(tune.study_name), "tune.study_name", tune.study_name, "empty", "name the study")
     check(bool(tune.storage), "tune.storage", tune.storage, "empty", "set sqlite:///study.db")
-    check(tune.n_trials >= 1, "tune.n_trials", tune.n_trials, "must be >= 1", "set it to 1+")
-    for key, known in (("sampler", SAMPLERS), ("pruner", PRUNERS)):
-        rule = f"unknown (known: {', '.join(known)})"
-        check(tune[key] in known, f"tune.{key}", tune[key], rule, f"set tune.{key}={known[0]}")
-    for key in ("startup_trials", "warmup_steps"):
-        check(tune[key] >= 0, f"tune.{key}", tune[key], "must be >= 0", "set it to 0 or more")
-    if tune.pruner == "threshold":
-        below = tune.prune_below
-        check(
-            below is not None and 0 < below <= 1,
-            "tune.prune_below",
-            below,
-            "the threshold pruner needs a success rate in (0, 1]",
-            "set tune.prune_below=0.1 (or another pruner)",
-        )
+    check(
+        tune.pruner != "threshold" or tune.prune_below is not None,
+        "tune.prune_below",
+        tune.prune_below,
+        "the threshold pruner needs a success rate in (0, 1]",
+        "set tune.prune_below=0.1 (or another pruner)",
+    )
 
 
 def train_config(compose: Compose, overrides: list[str]) -> DictConfig:

@@ -12,6 +12,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_stages.config import check
+from torchrl_stages.config.expansion import override_key
 
 SPEC_KEYS = ("low", "high", "log", "step", "choices")
 _PLAIN = re.compile(r"^[A-Za-z_][\w\-./@:]*$")
@@ -162,10 +163,6 @@ def search_space(params: Any) -> list[ParamSpec]:
     for name in names:
         check(names.count(name) == 1, f"tune.params.{name}", "...", "given twice", "keep one")
     return space
-
-
-def override_key(override: str) -> str:
-    return override.split("=", 1)[0].lstrip("+~")
 
 
 def train_overrides(overrides: Iterable[str]) -> list[str]:

@@ -19,7 +19,6 @@ from torchrl_stages.config import (
     ConfigError,
     apply_all_stages,
     check,
-    objective_value,
     stage_keys_set,
 )
 from torchrl_stages.failures import EXIT_FAILED, DivergenceError, EnvError, one_line
@@ -110,26 +109,13 @@ def make_pruner(tune: DictConfig, direction: str) -> Any:
 
 
 def print_results(experiment: Experiment, results: list, run_dir: Path, cfg: DictConfig) -> float:
-    """Prints each seed's summary; returns the mean of their objectives."""
+    """Prints each seed's summary; returns the mean of their ``objective.metric`` (NaN: a failed
+    Optuna trial)."""
     for seed, result in zip(experiment.seeds, results, strict=True):
         where = seed_dir(run_dir, seed) if experiment.stacked else run_dir
         print(format_summary(result, where), flush=True)
-    values = [objective_value(result, cfg) for result in results]
-    return sum(values) / len(values)
-
-
-def _trial_hydra_files(
-    context: StudyContext, cfg: DictConfig, overrides: list[str], run_dir: Path, number: int
-) -> dict[str, Any]:
-    files: dict[str, Any] = {"config.yaml": cfg, "overrides.yaml": overrides}
-    if context.hydra_cfg is not None:
-        hydra_cfg = copy.deepcopy(context.hydra_cfg)
-        with read_write(hydra_cfg), open_dict(hydra_cfg):
-            hydra_cfg.overrides.task = overrides
-            hydra_cfg.runtime.output_dir = str(run_dir)
-            hydra_cfg.job.num = number
-        files["hydra.yaml"] = OmegaConf.create({"hydra": hydra_cfg})
-    return files
+    values = [result.get(cfg.objective.metric, float("nan")) for result in results]
+    return sum(map(float, values)) / len(values)
 
 
 def _run_trial(
@@ -144,7 +130,14 @@ def _run_trial(
     print(f"stages-tune: trial {trial.number}: {' '.join(overrides[len(base) :])}", flush=True)
     try:
         run_cfg = apply_all_stages(context.compose(overrides), keep=stage_keys_set(overrides))
-        files = _trial_hydra_files(context, run_cfg, overrides, run_dir, trial.number)
+        files: dict[str, Any] = {"config.yaml": run_cfg, "overrides.yaml": overrides}
+        if context.hydra_cfg is not None:
+            hydra_cfg = copy.deepcopy(context.hydra_cfg)
+            with read_write(hydra_cfg), open_dict(hydra_cfg):
+                hydra_cfg.overrides.task = overrides
+                hydra_cfg.runtime.output_dir = str(run_dir)
+                hydra_cfg.job.num = trial.number
+            files["hydra.yaml"] = OmegaConf.create({"hydra": hydra_cfg})
         pruning = TrialPruning(trial, str(cfg.objective.direction))
         experiment = Experiment(run_cfg, run_dir, hydra_files=files, observers=[pruning])
     except RunDirError as err:
@@ -228,13 +221,8 @@ def _best(study: Any, cfg: DictConfig, location: str) -> dict[str, Any]:
     best = None
     if counts.get("complete"):
         trial = study.best_trial
-        best = {
-            "number": trial.number,
-            "value": trial.value,
-            "params": dict(trial.params),
-            "run_dir": trial.user_attrs.get("run_dir"),
-            "overrides": trial.user_attrs.get("overrides"),
-        }
+        best = {"number": trial.number, "value": trial.value, "params": dict(trial.params)}
+        best |= {key: trial.user_attrs.get(key) for key in ("run_dir", "overrides")}
     return {
         "study_name": study.study_name,
         "storage": location,
