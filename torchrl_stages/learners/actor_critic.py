@@ -12,18 +12,12 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequ
 from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
-from torchrl.objectives import ValueEstimators
 
-from torchrl_stages.config import StageChecks, StageConfig
+from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import flag, non_negative, one_of, positive
-from torchrl_stages.learners.base import (
-    LOSS_FUNCTIONS,
-    Learner,
-    StageSpecs,
-    check_loss_function,
-)
+from torchrl_stages.learners.base import LOSS_FUNCTIONS, Learner, StageSpecs
 from torchrl_stages.learners.networks import SharedEncoderCritic
-from torchrl_stages.learners.ops import FusedSoftUpdate, linear_schedule, stacked_calls
+from torchrl_stages.learners.ops import linear_schedule, stacked_calls
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 from torchrl_stages.values import ActorCriticValue, with_params
 
@@ -86,12 +80,11 @@ class ActorCriticLearner(Learner):
         )
         self.policy = self.actor
         self.exploration_policy = self.make_exploration()
-        self.loss = self.make_loss(cfg, spec)
+        loss = self.make_loss(cfg, spec)
         if self.shared_encoder:  # the critics read the (target) actor's encoder, not copies
             for name in (f"{self.CRITIC}_params", f"target_{self.CRITIC}_params"):
-                del self.loss._modules[name]["module", "encoder"]  # _modules: no updater warning
-        self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
-        self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
+                del loss._modules[name]["module", "encoder"]  # _modules: no updater warning
+        self.use_loss(loss)
         # the target actor reads the loss's target parameters (not a second state_dict copy)
         if self.loss.target_actor_network_params is not None:
             target_actor = self.loss.target_actor_network_params.get(self.ACTOR_PATH)
@@ -108,11 +101,6 @@ class ActorCriticLearner(Learner):
 
     def make_exploration(self) -> TensorDictModuleBase:
         return self.actor
-
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        check_loss_function(checks)
-        checks.positive("actor_lr", 1e-3)
 
     @property
     def critic_module(self) -> nn.Module:
@@ -189,12 +177,6 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
         )
         return TensorDictSequential(self.actor, self.noise)
 
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        super().validate(checks)
-        for field in ("saturation_penalty", "sigma_init", "sigma_end", "annealing_frames"):
-            checks.non_negative(field)
-
     def squash(self, u: torch.Tensor) -> torch.Tensor:
         """The actor's ``TanhModule``: tanh into the action bounds."""
         low, high, scaled = self._bounds
@@ -256,12 +238,6 @@ class EntropyRegularized:
         entropy_gap = log_prob.detach() + self.loss.target_entropy
         log_alpha = per_seed(seed_rows(self.loss.log_alpha), entropy_gap)
         return self.batch_mean(-log_alpha * entropy_gap)
-
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        super().validate(checks)
-        checks.positive("alpha_init", 0.01)
-        checks.positive("alpha_lr", 3e-4)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_actor, loss_q, loss_alpha = self._losses(batch)

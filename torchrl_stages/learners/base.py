@@ -12,11 +12,13 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
+from torchrl.objectives import LossModule, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig, as_dataclass
 from torchrl_stages.learners.networks import ConvSpec, mlp
 from torchrl_stages.learners.ops import (
     FusedAdam,
+    FusedSoftUpdate,
     clip_seed_grads,
     linear_schedule,
     seed_grad_norms,
@@ -53,15 +55,6 @@ class NonFiniteError(FloatingPointError):
 
 
 LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
-
-
-def check_loss_function(checks: StageChecks) -> None:
-    checks(
-        checks.cfg["loss_function"] in LOSS_FUNCTIONS,
-        "loss_function",
-        f"unknown (known: {', '.join(LOSS_FUNCTIONS)})",
-        f"set {checks.key}.loss_function=l2",
-    )
 
 
 #: every algorithm by its name in configs, filled by :func:`register_algorithm`
@@ -162,7 +155,8 @@ class Learner(nn.Module, ABC):
 
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
-        """The algorithm's checks of a stage's keys, beyond every stage's."""
+        """The algorithm's checks that relate a stage's keys (each key's bound is checked
+        before, from its ``Config`` field)."""
 
     @classmethod
     def value_from_loss(cls, loss: Any, live: bool = False) -> TensorDictModuleBase:
@@ -172,6 +166,15 @@ class Learner(nn.Module, ABC):
     @abstractmethod
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One gradient step on a replay batch, target update included; the detached losses."""
+
+    def use_loss(self, loss: LossModule) -> None:
+        """Makes the torchrl ``loss`` the learner's: the stage's action key, TD(0) estimates at
+        ``cfg.gamma`` and a :class:`.FusedSoftUpdate` of its targets by ``cfg.tau``."""
+        if hasattr(loss.tensor_keys, "action"):
+            loss.set_keys(action=self.specs.action_key)
+        loss.make_value_estimator(ValueEstimators.TD0, gamma=self.cfg.gamma)
+        self.loss = loss
+        self.target_updater = FusedSoftUpdate(loss, tau=self.cfg.tau)
 
     def inputs(self, batch: TensorDictBase, nxt: bool = False) -> list[torch.Tensor]:
         """The network inputs of a batch (of its ``"next"`` states with ``nxt``)."""
