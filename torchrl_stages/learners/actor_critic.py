@@ -197,24 +197,20 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
         )
 
     @classmethod
-    def value_from_loss(cls, loss, live: bool = False) -> TensorDictModuleBase:
-        """``min_i Q_i,target(s, mu_target(s))`` of the loss's target networks."""
-        critics = getattr(loss, f"target_{cls.CRITIC}_params")
-        return _value(loss, loss.actor_network, getattr(loss, cls.CRITIC), critics, live)
+    def value_from_loss(cls, loss, live: bool = False, critics=None) -> ActorCriticValue:
+        """``min_i Q_i,target(s, mu_target(s))`` of the loss's target networks, a critic per row
+        of stacked ``critics`` (default: the loss's target critic parameters)."""
+        if critics is None:
+            critics = getattr(loss, f"target_{cls.CRITIC}_params")
+        rows = [critics[i] for i in range(critics.shape[0])] if critics.batch_dims else [critics]
+        return ActorCriticValue(
+            with_params(loss.actor_network, loss.target_actor_network_params, live=live),
+            [with_params(getattr(loss, cls.CRITIC), params, live=live) for params in rows],
+        )
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         critics = self.with_target_encoder(getattr(self.loss, f"target_{self.CRITIC}_params"))
-        return _value(self.loss, self.actor, self.critic, critics, live)
-
-
-def _value(loss, actor, critic, critics: TensorDictBase, live: bool) -> ActorCriticValue:
-    """:class:`ActorCriticValue` with the target parameters, a critic per row of stacked
-    ``critics``."""
-    rows = [critics[i] for i in range(critics.shape[0])] if critics.batch_dims else [critics]
-    return ActorCriticValue(
-        with_params(actor, loss.target_actor_network_params, live=live),
-        [with_params(critic, params, live=live) for params in rows],
-    )
+        return self.value_from_loss(self.loss, live, critics)
 
 
 class EntropyRegularized:

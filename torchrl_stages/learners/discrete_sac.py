@@ -105,19 +105,18 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
             self.network(num_actions), in_keys=specs.observation_keys, out_keys=["action_value"]
         )
         self.policy = self.exploration_policy = self.actor
-        self.use_loss(
-            DiscreteSACLoss(
-                self.actor,
-                self.critic,
-                action_space=spec,
-                num_actions=num_actions,
-                num_qvalue_nets=2,
-                loss_function=cfg.loss_function,
-                alpha_init=cfg.alpha_init,
-                target_entropy_weight=cfg.target_entropy_weight,
-                delay_qvalue=True,
-            )
+        loss = DiscreteSACLoss(
+            self.actor,
+            self.critic,
+            action_space=spec,
+            num_actions=num_actions,
+            num_qvalue_nets=2,
+            loss_function=cfg.loss_function,
+            alpha_init=cfg.alpha_init,
+            target_entropy_weight=cfg.target_entropy_weight,
+            delay_qvalue=True,
         )
+        self.use_loss(loss)
         self.stack_alpha()
         self.optimizers = {
             "actor": self.adam(self.loss.actor_network_params.values(True, True), cfg.actor_lr),

@@ -86,15 +86,14 @@ class DQNLearner(Learner):
         )
         self.policy = self.qnet
         self.exploration_policy = TensorDictSequential(self.qnet, self.egreedy)
-        self.use_loss(
-            DQNLoss(
-                self.qnet,
-                loss_function=cfg.loss_function,
-                delay_value=True,
-                double_dqn=cfg.double_dqn,
-                action_space=spec,
-            )
+        loss = DQNLoss(
+            self.qnet,
+            loss_function=cfg.loss_function,
+            delay_value=True,
+            double_dqn=cfg.double_dqn,
+            action_space=spec,
         )
+        self.use_loss(loss)
         self.optimizers = {"qvalue": self.adam(self.loss.parameters(), cfg.lr)}
         # the target network reads the loss's target parameters (not a second state_dict copy)
         target = self.loss.target_value_network_params.get(("module", "0", "module"))

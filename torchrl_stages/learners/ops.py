@@ -25,9 +25,7 @@ class FusedSoftUpdate(SoftUpdate):
     _pairs: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
 
     def step(self) -> None:
-        if self._pairs is None:
-            if not self.initialized:
-                self.init_()
+        if self._pairs is None:  # torchrl's init_ has kept the distinct pairs
             sources = [p.data for p in self._sources.values(True, True)]
             self._pairs = (sources, [p.data for p in self._targets.values(True, True)])
         sources, targets = self._pairs

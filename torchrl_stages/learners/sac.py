@@ -169,16 +169,17 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         return loss_actor, loss_q, self.alpha_loss(log_prob)
 
     @classmethod
-    def value_from_loss(cls, loss: SACLoss, live: bool = False) -> TensorDictModuleBase:
-        """:class:`SoftValue` (16 actions per state) of a ``SACLoss``'s target critics."""
-        critics = loss.target_qvalue_network_params["module"]
-        critic, kwargs = loss.qvalue_network.module, loss.actor_network[1].distribution_kwargs
-        return soft_value(SoftValue, loss, loss.actor_network, critic, critics, live, kwargs, 16)
+    def value_from_loss(
+        cls, loss: SACLoss, live: bool = False, critics=None, samples: int = 16
+    ) -> TensorDictModuleBase:
+        """:class:`SoftValue` of a ``SACLoss``'s target critics (or ``critics``)."""
+        if critics is None:
+            critics = loss.target_qvalue_network_params
+        actor, critic = loss.actor_network, loss.qvalue_network.module
+        kwargs = actor[1].distribution_kwargs
+        return soft_value(SoftValue, loss, actor, critic, critics["module"], live, kwargs, samples)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         """:class:`SoftValue`; with a shared encoder the critics read the target one."""
-        critics = self.with_target_encoder(self.loss.target_qvalue_network_params)["module"]
-        kwargs, samples = self.actor[1].distribution_kwargs, self.cfg.value_samples
-        return soft_value(
-            SoftValue, self.loss, self.actor, self.critic_module, critics, live, kwargs, samples
-        )
+        critics = self.with_target_encoder(self.loss.target_qvalue_network_params)
+        return self.value_from_loss(self.loss, live, critics, self.cfg.value_samples)

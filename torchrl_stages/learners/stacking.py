@@ -210,13 +210,10 @@ def stack_learners(stacked: nn.Module, learners: Sequence[nn.Module]) -> nn.Modu
     if len(learners) != stacked.seeds:
         raise ValueError(f"{len(learners)} learners for {stacked.seeds} seeds")
     states, axes = [learner.state_dict() for learner in learners], seed_axes(stacked)
-    own = stacked.state_dict()
-    if missing := [k for k in own if any(k not in s for s in states)]:
-        raise KeyError(f"{missing[0]}: in the stacked learner, missing from a learner to stack")
     stacked.load_state_dict(
         {
             k: states[0][k] if axes[k] is None else torch.stack([s[k] for s in states], axes[k])
-            for k in own
+            for k in stacked.state_dict()
         }
     )
     stacked.num_updates = max(learner.num_updates for learner in learners)
