@@ -75,24 +75,11 @@ def snapshot(learner):
     return {k: v.detach().clone() for k, v in learner.state_dict().items()}
 
 
-def target_params(learner):
-    loss = learner.loss
-    names = {
-        "dqn": ["target_value_network_params"],
-        "ddpg": ["target_actor_network_params", "target_value_network_params"],
-        "td3": ["target_actor_network_params", "target_qvalue_network_params"],
-    }[learner.algo]
-    return {n: getattr(loss, n).detach().clone() for n in names}
-
-
-def online_params(learner):
-    loss = learner.loss
-    names = {
-        "dqn": ["value_network_params"],
-        "ddpg": ["actor_network_params", "value_network_params"],
-        "td3": ["actor_network_params", "qvalue_network_params"],
-    }[learner.algo]
-    return {n: getattr(loss, n).detach().clone() for n in names}
+def loss_params(learner, prefix: str = "") -> dict:
+    """Copies of the loss's online parameters (its targets' with ``prefix="target_"``)."""
+    nets = {"dqn": ["value"], "ddpg": ["actor", "value"], "td3": ["actor", "qvalue"]}[learner.algo]
+    names = [f"{prefix}{net}_network_params" for net in nets]
+    return {n: getattr(learner.loss, n).detach().clone() for n in names}
 
 
 def td_equal(a, b):
@@ -149,7 +136,7 @@ def test_only_td3_updates_draw_random_numbers(algo):
 @pytest.mark.parametrize("algo", list(ALGOS))
 def test_updates_change_parameters_and_return_finite_losses(algo):
     learner = make(algo, policy_update_delay=2) if algo == "td3" else make(algo)
-    online0, target0 = online_params(learner), target_params(learner)
+    online0, target0 = loss_params(learner), loss_params(learner, "target_")
     batch = batch_for(learner.specs)
     all_keys = set()
     for i in range(4):
@@ -173,7 +160,7 @@ def test_updates_change_parameters_and_return_finite_losses(algo):
         after = getattr(learner.loss, name)
         assert not td_equal(before, after.detach()), f"{name} did not move (target update)"
     # the greedy policy acts with the updated online networks
-    for name, online in online_params(learner).items():
+    for name, online in loss_params(learner).items():
         assert all(torch.isfinite(t).all() for t in online.values(True, True)), name
 
 
@@ -268,7 +255,7 @@ def test_dqn_double_and_dueling_build_and_update():
     plain = DQNLearner(dqn_cfg(dueling=False), DISCRETE)
     names = {n for n, _ in learner.qnet.named_parameters()}
     assert names != {n for n, _ in plain.qnet.named_parameters()}  # a different (dueling) net
-    online0 = online_params(learner)
+    online0 = loss_params(learner)
     batch = batch_for(DISCRETE)
     for _ in range(3):
         losses = learner.update(batch.clone())
@@ -363,8 +350,8 @@ def test_checkpoint_round_trip(algo):
     torch.manual_seed(123)  # different initial weights
     fresh = make(algo, policy_update_delay=1) if algo == "td3" else make(algo)
     assert not td_equal(
-        online_params(fresh)[next(iter(online_params(fresh)))],
-        online_params(trained)[next(iter(online_params(trained)))],
+        loss_params(fresh)[next(iter(loss_params(fresh)))],
+        loss_params(trained)[next(iter(loss_params(trained)))],
     )
     fresh.load_checkpoint(state)
 
@@ -373,9 +360,9 @@ def test_checkpoint_round_trip(algo):
     assert want.keys() == got.keys()
     for key in want:
         assert torch.equal(want[key], got[key]), key
-    for name, params in target_params(trained).items():
+    for name, params in loss_params(trained, "target_").items():
         assert td_equal(params, getattr(fresh.loss, name).detach()), name
-    for name, params in online_params(trained).items():
+    for name, params in loss_params(trained).items():
         assert td_equal(params, getattr(fresh.loss, name).detach()), name
     assert fresh.num_updates == trained.num_updates == 3
     # optimizer states (Adam moments and step counts)
