@@ -12,18 +12,12 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequ
 from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.modules import AdditiveGaussianModule, TanhModule, ValueOperator
-from torchrl.objectives import ValueEstimators
 
-from torchrl_stages.config import StageChecks, StageConfig
+from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import flag, non_negative, one_of, positive
-from torchrl_stages.learners.base import (
-    LOSS_FUNCTIONS,
-    Learner,
-    StageSpecs,
-    check_loss_function,
-)
+from torchrl_stages.learners.base import LOSS_FUNCTIONS, Learner, StageSpecs
 from torchrl_stages.learners.networks import SharedEncoderCritic
-from torchrl_stages.learners.ops import FusedSoftUpdate, linear_schedule, stacked_calls
+from torchrl_stages.learners.ops import linear_schedule, stacked_calls
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 from torchrl_stages.values import ActorCriticValue, with_params
 
@@ -86,12 +80,11 @@ class ActorCriticLearner(Learner):
         )
         self.policy = self.actor
         self.exploration_policy = self.make_exploration()
-        self.loss = self.make_loss(cfg, spec)
+        loss = self.make_loss(cfg, spec)
         if self.shared_encoder:  # the critics read the (target) actor's encoder, not copies
             for name in (f"{self.CRITIC}_params", f"target_{self.CRITIC}_params"):
-                del self.loss._modules[name]["module", "encoder"]  # _modules: no updater warning
-        self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
-        self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
+                del loss._modules[name]["module", "encoder"]  # _modules: no updater warning
+        self.use_loss(loss)
         # the target actor reads the loss's target parameters (not a second state_dict copy)
         if self.loss.target_actor_network_params is not None:
             target_actor = self.loss.target_actor_network_params.get(self.ACTOR_PATH)
@@ -108,11 +101,6 @@ class ActorCriticLearner(Learner):
 
     def make_exploration(self) -> TensorDictModuleBase:
         return self.actor
-
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        check_loss_function(checks)
-        checks.positive("actor_lr", 1e-3)
 
     @property
     def critic_module(self) -> nn.Module:
@@ -197,12 +185,6 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
         )
         return TensorDictSequential(self.actor, self.noise)
 
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        super().validate(checks)
-        for field in ("saturation_penalty", "sigma_init", "sigma_end", "annealing_frames"):
-            checks.non_negative(field)
-
     def squash(self, u: torch.Tensor) -> torch.Tensor:
         """The actor's ``TanhModule``: tanh into the action bounds."""
         low, high, scaled = self._bounds
@@ -223,24 +205,20 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
         )
 
     @classmethod
-    def value_from_loss(cls, loss, live: bool = False) -> TensorDictModuleBase:
-        """``min_i Q_i,target(s, mu_target(s))`` of the loss's target networks."""
-        critics = getattr(loss, f"target_{cls.CRITIC}_params")
-        return _value(loss, loss.actor_network, getattr(loss, cls.CRITIC), critics, live)
+    def value_from_loss(cls, loss, live: bool = False, critics=None) -> ActorCriticValue:
+        """``min_i Q_i,target(s, mu_target(s))`` of the loss's target networks, a critic per row
+        of stacked ``critics`` (default: the loss's target critic parameters)."""
+        if critics is None:
+            critics = getattr(loss, f"target_{cls.CRITIC}_params")
+        rows = [critics[i] for i in range(critics.shape[0])] if critics.batch_dims else [critics]
+        return ActorCriticValue(
+            with_params(loss.actor_network, loss.target_actor_network_params, live=live),
+            [with_params(getattr(loss, cls.CRITIC), params, live=live) for params in rows],
+        )
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         critics = self.with_target_encoder(getattr(self.loss, f"target_{self.CRITIC}_params"))
-        return _value(self.loss, self.actor, self.critic, critics, live)
-
-
-def _value(loss, actor, critic, critics: TensorDictBase, live: bool) -> ActorCriticValue:
-    """:class:`ActorCriticValue` with the target parameters, a critic per row of stacked
-    ``critics``."""
-    rows = [critics[i] for i in range(critics.shape[0])] if critics.batch_dims else [critics]
-    return ActorCriticValue(
-        with_params(actor, loss.target_actor_network_params, live=live),
-        [with_params(critic, params, live=live) for params in rows],
-    )
+        return self.value_from_loss(self.loss, live, critics)
 
 
 class EntropyRegularized:
@@ -264,12 +242,6 @@ class EntropyRegularized:
         entropy_gap = log_prob.detach() + self.loss.target_entropy
         log_alpha = per_seed(seed_rows(self.loss.log_alpha), entropy_gap)
         return self.batch_mean(-log_alpha * entropy_gap)
-
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        super().validate(checks)
-        checks.positive("alpha_init", 0.01)
-        checks.positive("alpha_lr", 3e-4)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_actor, loss_q, loss_alpha = self._losses(batch)

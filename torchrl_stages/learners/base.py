@@ -12,15 +12,15 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
+from torchrl.objectives import LossModule, ValueEstimators
 
 from torchrl_stages.config import StageChecks, StageConfig, as_dataclass
 from torchrl_stages.learners.networks import ConvSpec, mlp
 from torchrl_stages.learners.ops import (
-    FusedAdam,
+    FusedSoftUpdate,
     clip_seed_grads,
     linear_schedule,
     seed_grad_norms,
-    total_grad_norm,
 )
 from torchrl_stages.learners.stacking import current_rows, current_seeds, seed_axes
 
@@ -53,15 +53,6 @@ class NonFiniteError(FloatingPointError):
 
 
 LOSS_FUNCTIONS = ("l1", "l2", "smooth_l1")
-
-
-def check_loss_function(checks: StageChecks) -> None:
-    checks(
-        checks.cfg["loss_function"] in LOSS_FUNCTIONS,
-        "loss_function",
-        f"unknown (known: {', '.join(LOSS_FUNCTIONS)})",
-        f"set {checks.key}.loss_function=l2",
-    )
 
 
 #: every algorithm by its name in configs, filled by :func:`register_algorithm`
@@ -162,7 +153,8 @@ class Learner(nn.Module, ABC):
 
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
-        """The algorithm's checks of a stage's keys, beyond every stage's."""
+        """The algorithm's checks that relate a stage's keys (each key's bound is checked
+        before, from its ``Config`` field)."""
 
     @classmethod
     def value_from_loss(cls, loss: Any, live: bool = False) -> TensorDictModuleBase:
@@ -172,6 +164,15 @@ class Learner(nn.Module, ABC):
     @abstractmethod
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One gradient step on a replay batch, target update included; the detached losses."""
+
+    def use_loss(self, loss: LossModule) -> None:
+        """Makes the torchrl ``loss`` the learner's: the stage's action key, TD(0) estimates at
+        ``cfg.gamma`` and a :class:`.FusedSoftUpdate` of its targets by ``cfg.tau``."""
+        if hasattr(loss.tensor_keys, "action"):
+            loss.set_keys(action=self.specs.action_key)
+        loss.make_value_estimator(ValueEstimators.TD0, gamma=self.cfg.gamma)
+        self.loss = loss
+        self.target_updater = FusedSoftUpdate(loss, tau=self.cfg.tau)
 
     def inputs(self, batch: TensorDictBase, nxt: bool = False) -> list[torch.Tensor]:
         """The network inputs of a batch (of its ``"next"`` states with ``nxt``)."""
@@ -184,7 +185,8 @@ class Learner(nn.Module, ABC):
         return torch.compile(fn, mode=None if self.compile_mode == "default" else self.compile_mode)
 
     def adam(self, params, lr: float) -> torch.optim.Adam:
-        return FusedAdam(params, lr=lr) if self.cfg.fused_adam else torch.optim.Adam(params, lr=lr)
+        """Adam, its fused kernel with ``cfg.fused_adam``."""
+        return torch.optim.Adam(params, lr=lr, fused=True if self.cfg.fused_adam else None)
 
     def anneal(self, frames: int) -> None:
         """Sets exploration and learning rates (linear to ``cfg.lr_end_factor`` of their start
@@ -231,7 +233,7 @@ class Learner(nn.Module, ABC):
             params = [p for group in self.optimizers[name].param_groups for p in group["params"]]
             grads = [p.grad for p in params if p.grad is not None]
             if self.seeds is None:
-                norm = total_grad_norm(grads)
+                norm = torch.nn.utils.get_total_norm(grads)
                 if max_norm is not None:
                     torch.nn.utils.clip_grads_with_norm_(params, float(max_norm), norm)
             else:
@@ -243,9 +245,8 @@ class Learner(nn.Module, ABC):
                 raise NonFiniteError(f"the gradient of the {name} parameters", self.num_updates + 1)
             self.grad_norms[name] = norm.detach()
         for name in names:
-            optimizer = self.optimizers[name]
-            getattr(optimizer, "direct_step", optimizer.step)()
-            optimizer.zero_grad(set_to_none=True)
+            self.optimizers[name].step()
+            self.optimizers[name].zero_grad(set_to_none=True)
 
     def _seed_axes_of(self, name: str, params: list[torch.Tensor]) -> list[int]:
         """The seeds' axis of each of optimizer ``name``'s ``params`` that has a gradient."""

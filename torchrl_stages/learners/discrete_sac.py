@@ -10,20 +10,19 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
 from torchrl.data import OneHot
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
-from torchrl.objectives import DiscreteSACLoss, ValueEstimators
+from torchrl.objectives import DiscreteSACLoss
 from torchrl.objectives.utils import distance_loss
 
-from torchrl_stages.config import StageChecks, StageConfig
+from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import free, in_range, one_of, positive
 from torchrl_stages.learners.actor_critic import EntropyRegularized, soft_value
 from torchrl_stages.learners.base import (
     LOSS_FUNCTIONS,
     Learner,
     StageSpecs,
-    check_loss_function,
     register_algorithm,
 )
-from torchrl_stages.learners.ops import FusedSoftUpdate, stacked_calls, taken, td0_target
+from torchrl_stages.learners.ops import stacked_calls, taken, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 
 
@@ -106,7 +105,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
             self.network(num_actions), in_keys=specs.observation_keys, out_keys=["action_value"]
         )
         self.policy = self.exploration_policy = self.actor
-        self.loss = DiscreteSACLoss(
+        loss = DiscreteSACLoss(
             self.actor,
             self.critic,
             action_space=spec,
@@ -117,9 +116,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
             target_entropy_weight=cfg.target_entropy_weight,
             delay_qvalue=True,
         )
-        self.loss.set_keys(action=specs.action_key)
-        self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
-        self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
+        self.use_loss(loss)
         self.stack_alpha()
         self.optimizers = {
             "actor": self.adam(self.loss.actor_network_params.values(True, True), cfg.actor_lr),
@@ -127,13 +124,6 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
             "alpha": self.adam([self.loss.log_alpha], cfg.alpha_lr),
         }
         self._losses = self.compiled(self._plain_losses)
-
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        super().validate(checks)
-        check_loss_function(checks)
-        checks.positive("actor_lr", 1e-3)
-        checks.fraction("target_entropy_weight")
 
     def _plain_losses(self, batch: TensorDictBase):
         """``DiscreteSACLoss``: the actor's, the critics' and the entropy coefficient's losses."""

@@ -10,20 +10,18 @@ from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.data import OneHot
 from torchrl.modules import EGreedyModule, QValueActor
-from torchrl.objectives import DQNLoss, ValueEstimators
+from torchrl.objectives import DQNLoss
 from torchrl.objectives.utils import distance_loss
 
-from torchrl_stages.config import StageChecks, StageConfig
+from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import flag, free, in_range, one_of
 from torchrl_stages.learners.base import (
     LOSS_FUNCTIONS,
     Learner,
     StageSpecs,
-    check_loss_function,
     register_algorithm,
 )
 from torchrl_stages.learners.ops import (
-    FusedSoftUpdate,
     linear_schedule,
     taken,
     td0_target,
@@ -88,16 +86,14 @@ class DQNLearner(Learner):
         )
         self.policy = self.qnet
         self.exploration_policy = TensorDictSequential(self.qnet, self.egreedy)
-        self.loss = DQNLoss(
+        loss = DQNLoss(
             self.qnet,
             loss_function=cfg.loss_function,
             delay_value=True,
             double_dqn=cfg.double_dqn,
             action_space=spec,
         )
-        self.loss.set_keys(action=specs.action_key)
-        self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
-        self.target_updater = FusedSoftUpdate(self.loss, tau=cfg.tau)
+        self.use_loss(loss)
         self.optimizers = {"qvalue": self.adam(self.loss.parameters(), cfg.lr)}
         # the target network reads the loss's target parameters (not a second state_dict copy)
         target = self.loss.target_value_network_params.get(("module", "0", "module"))
@@ -108,20 +104,6 @@ class DQNLearner(Learner):
     def q_module(self) -> nn.Module:
         """The online Q-network: observation tensors in, one Q-value per action out."""
         return self.qnet.module[0].module
-
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        check_loss_function(checks)
-        alpha = checks.cfg["advantage_learning"]
-        checks(
-            0 <= alpha < 1,
-            "advantage_learning",
-            "must be in [0, 1) (1 widens the gaps without bound)",
-            f"set {checks.key}.advantage_learning=0.9, or 0 for plain DQN",
-        )
-        checks.fraction("eps_init")
-        checks.fraction("eps_end")
-        checks.non_negative("annealing_frames")
 
     @classmethod
     def value_from_loss(cls, loss: DQNLoss, live: bool = False) -> TensorDictModuleBase:

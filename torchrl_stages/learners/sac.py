@@ -14,7 +14,6 @@ from torchrl.modules.distributions.utils import rsample_and_log_prob
 from torchrl.objectives import SACLoss
 from torchrl.objectives.utils import distance_loss
 
-from torchrl_stages.config import StageChecks
 from torchrl_stages.config.bounds import free, positive
 from torchrl_stages.learners.actor_critic import (
     ActorCriticConfig,
@@ -110,11 +109,6 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         self.stack_alpha()
         self.optimizers["alpha"] = self.adam([self.loss.log_alpha], cfg.alpha_lr)
 
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        super().validate(checks)
-        checks.positive("value_samples", 16)
-
     def make_actor(self, actor_net: nn.Module, spec: TensorSpec) -> TensorDictModuleBase:
         keys = self.specs
         return ProbabilisticActor(
@@ -132,7 +126,7 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
 
     def make_loss(self, cfg: SACConfig, spec: TensorSpec) -> SACLoss:
         # a shared encoder needs a target copy (the target actor's) for the target critics
-        loss = SACLoss(
+        return SACLoss(
             self.actor,
             self.critic,
             num_qvalue_nets=2,
@@ -144,8 +138,6 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
             delay_qvalue=True,
             separate_losses=self.shared_encoder,
         )
-        loss.set_keys(action=self.specs.action_key)
-        return loss
 
     def _dist(self, out: torch.Tensor) -> TanhNormal:
         """The policy's distribution from the actor network's output."""
@@ -177,16 +169,17 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         return loss_actor, loss_q, self.alpha_loss(log_prob)
 
     @classmethod
-    def value_from_loss(cls, loss: SACLoss, live: bool = False) -> TensorDictModuleBase:
-        """:class:`SoftValue` (16 actions per state) of a ``SACLoss``'s target critics."""
-        critics = loss.target_qvalue_network_params["module"]
-        critic, kwargs = loss.qvalue_network.module, loss.actor_network[1].distribution_kwargs
-        return soft_value(SoftValue, loss, loss.actor_network, critic, critics, live, kwargs, 16)
+    def value_from_loss(
+        cls, loss: SACLoss, live: bool = False, critics=None, samples: int = 16
+    ) -> TensorDictModuleBase:
+        """:class:`SoftValue` of a ``SACLoss``'s target critics (or ``critics``)."""
+        if critics is None:
+            critics = loss.target_qvalue_network_params
+        actor, critic = loss.actor_network, loss.qvalue_network.module
+        kwargs = actor[1].distribution_kwargs
+        return soft_value(SoftValue, loss, actor, critic, critics["module"], live, kwargs, samples)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         """:class:`SoftValue`; with a shared encoder the critics read the target one."""
-        critics = self.with_target_encoder(self.loss.target_qvalue_network_params)["module"]
-        kwargs, samples = self.actor[1].distribution_kwargs, self.cfg.value_samples
-        return soft_value(
-            SoftValue, self.loss, self.actor, self.critic_module, critics, live, kwargs, samples
-        )
+        critics = self.with_target_encoder(self.loss.target_qvalue_network_params)
+        return self.value_from_loss(self.loss, live, critics, self.cfg.value_samples)

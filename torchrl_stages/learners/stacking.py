@@ -7,24 +7,9 @@ import copy
 from collections.abc import Iterator, Sequence
 from contextlib import AbstractContextManager, contextmanager
 from contextvars import ContextVar
-from typing import Any, Protocol
 
 import torch
 from torch import nn
-
-
-class Learner(Protocol):
-    """What this module reads of a learner (a protocol, so that ``base`` imports it freely)."""
-
-    cfg: Any
-    specs: Any
-    seeds: int | None
-    num_updates: int
-
-    def state_dict(self) -> dict[str, torch.Tensor]: ...
-
-    def load_state_dict(self, state: dict[str, torch.Tensor]) -> Any: ...
-
 
 _SEEDS: ContextVar[int | None] = ContextVar("torchrl_stages_seeds", default=None)
 _ROWS: ContextVar[torch.Tensor | None] = ContextVar("torchrl_stages_seed_rows", default=None)
@@ -199,7 +184,7 @@ def stack_for_seeds(module: nn.Module) -> nn.Module:
     return module
 
 
-def seed_axes(learner: Learner) -> dict[str, int | None]:
+def seed_axes(learner: nn.Module) -> dict[str, int | None]:
     """The seeds' axis of each ``state_dict`` entry of a seed-stacked ``learner`` (``None``:
     shared), read off twins built for 1 and 2 seeds."""
     cached = learner.__dict__.get("_seed_axes")
@@ -219,26 +204,23 @@ def seed_axes(learner: Learner) -> dict[str, int | None]:
     return axes
 
 
-def stack_learners(stacked: Learner, learners: Sequence[Learner]) -> Learner:
+def stack_learners(stacked: nn.Module, learners: Sequence[nn.Module]) -> nn.Module:
     """Loads ordinary ``learners`` into their seed-stacked twin, seed ``i`` into row ``i``
     (shared entries from the first); returns ``stacked``."""
     if len(learners) != stacked.seeds:
         raise ValueError(f"{len(learners)} learners for {stacked.seeds} seeds")
     states, axes = [learner.state_dict() for learner in learners], seed_axes(stacked)
-    own = stacked.state_dict()
-    if missing := [k for k in own if any(k not in s for s in states)]:
-        raise KeyError(f"{missing[0]}: in the stacked learner, missing from a learner to stack")
     stacked.load_state_dict(
         {
             k: states[0][k] if axes[k] is None else torch.stack([s[k] for s in states], axes[k])
-            for k in own
+            for k in stacked.state_dict()
         }
     )
     stacked.num_updates = max(learner.num_updates for learner in learners)
     return stacked
 
 
-def unstack_learner(stacked: Learner, seed: int, learner: Learner) -> Learner:
+def unstack_learner(stacked: nn.Module, seed: int, learner: nn.Module) -> nn.Module:
     """Loads row ``seed`` of ``stacked`` into the ordinary ``learner``; returns ``learner``."""
     axes = seed_axes(stacked)
     learner.load_state_dict(

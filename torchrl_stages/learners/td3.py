@@ -10,7 +10,6 @@ from torchrl.data import TensorSpec
 from torchrl.objectives import TD3Loss
 from torchrl.objectives.utils import distance_loss
 
-from torchrl_stages.config import StageChecks
 from torchrl_stages.config.bounds import free, non_negative, positive
 from torchrl_stages.learners.actor_critic import (
     DeterministicActorCriticConfig,
@@ -49,16 +48,9 @@ class TD3Learner(DeterministicActorCriticLearner):
     update_draws_random = True  # the target policy's smoothing noise
     stacks_seeds = True
 
-    @classmethod
-    def validate(cls, checks: StageChecks) -> None:
-        super().validate(checks)
-        checks.positive("policy_update_delay", 2)
-        checks.non_negative("policy_noise")
-        checks.non_negative("noise_clip")
-
     def make_loss(self, cfg: TD3Config, spec: TensorSpec) -> TD3Loss:
         # separate_losses: a shared encoder's copies in the critics are views of the actor's
-        loss = TD3Loss(
+        return TD3Loss(
             self.actor,
             self.critic,
             action_spec=spec,
@@ -70,8 +62,6 @@ class TD3Learner(DeterministicActorCriticLearner):
             delay_qvalue=True,
             separate_losses=self.shared_encoder,
         )
-        loss.set_keys(action=self.specs.action_key)
-        return loss
 
     def make_losses(self) -> None:
         self._value_loss = self.compiled(self._plain_value_loss)
