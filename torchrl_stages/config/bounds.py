@@ -147,13 +147,14 @@ def schema_keys(schema: type) -> list[str]:
 
 @dataclass
 class StageChecks:
-    """An algorithm's own checks of one stage's keys (``Learner.validate``).
+    """An algorithm's own checks that relate one stage's keys (``Learner.validate``).
 
     Examples:
-        >>> StageChecks("task.stages.s0", {"lr": 0.0}).positive("lr", 1e-3)
+        >>> checks = StageChecks("stages.s0", {"batch_size": 512})
+        >>> checks(False, "batch_size", "must be <= buffer_size", "lower it")
         Traceback (most recent call last):
         ...
-        torchrl_stages.config.ConfigError: task.stages.s0.lr=0.0: must be > 0. Fix: ...
+        torchrl_stages.config.ConfigError: stages.s0.batch_size=512: must be <= ... Fix: lower it
     """
 
     key: str
@@ -161,15 +162,3 @@ class StageChecks:
 
     def __call__(self, ok: bool, field: str, rule: str, fix: str) -> None:
         check(ok, f"{self.key}.{field}", self.cfg[field], rule, fix)
-
-    def bound(self, field: str, bound: Bound) -> None:
-        bound.check(f"{self.key}.{field}", self.cfg[field])
-
-    def positive(self, field: str, example: object) -> None:
-        self.bound(field, Bound(low=0, low_open=True, example=example))
-
-    def non_negative(self, field: str) -> None:
-        self.bound(field, Bound(low=0, example=0))
-
-    def fraction(self, field: str, low_open: bool = False) -> None:
-        self.bound(field, Bound(low=0, high=1, low_open=low_open))
