@@ -46,10 +46,12 @@ __all__ = ["RunDir", "drop_checkpoints", "refuse_links", "scope_checkpoints"]
 
 
 def scope_checkpoints(
-    root: Path, scope: int | str, every: int, keep: int, on_save: Callable | None = None
+    root: Path, scope: int | str, cfg: DictConfig | None = None, on_save: Callable | None = None
 ) -> StageCheckpoints:
-    """The checkpoints of one scope (a stage number or a group's name) under ``root``."""
+    """The checkpoints of one scope (a stage number or a group's name) under ``root``, at
+    ``cfg``'s cadence (none: only to clear them)."""
     name = scope if isinstance(scope, str) else f"stage_{scope}"
+    every, keep = (0, 1) if cfg is None else (int(cfg.checkpoint_every), int(cfg.checkpoint_keep))
     return StageCheckpoints(root / name, every, keep, on_save=on_save)
 
 
@@ -95,8 +97,7 @@ class RunDir:
 
     def lock(self) -> RunLock:
         """Takes this directory's lock; :class:`RunDirError` names the process holding it."""
-        lock_dir = self.path / LOCK_DIR
-        refuse_links([lock_dir, lock_dir / "lock"])
+        refuse_links([self.path / LOCK_DIR])
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             held = RunLock(self.path).acquire()
@@ -124,13 +125,9 @@ class RunDir:
             record = json.loads(self.record_file.read_text())
             if record.get("format") != RECORD_FORMAT or not isinstance(record["entries"], dict):
                 raise ValueError("not a run record")
-            launches = record.get("launches", [])
-            if not isinstance(launches, list) or not all(
-                isinstance(x, dict) and isinstance(x.get("seconds", 0.0), int | float)
-                for x in launches
-            ):
-                raise ValueError("launches is not a list of launches")
-        except (OSError, ValueError, KeyError, AttributeError, UnicodeDecodeError) as err:
+            for launch in record.get("launches", []):  # a list of dicts, their seconds numbers
+                float(launch.get("seconds", 0.0))
+        except (OSError, ValueError, KeyError, AttributeError, TypeError) as err:
             raise RunDirError(
                 f"{self.record_file} is damaged ({type(err).__name__}: {err}). Fix: restore it "
                 "from a copy of the run, or retrain into a new directory"
@@ -212,7 +209,6 @@ class RunDir:
         return {"seconds": seconds, "launches": launches}
 
     def write_config(self, cfg: DictConfig) -> None:
-        self.path.mkdir(parents=True, exist_ok=True)
         self._write_verified(CONFIG_FILE, lambda tmp: OmegaConf.save(cfg, tmp, resolve=True))
 
     @property
@@ -299,10 +295,10 @@ class RunDir:
             )
         return state
 
-    def checkpoints(self, stage: int | str, every: int = 0, keep: int = 1) -> StageCheckpoints:
+    def checkpoints(self, stage: int | str, cfg: DictConfig | None = None) -> StageCheckpoints:
         self.claim(CHECKPOINTS)
         root = self.path / CHECKPOINTS
-        return scope_checkpoints(root, stage, every, keep, lambda _: self.update_launch())
+        return scope_checkpoints(root, stage, cfg, lambda _: self.update_launch())
 
     def clear_checkpoints(self, stage: int | str) -> None:
         self.check_no_links()
@@ -310,11 +306,8 @@ class RunDir:
         drop_checkpoints(self.path / CHECKPOINTS)
 
     def check_no_links(self) -> None:
-        entries = [self.path / n for n in (*LEGACY_ENTRIES, LOCK_DIR)]
-        entries += [p for g in ("stage_*.pt", *REPORT_FILES) for p in self.path.glob(g)]
-        for entry in entries:
-            inner = entry.rglob("*") if entry.is_dir() and not entry.is_symlink() else []
-            refuse_links([entry, *inner])
+        refuse_links([self.path / n for n in (*LEGACY_ENTRIES, LOCK_DIR)])
+        refuse_links([p for g in ("stage_*.pt", *REPORT_FILES) for p in self.path.glob(g)])
 
     def write_hydra_files(self, files: dict[str, Any]) -> None:
         self.claim(".hydra")
@@ -324,7 +317,6 @@ class RunDir:
             atomic_write(out / name, lambda tmp, node=node: OmegaConf.save(node, tmp))
 
     def write_status(self, status: str, reason: str | None = None, **extra: Any) -> None:
-        self.path.mkdir(parents=True, exist_ok=True)
         text = json.dumps({"status": status, "reason": reason, **extra}, indent=2)
         self.claim(STATUS_FILE)
         atomic_write(self.path / STATUS_FILE, lambda tmp: tmp.write_text(text))
@@ -337,21 +329,17 @@ class RunDir:
         return data if isinstance(data, dict) else None
 
     def check_clearable(self) -> None:
+        record = f"{LOCK_DIR}/{RECORD_FILE}"
         if not self.has_record():
-            found = self._run_files((*RUN_MARKERS, STATUS_FILE))
+            found = ", ".join(self._run_files((*RUN_MARKERS, STATUS_FILE)))
+            why = f"but no {record}, the record of what torchrl-stages wrote there"
+        else:
+            found = ", ".join(n for n in self._run_files() if n not in self.record["entries"])
+            why = f"which its record ({record}) does not list as written by torchrl-stages"
+        if found:
             raise RunDirError(
-                f"overwrite=true: {self.path} holds {', '.join(found)} but no "
-                f"{LOCK_DIR}/{RECORD_FILE}, the record of what torchrl-stages wrote there, so "
-                "nothing in it is deleted. Fix: delete those files yourself, or pick another "
-                "hydra.run.dir"
-            )
-        foreign = [n for n in self._run_files() if n not in self.record["entries"]]
-        if foreign:
-            raise RunDirError(
-                f"overwrite=true: {self.path} holds {', '.join(sorted(foreign))}, which its "
-                f"record ({LOCK_DIR}/{RECORD_FILE}) does not list as written by torchrl-stages, "
-                "so nothing in it is deleted. Fix: delete those files yourself, or pick another "
-                "hydra.run.dir"
+                f"overwrite=true: {self.path} holds {found}, {why}, so nothing in it is "
+                "deleted. Fix: delete those files yourself, or pick another hydra.run.dir"
             )
 
     def clear(self) -> list[str]:
@@ -377,8 +365,11 @@ class RunDir:
 
 
 def refuse_links(paths: Iterable[Path]) -> None:
+    """Refuses a link among ``paths`` and what their directories hold."""
     for path in paths:
-        if path.is_symlink():
+        if path.is_dir() and not path.is_symlink():
+            refuse_links(path.rglob("*"))
+        elif path.is_symlink():
             raise RunDirError(
                 f"{path} is a symbolic link: a run directory's own files are never "
                 "links (writing or deleting through it would touch another place). "

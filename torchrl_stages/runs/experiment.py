@@ -6,6 +6,7 @@ import copy
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +14,7 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from torchrl_stages.checkpoint import StageCheckpoints
-from torchrl_stages.config import ConfigError, apply_all_stages, check
+from torchrl_stages.config import ConfigError, check
 from torchrl_stages.failures import DivergenceError, one_line
 from torchrl_stages.learners import make_learner
 from torchrl_stages.loggers import Observer, StopRun
@@ -25,7 +26,6 @@ from torchrl_stages.runs.seed_run import (
     SeedRun,
     build_task,
     compile_mode,
-    with_env_stages,
 )
 from torchrl_stages.schedules import SCHEDULES, get_schedule
 from torchrl_stages.task import StagedTask
@@ -128,8 +128,7 @@ class Experiment:
             self.runs.append(SeedRun(cfg, self.run_dir, options))
             return
         # before any directory is made: the config, and whether it stacks
-        first = with_env_stages(apply_all_stages(_for_seed(cfg, self.seeds[0])))
-        check_stackable(build_task(first), len(self.seeds))
+        check_stackable(build_task(_for_seed(cfg, self.seeds[0])), len(self.seeds))
         try:
             for seed in self.seeds:
                 seed_cfg = _for_seed(cfg, seed)
@@ -139,10 +138,6 @@ class Experiment:
         except BaseException:
             self.close()
             raise
-
-    @property
-    def task(self) -> StagedTask:
-        return self.runs[0].task
 
     def close(self) -> None:
         for run in self.runs:
@@ -155,20 +150,11 @@ class Experiment:
             with handle_signals(), hold_threads(int(cfg.threads)):
                 try:
                     results = self._run()
-                except Interrupted as err:  # recorded before a launcher's handler runs
-                    self._ended("interrupted", str(err), signal=err.signal_name)
+                except Exception as err:  # recorded before a launcher's handler runs
+                    outcome, reason, extra = _outcome(err)
+                    for run in self.runs:
+                        run.ended(outcome, reason, **extra)
                     raise
-        except Interrupted:
-            raise
-        except StopRun as err:  # an observer ended it (stages-tune: a pruned trial)
-            self._ended(err.status, str(err))
-            raise
-        except DivergenceError as err:
-            self._ended("diverged", str(err))
-            raise
-        except Exception as err:
-            self._ended("failed", one_line(err))
-            raise
         finally:
             self.close()
         if self.stacked:  # best effort: the runs are written
@@ -193,7 +179,7 @@ class Experiment:
             # in one process, and their learners' recompiles would add up to Dynamo's limit
             torch._dynamo.reset()
         trained = runs[0].schedule.train(
-            self.task,
+            runs[0].task,
             self.seeds,
             keepers=runs,
             logs=[run.log for run in runs],
@@ -211,18 +197,21 @@ class Experiment:
     def _checkpoints(self) -> Callable[[int | str], StageCheckpoints]:
         """Several seeds' checkpoints per scope: kept only when every seed resumes."""
         root, first = self.checkpoint_root, self.runs[0]
-        refuse_links([root, *(root.rglob("*") if root.is_dir() else [])])
+        refuse_links([root])
         if not all(run.resuming for run in self.runs):
             drop_checkpoints(root, every=True)
+        at = partial(scope_checkpoints, root, cfg=first.cfg)
         for stage in first.restarted:  # resumed stages whose config changed
-            self._at(first.schedule.checkpoint_scope(stage)).clear()
-        return self._at
+            at(first.schedule.checkpoint_scope(stage)).clear()
+        return at
 
-    def _at(self, scope: int | str) -> StageCheckpoints:
-        cfg = self.runs[0].cfg
-        every, keep = int(cfg.checkpoint_every), int(cfg.checkpoint_keep)
-        return scope_checkpoints(self.checkpoint_root, scope, every, keep)
 
-    def _ended(self, outcome: str, reason: str, **extra: Any) -> None:
-        for run in self.runs:
-            run.ended(outcome, reason, **extra)
+def _outcome(err: Exception) -> tuple[str, str, dict[str, str]]:
+    """How ``status.json`` records a launch that ``err`` ended."""
+    if isinstance(err, Interrupted):
+        return "interrupted", str(err), {"signal": err.signal_name}
+    if isinstance(err, StopRun):  # an observer ended it (stages-tune: a pruned trial)
+        return err.status, str(err), {}
+    if isinstance(err, DivergenceError):
+        return "diverged", str(err), {}
+    return "failed", one_line(err), {}

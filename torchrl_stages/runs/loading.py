@@ -17,7 +17,7 @@ from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.runs.trust import check_trusted
-from torchrl_stages.schedules import Schedule, get_schedule
+from torchrl_stages.schedules import get_schedule
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 
@@ -71,18 +71,18 @@ def restore_learner(
     return learner
 
 
-def read_run_config(
-    run: RunDir, device: str | torch.device, trust: bool
-) -> tuple[DictConfig, Schedule]:
-    """The run's config and schedule, checked as ``stages-train`` checks them (and for trust)
-    on ``device``."""
-    cfg = run.read_config()
-    source = run.config_source
+def load_run(
+    run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
+) -> LoadedRun:
+    """A finished run directory, read as untrusted data: checksums verified, nothing unpickled,
+    and only what its task ships with instantiated unless ``trust=True``."""
+    run = RunDir(run_dir)
+    cfg, source = run.read_config(), run.config_source
     if not trust:
         check_trusted(cfg, source)
-    try:
+    try:  # checked as stages-train checks it, as it would run here: no logger
         schedule = get_schedule(str(cfg.schedule.name))
-        checked = cfg.copy()  # as it would run here: on this device, with no logger
+        checked = cfg.copy()
         checked.device, checked.logger.backend = str(device), "none"
         validate_config(checked, schedule, learner_class, ALGORITHMS)
     except TargetError as err:  # code of the run's own that is not importable here
@@ -92,16 +92,6 @@ def read_run_config(
             f"{source} is not a valid config ({str(err).splitlines()[0]}). Fix: restore it "
             "from the run's .hydra/config.yaml, or retrain into a new directory"
         ) from err
-    return cfg, schedule
-
-
-def load_run(
-    run_dir: str | Path, device: str | torch.device = "cpu", *, trust: bool = False
-) -> LoadedRun:
-    """A finished run directory, read as untrusted data: checksums verified, nothing unpickled,
-    and only what its task ships with instantiated unless ``trust=True``."""
-    run = RunDir(run_dir)
-    cfg, schedule = read_run_config(run, device, trust)
     try:
         task = StagedTask(cfg.task, device=device)
     except Exception as err:  # noqa: BLE001 - the run's env cannot be built here

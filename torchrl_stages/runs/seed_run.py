@@ -76,13 +76,19 @@ def _env_error(cfg: DictConfig, err: BaseException) -> ConfigError:
     )
 
 
+def checked_config(cfg: DictConfig) -> tuple[DictConfig, Schedule]:
+    """``cfg`` with its stages filled in and validated, and its schedule."""
+    cfg = with_env_stages(apply_all_stages(cfg))
+    schedule = get_schedule(str(cfg.schedule.name))
+    validate_config(cfg, schedule, learner_class, ALGORITHMS)
+    return cfg, schedule
+
+
 def build_task(cfg: DictConfig, schedule: Schedule | None = None) -> StagedTask:
     """Validates ``cfg`` and builds its task, before any training; a caller that validated
     ``cfg`` already passes the ``schedule`` it validated it with."""
     if schedule is None:
-        cfg = with_env_stages(cfg)
-        schedule = get_schedule(str(cfg.schedule.name))
-        validate_config(cfg, schedule, learner_class, ALGORITHMS)
+        cfg, schedule = checked_config(cfg)
     try:
         task = StagedTask(cfg.task, device=cfg.device)
     except (InstantiationException, TypeError, ValueError, RuntimeError) as err:
@@ -125,13 +131,11 @@ class SeedRun:
     def __init__(
         self, cfg: DictConfig, run_dir: str | Path, options: RunOptions = RunOptions()
     ) -> None:
-        self.cfg = cfg = with_env_stages(apply_all_stages(cfg))
-        self.options, self.run_dir = options, RunDir(run_dir)
+        cfg, self.schedule = checked_config(cfg)
+        self.cfg, self.options, self.run_dir = cfg, options, RunDir(run_dir)
         resume, overwrite = options.resume, options.overwrite
         self.resume = bool(cfg.get("resume", False) if resume is None else resume)
         self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
-        self.schedule = get_schedule(str(cfg.schedule.name))
-        validate_config(cfg, self.schedule, learner_class, ALGORITHMS)
         if self.resume and self.overwrite:
             raise ConfigError(
                 "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "
@@ -202,7 +206,8 @@ class SeedRun:
             self.run_dir.update_launch(outcome)
             self.run_dir.write_status(outcome, reason, **extra)
 
-    def _prepare(self) -> None:
+    def start(self) -> None:
+        """Prepares the directory for this launch and opens its logger."""
         cfg, run, hydra_files = self.cfg, self.run_dir, self.options.hydra_files
         self._lock.announce()
         if self.overwrite and run.holds_run():
@@ -212,31 +217,21 @@ class SeedRun:
             run.adopt_legacy()  # a run of a version without a record
         if hydra_files and (not self.resuming or self.restarted):
             run.write_hydra_files(hydra_files)
-        if not self.resuming:
-            run.write_config(cfg)
-        elif not run.config_file.is_file():  # checked against .hydra/config.yaml: the same
+        for stage, keys in sorted(self.restarted.items()):
+            changed = ", ".join(keys)
+            log.info(f"resume=true: {changed} changed; stage {stage} had not finished and restarts")
+            run.clear_checkpoints(self.schedule.checkpoint_scope(stage))
+        if self.resuming and not run.config_file.is_file():  # checked against .hydra/config.yaml
             log.warning("%s was missing: restored from .hydra/config.yaml", run.config_file)
-            run.write_config(cfg)
-        if self.restarted:
-            for stage, keys in sorted(self.restarted.items()):
-                changed = ", ".join(keys)
-                log.info(
-                    f"resume=true: {changed} changed; stage {stage} had not finished and restarts"
-                )
-                run.clear_checkpoints(self.schedule.checkpoint_scope(stage))
+        if not self.resuming or self.restarted or not run.config_file.is_file():
             run.write_config(cfg)
         run.begin_launch()
-
-    def start(self) -> SeedRun:
-        self._prepare()
-        cfg, run = self.cfg, self.run_dir
         logging.getLogger("torchrl").setLevel(logging.WARNING)
         run.claim(METRICS_FILE, *(["csv"] if cfg.logger.backend == "csv" else []))
         before = run.listing()
         self.log = MetricsLog(make_logger(cfg, run.path, observers=self.options.observers))
         run.claim_new(before)  # a backend's own files
         self._start = time.perf_counter()
-        return self
 
     def probe(self) -> Probe | None:
         """``eval.probe``: the whole task followed during training (``eval/task/...``)."""
@@ -256,11 +251,6 @@ class SeedRun:
     def _info(self, message: str, level: int = logging.INFO) -> None:
         log.log(level, message if self.seed is None else f"seed {self.seed}: {message}")
 
-    @property
-    def reused(self) -> dict[str, str]:
-        """``{stage name: where it was taken from}`` over every launch."""
-        return dict(self.run_dir.record.get("reused", {}))
-
     def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
         """Stage ``stage`` as an earlier launch trained it, or taken from ``reuse``."""
         name, device = self.schedule.stage_name(self.task, stage), str(self.cfg.device)
@@ -273,7 +263,7 @@ class SeedRun:
         if taken is None:
             return None
         learner, result, where = taken
-        self.run_dir.record.setdefault("reused", {})[name] = where
+        self.keep("reused", {**(self.kept("reused") or {}), name: where})
         self._write(stage, name, learner, result)
         self._info(f"stage {stage} ({name}): reused from {where}")
         return learner, result
@@ -282,10 +272,6 @@ class SeedRun:
         self.run_dir.save_stage(stage, name, learner, result, log=self.log.position())
         self.run_dir.clear_checkpoints(stage)
         self.run_dir.update_launch()
-
-    def checkpoints(self, scope: int | str) -> StageCheckpoints:
-        every, keep = int(self.cfg.checkpoint_every), int(self.cfg.checkpoint_keep)
-        return self.run_dir.checkpoints(scope, every, keep)
 
     def begin(self, scope: int | str) -> None:
         """A resumed run's logs rewind to where stage ``scope + 1`` ended (else the start)."""
@@ -323,6 +309,9 @@ class SeedRun:
                 logging.WARNING,
             )
 
+    def checkpoints(self, scope: int | str) -> StageCheckpoints:
+        return self.run_dir.checkpoints(scope, self.cfg)
+
     def keep(self, key: str, value: Any) -> None:
         self.run_dir.record[key] = value
 
@@ -342,7 +331,7 @@ class SeedRun:
         training["stages"] = [asdict(r) for r in results]
         training.update(trained.extra)
         if self.reuse is not None:
-            training["reused"] = reused = self.reused
+            training["reused"] = reused = dict(self.kept("reused") or {})  # over every launch
             names = self.task.stage_names
             self._info(
                 f"reused stages: {', '.join(n for n in names if n in reused) or 'none'}; "
