@@ -17,7 +17,7 @@ from torchrl.envs import EnvBase
 from torchrl_stages.checkpoint import StageCheckpoints, StateOf
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
-from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, first_evaluation, seed_rows
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, seed_rows
 from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.failures import stage_failure
 from torchrl_stages.learners import Learner
@@ -157,32 +157,20 @@ class StageTrainer(SeedLoop):
         return self.learner.value(live=True)
 
     def train(self) -> list[tuple[Learner, StageResult]]:
-        cfg, learner, n = self.cfg, self.learner, self.n
-        collector = StageCollector(
-            self.env,
-            learner.exploration_policy,
-            frames_per_batch=int(cfg.frames_per_batch) * n,
-            total_frames=int(cfg.frames) * n,
-            init_random_frames=int(cfg.init_random_frames) * n,
-        )
-        buffer = SeedReplayBuffer(int(cfg.buffer_size), num_seeds=n, device=learner.device)
-        stops = SeedEarlyStops(cfg, seed_rows(learner))
-        counters = LoopCounters(next_eval=first_evaluation(cfg))
+        learner, n = self.learner, self.n
+        buffer = SeedReplayBuffer(int(self.cfg.buffer_size), num_seeds=n, device=learner.device)
         state = {
             "learner": StateOf(learner.checkpoint, learner.load_checkpoint),
             "replay_buffer": buffer,
-            "collector": collector,
-            "eval_env": getattr(self.eval_env, "base_env", self.eval_env),
-            "monitor": stops,
-            "counters": counters,
         }
         where = f"stage {self.stage} ({self.name})"
-        latest = self.latest(counters, where)
-        if latest is not None:
-            self.restore(latest, state, counters)
-        start = stops.start = time.perf_counter() - counters.seconds
+        latest = self.latest(LoopCounters(0), where)  # its counters' form checked first
         watch = Stopwatch()
-        loop = self.loop(collector, stops, counters, state, counters, where, watch)
+        policy, rows = learner.exploration_policy, seed_rows(learner)
+        loop = self.loop(
+            self.cfg, self.env, policy, self.eval_env, rows, state, where, watch, latest=latest
+        )
+        collector, stops = loop.collector, loop.early_stop
         loop.register_op("batch", functools.partial(self._store, buffer, watch))
         loop.register_op("update", functools.partial(self._update, buffer, stops, watch))
         loop.register_op("log", functools.partial(self._log_batch, collector, stops))
@@ -195,7 +183,7 @@ class StageTrainer(SeedLoop):
             raise stage_failure(
                 err, self.stage, self.name, learner, buffer.held(), stops.rows, self.seeds
             ) from err
-        return [self._result(i, stops, collector, start, watch) for i in range(n)]
+        return [self._result(i, stops, collector, watch) for i in range(n)]
 
     def _store(self, buffer: SeedReplayBuffer, watch: Stopwatch, batch: TensorDictBase) -> None:
         with watch("collect"):
@@ -241,14 +229,14 @@ class StageTrainer(SeedLoop):
         )
 
     def _result(
-        self, i: int, stops: SeedEarlyStops, collector, start: float, watch: Stopwatch
+        self, i: int, stops: SeedEarlyStops, collector: StageCollector, watch: Stopwatch
     ) -> tuple[Learner, StageResult]:
         at, ended = stops.stopped_at[i], stops.finish(i)
         result = StageResult(
             self.stage,
             collector.frames // self.n if at is None else at["frames"],
             self.learner.num_updates if at is None else at["updates"],
-            time.perf_counter() - start if at is None else at["seconds"],
+            time.perf_counter() - stops.start if at is None else at["seconds"],
             timing=dict(watch.seconds),
             **ended,
         )

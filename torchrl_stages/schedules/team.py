@@ -19,7 +19,7 @@ from torchrl_stages.early_stop import seed_rows
 from torchrl_stages.failures import stage_failure
 from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.base import NonFiniteError
-from torchrl_stages.learners.stacking import seed_axes, stack_learners
+from torchrl_stages.learners.stacking import stack_learners
 from torchrl_stages.loop import SeedLoop, Stopwatch
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.policy import StackedPolicy
@@ -58,31 +58,6 @@ class JointCounters(SavedCounters):
         self.stored = self.stored or [[0] * stages for _ in range(n)]
         self.updates = self.updates or [[0] * stages for _ in range(n)]
         self.phases = self.phases or [[] for _ in range(n)]
-
-
-def seed_moments(
-    learners: Sequence[Learner], seed: int, load: dict[str, torch.Tensor] | None = None
-) -> dict[str, torch.Tensor]:
-    """Seed ``seed``'s rows of the Adam moments of the seed-stacked ``learners``, copied out; with
-    ``load`` (what this returned), written back instead."""
-    out: dict[str, torch.Tensor] = {}
-    for m, learner in enumerate(learners):
-        names = {id(p): n for n, p in learner.named_parameters(remove_duplicate=False)}
-        axes = seed_axes(learner)
-        for optimizer_name, optimizer in learner.optimizers.items():
-            for group in optimizer.param_groups:
-                for param in group["params"]:
-                    name = names.get(id(param), "")
-                    axis, state = axes.get(name), optimizer.state.get(param, {})
-                    for key in ("exp_avg", "exp_avg_sq"):
-                        if axis is None or key not in state:
-                            continue
-                        entry = f"{m}.{optimizer_name}.{name}.{key}"
-                        if load is None:
-                            out[entry] = state[key].select(axis, seed).clone()
-                        elif entry in load:
-                            state[key].select(axis, seed).copy_(load[entry])
-    return out
 
 
 class StageTeam(SeedLoop):
@@ -127,14 +102,13 @@ class StageTeam(SeedLoop):
     def _seeded_learners(self) -> list[Learner]:
         """Every stage's learner; row i of a stacked one: what ``seeds[i]`` alone starts from."""
         stages = range(self.task.num_stages)
-        if self.n == 1:
-            torch.manual_seed(self.seeds[0])
-            return [self.make[m]() for m in stages]
         rows: list[list[Learner]] = [[] for _ in stages]
         for seed in self.seeds:  # each seed's generator builds its stages 0..N-1 in turn
             torch.manual_seed(seed)
             for m in stages:
                 rows[m].append(self.make[m]())
+        if self.n == 1:
+            return [row[0] for row in rows]
         return [stack_learners(self.make[m](seeds=self.n), rows[m]) for m in stages]
 
     def _stored_keys(self, m: int, transform: StageRewardTransform) -> list[NestedKey]:
