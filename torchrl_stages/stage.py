@@ -19,16 +19,14 @@ from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
 from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, seed_rows
 from torchrl_stages.evaluate import evaluate_greedy
-from torchrl_stages.failures import stage_failure
+from torchrl_stages.failures import stage_failures
 from torchrl_stages.learners import Learner
-from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.learners.stacking import unstack_learner, update_rows
 from torchrl_stages.loop import LoopCounters, SeedLoop, Stopwatch
 from torchrl_stages.metric_names import STAGE
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.threads import keep_threads
-from torchrl_stages.transforms import NonFiniteValueError
 
 __all__ = ["StageResult", "StageTrainer", "gradient_steps", "per_seed_metrics"]
 
@@ -171,36 +169,35 @@ class StageTrainer(SeedLoop):
             self.cfg, self.env, policy, self.eval_env, rows, state, where, watch, latest=latest
         )
         collector, stops = loop.collector, loop.early_stop
-        loop.register_op("batch", functools.partial(self._store, buffer, watch))
-        loop.register_op("update", functools.partial(self._update, buffer, stops, watch))
-        loop.register_op("log", functools.partial(self._log_batch, collector, stops))
+
+        def store(batch: TensorDictBase) -> None:
+            with watch("collect"):
+                if self.postproc is not None:
+                    batch = self.postproc(batch)
+                buffer.extend(batch.select(*self.keys, strict=False))
+
+        def update(frames: int) -> list[dict[str, torch.Tensor]]:
+            learner.anneal(frames)
+            if frames < self.cfg.init_random_frames:
+                return []
+            active = stops.active()  # the seeds that have not stopped
+            rows = None if len(active) == n else torch.tensor(active, device=learner.device)
+            return gradient_steps(learner, buffer, self.cfg, rows, watch)
+
+        def log(batch: TensorDictBase, losses: list[dict[str, torch.Tensor]]) -> None:
+            updates, steps = [{self.stage: learner.num_updates}] * n, [collector.frames // n] * n
+            stage_losses = {self.stage: losses}
+            self.log_batch(batch, STAGE, self.stage, stage_losses, updates, stops.active(), steps)
+
+        loop.register_op("batch", store)
+        loop.register_op("update", update)
+        loop.register_op("log", log)
         loop.register_op("evaluate", functools.partial(self.evaluate, active=stops.active))
         if self.on_evaluate is not None:
             loop.register_op("evaluated", lambda ev: self.on_evaluate(collector.frames // n))
-        try:
+        with stage_failures(self.stage, self.name, learner, buffer, stops.rows, self.seeds):
             loop.train()
-        except (NonFiniteError, NonFiniteValueError) as err:
-            raise stage_failure(
-                err, self.stage, self.name, learner, buffer.held(), stops.rows, self.seeds
-            ) from err
         return [self._result(i, stops, collector, watch) for i in range(n)]
-
-    def _store(self, buffer: SeedReplayBuffer, watch: Stopwatch, batch: TensorDictBase) -> None:
-        with watch("collect"):
-            if self.postproc is not None:
-                batch = self.postproc(batch)
-            buffer.extend(batch.select(*self.keys, strict=False))
-
-    def _update(
-        self, buffer: SeedReplayBuffer, stops: SeedEarlyStops, watch: Stopwatch, frames: int
-    ) -> list[dict[str, torch.Tensor]]:
-        """The seeds that have not stopped take their gradient steps."""
-        self.learner.anneal(frames)
-        if frames < self.cfg.init_random_frames:
-            return []
-        active = stops.active()
-        rows = None if len(active) == self.n else torch.tensor(active, device=self.learner.device)
-        return gradient_steps(self.learner, buffer, self.cfg, rows, watch)
 
     def evaluate(self, frames: int, active: Callable[[], list[int]] | None = None) -> Evaluation:
         """Greedy episodes from the evaluation env's starts for each seed (``active``: logged)."""
@@ -218,15 +215,6 @@ class StageTrainer(SeedLoop):
         seeds = active() if active is not None else range(n)
         steps, updates = [frames] * n, [self.learner.num_updates] * n
         return self.log_evaluation(summaries, STAGE, self.stage, seeds, steps, steps, updates)
-
-    def _log_batch(
-        self, collector: StageCollector, stops: SeedEarlyStops, batch: TensorDictBase, losses
-    ) -> None:
-        updates = [{self.stage: self.learner.num_updates}] * self.n
-        steps = [collector.frames // self.n] * self.n
-        self.log_batch(
-            batch, STAGE, self.stage, {self.stage: losses}, updates, stops.active(), steps
-        )
 
     def _result(
         self, i: int, stops: SeedEarlyStops, collector: StageCollector, watch: Stopwatch

@@ -13,7 +13,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import Compose, RewardSum, TransformedEnv
 
 from torchrl_stages.checkpoint import StateOf
-from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, seed_rows
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops
 from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.learners.stacking import unstack_learner
 from torchrl_stages.loop import Stopwatch
@@ -141,7 +141,7 @@ class JointTrainer(StageTeam):
             env,
             policy,
             eval_env,
-            seed_rows(self.learners, moments=True),
+            self.rows,
             stateful,
             where,
             watch,
