@@ -49,7 +49,7 @@ from torchrl_stages.runs.loading import load_run
 from torchrl_stages.schedules import backward as backward_module
 from torchrl_stages.schedules import flat as flat_module
 from torchrl_stages.schedules.backward import train_backward
-from torchrl_stages.schedules.joint import JointSchedule, JointTrainer, seed_moments
+from torchrl_stages.schedules.joint import JointSchedule, JointTrainer
 from torchrl_stages.task import StagedTask, tile_starts
 
 # a 1 x 6 x 6 occupancy image and a 2-vector, like the cargo stages' window and target
@@ -714,14 +714,15 @@ def test_a_stopped_seeds_adam_moments_are_put_back():
     stacked = make_learner(cfg, specs, seeds=2)
     for _ in range(3):
         stacked.update(_batch((2, 8), action((2, 8))))
-    kept = seed_moments([stacked], 1)
+    row_0, row_1 = SeedRow([stacked], 0), SeedRow([stacked], 1)
+    kept = row_1.moments()
     assert kept and all("exp_avg" in key for key in kept)
     with update_rows(torch.tensor([0])):
         for _ in range(3):
             stacked.update(_batch((1, 8), action((1, 8))))
-    decayed = seed_moments([stacked], 1)
+    decayed = row_1.moments()
     assert any(not torch.equal(decayed[k], v) for k, v in kept.items())
-    seed_0 = seed_moments([stacked], 0)
-    seed_moments([stacked], 1, load=kept)
-    assert all(torch.equal(seed_moments([stacked], 1)[k], v) for k, v in kept.items())
-    assert all(torch.equal(seed_moments([stacked], 0)[k], v) for k, v in seed_0.items())
+    seed_0 = row_0.moments()
+    row_1.moments(load=kept)
+    assert all(torch.equal(row_1.moments()[k], v) for k, v in kept.items())
+    assert all(torch.equal(row_0.moments()[k], v) for k, v in seed_0.items())

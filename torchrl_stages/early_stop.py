@@ -120,6 +120,7 @@ class EarlyStop:
 class SeedRow:
     """Seed ``seed``'s row of a seed-stacked learner, or of every learner of a team (entries
     ``<m>.<key>``), as :class:`EarlyStop` reads and restores it (shared entries left alone).
+    With ``moments``, a stop keeps the row's Adam moments too (the others' updates decay them).
 
     Examples:
         >>> from torchrl.data import Categorical
@@ -132,10 +133,12 @@ class SeedRow:
         torch.Size([1, 8])
     """
 
-    def __init__(self, learners: Learner | Sequence[Learner], seed: int) -> None:
+    def __init__(
+        self, learners: Learner | Sequence[Learner], seed: int, moments: bool = False
+    ) -> None:
         self.team = not isinstance(learners, nn.Module)
         self.learners = list(learners) if self.team else [learners]
-        self.seed = seed
+        self.seed, self.keeps_moments = seed, moments
         self.axes = [
             {k: a for k, a in seed_axes(learner).items() if a is not None}
             for learner in self.learners
@@ -160,14 +163,33 @@ class SeedRow:
             if entry in state:
                 own[id(learner)][key].data.select(axis, self.seed).copy_(state[entry])
 
+    def moments(self, load: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        """The row's Adam moments, copied out; with ``load`` (what this returned), written back."""
+        out: dict[str, torch.Tensor] = {}
+        for m, (learner, axes) in enumerate(zip(self.learners, self.axes, strict=True)):
+            names = {id(p): n for n, p in learner.named_parameters(remove_duplicate=False)}
+            for optimizer_name, optimizer in learner.optimizers.items():
+                for param, state in optimizer.state.items():
+                    name = names.get(id(param), "")
+                    for key in ("exp_avg", "exp_avg_sq"):
+                        if name not in axes or key not in state:
+                            continue
+                        row = state[key].select(axes[name], self.seed)
+                        entry = f"{m}.{optimizer_name}.{name}.{key}"
+                        if load is None:
+                            out[entry] = row.clone()
+                        elif entry in load:
+                            row.copy_(load[entry])
+        return out
 
-def seed_rows(learners: Learner | Sequence[Learner]) -> list[Any]:
+
+def seed_rows(learners: Learner | Sequence[Learner], moments: bool = False) -> list[Any]:
     """What an early stop keeps and restores of each seed of a learner or a team of them."""
     one = isinstance(learners, nn.Module)
     seeds = (learners if one else learners[0]).seeds
     if seeds is None:
         return [learners if one else nn.ModuleList(learners)]
-    return [SeedRow(learners, i) for i in range(int(seeds))]
+    return [SeedRow(learners, i, moments) for i in range(int(seeds))]
 
 
 class SeedEarlyStops:
@@ -184,8 +206,8 @@ class SeedEarlyStops:
         ([1], 64)
     """
 
-    def __init__(self, cfg: StageConfig, rows: Sequence[Any], start: float = 0.0) -> None:
-        self.start = start  # what stop times are measured from
+    def __init__(self, cfg: StageConfig, rows: Sequence[Any]) -> None:
+        self.start = 0.0  # what stop times are measured from (time.perf_counter)
         self.cfg = cfg
         self.rows = list(rows)
         self.monitors = [EarlyStop(cfg) for _ in self.rows]
@@ -206,6 +228,8 @@ class SeedEarlyStops:
                     "updates": ev.updates[i],
                     "seconds": time.perf_counter() - self.start,
                 }
+                if isinstance(row, SeedRow) and row.keeps_moments:
+                    self.stopped_at[i]["moments"] = row.moments()
         return all(at is not None for at in self.stopped_at)
 
     def active(self) -> list[int]:
@@ -217,6 +241,8 @@ class SeedEarlyStops:
         at, monitor = self.stopped_at[i], self.monitors[i]
         if at is not None:
             self.rows[i].load_state_dict(at["state"])
+            if "moments" in at:
+                self.rows[i].moments(load=at["moments"])
         restored = at is None and monitor.restore_best(self.rows[i])
         success, value_error, ret = monitor.final
         return {

@@ -3,21 +3,23 @@ diverged (:class:`DivergenceError`)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
 from torchrl_stages.learners import Learner
-from torchrl_stages.transforms import NonFiniteInputError
+from torchrl_stages.learners.base import NonFiniteError
+from torchrl_stages.replay import SeedReplayBuffer
+from torchrl_stages.transforms import NonFiniteInputError, NonFiniteValueError
 
 #: the exit codes of the console scripts: a run that failed, bad input (refused before
 #: anything is written), a run that diverged
 EXIT_FAILED, EXIT_INVALID, EXIT_DIVERGED = 1, 2, 3
 
-__all__ = ["DivergenceError", "EnvError", "one_line", "stage_failure"]
+__all__ = ["DivergenceError", "EnvError", "one_line", "stage_failures"]
 
 
 def finite(value: torch.Tensor) -> bool:
@@ -42,32 +44,41 @@ def _path(key: NestedKey) -> tuple[str, ...]:
     return (key,) if isinstance(key, str) else tuple(key)
 
 
-def stage_failure(
-    err: FloatingPointError,
+@contextmanager
+def stage_failures(
     stage: int,
     name: str,
     learner: Learner,
-    held: TensorDictBase | None,
-    rows: Sequence[Any] = (),
-    seeds: Sequence[int] = (),
-) -> RuntimeError:
-    """What a non-finite loss, gradient or value becomes: :class:`EnvError` when the env's data
-    (``held``: the replay buffer's, actions aside) is not finite, else :class:`DivergenceError`."""
-    if isinstance(err, NonFiniteInputError):
-        return EnvError(stage, name, err.key, "the next stage's value of it is not finite")
-    action = _path(learner.specs.action_key)
-    for key, value in held.items(True, True) if held is not None else ():
-        if action not in (_path(key), _path(key)[-1:]) and not finite(value):
-            return EnvError(stage, name, key, f"found in the replay buffer after: {err}")
-    if len(seeds) > 1:
-        broken = [
-            s
-            for s, row in zip(seeds, rows, strict=True)
-            if not all(map(finite, row.state_dict().values()))
-        ]
-        if broken:
-            err = FloatingPointError(f"{err} (seeds {broken}: their weights are not finite)")
-    return DivergenceError(stage, name, learner, err)
+    buffer: SeedReplayBuffer,
+    rows: Sequence[Any],
+    seeds: Sequence[int],
+) -> Iterator[None]:
+    """What a non-finite loss, gradient or value in the block raises: :class:`EnvError` when the
+    env's data (the replay ``buffer``'s, actions aside) is not finite, else
+    :class:`DivergenceError` (naming the ``seeds`` whose ``rows`` are not finite)."""
+    try:
+        yield
+    except (NonFiniteError, NonFiniteValueError) as err:
+        if isinstance(err, NonFiniteInputError):
+            raise EnvError(
+                stage, name, err.key, "the next stage's value of it is not finite"
+            ) from err
+        action, held = _path(learner.specs.action_key), buffer.held()
+        for key, value in held.items(True, True) if held is not None else ():
+            if action not in (_path(key), _path(key)[-1:]) and not finite(value):
+                raise EnvError(
+                    stage, name, key, f"found in the replay buffer after: {err}"
+                ) from err
+        cause = err
+        if len(seeds) > 1:
+            broken = [
+                s
+                for s, row in zip(seeds, rows, strict=True)
+                if not all(map(finite, row.state_dict().values()))
+            ]
+            if broken:
+                cause = FloatingPointError(f"{err} (seeds {broken}: their weights are not finite)")
+        raise DivergenceError(stage, name, learner, cause) from err
 
 
 class DivergenceError(RuntimeError):

@@ -15,11 +15,18 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, SavedCounters, StageCheckpoints
 from torchrl_stages.collector import StageCollector
-from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, can_stop_early
+from torchrl_stages.config import StageConfig
+from torchrl_stages.early_stop import (
+    Evaluation,
+    SeedEarlyStops,
+    can_stop_early,
+    first_evaluation,
+)
 from torchrl_stages.metric_names import STAGE, metric_name
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import Interrupted, requested
@@ -127,34 +134,30 @@ class Trainer:
         checkpoints: StageCheckpoints | None = None,
         state: dict[str, Any] | None = None,
         seeds: Sequence[int] = (0,),
-        frames_before: int = 0,
         where: str = "the loop",
         watch: Stopwatch | None = None,
         progress: bool = False,
     ) -> None:
         self.collector, self.early_stop, self.counters = collector, early_stop, counters
         self.checkpoints, self.state = checkpoints, state or {}
-        self.seeds, self.frames_before, self.where = list(seeds), int(frames_before), where
+        self.seeds, self.where = list(seeds), where
+        self.frames_before = 0  # the frames of the loops before this one
         self.watch = watch if watch is not None else Stopwatch()
         self.eval_every = int(early_stop.cfg.eval_every)
         self.progress, self.open_ended = progress, can_stop_early(early_stop.cfg)
         n = len(self.seeds)
         self.label = where + (f", {n} seeds" if n > 1 else "")
-        self.ops: dict[str, list[Callable[..., Any]]] = {point: [] for point in HOOKS}
+        self.ops: dict[str, Callable[..., Any]] = {}
 
     def register_op(self, point: str, op: Callable[..., Any]) -> None:
-        """Runs ``op`` at hook ``point`` (``update``, ``evaluate``: one op, whose result counts)."""
-        if point not in self.ops:
-            raise ValueError(f"unknown hook point {point!r} (known: {', '.join(HOOKS)})")
-        if point in ("update", "evaluate") and self.ops[point]:
-            raise ValueError(f"the {point!r} hook is registered already")
-        self.ops[point].append(op)
+        """Runs ``op`` at hook ``point`` (one op per point)."""
+        if point not in HOOKS or point in self.ops:
+            raise ValueError(f"hook point {point!r}: unknown or taken (known: {', '.join(HOOKS)})")
+        self.ops[point] = op
 
     def _call(self, point: str, *args: Any) -> Any:
-        out = None
-        for op in self.ops[point]:
-            out = op(*args)
-        return out
+        op = self.ops.get(point)
+        return None if op is None else op(*args)
 
     def train(self) -> None:
         collector, counters, watch, n = self.collector, self.counters, self.watch, len(self.seeds)
@@ -256,27 +259,52 @@ class SeedLoop:
         for i, log in enumerate(self.logs):
             log.rewind(counters.log.get(str(i), {}))
 
-    def log_position(self) -> dict[str, dict[str, int]]:
-        """Each seed's log position, what :meth:`restore` rewinds to."""
-        return {str(i): log.position() for i, log in enumerate(self.logs)}
+    def record(self, saved: SavedCounters, start: float) -> None:
+        """Puts the seconds since ``start`` and each seed's log position in ``saved``."""
+        saved.seconds = time.perf_counter() - start
+        saved.log = {str(i): log.position() for i, log in enumerate(self.logs)}
 
     def loop(
         self,
-        collector: StageCollector,
-        stops: SeedEarlyStops,
-        counters: LoopCounters,
+        cfg: StageConfig,
+        env: EnvBase,
+        policy: Callable[[TensorDictBase], TensorDictBase],
+        eval_env: EnvBase,
+        rows: Sequence[Any],
         state: dict[str, Any],
-        saved: SavedCounters,
         where: str,
         watch: Stopwatch,
-        frames_before: int = 0,
+        *,
+        saved: SavedCounters | None = None,
+        latest: str | None = None,
+        start: float | None = None,
+        init_random: bool = True,
     ) -> Trainer:
-        """The :class:`Trainer` of ``stops``; ``saved`` takes the seconds and log positions."""
-
-        def record() -> None:
-            saved.seconds = time.perf_counter() - stops.start
-            saved.log = self.log_position()
-
+        """The :class:`Trainer` of a loop of ``cfg`` over ``env``: its collector, early stops of
+        ``rows`` and counters join the checkpointed ``state``, restored from ``latest``;
+        ``saved`` (default: those counters) takes the seconds and log positions, from which
+        ``start`` (default: resumed from ``saved``) measures stop times."""
+        n = self.n
+        collector = StageCollector(
+            env,
+            policy,
+            frames_per_batch=int(cfg.frames_per_batch) * n,
+            total_frames=int(cfg.frames) * n,
+            init_random_frames=int(cfg.init_random_frames) * n if init_random else 0,
+        )
+        stops = SeedEarlyStops(cfg, rows)
+        counters = LoopCounters(next_eval=first_evaluation(cfg))
+        saved = counters if saved is None else saved
+        state = {
+            **state,
+            "collector": collector,
+            "eval_env": getattr(eval_env, "base_env", eval_env),
+            "monitor": stops,
+            "counters" if saved is counters else "phase_counters": counters,
+        }
+        if latest is not None:
+            self.restore(latest, state, saved)
+        stops.start = time.perf_counter() - saved.seconds if start is None else start
         loop = Trainer(
             collector,
             stops,
@@ -287,9 +315,8 @@ class SeedLoop:
             progress=self.progress,
             where=where,
             watch=watch,
-            frames_before=frames_before,
         )
-        loop.register_op("checkpoint", record)
+        loop.register_op("checkpoint", lambda: self.record(saved, stops.start))
         return loop
 
     def log_evaluation(

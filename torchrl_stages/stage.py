@@ -17,18 +17,16 @@ from torchrl.envs import EnvBase
 from torchrl_stages.checkpoint import StageCheckpoints, StateOf
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
-from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, first_evaluation, seed_rows
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, seed_rows
 from torchrl_stages.evaluate import evaluate_greedy
-from torchrl_stages.failures import stage_failure
+from torchrl_stages.failures import stage_failures
 from torchrl_stages.learners import Learner
-from torchrl_stages.learners.base import NonFiniteError
 from torchrl_stages.learners.stacking import unstack_learner, update_rows
 from torchrl_stages.loop import LoopCounters, SeedLoop, Stopwatch
 from torchrl_stages.metric_names import STAGE
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.threads import keep_threads
-from torchrl_stages.transforms import NonFiniteValueError
 
 __all__ = ["StageResult", "StageTrainer", "gradient_steps", "per_seed_metrics"]
 
@@ -157,62 +155,49 @@ class StageTrainer(SeedLoop):
         return self.learner.value(live=True)
 
     def train(self) -> list[tuple[Learner, StageResult]]:
-        cfg, learner, n = self.cfg, self.learner, self.n
-        collector = StageCollector(
-            self.env,
-            learner.exploration_policy,
-            frames_per_batch=int(cfg.frames_per_batch) * n,
-            total_frames=int(cfg.frames) * n,
-            init_random_frames=int(cfg.init_random_frames) * n,
-        )
-        buffer = SeedReplayBuffer(int(cfg.buffer_size), num_seeds=n, device=learner.device)
-        stops = SeedEarlyStops(cfg, seed_rows(learner))
-        counters = LoopCounters(next_eval=first_evaluation(cfg))
+        learner, n = self.learner, self.n
+        buffer = SeedReplayBuffer(int(self.cfg.buffer_size), num_seeds=n, device=learner.device)
         state = {
             "learner": StateOf(learner.checkpoint, learner.load_checkpoint),
             "replay_buffer": buffer,
-            "collector": collector,
-            "eval_env": getattr(self.eval_env, "base_env", self.eval_env),
-            "monitor": stops,
-            "counters": counters,
         }
         where = f"stage {self.stage} ({self.name})"
-        latest = self.latest(counters, where)
-        if latest is not None:
-            self.restore(latest, state, counters)
-        start = stops.start = time.perf_counter() - counters.seconds
+        latest = self.latest(LoopCounters(0), where)  # its counters' form checked first
         watch = Stopwatch()
-        loop = self.loop(collector, stops, counters, state, counters, where, watch)
-        loop.register_op("batch", functools.partial(self._store, buffer, watch))
-        loop.register_op("update", functools.partial(self._update, buffer, stops, watch))
-        loop.register_op("log", functools.partial(self._log_batch, collector, stops))
+        policy, rows = learner.exploration_policy, seed_rows(learner)
+        loop = self.loop(
+            self.cfg, self.env, policy, self.eval_env, rows, state, where, watch, latest=latest
+        )
+        collector, stops = loop.collector, loop.early_stop
+
+        def store(batch: TensorDictBase) -> None:
+            with watch("collect"):
+                if self.postproc is not None:
+                    batch = self.postproc(batch)
+                buffer.extend(batch.select(*self.keys, strict=False))
+
+        def update(frames: int) -> list[dict[str, torch.Tensor]]:
+            learner.anneal(frames)
+            if frames < self.cfg.init_random_frames:
+                return []
+            active = stops.active()  # the seeds that have not stopped
+            rows = None if len(active) == n else torch.tensor(active, device=learner.device)
+            return gradient_steps(learner, buffer, self.cfg, rows, watch)
+
+        def log(batch: TensorDictBase, losses: list[dict[str, torch.Tensor]]) -> None:
+            updates, steps = [{self.stage: learner.num_updates}] * n, [collector.frames // n] * n
+            stage_losses = {self.stage: losses}
+            self.log_batch(batch, STAGE, self.stage, stage_losses, updates, stops.active(), steps)
+
+        loop.register_op("batch", store)
+        loop.register_op("update", update)
+        loop.register_op("log", log)
         loop.register_op("evaluate", functools.partial(self.evaluate, active=stops.active))
         if self.on_evaluate is not None:
             loop.register_op("evaluated", lambda ev: self.on_evaluate(collector.frames // n))
-        try:
+        with stage_failures(self.stage, self.name, learner, buffer, stops.rows, self.seeds):
             loop.train()
-        except (NonFiniteError, NonFiniteValueError) as err:
-            raise stage_failure(
-                err, self.stage, self.name, learner, buffer.held(), stops.rows, self.seeds
-            ) from err
-        return [self._result(i, stops, collector, start, watch) for i in range(n)]
-
-    def _store(self, buffer: SeedReplayBuffer, watch: Stopwatch, batch: TensorDictBase) -> None:
-        with watch("collect"):
-            if self.postproc is not None:
-                batch = self.postproc(batch)
-            buffer.extend(batch.select(*self.keys, strict=False))
-
-    def _update(
-        self, buffer: SeedReplayBuffer, stops: SeedEarlyStops, watch: Stopwatch, frames: int
-    ) -> list[dict[str, torch.Tensor]]:
-        """The seeds that have not stopped take their gradient steps."""
-        self.learner.anneal(frames)
-        if frames < self.cfg.init_random_frames:
-            return []
-        active = stops.active()
-        rows = None if len(active) == self.n else torch.tensor(active, device=self.learner.device)
-        return gradient_steps(self.learner, buffer, self.cfg, rows, watch)
+        return [self._result(i, stops, collector, watch) for i in range(n)]
 
     def evaluate(self, frames: int, active: Callable[[], list[int]] | None = None) -> Evaluation:
         """Greedy episodes from the evaluation env's starts for each seed (``active``: logged)."""
@@ -231,24 +216,15 @@ class StageTrainer(SeedLoop):
         steps, updates = [frames] * n, [self.learner.num_updates] * n
         return self.log_evaluation(summaries, STAGE, self.stage, seeds, steps, steps, updates)
 
-    def _log_batch(
-        self, collector: StageCollector, stops: SeedEarlyStops, batch: TensorDictBase, losses
-    ) -> None:
-        updates = [{self.stage: self.learner.num_updates}] * self.n
-        steps = [collector.frames // self.n] * self.n
-        self.log_batch(
-            batch, STAGE, self.stage, {self.stage: losses}, updates, stops.active(), steps
-        )
-
     def _result(
-        self, i: int, stops: SeedEarlyStops, collector, start: float, watch: Stopwatch
+        self, i: int, stops: SeedEarlyStops, collector: StageCollector, watch: Stopwatch
     ) -> tuple[Learner, StageResult]:
         at, ended = stops.stopped_at[i], stops.finish(i)
         result = StageResult(
             self.stage,
             collector.frames // self.n if at is None else at["frames"],
             self.learner.num_updates if at is None else at["updates"],
-            time.perf_counter() - start if at is None else at["seconds"],
+            time.perf_counter() - stops.start if at is None else at["seconds"],
             timing=dict(watch.seconds),
             **ended,
         )

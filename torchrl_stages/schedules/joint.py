@@ -3,7 +3,6 @@ start region moves back, phase k collecting whole-task episodes from stage-k sta
 
 from __future__ import annotations
 
-import functools
 import logging
 import time
 from collections.abc import Sequence
@@ -14,14 +13,13 @@ from tensordict import TensorDictBase
 from torchrl.envs import Compose, RewardSum, TransformedEnv
 
 from torchrl_stages.checkpoint import StateOf
-from torchrl_stages.collector import StageCollector
-from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, first_evaluation, seed_rows
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops
 from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.learners.stacking import unstack_learner
-from torchrl_stages.loop import LoopCounters, Stopwatch
+from torchrl_stages.loop import Stopwatch
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.schedules.base import Probe, Schedule, SeedGroup, Trained, register_schedule
-from torchrl_stages.schedules.team import JointCounters, StageTeam, seed_moments
+from torchrl_stages.schedules.team import JointCounters, StageTeam
 from torchrl_stages.seeding import EVAL_OFFSET, phase_seed, stage_seed
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask, tile_starts
@@ -98,8 +96,7 @@ class JointTrainer(StageTeam):
             latest = None
             counters.phase, counters.in_phase = index + 1, False
             if self.checkpoints is not None:  # a phase boundary: learners and buffers
-                counters.seconds = time.perf_counter() - start
-                counters.log = self.log_position()
+                self.record(counters, start)
                 self.checkpoints.save(counters.frames, stateful)
         seconds = time.perf_counter() - start  # every launch's
         return [self._trained(i, counters, seconds, watch) for i in range(self.n)]
@@ -131,36 +128,33 @@ class JointTrainer(StageTeam):
         if latest is not None and not resume_in_phase:  # resumed at a phase boundary
             self.restore(latest, stateful, counters)
         env, eval_env = self._phase_envs(k, start_stage, cfg)
-        collector = StageCollector(
-            env,
-            StackedPolicy(
-                [learner.exploration_policy for learner in self.learners], skip_absent=False
-            ),
-            frames_per_batch=int(cfg.frames_per_batch) * n,
-            total_frames=int(cfg.frames) * n,
-            init_random_frames=int(cfg.init_random_frames) * n if counters.phase == 0 else 0,
+        policy = StackedPolicy(
+            [learner.exploration_policy for learner in self.learners], skip_absent=False
         )
-        stops = SeedEarlyStops(cfg, seed_rows(self.learners), start=t0)
-        phase = LoopCounters(next_eval=first_evaluation(cfg))
-        state = {
-            **stateful,
-            "collector": collector,
-            "eval_env": eval_env.base_env,
-            "monitor": stops,
-            "phase_counters": phase,
-        }
-        if resume_in_phase:
-            self.restore(latest, state, counters)
-        else:
-            counters.phase_frames = [0] * n
-        counters.in_phase = True
-        frames_before = counters.frames - collector.frames // n
         where = "the joint phase from " + (
             "the task's own starts"
             if start_stage is None
             else f"stage {start_stage} ({self.task.stage_names[start_stage]})"
         )
-        loop = self.loop(collector, stops, phase, state, counters, where, watch, frames_before)
+        loop = self.loop(
+            cfg,
+            env,
+            policy,
+            eval_env,
+            self.rows,
+            stateful,
+            where,
+            watch,
+            saved=counters,
+            latest=latest if resume_in_phase else None,
+            start=t0,
+            init_random=counters.phase == 0,
+        )
+        collector, stops = loop.collector, loop.early_stop
+        if not resume_in_phase:
+            counters.phase_frames = [0] * n
+        counters.in_phase = True
+        frames_before = loop.frames_before = counters.frames - collector.frames // n
 
         def on_batch(batch: TensorDictBase) -> None:
             counters.frames = frames_before + collector.frames // n
@@ -175,28 +169,14 @@ class JointTrainer(StageTeam):
         loop.register_op("update", lambda frames: self._update(stops.active(), counters, watch))
         loop.register_op("log", on_log)
         loop.register_op("evaluate", lambda frames: self.evaluate(k, eval_env, counters, stops))
-        loop.register_op("evaluated", functools.partial(self._evaluated, k, counters, stops))
+        if self.probe is not None and k == 0:
+            loop.register_op("evaluated", lambda ev: self.probe(self.learners, counters.frames))
         loop.train()
         for i in range(n):
             ended = stops.finish(i)
-            at = stops.stopped_at[i]
-            if at is not None and "moments" in at:  # the Adam moments it stopped with
-                seed_moments(self.learners, i, load=at["moments"])
             frames = counters.phase_frames[i]
             counters.phases[i].append({"start_stage": start_stage, "frames": frames, **ended})
 
-    def _evaluated(
-        self, k: int, counters: JointCounters, stops: SeedEarlyStops, evaluation: Evaluation
-    ) -> None:
-        """A seed that stopped keeps its Adam moments (the others' updates would decay them)."""
-        if self.n > 1:
-            for i, at in enumerate(stops.stopped_at):
-                if at is not None and "moments" not in at:
-                    at["moments"] = seed_moments(self.learners, i)
-        if self.probe is not None and k == 0:
-            self.probe(self.learners, counters.frames)
-
-    @torch.no_grad()
     def evaluate(
         self, k: int, eval_env, counters: JointCounters, stops: SeedEarlyStops
     ) -> Evaluation:

@@ -16,17 +16,16 @@ from tensordict.utils import NestedKey, unravel_key
 
 from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, SavedCounters, StageCheckpoints
 from torchrl_stages.early_stop import seed_rows
-from torchrl_stages.failures import stage_failure
+from torchrl_stages.failures import stage_failures
 from torchrl_stages.learners import Learner, make_learner
-from torchrl_stages.learners.base import NonFiniteError
-from torchrl_stages.learners.stacking import seed_axes, stack_learners
+from torchrl_stages.learners.stacking import stack_learners
 from torchrl_stages.loop import SeedLoop, Stopwatch
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.policy import StackedPolicy
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.stage import gradient_steps
 from torchrl_stages.task import StagedTask
-from torchrl_stages.transforms import NonFiniteValueError, StageRewardTransform
+from torchrl_stages.transforms import StageRewardTransform
 
 _NEXT_TAGS = ("stage", "stage_transition", "reward", "terminated", "truncated", "done")
 #: what every stage's buffer keeps besides its loss's entries
@@ -60,31 +59,6 @@ class JointCounters(SavedCounters):
         self.phases = self.phases or [[] for _ in range(n)]
 
 
-def seed_moments(
-    learners: Sequence[Learner], seed: int, load: dict[str, torch.Tensor] | None = None
-) -> dict[str, torch.Tensor]:
-    """Seed ``seed``'s rows of the Adam moments of the seed-stacked ``learners``, copied out; with
-    ``load`` (what this returned), written back instead."""
-    out: dict[str, torch.Tensor] = {}
-    for m, learner in enumerate(learners):
-        names = {id(p): n for n, p in learner.named_parameters(remove_duplicate=False)}
-        axes = seed_axes(learner)
-        for optimizer_name, optimizer in learner.optimizers.items():
-            for group in optimizer.param_groups:
-                for param in group["params"]:
-                    name = names.get(id(param), "")
-                    axis, state = axes.get(name), optimizer.state.get(param, {})
-                    for key in ("exp_avg", "exp_avg_sq"):
-                        if axis is None or key not in state:
-                            continue
-                        entry = f"{m}.{optimizer_name}.{name}.{key}"
-                        if load is None:
-                            out[entry] = state[key].select(axis, seed).clone()
-                        elif entry in load:
-                            state[key].select(axis, seed).copy_(load[entry])
-    return out
-
-
 class StageTeam(SeedLoop):
     """Every stage's learner of ``task`` for each seed of ``seeds`` (several: seed-stacked), with
     its replay buffer and transition reward."""
@@ -106,6 +80,7 @@ class StageTeam(SeedLoop):
             for m in range(stages)
         ]
         self.learners = self._seeded_learners()
+        self.rows = seed_rows(self.learners, moments=True)  # what an early stop keeps of a seed
         self.gammas = [float(task.stage_cfg(m).gamma) for m in range(stages)]
         self.transforms = [
             StageRewardTransform(
@@ -122,27 +97,24 @@ class StageTeam(SeedLoop):
             )
             for m in range(stages)
         ]
-        self.keys = [self._stored_keys(m, self.transforms[m]) for m in range(stages)]
+        self.keys = []  # stage m's loss entries, the tags, what the next stage's value reads
+        for m, transform in enumerate(self.transforms):
+            keys = [*self.learners[m].replay_keys, *TAGS]
+            if transform.next_value is not None:
+                keys += [unravel_key(("next", k)) for k in transform.next_value.in_keys]
+            self.keys.append(list(dict.fromkeys(keys)))
 
     def _seeded_learners(self) -> list[Learner]:
         """Every stage's learner; row i of a stacked one: what ``seeds[i]`` alone starts from."""
         stages = range(self.task.num_stages)
-        if self.n == 1:
-            torch.manual_seed(self.seeds[0])
-            return [self.make[m]() for m in stages]
         rows: list[list[Learner]] = [[] for _ in stages]
         for seed in self.seeds:  # each seed's generator builds its stages 0..N-1 in turn
             torch.manual_seed(seed)
             for m in stages:
                 rows[m].append(self.make[m]())
+        if self.n == 1:
+            return [row[0] for row in rows]
         return [stack_learners(self.make[m](seeds=self.n), rows[m]) for m in stages]
-
-    def _stored_keys(self, m: int, transform: StageRewardTransform) -> list[NestedKey]:
-        """Stage m's loss entries, the stage tags, and what the next stage's value reads."""
-        keys = [*self.learners[m].replay_keys, *TAGS]
-        if transform.next_value is not None:
-            keys += [unravel_key(("next", k)) for k in transform.next_value.in_keys]
-        return list(dict.fromkeys(keys))
 
     @functools.cached_property
     def _value(self) -> StackedPolicy:
@@ -181,20 +153,10 @@ class StageTeam(SeedLoop):
                 continue
             learner.anneal(round(statistics.mean(stored[i][m] for i in ready)))
             rows = None if len(ready) == self.n else torch.tensor(ready, device=learner.device)
-            try:
-                losses[m] = gradient_steps(
-                    learner, self.buffers[m], cfg, rows, watch, self.transforms[m]
-                )
-            except (NonFiniteError, NonFiniteValueError) as err:
-                raise stage_failure(
-                    err,
-                    m,
-                    self.task.stage_names[m],
-                    learner,
-                    self.buffers[m].held(),
-                    [seed_rows(self.learners)[i] for i in ready],
-                    [self.seeds[i] for i in ready],
-                ) from err
+            buffer, name = self.buffers[m], self.task.stage_names[m]
+            kept, seeds = [self.rows[i] for i in ready], [self.seeds[i] for i in ready]
+            with stage_failures(m, name, learner, buffer, kept, seeds):
+                losses[m] = gradient_steps(learner, buffer, cfg, rows, watch, self.transforms[m])
             for i in ready:
                 counters.updates[i][m] += int(cfg.updates_per_batch)
         return losses
