@@ -120,9 +120,10 @@ class Trainer:
         >>> loop = Trainer(collector, stops, LoopCounters(0))
         >>> seen = []
         >>> loop.register_op("batch", lambda batch: seen.append(batch.numel()))
+        >>> loop.register_op("batch", lambda batch: seen.append("then"))
         >>> loop.train()
         >>> seen
-        [8, 8, 8, 8]
+        [8, 'then', 8, 'then', 8, 'then', 8, 'then']
     """
 
     def __init__(
@@ -147,17 +148,22 @@ class Trainer:
         self.progress, self.open_ended = progress, can_stop_early(early_stop.cfg)
         n = len(self.seeds)
         self.label = where + (f", {n} seeds" if n > 1 else "")
-        self.ops: dict[str, Callable[..., Any]] = {}
+        self.ops: dict[str, list[Callable[..., Any]]] = {point: [] for point in HOOKS}
 
     def register_op(self, point: str, op: Callable[..., Any]) -> None:
-        """Runs ``op`` at hook ``point`` (one op per point)."""
-        if point not in HOOKS or point in self.ops:
-            raise ValueError(f"hook point {point!r}: unknown or taken (known: {', '.join(HOOKS)})")
-        self.ops[point] = op
+        """Runs ``op`` at hook ``point``, after those registered before (``update`` and
+        ``evaluate``: one op, whose result counts)."""
+        if point not in self.ops:
+            raise ValueError(f"unknown hook point {point!r} (known: {', '.join(HOOKS)})")
+        if point in ("update", "evaluate") and self.ops[point]:
+            raise ValueError(f"the {point!r} hook is registered already")
+        self.ops[point].append(op)
 
     def _call(self, point: str, *args: Any) -> Any:
-        op = self.ops.get(point)
-        return None if op is None else op(*args)
+        out = None
+        for op in self.ops[point]:
+            out = op(*args)
+        return out
 
     def train(self) -> None:
         collector, counters, watch, n = self.collector, self.counters, self.watch, len(self.seeds)
