@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,6 @@ from torchrl_stages.preemption import Interrupted, handle_signals
 from torchrl_stages.runs.directory import drop_checkpoints, refuse_links, scope_checkpoints
 from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
 from torchrl_stages.runs.seed_run import (
-    RunOptions,
     SeedRun,
     build_task,
     compile_mode,
@@ -122,10 +120,9 @@ class Experiment:
         self.seeds = validate_seeds(cfg) if self.stacked else [int(cfg.seed)]
         self.cfg, self.run_dir = cfg, Path(run_dir)
         self.checkpoint_root = self.run_dir / SEED_CHECKPOINTS  # several seeds' loops: one state
-        options = RunOptions(resume, overwrite, hydra_files, tuple(observers))
         self.runs: list[SeedRun] = []
         if not self.stacked:
-            self.runs.append(SeedRun(cfg, self.run_dir, options))
+            self.runs.append(SeedRun(cfg, self.run_dir, resume, overwrite, hydra_files, observers))
             return
         # before any directory is made: the config, and whether it stacks
         check_stackable(build_task(_for_seed(cfg, self.seeds[0])), len(self.seeds))
@@ -133,8 +130,8 @@ class Experiment:
             for seed in self.seeds:
                 seed_cfg = _for_seed(cfg, seed)
                 files = hydra_files and _hydra_files_for(hydra_files, seed_cfg, seed)
-                seed_options = replace(options, hydra_files=files)
-                self.runs.append(SeedRun(seed_cfg, seed_dir(self.run_dir, seed), seed_options))
+                path = seed_dir(self.run_dir, seed)
+                self.runs.append(SeedRun(seed_cfg, path, resume, overwrite, files, observers))
         except BaseException:
             self.close()
             raise
