@@ -111,8 +111,6 @@ class Experiment:
         cfg: DictConfig,
         run_dir: str | Path,
         *,
-        resume: bool | None = None,
-        overwrite: bool | None = None,
         hydra_files: dict[str, Any] | None = None,
         observers: Sequence[Observer] = (),
     ) -> None:
@@ -122,7 +120,7 @@ class Experiment:
         self.checkpoint_root = self.run_dir / SEED_CHECKPOINTS  # several seeds' loops: one state
         self.runs: list[SeedRun] = []
         if not self.stacked:
-            self.runs.append(SeedRun(cfg, self.run_dir, resume, overwrite, hydra_files, observers))
+            self.runs.append(SeedRun(cfg, self.run_dir, hydra_files, observers))
             return
         # before any directory is made: the config, and whether it stacks
         check_stackable(build_task(_for_seed(cfg, self.seeds[0])), len(self.seeds))
@@ -131,7 +129,7 @@ class Experiment:
                 seed_cfg = _for_seed(cfg, seed)
                 files = hydra_files and _hydra_files_for(hydra_files, seed_cfg, seed)
                 path = seed_dir(self.run_dir, seed)
-                self.runs.append(SeedRun(seed_cfg, path, resume, overwrite, files, observers))
+                self.runs.append(SeedRun(seed_cfg, path, files, observers))
         except BaseException:
             self.close()
             raise

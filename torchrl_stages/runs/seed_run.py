@@ -121,16 +121,13 @@ class SeedRun:
         self,
         cfg: DictConfig,
         run_dir: str | Path,
-        resume: bool | None = None,
-        overwrite: bool | None = None,
         hydra_files: dict[str, Any] | None = None,
         observers: Sequence[Observer] = (),
     ) -> None:
         cfg, self.schedule = checked_config(cfg)
         self.cfg, self.run_dir = cfg, RunDir(run_dir)
         self.hydra_files, self.observers = hydra_files, observers
-        self.resume = bool(cfg.get("resume", False) if resume is None else resume)
-        self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
+        self.resume, self.overwrite = bool(cfg.get("resume")), bool(cfg.get("overwrite"))
         if self.resume and self.overwrite:
             raise ConfigError(
                 "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "
