@@ -20,11 +20,7 @@ from torchrl_stages.loggers import Observer, StopRun
 from torchrl_stages.preemption import Interrupted, handle_signals
 from torchrl_stages.runs.directory import drop_checkpoints, refuse_links, scope_checkpoints
 from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
-from torchrl_stages.runs.seed_run import (
-    SeedRun,
-    build_task,
-    compile_mode,
-)
+from torchrl_stages.runs.seed_run import SeedRun, build_task, compile_mode
 from torchrl_stages.schedules import SCHEDULES, get_schedule
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import hold_threads
