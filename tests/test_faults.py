@@ -44,9 +44,9 @@ def compose(*overrides: str):
         return compose_fn(*OVERRIDES, *overrides)
 
 
-def train(run_dir: Path, *overrides: str, **kwargs) -> dict:
+def train(run_dir: Path, *overrides: str) -> dict:
     cfg = compose(*overrides)  # .hydra/config.yaml as stages-train writes it
-    return Experiment(cfg, run_dir, hydra_files={"config.yaml": cfg}, **kwargs).run()[0]
+    return Experiment(cfg, run_dir, hydra_files={"config.yaml": cfg}).run()[0]
 
 
 @pytest.fixture(scope="module")
@@ -166,7 +166,7 @@ def test_overwrite_refuses_a_directory_without_a_record(copy):
     (copy / "notes.png").write_bytes(b"mine")
     before = sorted(p.relative_to(copy).as_posix() for p in copy.rglob("*"))
     with pytest.raises(RunDirError, match=r"overwrite=true: .* no \.stages/run\.json"):
-        Experiment(compose(), copy, overwrite=True)
+        Experiment(compose("overwrite=true"), copy)
     assert sorted(p.relative_to(copy).as_posix() for p in copy.rglob("*")) == before
 
 
@@ -175,7 +175,7 @@ def test_overwrite_refuses_run_files_its_record_does_not_list(copy):
     del record["entries"]["stage_1.pt"]
     (copy / ".stages" / "run.json").write_text(json.dumps(record))
     with pytest.raises(RunDirError, match="stage_1.pt, which its record"):
-        Experiment(compose(), copy, overwrite=True)
+        Experiment(compose("overwrite=true"), copy)
     assert (copy / "stage_1.pt").is_file() and (copy / "config.yaml").is_file()
 
 
@@ -230,7 +230,7 @@ def test_a_changed_stage_file_fails_its_checksum(copy, capsys):
 def test_a_missing_config_is_read_from_hydra_and_restored_on_resume(copy):
     (copy / "config.yaml").unlink()
     assert len(load_run(copy).learners) == 2
-    train(copy, resume=True)
+    train(copy, "resume=true")
     assert (copy / "config.yaml").is_file()
 
 
@@ -254,7 +254,7 @@ def test_a_read_only_directory_names_the_path_and_loses_nothing(copy, monkeypatc
     (copy / "stage_0.pt").unlink()
     before = (copy / "stage_1.pt").read_bytes()
     with pytest.raises(OSError, match="Read-only file system") as info:
-        train(copy, resume=True)
+        train(copy, "resume=true")
     assert copy in Path(info.value.filename).parents  # the file it could not write
     assert (copy / "stage_1.pt").read_bytes() == before
     assert not [p for p in copy.rglob("*") if p.name.endswith(".tmp")]
@@ -324,7 +324,7 @@ def test_after_a_divergence_the_stage_retrains_with_a_changed_key(tmp_path):
     with pytest.raises(DivergenceError):
         train(run_dir, "task.stages.s0.lr=1e30")
     stage_1 = (run_dir / "stage_1.pt").read_bytes()
-    train(run_dir, resume=True)  # s0's lr back to its default: stage 1 is kept
+    train(run_dir, "resume=true")  # s0's lr back to its default: stage 1 is kept
     assert (run_dir / "stage_1.pt").read_bytes() == stage_1
     assert OmegaConf.load(run_dir / "config.yaml").task.stages.s0.lr == compose().task.stages.s0.lr
     reference = tmp_path / "reference"
@@ -336,22 +336,22 @@ def test_after_a_divergence_the_stage_retrains_with_a_changed_key(tmp_path):
 
 def test_a_finished_stage_keeps_its_config(copy):
     with pytest.raises(RunDirError, match=r"task\.stages\.s1\.lr; a resumed run keeps"):
-        Experiment(compose("task.stages.s1.lr=0.5"), copy, resume=True)
+        Experiment(compose("task.stages.s1.lr=0.5", "resume=true"), copy)
     with pytest.raises(RunDirError, match=r"in seed"):
-        Experiment(compose("seed=4"), copy, resume=True)
+        Experiment(compose("seed=4", "resume=true"), copy)
 
 
 # ---------------------------------------------------------------------- 8. bookkeeping
 def test_resuming_a_finished_run_logs_its_final_rows_once(copy):
     metrics = (copy / "metrics.csv").read_text()
-    train(copy, resume=True)
+    train(copy, "resume=true")
     assert (copy / "metrics.csv").read_text() == metrics
     assert metrics.count("eval/final/success_rate") == 1
 
 
 def test_every_launch_is_counted_and_re_evaluation_keeps_training(copy, capsys):
     before = json.loads((copy / "eval.json").read_text())["training"]
-    train(copy, resume=True)
+    train(copy, "resume=true")
     training = json.loads((copy / "eval.json").read_text())["training"]
     assert len(training["launches"]) == 2 == len(before["launches"]) + 1
     assert training["seconds"] == pytest.approx(sum(x["seconds"] for x in training["launches"]))
@@ -444,7 +444,7 @@ def test_a_signal_checkpoints_then_hands_over_to_the_handler_before(finished, tm
         signal.signal(signal.SIGUSR1, previous)
     assert info.value.exit_code == 128 + signal.SIGUSR1
     assert seen == [(signal.SIGUSR1, True, "interrupted", "SIGUSR1")]
-    train(run_dir, "checkpoint_every=0", resume=True)
+    train(run_dir, "checkpoint_every=0", "resume=true")
     for k in (0, 1):
         a, b = (torch.load(d / f"stage_{k}.pt", weights_only=True) for d in (run_dir, finished))
         assert all(torch.equal(a["model"][n], b["model"][n]) for n in a["model"])
@@ -470,7 +470,7 @@ def test_a_linked_checkpoints_directory_is_refused_and_nothing_is_deleted(copy, 
     (victim / "stage_0" / "keep.txt").write_text("mine")
     (copy / "checkpoints").symlink_to(victim, target_is_directory=True)
     with pytest.raises(RunDirError, match="checkpoints is a symbolic link"):
-        Experiment(compose(), copy, resume=True)
+        Experiment(compose("resume=true"), copy)
     with pytest.raises(RunDirError, match="symbolic link"):
         RunDir(copy).clear_checkpoints(0)
     assert (victim / "stage_0" / "keep.txt").read_text() == "mine"
@@ -517,7 +517,7 @@ def test_stages_in_another_order_are_refused(copy):
     with pytest.raises(RunDirError, match="holds stage 's0', but the run's stage 0 is 's1'"):
         load_run(copy)
     with pytest.raises(RunDirError, match=r"task\.stages \(their order\)"):
-        Experiment(compose(), copy, resume=True)
+        Experiment(compose("resume=true"), copy)
 
 
 def test_a_stop_during_the_final_evaluation_ends_it_before_the_next_chunk(monkeypatch):

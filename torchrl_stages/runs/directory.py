@@ -55,6 +55,32 @@ def scope_checkpoints(
     return StageCheckpoints(root / name, every, keep, on_save=on_save)
 
 
+def stage_state(stage: int, learner: Learner, result: StageResult, **extra: Any) -> dict[str, Any]:
+    """What a stage file holds (never a non-finite learner)."""
+    learner.check_finite()
+    state = {"stage": stage, "algo": learner.algo, "result": asdict(result), **extra}
+    return {**state, **learner.checkpoint()}
+
+
+def write_stage_file(path: Path, state: dict[str, Any]) -> None:
+    buffer = io.BytesIO()  # written by Python's file IO: a failed write is an OSError
+    torch.save(state, buffer)
+    path.write_bytes(buffer.getbuffer())
+
+
+def read_stage_file(
+    path: Path, map_location: Any, dicts: tuple[str, ...] = ("model", "result"), **expected: Any
+) -> dict[str, Any]:
+    """The stage file at ``path``; ValueError unless it holds ``dicts`` and ``expected``."""
+    state = torch.load(path, map_location=map_location, weights_only=True)
+    if not isinstance(state, dict) or not all(isinstance(state.get(k), dict) for k in dicts):
+        raise ValueError(f"it holds no stage checkpoint with {', '.join(dicts)}")
+    for key, value in expected.items():
+        if state.get(key) != value:
+            raise ValueError(f"it holds {key} {state.get(key)!r}, not {key} {value!r}")
+    return state
+
+
 def drop_checkpoints(root: Path, every: bool = False) -> None:
     """Removes ``root`` when empty; ``every``: its scopes' directories first."""
     if not root.is_dir():
@@ -115,9 +141,6 @@ class RunDir:
 
     @cached_property
     def record(self) -> dict[str, Any]:
-        return self._read_record()
-
-    def _read_record(self) -> dict[str, Any]:
         empty = {"format": RECORD_FORMAT, "version": 1, "entries": {}, "launches": []}
         if not self.has_record():
             return empty
@@ -175,11 +198,10 @@ class RunDir:
         return path
 
     def _verify(self, name: str, fix: str) -> None:
-        try:
-            entry = self._read_record()["entries"].get(name, {})
-            expected = {entry.get("sha256"), entry.get("previous")} - {None}
-        except AttributeError:
-            expected = set()
+        entry = self.record["entries"].get(name)
+        if not isinstance(entry, dict):
+            entry = {}
+        expected = {entry.get("sha256"), entry.get("previous")} - {None}
         if expected and sha256_file(self.path / name) not in expected:
             raise RunDirError(
                 f"{self.path / name} is damaged (its bytes differ from those written, by their "
@@ -204,7 +226,7 @@ class RunDir:
         self._save_record()
 
     def training_time(self) -> dict[str, Any]:
-        launches = [dict(launch) for launch in self._read_record()["launches"]]
+        launches = [dict(launch) for launch in self.record["launches"]]
         seconds = sum(float(launch.get("seconds", 0.0)) for launch in launches)
         return {"seconds": seconds, "launches": launches}
 
@@ -258,15 +280,10 @@ class RunDir:
     def save_stage(
         self, stage: int, name: str, learner: Learner, result: StageResult, log: dict[str, int]
     ) -> Path:
-        """Writes ``stage_<k>.pt`` (never a non-finite one); ``log``: the logger's file sizes."""
-        learner.check_finite()
-        state = {"stage": stage, "name": name, "algo": learner.algo, "result": asdict(result)}
-        state["log"] = dict(log)
-        buffer = io.BytesIO()  # written by Python's file IO: a failed write is an OSError
-        torch.save({**state, **learner.checkpoint()}, buffer)
-        return self._write_verified(
-            self.stage_file(stage).name, lambda tmp: tmp.write_bytes(buffer.getbuffer())
-        )
+        """Writes ``stage_<k>.pt``; ``log``: the logger's file sizes."""
+        state = stage_state(stage, learner, result, name=name, log=dict(log))
+        path = self.stage_file(stage)
+        return self._write_verified(path.name, lambda tmp: write_stage_file(tmp, state))
 
     def read_stage(self, stage: int, map_location: Any = "cpu") -> dict[str, Any] | None:
         path = self.stage_file(stage)
@@ -278,22 +295,13 @@ class RunDir:
         )
         self._verify(path.name, fix)
         try:
-            state = torch.load(path, map_location=map_location, weights_only=True)
-            if not isinstance(state, dict) or not isinstance(state.get("model"), dict):
-                raise ValueError("it holds no stage checkpoint")
-            if not isinstance(state.get("result"), dict) or not isinstance(state.get("log"), dict):
-                raise ValueError("it holds no stage result")
+            return read_stage_file(path, map_location, ("model", "result", "log"), stage=stage)
         except Exception as err:  # noqa: BLE001 - any failure to read it means it is damaged
+            why = str(err).partition("\n")[0][:200]
             raise RunDirError(
-                f"{path} is damaged (truncated or not a stage checkpoint: {type(err).__name__}). "
-                f"Fix: {fix}"
+                f"{path} is damaged (truncated, or not this run's stage checkpoint: "
+                f"{type(err).__name__}: {why}). Fix: {fix}"
             ) from err
-        if state.get("stage") != stage:
-            raise RunDirError(
-                f"{path} holds stage {state.get('stage')!r}, not stage {stage} (renamed or "
-                f"copied from elsewhere). Fix: {fix}"
-            )
-        return state
 
     def checkpoints(self, stage: int | str, cfg: DictConfig | None = None) -> StageCheckpoints:
         self.claim(CHECKPOINTS)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -21,12 +20,7 @@ from torchrl_stages.loggers import Observer, StopRun
 from torchrl_stages.preemption import Interrupted, handle_signals
 from torchrl_stages.runs.directory import drop_checkpoints, refuse_links, scope_checkpoints
 from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
-from torchrl_stages.runs.seed_run import (
-    RunOptions,
-    SeedRun,
-    build_task,
-    compile_mode,
-)
+from torchrl_stages.runs.seed_run import SeedRun, build_task, compile_mode
 from torchrl_stages.schedules import SCHEDULES, get_schedule
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import hold_threads
@@ -113,8 +107,6 @@ class Experiment:
         cfg: DictConfig,
         run_dir: str | Path,
         *,
-        resume: bool | None = None,
-        overwrite: bool | None = None,
         hydra_files: dict[str, Any] | None = None,
         observers: Sequence[Observer] = (),
     ) -> None:
@@ -122,10 +114,9 @@ class Experiment:
         self.seeds = validate_seeds(cfg) if self.stacked else [int(cfg.seed)]
         self.cfg, self.run_dir = cfg, Path(run_dir)
         self.checkpoint_root = self.run_dir / SEED_CHECKPOINTS  # several seeds' loops: one state
-        options = RunOptions(resume, overwrite, hydra_files, tuple(observers))
         self.runs: list[SeedRun] = []
         if not self.stacked:
-            self.runs.append(SeedRun(cfg, self.run_dir, options))
+            self.runs.append(SeedRun(cfg, self.run_dir, hydra_files, observers))
             return
         # before any directory is made: the config, and whether it stacks
         check_stackable(build_task(_for_seed(cfg, self.seeds[0])), len(self.seeds))
@@ -133,8 +124,8 @@ class Experiment:
             for seed in self.seeds:
                 seed_cfg = _for_seed(cfg, seed)
                 files = hydra_files and _hydra_files_for(hydra_files, seed_cfg, seed)
-                seed_options = replace(options, hydra_files=files)
-                self.runs.append(SeedRun(seed_cfg, seed_dir(self.run_dir, seed), seed_options))
+                path = seed_dir(self.run_dir, seed)
+                self.runs.append(SeedRun(seed_cfg, path, files, observers))
         except BaseException:
             self.close()
             raise

@@ -7,7 +7,7 @@ import copy
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +42,7 @@ from torchrl_stages.task import StagedTask
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = ["RunOptions", "SeedRun", "build_task", "compile_mode", "with_env_stages"]
+__all__ = ["SeedRun", "build_task", "compile_mode", "with_env_stages"]
 
 
 def compile_mode(cfg: DictConfig) -> str:
@@ -97,17 +97,6 @@ def build_task(cfg: DictConfig, schedule: Schedule | None = None) -> StagedTask:
     return task
 
 
-@dataclass(frozen=True)
-class RunOptions:
-    """How a launch treats its run directories: ``resume`` and ``overwrite`` default to the
-    config's; ``hydra_files`` (``{name: config}``) go to ``.hydra/``."""
-
-    resume: bool | None = None
-    overwrite: bool | None = None
-    hydra_files: dict[str, Any] | None = None
-    observers: Sequence[Observer] = ()
-
-
 class SeedRun:
     """One seed's run of ``cfg`` in ``run_dir``: the
     :class:`~torchrl_stages.schedules.StageKeeper` its schedule trains into. Config and
@@ -129,13 +118,16 @@ class SeedRun:
     """
 
     def __init__(
-        self, cfg: DictConfig, run_dir: str | Path, options: RunOptions = RunOptions()
+        self,
+        cfg: DictConfig,
+        run_dir: str | Path,
+        hydra_files: dict[str, Any] | None = None,
+        observers: Sequence[Observer] = (),
     ) -> None:
         cfg, self.schedule = checked_config(cfg)
-        self.cfg, self.options, self.run_dir = cfg, options, RunDir(run_dir)
-        resume, overwrite = options.resume, options.overwrite
-        self.resume = bool(cfg.get("resume", False) if resume is None else resume)
-        self.overwrite = bool(cfg.get("overwrite", False) if overwrite is None else overwrite)
+        self.cfg, self.run_dir = cfg, RunDir(run_dir)
+        self.hydra_files, self.observers = hydra_files, observers
+        self.resume, self.overwrite = bool(cfg.get("resume")), bool(cfg.get("overwrite"))
         if self.resume and self.overwrite:
             raise ConfigError(
                 "resume=true overwrite=true: pick one. Fix: resume=true continues the run, "
@@ -208,7 +200,7 @@ class SeedRun:
 
     def start(self) -> None:
         """Prepares the directory for this launch and opens its logger."""
-        cfg, run, hydra_files = self.cfg, self.run_dir, self.options.hydra_files
+        cfg, run, hydra_files = self.cfg, self.run_dir, self.hydra_files
         self._lock.announce()
         if self.overwrite and run.holds_run():
             removed = run.clear()
@@ -229,7 +221,7 @@ class SeedRun:
         logging.getLogger("torchrl").setLevel(logging.WARNING)
         run.claim(METRICS_FILE, *(["csv"] if cfg.logger.backend == "csv" else []))
         before = run.listing()
-        self.log = MetricsLog(make_logger(cfg, run.path, observers=self.options.observers))
+        self.log = MetricsLog(make_logger(cfg, run.path, observers=self.observers))
         run.claim_new(before)  # a backend's own files
         self._start = time.perf_counter()
 

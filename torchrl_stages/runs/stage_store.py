@@ -4,7 +4,6 @@ from there or from ``init_from=RUN_DIR`` instead of training."""
 from __future__ import annotations
 
 import contextlib
-import io
 import itertools
 import json
 import logging
@@ -12,18 +11,17 @@ import os
 import shutil
 import time
 import uuid
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import torch
 from omegaconf import DictConfig
 
 from torchrl_stages.config import ConfigError
 from torchrl_stages.integrity import DamagedFileError, verify_checksums, write_checksums
 from torchrl_stages.learners import Learner
 from torchrl_stages.preemption import stop_if_asked
-from torchrl_stages.runs.directory import RunDir
+from torchrl_stages.runs.directory import RunDir, read_stage_file, stage_state, write_stage_file
 from torchrl_stages.runs.identity import digest, stage_identities, stage_identity_inputs
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.runs.loading import restore_learner
@@ -126,11 +124,7 @@ class SharedStageStore:
                 raise ValueError(f"not a {ENTRY_FORMAT} entry")
             if meta.get("identity") != identity:
                 raise ValueError(f"it holds identity {meta.get('identity')!r}")
-            state = torch.load(entry / STAGE_FILE, map_location=map_location, weights_only=True)
-            if not isinstance(state, dict) or state.get("identity") != identity:
-                raise ValueError("its stage file holds another stage")
-            if not isinstance(state.get("result"), dict):
-                raise ValueError("its stage file holds no result")
+            state = read_stage_file(entry / STAGE_FILE, map_location, identity=identity)
         except Exception as err:  # noqa: BLE001 - unreadable in any way: damaged
             raise DamagedFileError(entry, f"{type(err).__name__}: {err}") from err
         return state, meta
@@ -141,9 +135,7 @@ class SharedStageStore:
         tmp = self.root / TMP / f"{identity}.{uuid.uuid4().hex}"
         try:
             tmp.mkdir()
-            buffer = io.BytesIO()  # a full disk raises OSError naming the file, not RuntimeError
-            torch.save({**state, "identity": identity}, buffer)
-            (tmp / STAGE_FILE).write_bytes(buffer.getbuffer())
+            write_stage_file(tmp / STAGE_FILE, {**state, "identity": identity})
             meta = {"format": ENTRY_FORMAT, "identity": identity, **meta}
             (tmp / ENTRY_FILE).write_text(json.dumps(meta, indent=1, default=str))
             write_checksums(tmp)
@@ -320,7 +312,6 @@ class StageReuse:
 
     def trained(self, task: StagedTask, stage: int, learner: Learner, result: StageResult) -> None:
         if self.store is not None:
-            state = {"stage": stage, "algo": learner.algo, "result": asdict(result)}
             meta = {
                 "task": task.name,
                 "stage": stage,
@@ -333,7 +324,8 @@ class StageReuse:
                 "trained_in": self.run_dir,
                 "inputs": self.inputs[stage],
             }
-            self.store.put(self.identities[stage], {**state, **learner.checkpoint()}, meta)
+            state = stage_state(stage, learner, result)
+            self.store.put(self.identities[stage], state, meta)
         lock = self._held.pop(stage, None)
         if lock is not None:  # a job waiting on the removed file takes a new one (RunLock)
             lock.release(remove=True)
