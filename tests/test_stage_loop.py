@@ -396,7 +396,7 @@ def test_train_backward_hands_a_frozen_target_value_to_the_previous_stage(monkey
 
     def spy_env(self, stage, batch_size, next_value=None, **kw):
         env = stage_env(self, stage, batch_size, next_value, **kw)
-        calls.append(("train" if not kw.get("all_starts") else "inner", stage, next_value, env))
+        calls.append(("train", stage, next_value, env))
         return env
 
     def spy_eval_env(self, stage, next_value=None, **kw):
