@@ -31,7 +31,8 @@ from torchrl_stages.learners import ALGORITHMS, make_learner
 from torchrl_stages.learners.ddpg import DDPGConfig
 from torchrl_stages.learners.dqn import DQNConfig
 from torchrl_stages.learners.td3 import TD3Config
-from torchrl_stages.runs.experiment import Experiment, build_task, with_env_stages
+from torchrl_stages.runs.experiment import Experiment, build_task
+from torchrl_stages.runs.seed_run import with_env_stages
 from torchrl_stages.schedules import BackwardSchedule
 
 CONF = importlib.resources.files("torchrl_stages.conf")

@@ -14,7 +14,8 @@ from omegaconf import OmegaConf
 
 from torchrl_stages.config import ConfigError, apply_all_stages, stage_keys_set
 from torchrl_stages.config.checks import validate_sweeper
-from torchrl_stages.runs.experiment import Experiment, with_env_stages
+from torchrl_stages.runs.experiment import Experiment
+from torchrl_stages.runs.seed_run import with_env_stages
 
 CONF = importlib.resources.files("torchrl_stages.conf")
 SMOKE = OmegaConf.create(CONF.joinpath("experiment/smoke.yaml").read_text()).all_stages
