@@ -364,7 +364,8 @@ def test_every_launch_is_counted_and_re_evaluation_keeps_training(copy, capsys):
 # ---------------------------------------------------------------------- 9. threads held
 def _close_a_batched_env() -> None:
     """What torchrl does when a batched env closes (also when one is garbage-collected in the
-    middle of a stage): ``torch.set_num_threads`` to more threads."""
+    middle of a stage): ``torch.set_num_threads`` to more threads (how many depends on the
+    machine and ``OMP_NUM_THREADS``: 2 here)."""
     from torchrl.envs import SerialEnv
 
     from torchrl_stages.envs import GridWorldEnv
@@ -372,6 +373,7 @@ def _close_a_batched_env() -> None:
     env = SerialEnv(2, lambda: GridWorldEnv((1,), size=10, num_stages=2))
     env.rollout(1)
     env.close()
+    torch.set_num_threads(2)
 
 
 @pytest.mark.slow
@@ -381,7 +383,7 @@ def test_the_thread_count_is_held_in_every_update_and_evaluation(tmp_path, monke
     from torchrl_stages.learners.dqn import DQNLearner as Learner
 
     seen = {"update": [], "evaluation": []}
-    update, rollout = Learner.update, evaluation.evaluate_policy
+    update, rollout = Learner.update, evaluation.rollout_first_episodes
 
     def spy_update(self, sample):
         seen["update"].append(torch.get_num_threads())
@@ -396,7 +398,7 @@ def test_the_thread_count_is_held_in_every_update_and_evaluation(tmp_path, monke
         return out
 
     monkeypatch.setattr(Learner, "update", spy_update)
-    monkeypatch.setattr("torchrl_stages.evaluate.evaluate_policy", spy_rollout)
+    monkeypatch.setattr("torchrl_stages.evaluate.rollout_first_episodes", spy_rollout)
     _close_a_batched_env()
     assert torch.get_num_threads() == 2  # the effect held against
     Experiment(compose("threads=1", f"schedule={schedule}"), tmp_path / "run").run()

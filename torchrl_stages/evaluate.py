@@ -137,6 +137,7 @@ def evaluate_policy(
     env: EnvBase, policy: TensorDictModuleBase, max_steps: int
 ) -> tuple[EpisodeStats, TensorDictBase]:
     """Greedy first-episode statistics of ``policy`` on ``env``, and the rollout itself."""
+    keep_threads()  # a batched env closed since (a task report's, a chunk's) may have changed it
     rollout = rollout_first_episodes(env, policy, max_steps)
     return episode_stats(rollout), rollout
 
@@ -154,7 +155,6 @@ def evaluate_greedy(
 ) -> list[dict[str, float]]:
     """A loop's evaluation: one summary per equal part of ``env``'s batch (one per seed), with
     the mean ``discounted_return`` G and ``value_error`` ``|V(s_0) - G|`` (``reduce``: mean|max)."""
-    keep_threads()
     stats, rollout = evaluate_policy(env, policy, max_steps)
     returns = discounted_return(rollout, stats.length, gamma)
     v0 = value(rollout[:, 0].clone()).get("state_value").reshape(-1)
@@ -222,7 +222,6 @@ def evaluate_task(
     for i, size in enumerate(sizes):
         if interruptible:  # a resumed run evaluates again
             stop_if_asked("the whole-task evaluation")
-        keep_threads()  # a chunk's env closing may have changed it
         env = task.task_env(size)
         env.set_seed(seed + i)
         chunk, rollout = evaluate_policy(env, policy, int(getattr(env.base_env, "max_steps", 1000)))
