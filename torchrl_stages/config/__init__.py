@@ -10,12 +10,7 @@ from torchrl_stages.config.expansion import (
     targets,
 )
 from torchrl_stages.config.registration import register_configs
-from torchrl_stages.config.schema import (
-    LoggerConfig,
-    StageConfig,
-    TrainConfig,
-    as_dataclass,
-)
+from torchrl_stages.config.schema import LoggerConfig, StageConfig, TrainConfig, as_dataclass
 
 __all__ = [
     "ConfigError",

@@ -79,10 +79,6 @@ class Bound:
             return f"set {key} to a value in that range"
         return f"set {key}={shown}"
 
-    def check(self, key: str, value: Any) -> None:
-        problem = self.problem(value)
-        check(problem is None, key, value, str(problem), self.fix(key))
-
 
 def bound(default: Any = MISSING, *, factory: Callable[[], Any] | None = None, **limits) -> Any:
     metadata = {"bound": Bound(**limits, example=factory() if factory else default)}
@@ -116,15 +112,15 @@ def check_bounds(node: Any, schema: type, prefix: str) -> None:
         key, value = f"{prefix}.{f.name}" if prefix else f.name, node[f.name]
         if is_dataclass(f.default_factory) and value is not None:
             check_bounds(value, f.default_factory, key)
-        elif "bound" in f.metadata:
-            f.metadata["bound"].check(key, value)
+        elif (bound := f.metadata.get("bound")) and (problem := bound.problem(value)):
+            check(False, key, value, problem, bound.fix(key))
 
 
 def nearest(name: str, known: Iterable[str]) -> str | None:
     return next(iter(difflib.get_close_matches(name, list(known), n=1)), None)
 
 
-def unknown_key(
+def check_known(
     prefix: str,
     name: str,
     value: object,
@@ -132,13 +128,13 @@ def unknown_key(
     owner: str,
     fix: str,
     what: str = "a key",
-) -> ConfigError | None:
-    """The error of ``{prefix}.{name}`` (naming the nearest) unless ``name`` is in ``known``."""
+) -> None:
+    """Refuses ``{prefix}.{name}`` (naming the nearest) unless ``name`` is in ``known``."""
     if name in known:
-        return None
+        return
     close = nearest(name, known)
     hint = f"did you mean {prefix}.{close}?" if close else fix
-    return ConfigError(f"{prefix}.{name}={value!r}: not {what} of {owner}. Fix: {hint}")
+    raise ConfigError(f"{prefix}.{name}={value!r}: not {what} of {owner}. Fix: {hint}")
 
 
 def schema_keys(schema: type) -> list[str]:

@@ -16,9 +16,9 @@ from torchrl_stages.config.bounds import (
     StageChecks,
     check,
     check_bounds,
+    check_known,
     nearest,
     schema_keys,
-    unknown_key,
 )
 from torchrl_stages.config.env_checks import check_env_keys, validate_env_protocol
 from torchrl_stages.config.expansion import leaves
@@ -100,9 +100,7 @@ def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
             continue
         owner, known = getattr(schema, "algo", None) or schema.__name__, schema_keys(schema)
         for name, value in OmegaConf.to_container(node, resolve=False).items():
-            error = unknown_key(key, name, value, known, owner, f"drop it (its keys: {listing})")
-            if error is not None:
-                raise error
+            check_known(key, name, value, known, owner, f"drop it (its keys: {listing})")
 
 
 def _is_stage(stage: object) -> bool:
@@ -207,23 +205,19 @@ def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
     direction = None if sweeper is None else sweeper.get("direction")
     if direction is None:
         return
-    objective = cfg.objective
+    objective, key = cfg.objective, "hydra.sweeper.direction"
     if isinstance(direction, list | tuple | ListConfig):
-        check(
-            False,
-            "hydra.sweeper.direction",
-            [_direction_name(d) for d in direction],
-            f"a run returns one number (objective.metric={objective.metric})",
-            f"set hydra.sweeper.direction={objective.direction}",
-        )
+        names, fix = list(map(_direction_name, direction)), f"set {key}={objective.direction}"
+        rule = f"a run returns one number (objective.metric={objective.metric})"
+        check(False, key, names, rule, fix)
     name = _direction_name(direction)
     check(
         name == objective.direction,
-        "hydra.sweeper.direction",
+        key,
         name,
         f"the sweeper would {name} objective.metric={objective.metric}, but "
         f"objective.direction={objective.direction}",
-        f"add hydra.sweeper.direction={objective.direction} (Optuna's default is minimize), or "
+        f"add {key}={objective.direction} (Optuna's default is minimize), or "
         f"set objective.direction={name} if a {'lower' if name == 'minimize' else 'higher'} "
         f"{objective.metric} is better",
     )

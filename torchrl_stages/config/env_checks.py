@@ -8,7 +8,7 @@ import inspect
 from hydra.utils import get_object
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_stages.config.bounds import ConfigError, check, unknown_key
+from torchrl_stages.config.bounds import ConfigError, check, check_known
 from torchrl_stages.config.expansion import leaves, targets
 
 
@@ -83,7 +83,7 @@ def check_env_arguments(cfg: DictConfig) -> None:
                     f"takes no env id. Fix: did you mean task=gym? (task=gym "
                     f"task.env.env_id={value} task.env.stage_fn._target_=my_pkg.my_stage)"
                 )
-            raise unknown_key(
+            check_known(
                 f"task.{node_key}",
                 name,
                 value,

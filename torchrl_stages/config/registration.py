@@ -28,7 +28,7 @@ def register_configs(algorithms: Mapping[str, Any]) -> None:
         cs.store(group="algo", name=f"{name}_schema", node=_open(learner.Config, ""))
     resolvers = {
         "stages_algorithms": lambda: "|".join(algorithms),
-        "stages_options": group_options,
+        "stages_options": lambda group: "|".join(config_group_options(group)) or "?",
         "stages_by_prefix": by_prefix,
     }
     for name, resolver in resolvers.items():
@@ -71,7 +71,3 @@ def _options(loader: Any, group: str) -> tuple[str, ...]:
     with contextlib.suppress(HydraException):
         return tuple(n for n in loader.get_group_options(group) if not n.endswith("_schema"))
     return ()
-
-
-def group_options(group: str) -> str:
-    return "|".join(config_group_options(group)) or "?"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import traceback
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -15,12 +16,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
-from torchrl_stages.config import (
-    ConfigError,
-    apply_all_stages,
-    check,
-    stage_keys_set,
-)
+from torchrl_stages.config import ConfigError, apply_all_stages, check, stage_keys_set
 from torchrl_stages.failures import EXIT_FAILED, DivergenceError, EnvError, one_line
 from torchrl_stages.loggers import StopRun
 from torchrl_stages.metric_names import is_loop_evaluation
@@ -30,8 +26,16 @@ from torchrl_stages.runs.evaluation import format_summary
 from torchrl_stages.runs.experiment import Experiment, seed_dir
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.sweeps import summarize_or_say
-from torchrl_stages.tune.checks import check_settings, check_space, compose_error
-from torchrl_stages.tune.space import Compose, ParamSpec, hydra_value, search_space, train_overrides
+from torchrl_stages.tune.space import (
+    Compose,
+    ParamSpec,
+    check_settings,
+    check_space,
+    compose_error,
+    hydra_value,
+    search_space,
+    train_overrides,
+)
 
 BEST_FILE = "best.yaml"
 
@@ -101,10 +105,9 @@ def make_pruner(tune: DictConfig, direction: str) -> Any:
             n_startup_trials=int(tune.startup_trials), n_warmup_steps=warmup
         )
     if tune.pruner == "threshold":
-        below = float(tune.prune_below)
-        if direction == "minimize":  # failure rates reported: above 1 - below is pruned
-            return optuna.pruners.ThresholdPruner(upper=1.0 - below, n_warmup_steps=warmup)
-        return optuna.pruners.ThresholdPruner(lower=below, n_warmup_steps=warmup)
+        below = float(tune.prune_below)  # minimize: failure rates above 1 - below are pruned
+        limit = {"upper": 1.0 - below} if direction == "minimize" else {"lower": below}
+        return optuna.pruners.ThresholdPruner(**limit, n_warmup_steps=warmup)
     return optuna.pruners.NopPruner()
 
 
@@ -213,10 +216,7 @@ def _load_study(cfg: DictConfig, location: str) -> Any:
 
 def _best(study: Any, cfg: DictConfig, location: str) -> dict[str, Any]:
     """What ``best.yaml`` holds: the study, its trials by state and its best trial."""
-    import optuna
-
-    states = [t.state for t in study.get_trials(deepcopy=False)]
-    counts = {s.name.lower(): states.count(s) for s in optuna.trial.TrialState if s in states}
+    counts = dict(Counter(t.state.name.lower() for t in study.get_trials(deepcopy=False)))
     objective = {"metric": str(cfg.objective.metric), "direction": study.direction.name.lower()}
     best = None
     if counts.get("complete"):
