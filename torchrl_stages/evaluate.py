@@ -161,10 +161,8 @@ def evaluate_greedy(
     errors = (v0 - returns).abs()
     size = errors.numel() // groups
     summaries = []
-    for i in range(groups):
-        part = slice(i * size, (i + 1) * size)
-        group = EpisodeStats(stats.success[part], stats.length[part], stats.ret[part])
-        summary = group.summary()
+    for part in (slice(i * size, (i + 1) * size) for i in range(groups)):
+        summary = EpisodeStats(stats.success[part], stats.length[part], stats.ret[part]).summary()
         err = errors[part]
         summary["value_error"] = (err.max() if reduce == "max" else err.mean()).item()
         summary["discounted_return"] = returns[part].mean().item()

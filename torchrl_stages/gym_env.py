@@ -127,8 +127,7 @@ class SuccessReader(BaseInfoDictReader):
             self._seen = True
             flag = torch.as_tensor(np.asarray(value).astype(bool))
         flag = flag.reshape(*tensordict.batch_size, 1).to(tensordict.device)
-        tensordict.set(SUCCESS_KEY, flag)
-        return tensordict
+        return tensordict.set(SUCCESS_KEY, flag)
 
 
 class GymStageEnv(GymWrapper):

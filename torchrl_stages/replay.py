@@ -55,27 +55,23 @@ class SeedReplayBuffer:
         slot = (self.cursors[seeds] + rank) % self.size
         self._allocate(batch)
         rows, slot = seeds[keep].to(self.device), slot[keep].to(self.device)
-        kept = keep.to(self.device)
-        for key, value in batch.items(True, True):
-            self.storage.get(key)[rows, slot] = value[kept]
+        self.storage[rows, slot] = batch[keep.to(self.device)]
         self.cursors = (self.cursors + added) % self.size
         self.counts = (self.counts + added).clamp(max=self.size)
 
     def _allocate(self, batch) -> None:
         """The storage, the first time, of the entries of the ``[elements]`` ``batch``."""
         if self.storage is None:
-            n = self.num_seeds
+            shape = [self.num_seeds, self.size]
             self.storage = batch.apply(
-                lambda x: torch.zeros((n, self.size, *x.shape[1:]), dtype=x.dtype, device=x.device),
-                batch_size=[n, self.size],
+                lambda x: x.new_zeros((*shape, *x.shape[1:])), batch_size=shape
             )
 
     def state_dict(self) -> dict[str, Any]:
-        """The transitions held (``[num_seeds, max(counts)]``), each seed's cursor and length."""
-        held = None
-        if self.storage is not None:
-            held = self.storage[:, : int(self.counts.max())].to_dict()
-        return {"storage": held, "cursor": self.cursors.tolist(), "count": self.counts.tolist()}
+        """The transitions :meth:`held`, each seed's cursor and length."""
+        held = self.held()
+        storage = None if held is None else held.to_dict()
+        return {"storage": storage, "cursor": self.cursors.tolist(), "count": self.counts.tolist()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         n = self.num_seeds

@@ -56,11 +56,9 @@ class StagedTask:
     @staticmethod
     def env_num_stages(cfg: DictConfig) -> int:
         """The ``num_stages`` of the env that the task config ``cfg`` builds (then closed)."""
-        env = StagedTask(cfg).spec_env
-        try:
-            return int(env.num_stages)
-        finally:
-            env.close()
+        task = StagedTask(cfg)
+        task.spec_env.close()
+        return task.num_stages
 
     def stage_cfg(self, stage: int) -> DictConfig:
         return self.cfg.stages[self.stage_names[stage]]

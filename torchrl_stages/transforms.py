@@ -108,11 +108,8 @@ class _StageView(Transform):
             next_td.set("reward", torch.where(bootstrap, reward + self.gamma * value, reward))
         terminated = task_terminated | leaving
         next_td.set("terminated", terminated)
-        truncated = next_td.get("truncated", None)
-        if truncated is None:  # an env without a truncated entry
-            next_td.set("done", next_td.get("done") | terminated)
-        else:
-            next_td.set("done", terminated | truncated)
+        # an env without a truncated entry keeps its own done
+        next_td.set("done", terminated | next_td.get("truncated", next_td.get("done")))
 
     def __repr__(self) -> str:
         return (
