@@ -107,13 +107,11 @@ def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
     solved = ended_well(rollout).squeeze(-1)
     reward = rollout.get(("next", "reward")).squeeze(-1)
     T = done.shape[-1]
-    steps = torch.arange(T, device=done.device)
     any_done = done.any(-1)
-    first = torch.where(any_done, done.float().argmax(-1), T - 1)
-    in_first = steps <= first.unsqueeze(-1)
+    first = torch.where(any_done, done.float().argmax(-1), T - 1)  # the first episode's last step
+    in_first = torch.arange(T, device=done.device) <= first.unsqueeze(-1)
     success = any_done & solved.gather(-1, first.unsqueeze(-1)).squeeze(-1)
-    length = torch.where(any_done, first + 1, T)
-    return EpisodeStats(success=success, length=length, ret=(reward * in_first).sum(-1))
+    return EpisodeStats(success=success, length=first + 1, ret=(reward * in_first).sum(-1))
 
 
 def discounted_return(

@@ -13,7 +13,6 @@ class SeedReplayBuffer:
     seeds in one gather (N torchrl buffers would cost N samples and a stack per update).
 
     Examples:
-        >>> from tensordict import TensorDict
         >>> rb = SeedReplayBuffer(4, num_seeds=2)
         >>> rb.extend(TensorDict(x=torch.tensor([0, 1, 10, 11]), batch_size=[4]))
         >>> len(rb), rb.sample(3)["x"].shape
@@ -103,8 +102,7 @@ class SeedReplayBuffer:
                 raise ValueError(f"seeds {rows[counts == 0].tolist()} hold no transitions")
             draw = torch.rand((n, batch_size), dtype=torch.float64, device=self.device)
             index = (draw * counts.to(self.device, torch.float64).unsqueeze(1)).long()
-        # one gather of the flattened storage: on image-shaped entries several times faster
-        # than advanced indexing
+        # one gather of the flattened storage: several times faster on images than indexing
         flat = (rows.to(self.device).unsqueeze(1) * self.size + index).reshape(-1)
         return self.storage.apply(
             lambda x: x.flatten(0, 1).index_select(0, flat).unflatten(0, (n, batch_size)),

@@ -280,8 +280,7 @@ class StageRewardTransform(_StageView):
         gamma: float = 0.99,
     ) -> None:
         super().__init__(stage, num_stages, gamma, next_value, standalone, [])
-        # not a sub-module: it belongs to the next stage's learner, and must not travel in
-        # this transform's (or the replay buffer's) state_dict
+        # not a sub-module: the next stage's learner owns it, not this (or the buffer's) state_dict
         self.__dict__["next_value"] = next_value
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
