@@ -96,10 +96,10 @@ class EpisodeReplay(gymnasium.Wrapper):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         kept = copy.deepcopy(options) if _is_plain(options) else None
-        self._start = {"seed": seed, "rng": _rng_state(self.env.unwrapped), "options": kept}
+        self._start = {"seed": seed, "rng_start": _rng_state(self.env.unwrapped), "options": kept}
         self._actions = []
         self._why_not = None
-        if seed is None and self._start["rng"] is None:
+        if seed is None and self._start["rng_start"] is None:
             self._why_not = "its np_random was never seeded"
         elif seed is not None and not isinstance(seed, int):
             self._why_not = f"its reset seed {seed!r} is no int"
@@ -130,12 +130,9 @@ class EpisodeReplay(gymnasium.Wrapper):
             why_not = "its actions are not numeric"
         if why_not is not None:
             return {"why_not": why_not, "rng_now": rng_now}
-        start = self._start
         return {
             "why_not": None,
-            "seed": start["seed"],
-            "rng_start": start["rng"],
-            "options": start["options"],
+            **self._start,
             "actions": actions,
             "rng_now": rng_now,
             "obs": _digest(self._obs),

@@ -107,13 +107,11 @@ def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
     solved = ended_well(rollout).squeeze(-1)
     reward = rollout.get(("next", "reward")).squeeze(-1)
     T = done.shape[-1]
-    steps = torch.arange(T, device=done.device)
     any_done = done.any(-1)
-    first = torch.where(any_done, done.float().argmax(-1), T - 1)
-    in_first = steps <= first.unsqueeze(-1)
+    first = torch.where(any_done, done.float().argmax(-1), T - 1)  # the first episode's last step
+    in_first = torch.arange(T, device=done.device) <= first.unsqueeze(-1)
     success = any_done & solved.gather(-1, first.unsqueeze(-1)).squeeze(-1)
-    length = torch.where(any_done, first + 1, T)
-    return EpisodeStats(success=success, length=length, ret=(reward * in_first).sum(-1))
+    return EpisodeStats(success=success, length=first + 1, ret=(reward * in_first).sum(-1))
 
 
 def discounted_return(
@@ -161,10 +159,8 @@ def evaluate_greedy(
     errors = (v0 - returns).abs()
     size = errors.numel() // groups
     summaries = []
-    for i in range(groups):
-        part = slice(i * size, (i + 1) * size)
-        group = EpisodeStats(stats.success[part], stats.length[part], stats.ret[part])
-        summary = group.summary()
+    for part in (slice(i * size, (i + 1) * size) for i in range(groups)):
+        summary = EpisodeStats(stats.success[part], stats.length[part], stats.ret[part]).summary()
         err = errors[part]
         summary["value_error"] = (err.max() if reduce == "max" else err.mean()).item()
         summary["discounted_return"] = returns[part].mean().item()

@@ -42,7 +42,6 @@ def threshold_stage(
     """A stage function: how many ``thresholds`` lie at or below ``td[key][..., index]``.
 
     Examples:
-        >>> import torch
         >>> from tensordict import TensorDict
         >>> td = TensorDict(observation=torch.tensor([[0.1], [0.5], [0.9]]), batch_size=[3])
         >>> threshold_stage(td, thresholds=[0.5, 0.8]).squeeze(-1)
@@ -78,7 +77,6 @@ class SuccessReader(BaseInfoDictReader):
     ``"success"`` entry; :class:`SuccessKeyError` after ``patience`` ended episodes without it.
 
     Examples:
-        >>> import numpy as np
         >>> from tensordict import TensorDict
         >>> reader = SuccessReader("is_success", batch_size=(2,))
         >>> td = reader({"is_success": np.array([True, False])}, TensorDict(batch_size=[2]))
@@ -127,8 +125,7 @@ class SuccessReader(BaseInfoDictReader):
             self._seen = True
             flag = torch.as_tensor(np.asarray(value).astype(bool))
         flag = flag.reshape(*tensordict.batch_size, 1).to(tensordict.device)
-        tensordict.set(SUCCESS_KEY, flag)
-        return tensordict
+        return tensordict.set(SUCCESS_KEY, flag)
 
 
 class GymStageEnv(GymWrapper):
@@ -205,10 +202,12 @@ class GymStageEnv(GymWrapper):
             device=device,
             _torchrl_native_autoreset_requested=native,
         )
+        self._success_reader = None
         if success_key is not None:
-            self.set_info_dict_reader(
-                SuccessReader(str(success_key), batch_size=batch, device=self.device)
+            self._success_reader = SuccessReader(
+                str(success_key), batch_size=batch, device=self.device
             )
+            self.set_info_dict_reader(self._success_reader)
         self.env_id = env_id
         _WARNED.discard(env_id)
         self.num_stages = int(num_stages if num_stages is not None else found)
@@ -216,10 +215,6 @@ class GymStageEnv(GymWrapper):
         if max_steps is not None:  # else evaluations cap episodes at 1000 steps
             self.max_steps = int(max_steps)
         self.episodes_rebuilt = True  # False after a load_state_dict that could not rebuild them
-
-    @property
-    def _success_reader(self) -> SuccessReader | None:
-        return next((r for r in self.info_dict_reader if isinstance(r, SuccessReader)), None)
 
     def load_state_dict(
         self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False
@@ -233,7 +228,6 @@ class GymStageEnv(GymWrapper):
             return {}
         reader = self._success_reader
         return {
-            "env_id": self.env_id,
             "copies": list(self._env.call("episode_state")),
             "success_reader": None if reader is None else [reader._ended, reader._seen],
         }

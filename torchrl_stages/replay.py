@@ -13,7 +13,6 @@ class SeedReplayBuffer:
     seeds in one gather (N torchrl buffers would cost N samples and a stack per update).
 
     Examples:
-        >>> from tensordict import TensorDict
         >>> rb = SeedReplayBuffer(4, num_seeds=2)
         >>> rb.extend(TensorDict(x=torch.tensor([0, 1, 10, 11]), batch_size=[4]))
         >>> len(rb), rb.sample(3)["x"].shape
@@ -55,27 +54,23 @@ class SeedReplayBuffer:
         slot = (self.cursors[seeds] + rank) % self.size
         self._allocate(batch)
         rows, slot = seeds[keep].to(self.device), slot[keep].to(self.device)
-        kept = keep.to(self.device)
-        for key, value in batch.items(True, True):
-            self.storage.get(key)[rows, slot] = value[kept]
+        self.storage[rows, slot] = batch[keep.to(self.device)]
         self.cursors = (self.cursors + added) % self.size
         self.counts = (self.counts + added).clamp(max=self.size)
 
     def _allocate(self, batch) -> None:
         """The storage, the first time, of the entries of the ``[elements]`` ``batch``."""
         if self.storage is None:
-            n = self.num_seeds
+            shape = [self.num_seeds, self.size]
             self.storage = batch.apply(
-                lambda x: torch.zeros((n, self.size, *x.shape[1:]), dtype=x.dtype, device=x.device),
-                batch_size=[n, self.size],
+                lambda x: x.new_zeros((*shape, *x.shape[1:])), batch_size=shape
             )
 
     def state_dict(self) -> dict[str, Any]:
-        """The transitions held (``[num_seeds, max(counts)]``), each seed's cursor and length."""
-        held = None
-        if self.storage is not None:
-            held = self.storage[:, : int(self.counts.max())].to_dict()
-        return {"storage": held, "cursor": self.cursors.tolist(), "count": self.counts.tolist()}
+        """The transitions :meth:`held`, each seed's cursor and length."""
+        held = self.held()
+        storage = None if held is None else held.to_dict()
+        return {"storage": storage, "cursor": self.cursors.tolist(), "count": self.counts.tolist()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         n = self.num_seeds
@@ -107,8 +102,7 @@ class SeedReplayBuffer:
                 raise ValueError(f"seeds {rows[counts == 0].tolist()} hold no transitions")
             draw = torch.rand((n, batch_size), dtype=torch.float64, device=self.device)
             index = (draw * counts.to(self.device, torch.float64).unsqueeze(1)).long()
-        # one gather of the flattened storage: on image-shaped entries several times faster
-        # than advanced indexing
+        # one gather of the flattened storage: several times faster on images than indexing
         flat = (rows.to(self.device).unsqueeze(1) * self.size + index).reshape(-1)
         return self.storage.apply(
             lambda x: x.flatten(0, 1).index_select(0, flat).unflatten(0, (n, batch_size)),

@@ -62,6 +62,5 @@ class StageEnvHooks(Protocol):
         ...
 
     def state_dict(self) -> dict[str, Any]:
-        """The env's running state and generator, so that a resumed stage goes on with the same
-        episodes."""
+        """The env's running state and generator, for a resume with the same episodes."""
         ...

@@ -32,7 +32,6 @@ class StagedTask:
     arguments hold one copy of a batch per seed of a seed-stacked learner.
 
     Examples:
-        >>> from omegaconf import OmegaConf
         >>> task = StagedTask(OmegaConf.create({
         ...     "name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
         ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
@@ -56,11 +55,9 @@ class StagedTask:
     @staticmethod
     def env_num_stages(cfg: DictConfig) -> int:
         """The ``num_stages`` of the env that the task config ``cfg`` builds (then closed)."""
-        env = StagedTask(cfg).spec_env
-        try:
-            return int(env.num_stages)
-        finally:
-            env.close()
+        task = StagedTask(cfg)
+        task.spec_env.close()
+        return task.num_stages
 
     def stage_cfg(self, stage: int) -> DictConfig:
         return self.cfg.stages[self.stage_names[stage]]
@@ -144,9 +141,8 @@ class StagedTask:
             obs_keys = [
                 k for k in env.observation_spec.keys(True, True) if k not in ("stage", SUCCESS_KEY)
             ]
-        action_key = (
-            env.stage_action_key(stage) if hasattr(env, "stage_action_key") else env.action_key
-        )
+        hook = getattr(env, "stage_action_key", None)
+        action_key = env.action_key if hook is None else hook(stage)
         obs_spec = env.observation_spec_unbatched
         shapes = [tuple(obs_spec[k].shape) for k in obs_keys]
         obs_dim = sum(s[-1] for s in shapes if len(s) == 1)

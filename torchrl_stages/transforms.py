@@ -108,11 +108,8 @@ class _StageView(Transform):
             next_td.set("reward", torch.where(bootstrap, reward + self.gamma * value, reward))
         terminated = task_terminated | leaving
         next_td.set("terminated", terminated)
-        truncated = next_td.get("truncated", None)
-        if truncated is None:  # an env without a truncated entry
-            next_td.set("done", next_td.get("done") | terminated)
-        else:
-            next_td.set("done", terminated | truncated)
+        # an env without a truncated entry keeps its own done
+        next_td.set("done", terminated | next_td.get("truncated", next_td.get("done")))
 
     def __repr__(self) -> str:
         return (
@@ -283,8 +280,7 @@ class StageRewardTransform(_StageView):
         gamma: float = 0.99,
     ) -> None:
         super().__init__(stage, num_stages, gamma, next_value, standalone, [])
-        # not a sub-module: it belongs to the next stage's learner, and must not travel in
-        # this transform's (or the replay buffer's) state_dict
+        # not a sub-module: the next stage's learner owns it, not this (or the buffer's) state_dict
         self.__dict__["next_value"] = next_value
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
