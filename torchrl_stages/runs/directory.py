@@ -81,6 +81,14 @@ def read_stage_file(
     return state
 
 
+def _damaged(path: Path, why: str, fix: str, err: Exception | None = None) -> RunDirError:
+    """The error naming a damaged file, why (ending with ``err``'s first line) and the fix."""
+    if err is not None:
+        first_line = str(err).partition("\n")[0][:200]
+        why += f"{type(err).__name__}: {first_line}"
+    return RunDirError(f"{path} is damaged ({why}). Fix: {fix}")
+
+
 def drop_checkpoints(root: Path, every: bool = False) -> None:
     """Removes ``root`` when empty; ``every``: its scopes' directories first."""
     if not root.is_dir():
@@ -148,10 +156,8 @@ class RunDir:
             for launch in record.get("launches", []):  # a list of dicts, their seconds numbers
                 float(launch.get("seconds", 0.0))
         except (OSError, ValueError, KeyError, AttributeError, TypeError) as err:
-            raise RunDirError(
-                f"{self.record_file} is damaged ({type(err).__name__}: {err}). Fix: restore it "
-                "from a copy of the run, or retrain into a new directory"
-            ) from err
+            fix = "restore it from a copy of the run, or retrain into a new directory"
+            raise _damaged(self.record_file, "", fix, err) from err
         return {**empty, **record}
 
     def _save_record(self) -> None:
@@ -199,10 +205,8 @@ class RunDir:
             entry = {}
         expected = {entry.get("sha256"), entry.get("previous")} - {None}
         if expected and sha256_file(path) not in expected:
-            raise RunDirError(
-                f"{path} is damaged (its bytes differ from those written, by their "
-                f"SHA-256 in {self.record_file}). Fix: {fix}"
-            )
+            why = f"its bytes differ from those written, by their SHA-256 in {self.record_file}"
+            raise _damaged(path, why, fix)
 
     def begin_launch(self) -> None:
         self._launch_start = time.perf_counter()
@@ -261,10 +265,7 @@ class RunDir:
             if not isinstance(cfg.task.get("stages"), DictConfig) or not cfg.task.stages:
                 raise ValueError("it has no task.stages")
         except (yaml.YAMLError, OmegaConfBaseException, ValueError, UnicodeDecodeError) as err:
-            raise RunDirError(
-                f"{path} is damaged (not a complete stages-train config: "
-                f"{type(err).__name__}: {str(err).splitlines()[0]}). Fix: {fix}"
-            ) from err
+            raise _damaged(path, "not a complete stages-train config: ", fix, err) from err
         return cfg
 
     def save_stage(
@@ -287,11 +288,7 @@ class RunDir:
         try:
             return read_stage_file(path, map_location, ("model", "result", "log"), stage=stage)
         except Exception as err:  # noqa: BLE001 - any failure to read it means it is damaged
-            why = str(err).partition("\n")[0][:200]
-            raise RunDirError(
-                f"{path} is damaged (truncated, or not this run's stage checkpoint: "
-                f"{type(err).__name__}: {why}). Fix: {fix}"
-            ) from err
+            raise _damaged(path, "truncated, or not this run's stage file: ", fix, err) from err
 
     def checkpoints(self, stage: int | str, cfg: DictConfig | None = None) -> StageCheckpoints:
         self.claim(CHECKPOINTS)
