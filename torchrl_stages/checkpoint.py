@@ -178,9 +178,7 @@ class StageCheckpoints:
                 verify_checkpoint(path)
             except DamagedFileError as err:
                 damaged.append(err)
-                log.warning(
-                    "checkpoint %s is damaged (%s: %s); it is not used", path, err.path, err.reason
-                )
+                log.warning("checkpoint %s is damaged (%s); it is not used", path, err)
                 continue
             if damaged:
                 log.warning("resuming from the checkpoint before it: %s", path)

@@ -51,9 +51,7 @@ def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> N
         if not isinstance(sums, dict) or not all(isinstance(v, str) for v in sums.values()):
             raise ValueError("not a mapping of file names to checksums")
     except FileNotFoundError:
-        raise DamagedFileError(
-            directory, f"it has no {CHECKSUMS} (not written by this version)"
-        ) from None
+        raise DamagedFileError(directory, f"no {CHECKSUMS} (not written by this version)") from None
     except (OSError, ValueError, UnicodeDecodeError) as err:
         raise DamagedFileError(record, f"unreadable ({type(err).__name__})") from err
     present = _files(directory)
