@@ -36,6 +36,7 @@ PAYLOAD_SUFFIXES = (".json", ".memmap")
 log = logging.getLogger("torchrl_stages")
 
 
+@dataclasses.dataclass(eq=False)
 class StateOf:
     """A pair of functions as ``state_dict`` / ``load_state_dict``.
 
@@ -46,14 +47,8 @@ class StateOf:
         2
     """
 
-    def __init__(self, get: Callable[[], Any], set: Callable[[Any], None]) -> None:
-        self._get, self._set = get, set
-
-    def state_dict(self) -> Any:
-        return self._get()
-
-    def load_state_dict(self, state: Any) -> None:
-        self._set(state)
+    state_dict: Callable[[], Any]
+    load_state_dict: Callable[[Any], None] | None
 
 
 class CheckpointDamagedError(RuntimeError):
@@ -82,8 +77,7 @@ class SavedCounters:
 
 
 class TensorStateAdapter(StateDictCheckpointAdapter):
-    """torchrl's state-dict adapter in its tensor + JSON format, with checksums (verified by
-    :func:`verify_checkpoint` before any load)."""
+    """torchrl's state-dict adapter in its tensor + JSON format, with checksums."""
 
     def __init__(self) -> None:
         super().__init__(payload_format="directory")
@@ -105,8 +99,7 @@ class TensorStateAdapter(StateDictCheckpointAdapter):
 
 
 def verify_checkpoint(path: Path) -> None:
-    """Raises :class:`DamagedFileError` unless every file is the manifest or a verified
-    payload of a component."""
+    """Raises :class:`DamagedFileError` unless each file is the manifest or a verified payload."""
     try:
         components = Checkpoint.manifest(path)["components"]
         dirs = {path / record["path"] for record in components.values()}
@@ -130,8 +123,7 @@ class StageCheckpoints:
     Examples:
         >>> import tempfile, torch
         >>> ckpts = StageCheckpoints(tempfile.mkdtemp(), every=100)
-        >>> net = torch.nn.Linear(2, 1)
-        >>> components = {"net": net, "counters": {"frames": 100}}
+        >>> components = {"net": torch.nn.Linear(2, 1), "counters": {"frames": 100}}
         >>> ckpts.due(99), ckpts.due(100)
         (False, True)
         >>> path = ckpts.save(100, components)
@@ -174,24 +166,19 @@ class StageCheckpoints:
 
     def latest(self) -> Path | None:
         """The newest whole checkpoint, if any (damaged ones skipped with a warning)."""
-        if not self.directory.is_dir():
-            return None
-        candidates = sorted(  # every entry of the rotation's form, readable or not
-            (p for p in self.directory.iterdir() if re.fullmatch(rf"{PREFIX}-\d+", p.name)),
-            key=_frames,
-            reverse=True,
-        )
+        found = self.directory.iterdir() if self.directory.is_dir() else ()
+        # every entry of the rotation's form, readable or not
+        candidates = [p for p in found if re.fullmatch(rf"{PREFIX}-\d+", p.name)]
+        candidates.sort(key=_frames, reverse=True)
         if not candidates or candidates[0] == self._verified:
-            return candidates[0] if candidates else None
+            return next(iter(candidates), None)
         damaged = []
         for path in candidates:
             try:
                 verify_checkpoint(path)
             except DamagedFileError as err:
                 damaged.append(err)
-                log.warning(
-                    "checkpoint %s is damaged (%s: %s); it is not used", path, err.path, err.reason
-                )
+                log.warning("checkpoint %s is damaged (%s); it is not used", path, err)
                 continue
             if damaged:
                 log.warning("resuming from the checkpoint before it: %s", path)
@@ -205,6 +192,10 @@ class StageCheckpoints:
 
     def load(self, path: Path, components: Mapping[str, Any]) -> Path:
         """Restores those of ``components`` that ``path`` holds, and the global generators."""
+        fix = (
+            f"delete {path} to resume from the checkpoint before it, or delete {self.directory} "
+            "to restart this stage"
+        )
         try:
             if path != self._verified:
                 verify_checkpoint(path)
@@ -214,8 +205,7 @@ class StageCheckpoints:
             self._checkpoint(selected).load(path)
         except DamagedFileError as err:
             raise CheckpointDamagedError(
-                f"{err.path} is damaged ({err.reason}). Fix: delete {path} to resume from the "
-                f"checkpoint before it, or delete {self.directory} to restart this stage"
+                f"{err.path} is damaged ({err.reason}). Fix: {fix}"
             ) from err
         except (CheckpointError, OSError, RuntimeError, ValueError, KeyError, TypeError) as err:
             if isinstance(err.__cause__, CheckpointFormatError):  # wrapped by torchrl
@@ -224,11 +214,8 @@ class StageCheckpoints:
                     f"kept another state ({err.__cause__}). Fix: delete {self.directory} to "
                     "restart this stage, or finish the run with the version that wrote it"
                 ) from err
-            raise CheckpointDamagedError(
-                f"{path} cannot be read back ({type(err).__name__}: {str(err)[:200]}). Fix: "
-                f"delete it to resume from the checkpoint before it, or delete {self.directory} "
-                "to restart this stage"
-            ) from err
+            why = f"{type(err).__name__}: {str(err)[:200]}"
+            raise CheckpointDamagedError(f"{path} cannot be read back ({why}). Fix: {fix}") from err
         self._after(_frames(path))
         return path
 

@@ -29,18 +29,15 @@ def sha256_file(path: str | Path) -> str:
         return hashlib.file_digest(handle, "sha256").hexdigest()
 
 
-def _files(directory: Path) -> list[str]:
-    return sorted(
-        p.relative_to(directory).as_posix()
-        for p in directory.rglob("*")
-        if p.is_file() or p.is_symlink()
-    )
+def _files(directory: Path) -> set[str]:
+    files = (p for p in directory.rglob("*") if p.is_file() or p.is_symlink())
+    return {p.relative_to(directory).as_posix() for p in files} - {CHECKSUMS}
 
 
 def write_checksums(directory: str | Path) -> None:
     """Records the SHA-256 of every file under ``directory`` in its ``sha256.json``."""
     directory = Path(directory)
-    sums = {name: sha256_file(directory / name) for name in _files(directory) if name != CHECKSUMS}
+    sums = {name: sha256_file(directory / name) for name in _files(directory)}
     (directory / CHECKSUMS).write_text(json.dumps(sums, indent=1, sort_keys=True))
 
 
@@ -54,12 +51,10 @@ def verify_checksums(directory: str | Path, suffixes: tuple[str, ...] = ()) -> N
         if not isinstance(sums, dict) or not all(isinstance(v, str) for v in sums.values()):
             raise ValueError("not a mapping of file names to checksums")
     except FileNotFoundError:
-        raise DamagedFileError(
-            directory, f"it has no {CHECKSUMS} (not written by this version)"
-        ) from None
+        raise DamagedFileError(directory, f"no {CHECKSUMS} (not written by this version)") from None
     except (OSError, ValueError, UnicodeDecodeError) as err:
         raise DamagedFileError(record, f"unreadable ({type(err).__name__})") from err
-    present = {name for name in _files(directory) if name != CHECKSUMS}
+    present = _files(directory)
     for name in sorted(present | sums.keys()):
         path = directory / name
         if name not in sums:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import re
 import shutil
 import time
@@ -36,7 +37,7 @@ from torchrl_stages.runs.layout import (
     STATUS_FILE,
     RunDirError,
 )
-from torchrl_stages.runs.lock import LOCK_DIR, RunLock, RunLockedError
+from torchrl_stages.runs.lock import LOCK_DIR, RunLock
 from torchrl_stages.runs.trust import ADDED_KEYS, _interpolations
 from torchrl_stages.stage import StageResult
 
@@ -48,8 +49,7 @@ __all__ = ["RunDir", "drop_checkpoints", "refuse_links", "scope_checkpoints"]
 def scope_checkpoints(
     root: Path, scope: int | str, cfg: DictConfig | None = None, on_save: Callable | None = None
 ) -> StageCheckpoints:
-    """The checkpoints of one scope (a stage number or a group's name) under ``root``, at
-    ``cfg``'s cadence (none: only to clear them)."""
+    """The checkpoints of ``scope`` (a stage or a group's name) at ``cfg``'s cadence (or none)."""
     name = scope if isinstance(scope, str) else f"stage_{scope}"
     every, keep = (0, 1) if cfg is None else (int(cfg.checkpoint_every), int(cfg.checkpoint_keep))
     return StageCheckpoints(root / name, every, keep, on_save=on_save)
@@ -79,6 +79,14 @@ def read_stage_file(
         if state.get(key) != value:
             raise ValueError(f"it holds {key} {state.get(key)!r}, not {key} {value!r}")
     return state
+
+
+def _damaged(path: Path, why: str, fix: str, err: Exception | None = None) -> RunDirError:
+    """The error naming a damaged file, why (ending with ``err``'s first line) and the fix."""
+    if err is not None:
+        first_line = str(err).partition("\n")[0][:200]
+        why += f"{type(err).__name__}: {first_line}"
+    return RunDirError(f"{path} is damaged ({why}). Fix: {fix}")
 
 
 def drop_checkpoints(root: Path, every: bool = False) -> None:
@@ -124,11 +132,8 @@ class RunDir:
     def lock(self) -> RunLock:
         """Takes this directory's lock; :class:`RunDirError` names the process holding it."""
         refuse_links([self.path / LOCK_DIR])
-        try:
-            self.path.mkdir(parents=True, exist_ok=True)
-            held = RunLock(self.path).acquire()
-        except RunLockedError as err:
-            raise RunDirError(str(err)) from None
+        self.path.mkdir(parents=True, exist_ok=True)
+        held = RunLock(self.path).acquire()  # a RunLockedError is a RunDirError
         try:  # checked once the lock is held: its holder may be writing them meanwhile
             self.check_no_links()
         except BaseException:
@@ -151,10 +156,8 @@ class RunDir:
             for launch in record.get("launches", []):  # a list of dicts, their seconds numbers
                 float(launch.get("seconds", 0.0))
         except (OSError, ValueError, KeyError, AttributeError, TypeError) as err:
-            raise RunDirError(
-                f"{self.record_file} is damaged ({type(err).__name__}: {err}). Fix: restore it "
-                "from a copy of the run, or retrain into a new directory"
-            ) from err
+            fix = "restore it from a copy of the run, or retrain into a new directory"
+            raise _damaged(self.record_file, "", fix, err) from err
         return {**empty, **record}
 
     def _save_record(self) -> None:
@@ -165,9 +168,8 @@ class RunDir:
     def claim(self, *names: str) -> None:
         """Records entries as the package's before they are written."""
         entries = self.record["entries"]
-        new = [name for name in names if name not in entries]
-        for name in new:
-            entries[name] = {}
+        new = {name: {} for name in names if name not in entries}
+        entries.update(new)
         if new or not self.has_record():
             self._save_record()
 
@@ -197,16 +199,14 @@ class RunDir:
         atomic_write(path, write_and_record)
         return path
 
-    def _verify(self, name: str, fix: str) -> None:
-        entry = self.record["entries"].get(name)
+    def _verify(self, path: Path, fix: str) -> None:
+        entry = self.record["entries"].get(path.relative_to(self.path).as_posix())
         if not isinstance(entry, dict):
             entry = {}
         expected = {entry.get("sha256"), entry.get("previous")} - {None}
-        if expected and sha256_file(self.path / name) not in expected:
-            raise RunDirError(
-                f"{self.path / name} is damaged (its bytes differ from those written, by their "
-                f"SHA-256 in {self.record_file}). Fix: {fix}"
-            )
+        if expected and sha256_file(path) not in expected:
+            why = f"its bytes differ from those written, by their SHA-256 in {self.record_file}"
+            raise _damaged(path, why, fix)
 
     def begin_launch(self) -> None:
         self._launch_start = time.perf_counter()
@@ -239,30 +239,24 @@ class RunDir:
         return hydra if not self.config_file.is_file() and hydra.is_file() else self.config_file
 
     def read_config(self) -> DictConfig:
-        """The run's config, checked against the schema; refuses interpolations (resolving
-        untrusted text can build nodes)."""
+        """The run's config, checked against the schema; interpolations (untrusted) refused."""
         path = self.config_source
-        fix = (
-            "restore it from the run's .hydra/config.yaml (or a copy of the run), or retrain "
-            "into a new directory"
-        )
+        fix = "restore it from .hydra/config.yaml or a copy of the run, or retrain elsewhere"
         if not path.is_file():
             raise RunDirError(
                 f"{self.config_file} not found: {self.path} is not a torchrl-stages run "
                 "directory (pass the directory that `stages-train` printed at the end)."
             )
-        if path == self.config_file:
-            self._verify(CONFIG_FILE, fix)
-        else:
+        self._verify(path, fix)  # .hydra/config.yaml has no checksum
+        if path != self.config_file:
             log.warning("%s is missing: reading %s instead", self.config_file, path)
         try:
             loaded = OmegaConf.load(path)
             if not isinstance(loaded, DictConfig):
                 raise ValueError("it is not a mapping")
             container = OmegaConf.to_container(loaded, resolve=True)
-            interpolation = next(_interpolations(container), None)
-            if interpolation is not None:
-                raise ValueError(f"{interpolation[0]} holds an interpolation, {interpolation[1]!r}")
+            for key, text in _interpolations(container):
+                raise ValueError(f"{key} holds an interpolation, {text!r}")
             cfg = OmegaConf.create({**ADDED_KEYS, **container})
             missing = [f.name for f in fields(TrainConfig) if f.name not in cfg]
             if missing:
@@ -271,10 +265,7 @@ class RunDir:
             if not isinstance(cfg.task.get("stages"), DictConfig) or not cfg.task.stages:
                 raise ValueError("it has no task.stages")
         except (yaml.YAMLError, OmegaConfBaseException, ValueError, UnicodeDecodeError) as err:
-            raise RunDirError(
-                f"{path} is damaged (not a complete stages-train config: "
-                f"{type(err).__name__}: {str(err).splitlines()[0]}). Fix: {fix}"
-            ) from err
+            raise _damaged(path, "not a complete stages-train config: ", fix, err) from err
         return cfg
 
     def save_stage(
@@ -293,15 +284,11 @@ class RunDir:
             f"delete it and rerun the same stages-train command with hydra.run.dir={self.path} "
             f"resume=true to retrain stage {stage}"
         )
-        self._verify(path.name, fix)
+        self._verify(path, fix)
         try:
             return read_stage_file(path, map_location, ("model", "result", "log"), stage=stage)
         except Exception as err:  # noqa: BLE001 - any failure to read it means it is damaged
-            why = str(err).partition("\n")[0][:200]
-            raise RunDirError(
-                f"{path} is damaged (truncated, or not this run's stage checkpoint: "
-                f"{type(err).__name__}: {why}). Fix: {fix}"
-            ) from err
+            raise _damaged(path, "truncated, or not this run's stage file: ", fix, err) from err
 
     def checkpoints(self, stage: int | str, cfg: DictConfig | None = None) -> StageCheckpoints:
         self.claim(CHECKPOINTS)
@@ -353,19 +340,13 @@ class RunDir:
     def clear(self) -> list[str]:
         """Removes exactly the entries the record lists (``overwrite=true``); returns them."""
         self.check_clearable()
-        entries = self.record["entries"]
-        removed = []
-        for name in sorted(entries):
-            entry = self.path / name
-            if "/" in name or name in ("", ".", "..", LOCK_DIR):
-                continue  # a record lists top-level names only
+        top = (n for n in self.record["entries"] if "/" not in n and n not in ("", ".", ".."))
+        removed = sorted(n for n in top if n != LOCK_DIR and os.path.lexists(self.path / n))
+        for entry in (self.path / name for name in removed):
             if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry)
-            elif entry.exists() or entry.is_symlink():
-                entry.unlink()
             else:
-                continue
-            removed.append(name)
+                entry.unlink()
         self.record.update(entries={}, launches=[])
         self.record.pop("phases", None)
         self._save_record()

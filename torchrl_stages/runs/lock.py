@@ -11,10 +11,12 @@ import sys
 import time
 from pathlib import Path
 
+from torchrl_stages.runs.layout import RunDirError
+
 LOCK_DIR = ".stages"
 
 
-class RunLockedError(RuntimeError):
+class RunLockedError(RunDirError):
     """Another process holds the lock (``holder``: who, in words)."""
 
     holder: str
@@ -26,13 +28,10 @@ class RunLock:
     Examples:
         >>> import tempfile
         >>> run = tempfile.mkdtemp()
-        >>> first = RunLock(run).acquire()
-        >>> try:
+        >>> with RunLock(run):  # doctest: +ELLIPSIS
         ...     RunLock(run).acquire()
-        ... except RunLockedError as err:
-        ...     print("is in use by another process" in str(err))
-        True
-        >>> first.release()
+        Traceback (most recent call last):
+        torchrl_stages.runs.lock.RunLockedError: ... is in use by another process ...
         >>> RunLock(run).acquire().release()
     """
 

@@ -72,9 +72,8 @@ ENTRY_META = tuple(f.name for f in fields(StageEntry))[5:]
 
 
 class SharedStageStore:
-    """Finished stages, one entry per identity, shared by the jobs of a sweep. An entry is
-    written whole in ``tmp/`` and renamed into ``entries/``; ``locks/<identity>`` is held by
-    the job training that stage while the others wait.
+    """Finished stages, one entry per identity, shared by a sweep's jobs: each written whole in
+    ``tmp/``, then renamed into ``entries/``, by the job holding ``locks/<identity>``.
 
     Examples:
         >>> import tempfile
@@ -193,8 +192,7 @@ class SharedStageStore:
 
     def prune(self, older_than_s: float | None = None, dry_run: bool = False) -> list[Path]:
         """Removes damaged entries, those unused for ``older_than_s`` seconds, locks nobody
-        holds and what interrupted writes left in ``tmp/``; returns what it removed (would
-        remove). A stage is written in ``tmp/`` under its lock only."""
+        holds and what interrupted writes left in ``tmp/``; returns them."""
         now, removed, held = time.time(), [], set()
         for entry in self.entries():
             stale = older_than_s is not None and now - entry.last_used > older_than_s
@@ -203,16 +201,11 @@ class SharedStageStore:
                 if not dry_run:
                     self._discard(entry.path)
         for lock_file in (self.root / LOCKS).iterdir():
-            lock = self.lock(lock_file.name)
             try:
-                lock.acquire()
+                self.lock(lock_file.name).acquire().release(remove=not dry_run)
+                removed.append(lock_file)
             except RunLockedError:
                 held.add(lock_file.name)  # a job trains that stage now
-                continue
-            removed.append(lock_file)
-            if not dry_run:
-                lock_file.unlink(missing_ok=True)
-            lock.release()
         for leftover in (self.root / TMP).iterdir():
             if leftover.name.split(".")[0] not in held:
                 removed.append(leftover)
@@ -222,22 +215,21 @@ class SharedStageStore:
 
 
 class StageReuse:
-    """The stages one backward run takes instead of training them (from ``init_from`` where
-    the identity matches, else from the store). :meth:`take` returning ``None`` holds the
-    stage's store lock until :meth:`trained` stores it."""
+    """The stages a backward run takes from ``init_from`` or the store instead of training;
+    :meth:`take` returning ``None`` holds the stage's store lock until :meth:`trained`."""
 
     def __init__(self, cfg: DictConfig, run_dir: str | Path) -> None:
         self.inputs = stage_identity_inputs(cfg)
         self.identities = [digest(stage) for stage in self.inputs]
         self.cfg, self.run_dir = cfg, str(Path(run_dir).resolve())
         self.store = SharedStageStore(cfg.stage_store) if cfg.get("stage_store") else None
-        self.init_run: RunDir | None = None
-        self.init_identities: list[str] = []
-        if cfg.get("init_from"):
-            self._open_init(Path(cfg.init_from), cfg)
+        self.init_run, self.init_identities = (
+            self._open_init(cfg) if cfg.get("init_from") else (None, [])
+        )
         self._held: dict[int, RunLock] = {}
 
-    def _open_init(self, path: Path, cfg: DictConfig) -> None:
+    def _open_init(self, cfg: DictConfig) -> tuple[RunDir, list[str]]:
+        path = Path(cfg.init_from)
         run = RunDir(path)
         if path.resolve() == Path(self.run_dir):
             raise StoreError(
@@ -257,12 +249,10 @@ class StageReuse:
         if identities and identities[-1] != self.identities[-1]:
             differ = config_differences(saved, cfg, ignore=(*RESUMABLE_CHANGES, "logger"))[:6]
             log.warning(
-                "init_from=%s: not even its last stage has this run's identity (the configs "
-                "differ in %s): every stage is trained",
-                path,
-                ", ".join(differ) or "the library versions",
+                f"init_from={path}: not even its last stage has this run's identity (the configs "
+                f"differ in {', '.join(differ) or 'the library versions'}): every stage is trained"
             )
-        self.init_run, self.init_identities = run, identities
+        return run, identities
 
     def take(self, task: StagedTask, stage: int, device: str) -> Reused | None:
         identity, init = self.identities[stage], self.init_run
@@ -285,11 +275,8 @@ class StageReuse:
                 break
             except RunLockedError as err:
                 if not waited:
-                    where = f"stage {stage} ({task.stage_names[stage]})"
-                    root = self.store.root
-                    log.info(
-                        f"{where}: waiting for {err.holder}, which trains it (stage store {root})"
-                    )
+                    where = f"stage {stage} ({task.stage_names[stage]}) of {self.store.root}"
+                    log.info(f"{where}: waiting for {err.holder}, which trains it")
                 stop_if_asked(f"waiting for stage {stage} in the stage store")
                 time.sleep(POLL_S)
         found = self._from_store(task, stage, device)  # trained while this job waited
