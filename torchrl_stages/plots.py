@@ -15,16 +15,12 @@ if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn: it costs ev
     from matplotlib.figure import Figure
     from matplotlib.patches import Circle
 
-DPI = 120
-#: the size of one learning-curve panel with its labels, in inches (width, height)
-_PANEL = (3.6, 2.7)
-
 
 def save_figure(fig: Figure, out: str | Path) -> Path:
     """Writes ``fig`` as PNG to ``out``, making its parent folders."""
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI, format="png")
+    fig.savefig(path, dpi=120, format="png")
     return path
 
 
@@ -66,67 +62,43 @@ def _stage_panels(series: Series) -> list[tuple[str, list]]:
         key=lambda m: (_LOSS_ORDER.index(m) if m in _LOSS_ORDER else len(_LOSS_ORDER), m),
     )
     panels = [(loss, pick("train", lambda m, loss=loss: m == loss)) for loss in losses]
-    for title, kind, test in (
-        ("gradient norm", "train", lambda m: m.startswith("grad_norm")),
-        ("evaluation success rate", "eval", lambda m: m == "success_rate"),
-        ("evaluation value error |V(s0) - G|", "eval", lambda m: m == "value_error"),
-        ("training episode return", "train", lambda m: m == "episode_return"),
-    ):
-        chosen = pick(kind, test)
-        if chosen:
-            panels.append((title, chosen))
-    return panels
+    panels += [
+        ("gradient norm", pick("train", lambda m: m.startswith("grad_norm"))),
+        ("evaluation success rate", pick("eval", lambda m: m == "success_rate")),
+        ("evaluation value error |V(s0) - G|", pick("eval", lambda m: m == "value_error")),
+        ("training episode return", pick("train", lambda m: m == "episode_return")),
+    ]
+    return [(title, keys) for title, keys in panels if keys]
 
 
 def plot_learning_curves(metrics_csv: str | Path, out: str | Path) -> Path | None:
     """One row of panels per stage of a ``metrics.csv`` against the stage's frames, a joint
     phase's evaluations dashed in its stage's row."""
     stages = read_stage_metrics(metrics_csv)
-    rows = [(k, _stage_panels(stages[k])) for k in sorted(stages)]
-    rows = [(k, panels) for k, panels in rows if panels]
+    rows = [(k, panels) for k in sorted(stages) if (panels := _stage_panels(stages[k]))]
     if not rows:
         return None
     ncols = max(len(panels) for _, panels in rows)
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
-    width, height = _PANEL[0] * ncols, _PANEL[1] * len(rows) + 0.4
+    width, height = 3.6 * ncols, 2.7 * len(rows) + 0.4  # a panel with its labels: 3.6 x 2.7 in
     fig = Figure(figsize=(width, height))
+    axes = fig.subplots(len(rows), ncols, squeeze=False)
     # fixed margins in inches: tight_layout draws the figure once more (a third of its cost)
-    axes = fig.subplots(
-        len(rows),
-        ncols,
-        squeeze=False,
-        gridspec_kw={
-            "left": 0.75 / width,
-            "right": 1 - 0.15 / width,
-            "bottom": 0.5 / height,
-            "top": 1 - 0.3 / height,
-            "wspace": 0.45,
-            "hspace": 0.55,
-        },
-    )
+    pad = {"left": 0.75 / width, "right": 1 - 0.15 / width, "wspace": 0.45, "hspace": 0.55}
+    fig.subplots_adjust(bottom=0.5 / height, top=1 - 0.3 / height, **pad)
     for r, (stage, panels) in enumerate(rows):
         series = stages[stage]
-        for c in range(ncols):
-            ax = axes[r, c]
-            if c >= len(panels):
-                ax.set_visible(False)
-                continue
-            title, keys = panels[c]
-            for i, key in enumerate(keys):
-                kind, scope, metric = key
-                steps, vals = zip(*sorted(series[key]), strict=True)
+        for ax in axes[r, len(panels) :]:
+            ax.set_visible(False)
+        for ax, (title, keys) in zip(axes[r], panels, strict=False):
+            for i, (kind, scope, metric) in enumerate(keys):
+                steps, vals = zip(*sorted(series[kind, scope, metric]), strict=True)
                 label = metric if scope == "stage" else f"{metric} (joint phase {stage})"
-                ax.plot(
-                    steps,
-                    vals,
-                    color=f"C{i % 10}",
-                    label=label,
-                    linestyle="-" if scope == "stage" else "--",
-                    marker="o" if len(steps) == 1 or kind == "eval" else None,
-                    markersize=3,
-                )
+                style = "-" if scope == "stage" else "--"
+                marker = "o" if len(steps) == 1 or kind == "eval" else None
+                ax.plot(steps, vals, ls=style, marker=marker, ms=3, color=f"C{i % 10}", label=label)
             values = [v for key in keys for _, v in series[key]]
             if title == "evaluation success rate":
                 ax.set_ylim(-0.05, 1.05)

@@ -106,18 +106,17 @@ def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0)
     _write_csv(files["summary.csv"], header, (job.row(metrics) for job in jobs))
     header = [f.name for f in fields(Aggregate)]
     _write_csv(files["summary_configs.csv"], header, (vars(agg) for agg in aggregates))
-    figures = []
+    figures = {}
     if plots:
-        for made in (
+        made = (
             plot_sweep_curves(jobs, root / "summary_curves.png"),
             plot_sweep_final(jobs, aggregates, root / "summary_final.png"),
             plot_performance_profile(jobs, root / "summary_profile.png", seed=seed),
-        ):
-            if made is not None:
-                files[made.name] = made
-                figures.append(made.name)
+        )
+        figures = {path.name: path for path in made if path is not None}
+    files |= figures
     files["summary.md"] = root / "summary.md"
-    files["summary.md"].write_text(markdown(root, jobs, aggregates, figures))
+    files["summary.md"].write_text(markdown(root, jobs, aggregates, list(figures)))
     return SweepSummary(jobs, aggregates, files)
 
 

@@ -17,9 +17,6 @@ from torchrl_stages.sweeps.jobs import Job, result_metrics
 from torchrl_stages.sweeps.jobs import configs as configs_of
 from torchrl_stages.sweeps.stats import Aggregate, finished_scores, performance_profiles
 
-#: characters per line of a legend label (the 7-inch performance profile, 8-point text)
-_LEGEND_WIDTH = 90
-
 
 def _curve(name: str) -> MetricName | None:
     """A learning curve of the summary: the success of the whole-task probe or of a loop."""
@@ -70,22 +67,21 @@ def plot_sweep_curves(jobs: Sequence[Job], out: str | Path) -> Path | None:
     configuration (mean over seeds, band min-max); ``None`` without such curves."""
     from matplotlib.figure import Figure
 
-    per_job = {j.name: _read_curves(j.path / "metrics.csv") for j in jobs if j.status == "done"}
-    names = sorted({n for curves in per_job.values() for n in curves}, key=_curve_order)
+    runs: dict[str, list[dict]] = {}  # each finished seed's curves, by configuration
+    for job in jobs:
+        if job.status == "done":
+            runs.setdefault(job.config, []).append(_read_curves(job.path / "metrics.csv"))
+    names = sorted({n for seeds in runs.values() for s in seeds for n in s}, key=_curve_order)
     if not names:
         return None
-    configs = configs_of(j for j in jobs if j.name in per_job)
     labels = short_labels(configs_of(jobs))
     ncols = min(3, len(names))
     nrows = math.ceil(len(names) / ncols)
     fig = Figure(figsize=(5.2 * ncols, 3.6 * nrows + 0.6))
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
-    runs = {
-        c: [per_job[j.name] for j in jobs if j.config == c and j.name in per_job] for c in configs
-    }
     for ax, name in zip(axes, names, strict=False):
-        for c, config in enumerate(configs):
-            seeds = [curves[name] for curves in runs[config] if name in curves]
+        for c, (config, curves) in enumerate(runs.items()):
+            seeds = [s[name] for s in curves if name in s]
             if not seeds:
                 continue
             grid = np.unique(np.concatenate([[p[0] for p in s] for s in seeds]))
@@ -125,8 +121,7 @@ def plot_sweep_final(
     shown = [m for m in result_metrics(done) if m != "mean_return"]  # and the task's headline
     metrics = [m for m in shown if any(j.metrics.get(m) is not None for j in done)]
     by_key = {(a.config, a.metric): a for a in aggregates}
-    height = max(2.6, 0.45 * len(configs) + 1.4)
-    fig = Figure(figsize=(4.2 * len(metrics) + 2.5, height))
+    fig = Figure(figsize=(4.2 * len(metrics) + 2.5, max(2.6, 0.45 * len(configs) + 1.4)))
     axes = fig.subplots(1, len(metrics), squeeze=False).ravel()
     ys = np.arange(len(configs))
     for ax, metric in zip(axes, metrics, strict=True):
@@ -160,8 +155,8 @@ def plot_performance_profile(jobs: Sequence[Job], out: str | Path, seed: int = 0
     if not profiles:
         return None
     labels = short_labels(configs_of(jobs))
-    # the legend below the plot, labels wrapped: long override lists hide no curve
-    texts = [textwrap.fill(labels[c], _LEGEND_WIDTH) for c in profiles]
+    # the legend below the plot, labels wrapped to its 7-inch width: they hide no curve
+    texts = [textwrap.fill(labels[c], 90) for c in profiles]
     lines = sum(t.count("\n") + 1 for t in texts)
     fig = Figure(figsize=(7.0, 4.2 + 0.17 * lines), layout="constrained")
     ax = fig.subplots()
@@ -169,12 +164,8 @@ def plot_performance_profile(jobs: Sequence[Job], out: str | Path, seed: int = 0
         color = f"C{c % 10}"
         ax.plot(taus, profile, color=color, linewidth=2, label=text)
         ax.fill_between(taus, low, high, color=color, alpha=0.15, linewidth=0)
-    ax.set(
-        xlabel="success_rate threshold tau",
-        ylabel="fraction of runs with success_rate > tau",
-        xlim=(0.0, 1.0),
-        ylim=(-0.02, 1.02),
-    )
+    ax.set(xlabel="success_rate threshold tau", xlim=(0.0, 1.0), ylim=(-0.02, 1.02))
+    ax.set_ylabel("fraction of runs with success_rate > tau")
     ax.grid(alpha=0.3)
     fig.legend(fontsize=8, loc="outside lower center")
     fig.suptitle("performance profile per configuration (band: 95% bootstrap CI)")
