@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -73,8 +73,7 @@ class EarlyStop:
         """Records one evaluation (``ret``: its mean discounted return); whether to stop now."""
         cfg = self.cfg
         self.last, self.last_return = (success, value_error), ret
-        by_return = 0.0 if ret is None else ret
-        score = (success, by_return if cfg.keep_best_by == "return" else -value_error)
+        score = (success, (ret or 0.0) if cfg.keep_best_by == "return" else -value_error)
         if cfg.keep_best and (self.best_score is None or score > self.best_score):
             self.best_score, self.best = score, (success, value_error)
             self.best_return = ret
@@ -144,24 +143,20 @@ class SeedRow:
             for learner in self.learners
         ]
 
-    def _entries(self):
+    def _rows(self, keep_vars: bool = False) -> Iterator[tuple[str, torch.Tensor]]:
         for m, (learner, axes) in enumerate(zip(self.learners, self.axes, strict=True)):
+            state = learner.state_dict(keep_vars=keep_vars)
             for key, axis in axes.items():
-                yield learner, key, axis, f"{m}.{key}" if self.team else key
+                yield f"{m}.{key}" if self.team else key, state[key].data.select(axis, self.seed)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
-        states = {id(learner): learner.state_dict() for learner in self.learners}
-        return {
-            entry: states[id(learner)][key].select(axis, self.seed).clone()
-            for learner, key, axis, entry in self._entries()
-        }
+        return {entry: row.clone() for entry, row in self._rows()}
 
     @torch.no_grad()
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        own = {id(learner): learner.state_dict(keep_vars=True) for learner in self.learners}
-        for learner, key, axis, entry in self._entries():
+        for entry, row in self._rows(keep_vars=True):
             if entry in state:
-                own[id(learner)][key].data.select(axis, self.seed).copy_(state[entry])
+                row.copy_(state[entry])
 
     def moments(self, load: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
         """The row's Adam moments, copied out; with ``load`` (what this returned), written back."""
@@ -216,21 +211,16 @@ class SeedEarlyStops:
     def record(self, evaluation: Evaluation) -> bool:
         """Whether every seed has stopped."""
         ev = evaluation
-        for i, monitor in enumerate(self.monitors):
-            if self.stopped_at[i] is not None:
-                continue
+        for i in self.active():
             row = self.rows[i]
             args = (ev.success[i], ev.value_error[i], ev.frames[i], ev.discounted_return[i])
-            if monitor.record(row, *args):
-                self.stopped_at[i] = {
-                    "state": copy.deepcopy(row.state_dict()),
-                    "frames": ev.frames[i],
-                    "updates": ev.updates[i],
-                    "seconds": time.perf_counter() - self.start,
-                }
-                if isinstance(row, SeedRow) and row.keeps_moments:
-                    self.stopped_at[i]["moments"] = row.moments()
-        return all(at is not None for at in self.stopped_at)
+            if self.monitors[i].record(row, *args):
+                at = {"state": copy.deepcopy(row.state_dict()), "frames": ev.frames[i]}
+                at |= {"updates": ev.updates[i], "seconds": time.perf_counter() - self.start}
+                if getattr(row, "keeps_moments", False):
+                    at["moments"] = row.moments()
+                self.stopped_at[i] = at
+        return not self.active()
 
     def active(self) -> list[int]:
         """The seeds that have not stopped."""
@@ -238,20 +228,15 @@ class SeedEarlyStops:
 
     def finish(self, i: int) -> dict[str, Any]:
         """Seed ``i``'s row gets the weights it stopped with, else its best; their evaluation."""
-        at, monitor = self.stopped_at[i], self.monitors[i]
+        at, monitor, row = self.stopped_at[i], self.monitors[i], self.rows[i]
         if at is not None:
-            self.rows[i].load_state_dict(at["state"])
+            row.load_state_dict(at["state"])
             if "moments" in at:
-                self.rows[i].moments(load=at["moments"])
-        restored = at is None and monitor.restore_best(self.rows[i])
-        success, value_error, ret = monitor.final
-        return {
-            "success_rate": success,
-            "value_error": value_error,
-            "discounted_return": ret,
-            "early_stopped": monitor.stopped,
-            "restored_best": restored,
-        }
+                row.moments(load=at["moments"])
+        restored = monitor.restore_best(row)  # none after a stop
+        keys = ("success_rate", "value_error", "discounted_return")
+        ended = dict(zip(keys, monitor.final, strict=True))
+        return ended | {"early_stopped": monitor.stopped, "restored_best": restored}
 
     def state_dict(self) -> dict:
         return {

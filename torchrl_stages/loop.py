@@ -29,7 +29,7 @@ from torchrl_stages.early_stop import (
 )
 from torchrl_stages.metric_names import STAGE, metric_name
 from torchrl_stages.metrics import MetricsLog
-from torchrl_stages.preemption import Interrupted, requested
+from torchrl_stages.preemption import requested, stop_if_asked
 from torchrl_stages.threads import keep_threads
 
 __all__ = ["LoopCounters", "SeedLoop", "Stopwatch", "Trainer", "loss_means"]
@@ -100,15 +100,14 @@ class LoopCounters(SavedCounters):
 
 
 class Trainer:
-    """The loop: for every batch of ``collector`` (``seeds`` equal, seed-major parts) the hooks
+    """The loop: per batch of ``collector`` (``seeds`` equal, seed-major parts) the hooks
     ``batch(batch)``, ``update(frames) -> losses``, ``log(batch, losses)``; every ``eval_every``
-    frames ``evaluate(frames) -> Evaluation`` and ``evaluated(evaluation)``; ``checkpoint()``
-    before a checkpoint of ``state`` is written (when due, or when a stop was asked for: then
-    :class:`~torchrl_stages.preemption.Interrupted` is raised). It ends at the budget or once
-    every seed has stopped (``early_stop``'s config: how often it evaluates, whether it may stop).
+    frames ``evaluate(frames) -> Evaluation``, ``evaluated(evaluation)``; ``checkpoint()`` before
+    ``state`` is checkpointed (when due, or on a stop request, then raising
+    :class:`~torchrl_stages.preemption.Interrupted`). It ends at the budget or once every seed
+    has stopped.
 
     Examples:
-        >>> import torch
         >>> from tensordict.nn import TensorDictModule
         >>> from torchrl_stages.envs import GridWorldEnv
         >>> from torchrl_stages.learners.dqn import DQNConfig
@@ -168,19 +167,16 @@ class Trainer:
     def train(self) -> None:
         collector, counters, watch, n = self.collector, self.counters, self.watch, len(self.seeds)
         budget = int(collector.total_frames)
-        desc = f"{self.label} (budget {budget} frames)" if self.open_ended else self.label
         shown = self.progress and sys.stderr.isatty()  # elsewhere: a line per evaluation
-        total = None if self.open_ended else budget
-        bar = tqdm(
+        report = self.progress and not shown
+        with tqdm(
             initial=collector.frames,
-            total=total,
-            desc=desc,
+            total=None if self.open_ended else budget,
+            desc=f"{self.label} (budget {budget} frames)" if self.open_ended else self.label,
             unit="frame",
             disable=not shown,
             leave=False,
-        )
-        report = self.progress and not shown
-        try:
+        ) as bar:
             for batch in watch.timed("collect", collector):
                 frames = collector.frames // n
                 keep_threads()
@@ -205,31 +201,23 @@ class Trainer:
                     if stop:
                         break
                 self._checkpoint_or_stop(self.frames_before + frames)
-        finally:
-            bar.close()
 
     def _log_lines(self, evaluation: Evaluation, rows: list[int], frames: int, budget: int) -> None:
         seconds = time.perf_counter() - self.early_stop.start
         for i in rows:
             who = self.where if len(self.seeds) == 1 else f"seed {self.seeds[i]}: {self.where}"
+            success, error = evaluation.success[i], evaluation.value_error[i]
             log.info(
-                "%s: %d of %d frames, success %.2f, value error %.3f, %.1fs",
-                who,
-                frames,
-                budget,
-                evaluation.success[i],
-                evaluation.value_error[i],
-                seconds,
+                f"{who}: {frames} of {budget} frames, success {success:.2f}, "
+                f"value error {error:.3f}, {seconds:.1f}s"
             )
 
     def _checkpoint_or_stop(self, frames: int) -> None:
-        signum = requested()
-        if self.checkpoints is not None and (self.checkpoints.due(frames) or signum is not None):
+        if self.checkpoints is not None and (self.checkpoints.due(frames) or requested()):
             with self.watch("checkpoint"):
                 self._call("checkpoint")
                 self.checkpoints.save(frames, self.state)
-        if signum is not None:
-            raise Interrupted(signum, f"{self.label} at {frames} frames")
+        stop_if_asked(f"{self.label} at {frames} frames")
 
 
 class SeedLoop:
@@ -339,13 +327,8 @@ class SeedLoop:
         for i in active:
             metrics = {metric_name("eval", scope, index, k): v for k, v in summaries[i].items()}
             self.logs[i](metrics, steps[i])
-        return Evaluation(
-            [s["success_rate"] for s in summaries],
-            [s["value_error"] for s in summaries],
-            [s["discounted_return"] for s in summaries],
-            frames,
-            updates,
-        )
+        keys = ("success_rate", "value_error", "discounted_return")
+        return Evaluation(*([s[k] for s in summaries] for k in keys), frames, updates)
 
     def log_batch(
         self,
