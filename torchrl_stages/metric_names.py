@@ -53,9 +53,6 @@ def is_loop_evaluation(name: str, metric: str = "success_rate") -> bool:
     """Whether ``name`` is ``metric`` of a loop's evaluation (one with an index): what a tuner
     prunes on."""
     parsed = parse_metric(name)
-    return (
-        parsed is not None
-        and parsed.kind == "eval"
-        and parsed.index is not None
-        and parsed.metric == metric
-    )
+    if parsed is None or parsed.index is None:
+        return False
+    return parsed.kind == "eval" and parsed.metric == metric
