@@ -46,21 +46,21 @@ class Evaluation:
     updates: list[int]
 
 
+@dataclass(eq=False)
 class EarlyStop:
     """Early stop after ``patience`` consecutive evaluations meeting the criterion past
     ``min_frames``; else :meth:`restore_best` puts back the best evaluation's weights (highest
     success, then ``keep_best_by`` lowest value error or highest return)."""
 
-    def __init__(self, cfg: StageConfig) -> None:
-        self.cfg = cfg
-        self.streak = 0
-        self.stopped = False
-        self.best: tuple[float, float] | None = None  # (success, value error) of the best
-        self.best_score: tuple[float, float] | None = None
-        self.best_state: dict | None = None
-        self.last: tuple[float, float] | None = None
-        self.best_return: float | None = None  # mean discounted return of those evaluations
-        self.last_return: float | None = None
+    cfg: StageConfig
+    streak: int = 0
+    stopped: bool = False
+    best: tuple[float, float] | None = None  # (success, value error) of the best
+    best_score: tuple[float, float] | None = None
+    best_state: dict | None = None
+    last: tuple[float, float] | None = None
+    best_return: float | None = None  # mean discounted return of those evaluations
+    last_return: float | None = None
 
     def record(
         self,

@@ -9,7 +9,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from statistics import fmean
 from typing import Any
 
@@ -21,12 +21,7 @@ from tqdm.auto import tqdm
 from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, SavedCounters, StageCheckpoints
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
-from torchrl_stages.early_stop import (
-    Evaluation,
-    SeedEarlyStops,
-    can_stop_early,
-    first_evaluation,
-)
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, can_stop_early, first_evaluation
 from torchrl_stages.metric_names import STAGE, metric_name
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import requested, stop_if_asked
@@ -44,9 +39,7 @@ def loss_means(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, list[floa
     """Each loss entry's mean over a batch's updates, per seed (an entry some updates leave
     out, such as TD3's delayed actor loss: over the others)."""
     keys = dict.fromkeys(k for loss in losses for k in loss)
-    return {
-        k: torch.stack([loss[k] for loss in losses if k in loss]).mean(0).tolist() for k in keys
-    }
+    return {k: torch.stack([x[k] for x in losses if k in x]).mean(0).tolist() for k in keys}
 
 
 class Stopwatch:
@@ -99,6 +92,7 @@ class LoopCounters(SavedCounters):
     format: int = CHECKPOINT_FORMAT  # what a resumed loop checks first
 
 
+@dataclass(eq=False)
 class Trainer:
     """The loop: per batch of ``collector`` (``seeds`` equal, seed-major parts) the hooks
     ``batch(batch)``, ``update(frames) -> losses``, ``log(batch, losses)``; every ``eval_every``
@@ -108,13 +102,10 @@ class Trainer:
     has stopped.
 
     Examples:
-        >>> from tensordict.nn import TensorDictModule
         >>> from torchrl_stages.envs import GridWorldEnv
         >>> from torchrl_stages.learners.dqn import DQNConfig
-        >>> policy = TensorDictModule(lambda o: torch.zeros(o.shape[:-1], dtype=torch.long),
-        ...                           ["observation"], ["action"])
-        >>> collector = StageCollector(GridWorldEnv((4,)), policy, frames_per_batch=8,
-        ...                            total_frames=32)
+        >>> collector = StageCollector(GridWorldEnv((4,)), None, frames_per_batch=8,
+        ...                            total_frames=32, init_random_frames=32)  # random actions
         >>> stops = SeedEarlyStops(DQNConfig(eval_every=0), [None])
         >>> loop = Trainer(collector, stops, LoopCounters(0))
         >>> seen = []
@@ -125,28 +116,21 @@ class Trainer:
         [8, 'then', 8, 'then', 8, 'then', 8, 'then']
     """
 
-    def __init__(
-        self,
-        collector: StageCollector,
-        early_stop: SeedEarlyStops,
-        counters: LoopCounters,
-        *,
-        checkpoints: StageCheckpoints | None = None,
-        state: dict[str, Any] | None = None,
-        seeds: Sequence[int] = (0,),
-        where: str = "the loop",
-        watch: Stopwatch | None = None,
-        progress: bool = False,
-    ) -> None:
-        self.collector, self.early_stop, self.counters = collector, early_stop, counters
-        self.checkpoints, self.state = checkpoints, state or {}
-        self.seeds, self.where = list(seeds), where
-        self.frames_before = 0  # the frames of the loops before this one
-        self.watch = watch if watch is not None else Stopwatch()
-        self.eval_every = int(early_stop.cfg.eval_every)
-        self.progress, self.open_ended = progress, can_stop_early(early_stop.cfg)
+    collector: StageCollector
+    early_stop: SeedEarlyStops
+    counters: LoopCounters
+    _: KW_ONLY
+    checkpoints: StageCheckpoints | None = None
+    state: dict[str, Any] = field(default_factory=dict)
+    seeds: Sequence[int] = (0,)
+    where: str = "the loop"
+    watch: Stopwatch = field(default_factory=Stopwatch)
+    progress: bool = False
+    frames_before: int = field(default=0, init=False)  # the frames of the loops before this one
+
+    def __post_init__(self) -> None:
         n = len(self.seeds)
-        self.label = where + (f", {n} seeds" if n > 1 else "")
+        self.label = self.where + (f", {n} seeds" if n > 1 else "")
         self.ops: dict[str, list[Callable[..., Any]]] = {point: [] for point in HOOKS}
 
     def register_op(self, point: str, op: Callable[..., Any]) -> None:
@@ -166,13 +150,14 @@ class Trainer:
 
     def train(self) -> None:
         collector, counters, watch, n = self.collector, self.counters, self.watch, len(self.seeds)
-        budget = int(collector.total_frames)
+        budget, open_ended = int(collector.total_frames), can_stop_early(self.early_stop.cfg)
+        eval_every = int(self.early_stop.cfg.eval_every)
         shown = self.progress and sys.stderr.isatty()  # elsewhere: a line per evaluation
         report = self.progress and not shown
         with tqdm(
             initial=collector.frames,
-            total=None if self.open_ended else budget,
-            desc=f"{self.label} (budget {budget} frames)" if self.open_ended else self.label,
+            total=None if open_ended else budget,
+            desc=f"{self.label} (budget {budget} frames)" if open_ended else self.label,
             unit="frame",
             disable=not shown,
             leave=False,
@@ -185,8 +170,8 @@ class Trainer:
                 with watch("log"):
                     self._call("log", batch, losses)
                 bar.update(batch.numel())
-                if self.eval_every > 0 and frames >= counters.next_eval:
-                    counters.next_eval += self.eval_every
+                if eval_every > 0 and frames >= counters.next_eval:
+                    counters.next_eval += eval_every
                     rows = self.early_stop.active()  # a seed this evaluation stops is logged
                     with watch("evaluate"):
                         evaluation: Evaluation = self._call("evaluate", frames)
