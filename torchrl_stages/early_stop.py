@@ -1,5 +1,4 @@
-"""When a loop stops and which weights it keeps, for one seed (:class:`EarlyStop`) or each seed
-of a loop (:class:`SeedEarlyStops`)."""
+"""When a loop stops and which weights it keeps, per seed (:class:`SeedEarlyStops`)."""
 
 from __future__ import annotations
 
@@ -48,9 +47,8 @@ class Evaluation:
 
 @dataclass(eq=False)
 class EarlyStop:
-    """Early stop after ``patience`` consecutive evaluations meeting the criterion past
-    ``min_frames``; else :meth:`restore_best` puts back the best evaluation's weights (highest
-    success, then ``keep_best_by`` lowest value error or highest return)."""
+    """Stops after ``patience`` evaluations in a row meet the criterion past ``min_frames``; else
+    :meth:`restore_best` puts back the best (most success, then ``keep_best_by``) weights."""
 
     cfg: StageConfig
     streak: int = 0
@@ -75,8 +73,7 @@ class EarlyStop:
         self.last, self.last_return = (success, value_error), ret
         score = (success, (ret or 0.0) if cfg.keep_best_by == "return" else -value_error)
         if cfg.keep_best and (self.best_score is None or score > self.best_score):
-            self.best_score, self.best = score, (success, value_error)
-            self.best_return = ret
+            self.best_score, self.best, self.best_return = score, (success, value_error), ret
             self.best_state = copy.deepcopy(learner.state_dict())
         met = (
             cfg.success_threshold is not None
@@ -87,16 +84,15 @@ class EarlyStop:
         self.stopped = self.streak >= cfg.patience and frames >= cfg.min_frames
         return self.stopped
 
-    _FIELDS = "streak stopped best best_score last best_return last_return".split()
+    _FIELDS = "streak stopped best best_score best_state last best_return last_return".split()
 
     def state_dict(self) -> dict:
-        return {f: getattr(self, f) for f in [*self._FIELDS, "best_state"]}
+        return {f: getattr(self, f) for f in self._FIELDS}
 
     def load_state_dict(self, state: dict) -> None:
         for f in self._FIELDS:
             value = state.get(f) if f.endswith("_return") else state[f]
             setattr(self, f, tuple(value) if isinstance(value, list) else value)
-        self.best_state = state["best_state"]
 
     def restore_best(self, learner: nn.Module) -> bool:
         """Puts back the best evaluated weights; whether they differ from the loop's last ones."""

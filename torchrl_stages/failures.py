@@ -1,5 +1,4 @@
-"""How a stage's training fails: the env's data is not finite (:class:`EnvError`) or the learner
-diverged (:class:`DivergenceError`)."""
+"""How a stage's training fails: non-finite env data (:class:`EnvError`) or divergence."""
 
 from __future__ import annotations
 
@@ -73,8 +72,7 @@ def stage_failures(
 
 
 class DivergenceError(RuntimeError):
-    """A stage's training produced a NaN or infinite loss, gradient, parameter or transition
-    value; nothing of the stage has been saved."""
+    """A stage's training produced a NaN or infinite loss, gradient, parameter or value."""
 
     def __init__(self, stage: int, name: str, learner: Learner, cause: FloatingPointError) -> None:
         key = f"task.stages.{name}"

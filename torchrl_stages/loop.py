@@ -36,12 +36,12 @@ HOOKS = ("batch", "update", "log", "evaluate", "evaluated", "checkpoint")
 
 
 def loss_means(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, list[float]]:
-    """Each loss entry's mean over a batch's updates, per seed (an entry some updates leave
-    out, such as TD3's delayed actor loss: over the others)."""
+    """Each loss entry's mean over the batch's updates that have it (TD3: actor), per seed."""
     keys = dict.fromkeys(k for loss in losses for k in loss)
     return {k: torch.stack([x[k] for x in losses if k in x]).mean(0).tolist() for k in keys}
 
 
+@dataclass
 class Stopwatch:
     """Wall-clock seconds spent in named phases of a loop.
 
@@ -53,8 +53,7 @@ class Stopwatch:
         ['update']
     """
 
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = defaultdict(float)
+    seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
 
     @contextmanager
     def __call__(self, phase: str) -> Iterator[None]:
@@ -259,10 +258,9 @@ class SeedLoop:
         start: float | None = None,
         init_random: bool = True,
     ) -> Trainer:
-        """The :class:`Trainer` of a loop of ``cfg`` over ``env``: its collector, early stops of
-        ``rows`` and counters join the checkpointed ``state``, restored from ``latest``;
-        ``saved`` (default: those counters) takes the seconds and log positions, from which
-        ``start`` (default: resumed from ``saved``) measures stop times."""
+        """The :class:`Trainer` of ``cfg`` over ``env``: collector, early stops of ``rows`` and
+        counters join ``state``, restored from ``latest``; ``saved`` (default: those counters)
+        takes the seconds and log positions; ``start`` (default: from ``saved``) times stops."""
         n = self.n
         collector = StageCollector(
             env,
