@@ -24,7 +24,7 @@ from torchrl_stages.config import StageConfig
 from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, can_stop_early, first_evaluation
 from torchrl_stages.metric_names import STAGE, metric_name
 from torchrl_stages.metrics import MetricsLog
-from torchrl_stages.preemption import requested, stop_if_asked
+from torchrl_stages.preemption import Interrupted, requested
 from torchrl_stages.threads import keep_threads
 
 __all__ = ["LoopCounters", "SeedLoop", "Stopwatch", "Trainer", "loss_means"]
@@ -197,11 +197,13 @@ class Trainer:
             )
 
     def _checkpoint_or_stop(self, frames: int) -> None:
-        if self.checkpoints is not None and (self.checkpoints.due(frames) or requested()):
+        signum = requested()
+        if self.checkpoints is not None and (self.checkpoints.due(frames) or signum is not None):
             with self.watch("checkpoint"):
                 self._call("checkpoint")
                 self.checkpoints.save(frames, self.state)
-        stop_if_asked(f"{self.label} at {frames} frames")
+        if signum is not None:
+            raise Interrupted(signum, f"{self.label} at {frames} frames")
 
 
 class SeedLoop:
