@@ -17,20 +17,17 @@ log = logging.getLogger("torchrl_stages")
 
 class StageCollector:
     """Yields ``[num_envs, T]`` batches of ``frames_per_batch`` steps of a batched env, as
-    torchrl's ``Collector`` does (random actions for the first ``init_random_frames``).
-
-    Its :meth:`state_dict` also holds the running episodes (the carried next step and
-    ``env.base_env.state_dict()``), so an interrupted stage continues bitwise on envs that keep
-    their state in ``state_dict``; others restart their episodes, with a warning.
+    torchrl's ``Collector`` does (random actions for the first ``init_random_frames``). Its
+    :meth:`state_dict` holds the running episodes of an env that keeps its state in
+    ``state_dict``, so a resumed stage continues bitwise (others restart their episodes).
 
     Examples:
-        >>> from torchrl_stages.envs import GridWorldEnv
         >>> from tensordict.nn import TensorDictModule
-        >>> import torch
-        >>> env = GridWorldEnv((4,))
+        >>> from torchrl_stages.envs import GridWorldEnv
         >>> policy = TensorDictModule(lambda o: torch.zeros(o.shape[:-1], dtype=torch.long),
         ...                           ["observation"], ["action"])
-        >>> collector = StageCollector(env, policy, frames_per_batch=8, total_frames=16)
+        >>> collector = StageCollector(GridWorldEnv((4,)), policy, frames_per_batch=8,
+        ...                            total_frames=16)
         >>> [batch.shape for batch in collector]
         [torch.Size([4, 2]), torch.Size([4, 2])]
     """
@@ -57,6 +54,9 @@ class StageCollector:
                 f"size {num_envs}."
             )
         self.env, self.policy = env, policy
+        self._base: EnvBase = getattr(env, "base_env", env)
+        # whether the env keeps its dynamic state in ``state_dict`` (``get_extra_state``)
+        self.restorable = type(self._base).get_extra_state is not torch.nn.Module.get_extra_state
         self.frames_per_batch, self.total_frames = frames_per_batch, total_frames
         self.init_random_frames = init_random_frames
         self.frames = 0
@@ -78,15 +78,6 @@ class StageCollector:
             batch = torch.stack(steps, dim=-1)
             self.frames += batch.numel()
             yield batch
-
-    @property
-    def restorable(self) -> bool:
-        """Whether the env keeps its dynamic state in ``state_dict`` (``get_extra_state``)."""
-        return type(self._base).get_extra_state is not torch.nn.Module.get_extra_state
-
-    @property
-    def _base(self) -> EnvBase:
-        return getattr(self.env, "base_env", self.env)
 
     def state_dict(self) -> dict[str, Any]:
         state: dict[str, Any] = {"frames": self.frames}

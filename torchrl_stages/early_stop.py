@@ -1,11 +1,10 @@
-"""When a loop stops and which weights it keeps, for one seed (:class:`EarlyStop`) or each seed
-of a loop (:class:`SeedEarlyStops`)."""
+"""When a loop stops and which weights it keeps, per seed (:class:`SeedEarlyStops`)."""
 
 from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,21 +45,20 @@ class Evaluation:
     updates: list[int]
 
 
+@dataclass(eq=False)
 class EarlyStop:
-    """Early stop after ``patience`` consecutive evaluations meeting the criterion past
-    ``min_frames``; else :meth:`restore_best` puts back the best evaluation's weights (highest
-    success, then ``keep_best_by`` lowest value error or highest return)."""
+    """Stops after ``patience`` evaluations in a row meet the criterion past ``min_frames``; else
+    :meth:`restore_best` puts back the best (most success, then ``keep_best_by``) weights."""
 
-    def __init__(self, cfg: StageConfig) -> None:
-        self.cfg = cfg
-        self.streak = 0
-        self.stopped = False
-        self.best: tuple[float, float] | None = None  # (success, value error) of the best
-        self.best_score: tuple[float, float] | None = None
-        self.best_state: dict | None = None
-        self.last: tuple[float, float] | None = None
-        self.best_return: float | None = None  # mean discounted return of those evaluations
-        self.last_return: float | None = None
+    cfg: StageConfig
+    streak: int = 0
+    stopped: bool = False
+    best: tuple[float, float] | None = None  # (success, value error) of the best
+    best_score: tuple[float, float] | None = None
+    best_state: dict | None = None
+    last: tuple[float, float] | None = None
+    best_return: float | None = None  # mean discounted return of those evaluations
+    last_return: float | None = None
 
     def record(
         self,
@@ -73,11 +71,9 @@ class EarlyStop:
         """Records one evaluation (``ret``: its mean discounted return); whether to stop now."""
         cfg = self.cfg
         self.last, self.last_return = (success, value_error), ret
-        by_return = 0.0 if ret is None else ret
-        score = (success, by_return if cfg.keep_best_by == "return" else -value_error)
+        score = (success, (ret or 0.0) if cfg.keep_best_by == "return" else -value_error)
         if cfg.keep_best and (self.best_score is None or score > self.best_score):
-            self.best_score, self.best = score, (success, value_error)
-            self.best_return = ret
+            self.best_score, self.best, self.best_return = score, (success, value_error), ret
             self.best_state = copy.deepcopy(learner.state_dict())
         met = (
             cfg.success_threshold is not None
@@ -88,16 +84,15 @@ class EarlyStop:
         self.stopped = self.streak >= cfg.patience and frames >= cfg.min_frames
         return self.stopped
 
-    _FIELDS = "streak stopped best best_score last best_return last_return".split()
+    _FIELDS = "streak stopped best best_score best_state last best_return last_return".split()
 
     def state_dict(self) -> dict:
-        return {f: getattr(self, f) for f in [*self._FIELDS, "best_state"]}
+        return {f: getattr(self, f) for f in self._FIELDS}
 
     def load_state_dict(self, state: dict) -> None:
         for f in self._FIELDS:
             value = state.get(f) if f.endswith("_return") else state[f]
             setattr(self, f, tuple(value) if isinstance(value, list) else value)
-        self.best_state = state["best_state"]
 
     def restore_best(self, learner: nn.Module) -> bool:
         """Puts back the best evaluated weights; whether they differ from the loop's last ones."""
@@ -144,24 +139,20 @@ class SeedRow:
             for learner in self.learners
         ]
 
-    def _entries(self):
+    def _rows(self, keep_vars: bool = False) -> Iterator[tuple[str, torch.Tensor]]:
         for m, (learner, axes) in enumerate(zip(self.learners, self.axes, strict=True)):
+            state = learner.state_dict(keep_vars=keep_vars)
             for key, axis in axes.items():
-                yield learner, key, axis, f"{m}.{key}" if self.team else key
+                yield f"{m}.{key}" if self.team else key, state[key].data.select(axis, self.seed)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
-        states = {id(learner): learner.state_dict() for learner in self.learners}
-        return {
-            entry: states[id(learner)][key].select(axis, self.seed).clone()
-            for learner, key, axis, entry in self._entries()
-        }
+        return {entry: row.clone() for entry, row in self._rows()}
 
     @torch.no_grad()
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        own = {id(learner): learner.state_dict(keep_vars=True) for learner in self.learners}
-        for learner, key, axis, entry in self._entries():
+        for entry, row in self._rows(keep_vars=True):
             if entry in state:
-                own[id(learner)][key].data.select(axis, self.seed).copy_(state[entry])
+                row.copy_(state[entry])
 
     def moments(self, load: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
         """The row's Adam moments, copied out; with ``load`` (what this returned), written back."""
@@ -216,21 +207,16 @@ class SeedEarlyStops:
     def record(self, evaluation: Evaluation) -> bool:
         """Whether every seed has stopped."""
         ev = evaluation
-        for i, monitor in enumerate(self.monitors):
-            if self.stopped_at[i] is not None:
-                continue
+        for i in self.active():
             row = self.rows[i]
             args = (ev.success[i], ev.value_error[i], ev.frames[i], ev.discounted_return[i])
-            if monitor.record(row, *args):
-                self.stopped_at[i] = {
-                    "state": copy.deepcopy(row.state_dict()),
-                    "frames": ev.frames[i],
-                    "updates": ev.updates[i],
-                    "seconds": time.perf_counter() - self.start,
-                }
-                if isinstance(row, SeedRow) and row.keeps_moments:
-                    self.stopped_at[i]["moments"] = row.moments()
-        return all(at is not None for at in self.stopped_at)
+            if self.monitors[i].record(row, *args):
+                at = {"state": copy.deepcopy(row.state_dict()), "frames": ev.frames[i]}
+                at |= {"updates": ev.updates[i], "seconds": time.perf_counter() - self.start}
+                if getattr(row, "keeps_moments", False):
+                    at["moments"] = row.moments()
+                self.stopped_at[i] = at
+        return not self.active()
 
     def active(self) -> list[int]:
         """The seeds that have not stopped."""
@@ -238,20 +224,15 @@ class SeedEarlyStops:
 
     def finish(self, i: int) -> dict[str, Any]:
         """Seed ``i``'s row gets the weights it stopped with, else its best; their evaluation."""
-        at, monitor = self.stopped_at[i], self.monitors[i]
+        at, monitor, row = self.stopped_at[i], self.monitors[i], self.rows[i]
         if at is not None:
-            self.rows[i].load_state_dict(at["state"])
+            row.load_state_dict(at["state"])
             if "moments" in at:
-                self.rows[i].moments(load=at["moments"])
-        restored = at is None and monitor.restore_best(self.rows[i])
-        success, value_error, ret = monitor.final
-        return {
-            "success_rate": success,
-            "value_error": value_error,
-            "discounted_return": ret,
-            "early_stopped": monitor.stopped,
-            "restored_best": restored,
-        }
+                row.moments(load=at["moments"])
+        restored = monitor.restore_best(row)  # none after a stop
+        keys = ("success_rate", "value_error", "discounted_return")
+        ended = dict(zip(keys, monitor.final, strict=True))
+        return ended | {"early_stopped": monitor.stopped, "restored_best": restored}
 
     def state_dict(self) -> dict:
         return {

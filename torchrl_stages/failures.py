@@ -1,5 +1,4 @@
-"""How a stage's training fails: the env's data is not finite (:class:`EnvError`) or the learner
-diverged (:class:`DivergenceError`)."""
+"""How a stage's training fails: non-finite env data (:class:`EnvError`) or divergence."""
 
 from __future__ import annotations
 
@@ -7,7 +6,6 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
-import torch
 from tensordict.utils import NestedKey
 
 from torchrl_stages.learners import Learner
@@ -20,11 +18,6 @@ from torchrl_stages.transforms import NonFiniteInputError, NonFiniteValueError
 EXIT_FAILED, EXIT_INVALID, EXIT_DIVERGED = 1, 2, 3
 
 __all__ = ["DivergenceError", "EnvError", "one_line", "stage_failures"]
-
-
-def finite(value: torch.Tensor) -> bool:
-    """Whether ``value`` holds no NaN or infinity (any non-floating tensor does not)."""
-    return not value.is_floating_point() or bool(torch.isfinite(value).all())
 
 
 class EnvError(RuntimeError):
@@ -65,25 +58,21 @@ def stage_failures(
             ) from err
         action, held = _path(learner.specs.action_key), buffer.held()
         for key, value in held.items(True, True) if held is not None else ():
-            if action not in (_path(key), _path(key)[-1:]) and not finite(value):
+            if action not in (_path(key), _path(key)[-1:]) and not value.isfinite().all():
                 raise EnvError(
                     stage, name, key, f"found in the replay buffer after: {err}"
                 ) from err
         cause = err
         if len(seeds) > 1:
-            broken = [
-                s
-                for s, row in zip(seeds, rows, strict=True)
-                if not all(map(finite, row.state_dict().values()))
-            ]
+            finite = [all(v.isfinite().all() for v in row.state_dict().values()) for row in rows]
+            broken = [s for s, ok in zip(seeds, finite, strict=True) if not ok]
             if broken:
                 cause = FloatingPointError(f"{err} (seeds {broken}: their weights are not finite)")
         raise DivergenceError(stage, name, learner, cause) from err
 
 
 class DivergenceError(RuntimeError):
-    """A stage's training produced a NaN or infinite loss, gradient, parameter or transition
-    value; nothing of the stage has been saved."""
+    """A stage's training produced a NaN or infinite loss, gradient, parameter or value."""
 
     def __init__(self, stage: int, name: str, learner: Learner, cause: FloatingPointError) -> None:
         key = f"task.stages.{name}"

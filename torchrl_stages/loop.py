@@ -9,7 +9,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from statistics import fmean
 from typing import Any
 
@@ -21,12 +21,7 @@ from tqdm.auto import tqdm
 from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, SavedCounters, StageCheckpoints
 from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
-from torchrl_stages.early_stop import (
-    Evaluation,
-    SeedEarlyStops,
-    can_stop_early,
-    first_evaluation,
-)
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, can_stop_early, first_evaluation
 from torchrl_stages.metric_names import STAGE, metric_name
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import Interrupted, requested
@@ -41,14 +36,12 @@ HOOKS = ("batch", "update", "log", "evaluate", "evaluated", "checkpoint")
 
 
 def loss_means(losses: Sequence[dict[str, torch.Tensor]]) -> dict[str, list[float]]:
-    """Each loss entry's mean over a batch's updates, per seed (an entry some updates leave
-    out, such as TD3's delayed actor loss: over the others)."""
+    """Each loss entry's mean over the batch's updates that have it (TD3: actor), per seed."""
     keys = dict.fromkeys(k for loss in losses for k in loss)
-    return {
-        k: torch.stack([loss[k] for loss in losses if k in loss]).mean(0).tolist() for k in keys
-    }
+    return {k: torch.stack([x[k] for x in losses if k in x]).mean(0).tolist() for k in keys}
 
 
+@dataclass
 class Stopwatch:
     """Wall-clock seconds spent in named phases of a loop.
 
@@ -60,8 +53,7 @@ class Stopwatch:
         ['update']
     """
 
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = defaultdict(float)
+    seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
 
     @contextmanager
     def __call__(self, phase: str) -> Iterator[None]:
@@ -99,23 +91,20 @@ class LoopCounters(SavedCounters):
     format: int = CHECKPOINT_FORMAT  # what a resumed loop checks first
 
 
+@dataclass(eq=False)
 class Trainer:
-    """The loop: for every batch of ``collector`` (``seeds`` equal, seed-major parts) the hooks
+    """The loop: per batch of ``collector`` (``seeds`` equal, seed-major parts) the hooks
     ``batch(batch)``, ``update(frames) -> losses``, ``log(batch, losses)``; every ``eval_every``
-    frames ``evaluate(frames) -> Evaluation`` and ``evaluated(evaluation)``; ``checkpoint()``
-    before a checkpoint of ``state`` is written (when due, or when a stop was asked for: then
-    :class:`~torchrl_stages.preemption.Interrupted` is raised). It ends at the budget or once
-    every seed has stopped (``early_stop``'s config: how often it evaluates, whether it may stop).
+    frames ``evaluate(frames) -> Evaluation``, ``evaluated(evaluation)``; ``checkpoint()`` before
+    ``state`` is checkpointed (when due, or on a stop request, then raising
+    :class:`~torchrl_stages.preemption.Interrupted`). It ends at the budget or once every seed
+    has stopped.
 
     Examples:
-        >>> import torch
-        >>> from tensordict.nn import TensorDictModule
         >>> from torchrl_stages.envs import GridWorldEnv
         >>> from torchrl_stages.learners.dqn import DQNConfig
-        >>> policy = TensorDictModule(lambda o: torch.zeros(o.shape[:-1], dtype=torch.long),
-        ...                           ["observation"], ["action"])
-        >>> collector = StageCollector(GridWorldEnv((4,)), policy, frames_per_batch=8,
-        ...                            total_frames=32)
+        >>> collector = StageCollector(GridWorldEnv((4,)), None, frames_per_batch=8,
+        ...                            total_frames=32, init_random_frames=32)  # random actions
         >>> stops = SeedEarlyStops(DQNConfig(eval_every=0), [None])
         >>> loop = Trainer(collector, stops, LoopCounters(0))
         >>> seen = []
@@ -126,28 +115,21 @@ class Trainer:
         [8, 'then', 8, 'then', 8, 'then', 8, 'then']
     """
 
-    def __init__(
-        self,
-        collector: StageCollector,
-        early_stop: SeedEarlyStops,
-        counters: LoopCounters,
-        *,
-        checkpoints: StageCheckpoints | None = None,
-        state: dict[str, Any] | None = None,
-        seeds: Sequence[int] = (0,),
-        where: str = "the loop",
-        watch: Stopwatch | None = None,
-        progress: bool = False,
-    ) -> None:
-        self.collector, self.early_stop, self.counters = collector, early_stop, counters
-        self.checkpoints, self.state = checkpoints, state or {}
-        self.seeds, self.where = list(seeds), where
-        self.frames_before = 0  # the frames of the loops before this one
-        self.watch = watch if watch is not None else Stopwatch()
-        self.eval_every = int(early_stop.cfg.eval_every)
-        self.progress, self.open_ended = progress, can_stop_early(early_stop.cfg)
+    collector: StageCollector
+    early_stop: SeedEarlyStops
+    counters: LoopCounters
+    _: KW_ONLY
+    checkpoints: StageCheckpoints | None = None
+    state: dict[str, Any] = field(default_factory=dict)
+    seeds: Sequence[int] = (0,)
+    where: str = "the loop"
+    watch: Stopwatch = field(default_factory=Stopwatch)
+    progress: bool = False
+    frames_before: int = field(default=0, init=False)  # the frames of the loops before this one
+
+    def __post_init__(self) -> None:
         n = len(self.seeds)
-        self.label = where + (f", {n} seeds" if n > 1 else "")
+        self.label = self.where + (f", {n} seeds" if n > 1 else "")
         self.ops: dict[str, list[Callable[..., Any]]] = {point: [] for point in HOOKS}
 
     def register_op(self, point: str, op: Callable[..., Any]) -> None:
@@ -167,20 +149,18 @@ class Trainer:
 
     def train(self) -> None:
         collector, counters, watch, n = self.collector, self.counters, self.watch, len(self.seeds)
-        budget = int(collector.total_frames)
-        desc = f"{self.label} (budget {budget} frames)" if self.open_ended else self.label
+        budget, open_ended = int(collector.total_frames), can_stop_early(self.early_stop.cfg)
+        eval_every = int(self.early_stop.cfg.eval_every)
         shown = self.progress and sys.stderr.isatty()  # elsewhere: a line per evaluation
-        total = None if self.open_ended else budget
-        bar = tqdm(
+        report = self.progress and not shown
+        with tqdm(
             initial=collector.frames,
-            total=total,
-            desc=desc,
+            total=None if open_ended else budget,
+            desc=f"{self.label} (budget {budget} frames)" if open_ended else self.label,
             unit="frame",
             disable=not shown,
             leave=False,
-        )
-        report = self.progress and not shown
-        try:
+        ) as bar:
             for batch in watch.timed("collect", collector):
                 frames = collector.frames // n
                 keep_threads()
@@ -189,8 +169,8 @@ class Trainer:
                 with watch("log"):
                     self._call("log", batch, losses)
                 bar.update(batch.numel())
-                if self.eval_every > 0 and frames >= counters.next_eval:
-                    counters.next_eval += self.eval_every
+                if eval_every > 0 and frames >= counters.next_eval:
+                    counters.next_eval += eval_every
                     rows = self.early_stop.active()  # a seed this evaluation stops is logged
                     with watch("evaluate"):
                         evaluation: Evaluation = self._call("evaluate", frames)
@@ -205,21 +185,15 @@ class Trainer:
                     if stop:
                         break
                 self._checkpoint_or_stop(self.frames_before + frames)
-        finally:
-            bar.close()
 
     def _log_lines(self, evaluation: Evaluation, rows: list[int], frames: int, budget: int) -> None:
         seconds = time.perf_counter() - self.early_stop.start
         for i in rows:
             who = self.where if len(self.seeds) == 1 else f"seed {self.seeds[i]}: {self.where}"
+            success, error = evaluation.success[i], evaluation.value_error[i]
             log.info(
-                "%s: %d of %d frames, success %.2f, value error %.3f, %.1fs",
-                who,
-                frames,
-                budget,
-                evaluation.success[i],
-                evaluation.value_error[i],
-                seconds,
+                f"{who}: {frames} of {budget} frames, success {success:.2f}, "
+                f"value error {error:.3f}, {seconds:.1f}s"
             )
 
     def _checkpoint_or_stop(self, frames: int) -> None:
@@ -286,10 +260,9 @@ class SeedLoop:
         start: float | None = None,
         init_random: bool = True,
     ) -> Trainer:
-        """The :class:`Trainer` of a loop of ``cfg`` over ``env``: its collector, early stops of
-        ``rows`` and counters join the checkpointed ``state``, restored from ``latest``;
-        ``saved`` (default: those counters) takes the seconds and log positions, from which
-        ``start`` (default: resumed from ``saved``) measures stop times."""
+        """The :class:`Trainer` of ``cfg`` over ``env``: collector, early stops of ``rows`` and
+        counters join ``state``, restored from ``latest``; ``saved`` (default: those counters)
+        takes the seconds and log positions; ``start`` (default: from ``saved``) times stops."""
         n = self.n
         collector = StageCollector(
             env,
@@ -339,13 +312,8 @@ class SeedLoop:
         for i in active:
             metrics = {metric_name("eval", scope, index, k): v for k, v in summaries[i].items()}
             self.logs[i](metrics, steps[i])
-        return Evaluation(
-            [s["success_rate"] for s in summaries],
-            [s["value_error"] for s in summaries],
-            [s["discounted_return"] for s in summaries],
-            frames,
-            updates,
-        )
+        keys = ("success_rate", "value_error", "discounted_return")
+        return Evaluation(*([s[k] for s in summaries] for k in keys), frames, updates)
 
     def log_batch(
         self,

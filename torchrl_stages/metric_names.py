@@ -1,6 +1,5 @@
 """The names a run's metrics are logged under, ``<kind>/<scope>[_<index>]/<metric>``: written
-by the loops (:func:`metric_name`), read by the plots, sweep summaries and tuner
-(:func:`parse_metric`)."""
+by :func:`metric_name`, read back by :func:`parse_metric`."""
 
 from __future__ import annotations
 
@@ -50,12 +49,8 @@ def parse_metric(name: str) -> MetricName | None:
 
 
 def is_loop_evaluation(name: str, metric: str = "success_rate") -> bool:
-    """Whether ``name`` is ``metric`` of a loop's evaluation (one with an index): what a tuner
-    prunes on."""
+    """Whether ``name`` is ``metric`` of a loop's (indexed) evaluation: what a tuner prunes on."""
     parsed = parse_metric(name)
-    return (
-        parsed is not None
-        and parsed.kind == "eval"
-        and parsed.index is not None
-        and parsed.metric == metric
-    )
+    if parsed is None or parsed.index is None:
+        return False
+    return parsed.kind == "eval" and parsed.metric == metric

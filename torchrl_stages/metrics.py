@@ -31,18 +31,13 @@ class MetricsLog:
         logged = {key: value for key, value in metrics.items() if value is not None}
         for key, value in logged.items():
             self.logger.log_scalar(key, value, step=step)
-        notify = getattr(self.logger, "notify", None)
-        if notify is not None:
-            notify(logged, step)
+        getattr(self.logger, "notify", lambda logged, step: None)(logged, step)
 
     def position(self) -> dict[str, int]:
-        position = getattr(self.logger, "position", None)
-        return position() if position is not None else {}
+        return getattr(self.logger, "position", dict)()
 
     def rewind(self, position: dict[str, int]) -> None:
-        rewind = getattr(self.logger, "rewind", None)
-        if rewind is not None:
-            rewind(position)
+        getattr(self.logger, "rewind", lambda position: None)(position)
 
     @staticmethod
     def episodes_by_row(batch: TensorDictBase) -> list[dict[str, float]]:

@@ -18,15 +18,9 @@ class Interrupted(Exception):  # noqa: N818 - an outcome, not an error
 
     def __init__(self, signum: int, where: str) -> None:
         self.signum, self.where = int(signum), where
+        self.signal_name = signal.Signals(self.signum).name
+        self.exit_code = 128 + self.signum  # 143 for SIGTERM, 130 for SIGINT, 138 for SIGUSR1
         super().__init__(f"interrupted by {self.signal_name} in {where}")
-
-    @property
-    def signal_name(self) -> str:
-        return signal.Signals(self.signum).name
-
-    @property
-    def exit_code(self) -> int:  # 143 for SIGTERM, 130 for SIGINT, 138 for SIGUSR1
-        return 128 + self.signum
 
 
 def requested() -> int | None:

@@ -39,14 +39,13 @@ def seeded(
     """A stage's learner (``make``) and envs (``envs()``), after ``torch.manual_seed(seeds[0] +
     offset)``. Several seeds' learner is built first, row ``i`` holding what ``make()`` builds
     right after ``torch.manual_seed(seeds[i] + offset)``."""
-    if len(seeds) == 1:
-        torch.manual_seed(seeds[0] + offset)
-        built = envs()
-        return make(), built
-    singles = []
-    for seed in seeds:
-        torch.manual_seed(seed + offset)
-        singles.append(make())
-    learner = stack_learners(make(seeds=len(seeds)), singles)
+    learner = None
+    if len(seeds) > 1:
+        singles = []
+        for seed in seeds:
+            torch.manual_seed(seed + offset)
+            singles.append(make())
+        learner = stack_learners(make(seeds=len(seeds)), singles)
     torch.manual_seed(seeds[0] + offset)
-    return learner, envs()
+    built = envs()
+    return make() if learner is None else learner, built

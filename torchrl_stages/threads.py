@@ -29,8 +29,7 @@ def hold_threads(threads: int) -> Iterator[None]:
         1
     """
     global _held
-    previous = _held
-    _held = int(threads)
+    previous, _held = _held, int(threads)
     torch.set_num_threads(_held)
     try:
         yield
