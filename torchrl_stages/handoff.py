@@ -86,9 +86,8 @@ def handoff_diagnostics(
         records.append(record)
         if handoff.states is None:
             continue
-        value = learners[k + 1].value()
         states = handoff.states.clone().to(task.device)
-        v = value(states).get("state_value").reshape(-1).to(torch.float64).cpu()
+        v = learners[k + 1].value()(states).get("state_value").reshape(-1).to(torch.float64).cpu()
         g = handoff.returns.cpu()
         error = (v - g).abs()
         record.update(
@@ -116,11 +115,9 @@ def _distance_to_starts(
     env = task.base_env(int(task.stage_cfg(stage).num_envs), start_stage=stage)
     try:
         env.set_seed(seed)
-        drawn, count = [], 0
-        while count < wanted:
-            starts = env.reset().reshape(-1)
-            drawn.append(_features(starts.cpu(), keys))
-            count += starts.shape[0]
+        drawn = []
+        while sum(map(len, drawn)) < wanted:
+            drawn.append(_features(env.reset().reshape(-1).cpu(), keys))
     finally:
         env.close()
     feats = torch.cat(drawn)[:wanted]

@@ -43,10 +43,9 @@ class StageResult:
     value_error: float | None  # mean |V(s_0) - greedy discounted return| at that evaluation
     early_stopped: bool
     restored_best: bool = False  # budget ran out; the best evaluated weights were restored
-    # wall-clock seconds per phase: collect, sample, update, evaluate, log
-    timing: dict[str, float] = field(default_factory=dict)
-    # mean discounted return of the greedy episodes at that evaluation: the stage's objective
-    # (the joint schedule: that of the whole-task episodes of its last phase, for every stage)
+    timing: dict[str, float] = field(default_factory=dict)  # wall-clock seconds per loop phase
+    # the stage's objective: mean greedy discounted return at that evaluation (joint schedule:
+    # that of the whole-task episodes of its last phase, for every stage)
     discounted_return: float | None = None
 
 
@@ -112,11 +111,9 @@ class StageTrainer(SeedLoop):
         >>> from omegaconf import OmegaConf
         >>> from torchrl_stages.learners.dqn import DQNConfig, DQNLearner
         >>> from torchrl_stages.task import StagedTask
-        >>> task = StagedTask(OmegaConf.create({
-        ...     "name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
-        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
-        ...             "num_stages": 2},
-        ... }))
+        >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10, "num_stages": 2}
+        >>> stages = {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}}
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": stages, "env": env}))
         >>> cfg = OmegaConf.structured(DQNConfig(frames=512, frames_per_batch=64, num_envs=8,
         ...                                      init_random_frames=64, eval_every=0))
         >>> learner = DQNLearner(cfg, task.specs(1))

@@ -26,14 +26,11 @@ def train_backward(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> l
     Examples:
         >>> from omegaconf import OmegaConf
         >>> from torchrl_stages.learners.dqn import DQNConfig
-        >>> from torchrl_stages.task import StagedTask
         >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16,
         ...                  init_random_frames=128, batch_size=32, eval_every=0)
-        >>> task = StagedTask(OmegaConf.create({
-        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},  # stages 0 and 1
-        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
-        ...             "num_stages": 2},
-        ... }))
+        >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10, "num_stages": 2}
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": tiny, "b": tiny},
+        ...                                     "env": env}))
         >>> runs = train_backward(task, [0, 1])  # doctest: +SKIP
         >>> [[r.frames for r in run.results] for run in runs]  # doctest: +SKIP
         [[256, 256], [256, 256]]
@@ -111,7 +108,6 @@ def train_stage(
     Examples:
         >>> from omegaconf import OmegaConf
         >>> from torchrl_stages.learners.dqn import DQNConfig
-        >>> from torchrl_stages.task import StagedTask
         >>> cfg = DQNConfig(frames=128, frames_per_batch=64, num_envs=8, batch_size=16)
         >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 5, "num_stages": 1}
         >>> task = StagedTask(OmegaConf.create({"name": "g", "stages": {"a": cfg}, "env": env}))
@@ -146,31 +142,20 @@ class BackwardSchedule(Schedule):
         done: list[list[tuple[Learner, StageResult]]] = [[] for _ in range(num_stages)]
         next_value, frames_before = None, 0
         for k in reversed(range(num_stages)):
-            done[k] = group.finished(k)
-            if done[k] is None:
-                on_evaluate = None
-                if group.probe is not None and k == 0:
+            on_evaluate = None
+            if group.probe is not None and k == 0:
 
-                    def on_evaluate(learner: Learner, frames: int, before=frames_before) -> None:
-                        probe_team = [learner, *(stage[0][0] for stage in done[1:])]
-                        group.probe(probe_team, before + frames)
+                def on_evaluate(learner: Learner, frames: int, before=frames_before) -> None:
+                    probe_team = [learner, *(stage[0][0] for stage in done[1:])]
+                    group.probe(probe_team, before + frames)
 
-                checkpoints = group.begin(k)
-                trained = train_stage(
-                    task,
-                    k,
-                    next_value,
-                    checkpoints=checkpoints,
-                    on_evaluate=on_evaluate,
-                    group=group,
-                )
-                done[k] = group.keep(k, trained, checkpoints)
+            train = functools.partial(
+                train_stage, task, k, next_value, on_evaluate=on_evaluate, group=group
+            )
+            done[k] = group.stage(k, train)
             next_value = stage_value(task, k, [learner for learner, _ in done[k]])
             frames_before += done[k][0][1].frames
-        return [
-            Trained([stage[i][0] for stage in done], [stage[i][1] for stage in done])
-            for i in range(len(group.seeds))
-        ]
+        return Trained.per_seed(done)
 
     def frozen_stages(self, finished: set[int], num_stages: int) -> set[int]:
         return set(range(min(finished), num_stages)) if finished else set()

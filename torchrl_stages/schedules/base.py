@@ -50,6 +50,11 @@ class Trained:
     results: list[StageResult]
     extra: dict[str, Any] = field(default_factory=dict)
 
+    @classmethod
+    def per_seed(cls, stages: Sequence[Sequence[tuple[Learner, StageResult]]]) -> list[Trained]:
+        """One per seed, from each stage's ``(learner, result)`` of every seed."""
+        return [cls(*map(list, zip(*seed, strict=True))) for seed in zip(*stages, strict=True)]
+
 
 @dataclass
 class SeedGroup:
@@ -91,19 +96,23 @@ class SeedGroup:
                     keeper.begin(scope)
         return scoped
 
-    def keep(
+    def stage(
         self,
         stage: int,
-        trained: list[tuple[Learner, StageResult]],
-        checkpoints: StageCheckpoints | None,
+        train: Callable[..., list[tuple[Learner, StageResult]]],
     ) -> list[tuple[Learner, StageResult]]:
-        """Keeps each seed's ``trained`` stage and drops its ``checkpoints``."""
-        for keeper, (learner, result) in zip(self.keepers, trained, strict=True):
-            if keeper is not None:
-                keeper.save(stage, learner, result)
-        if checkpoints is not None:
-            checkpoints.clear()
-        return trained
+        """Each seed's ``stage``: finished earlier, else ``train(checkpoints=...)``, kept (its
+        checkpoints dropped)."""
+        done = self.finished(stage)
+        if done is None:
+            checkpoints = self.begin(stage)
+            done = train(checkpoints=checkpoints)
+            for keeper, (learner, result) in zip(self.keepers, done, strict=True):
+                if keeper is not None:
+                    keeper.save(stage, learner, result)
+            if checkpoints is not None:
+                checkpoints.clear()
+        return done
 
 
 class Schedule:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 from omegaconf import DictConfig
@@ -27,14 +28,11 @@ def train_flat(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> list[
     Examples:
         >>> from omegaconf import OmegaConf
         >>> from torchrl_stages.learners.dqn import DQNConfig
-        >>> from torchrl_stages.task import StagedTask
         >>> tiny = DQNConfig(frames=256, frames_per_batch=128, num_envs=16, gamma=0.9,
         ...                  init_random_frames=128, batch_size=32, eval_every=0)
-        >>> task = StagedTask(OmegaConf.create({
-        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},
-        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
-        ...             "num_stages": 2},
-        ... }))
+        >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10, "num_stages": 2}
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": tiny, "b": tiny},
+        ...                                     "env": env}))
         >>> [run] = train_flat(task)  # doctest: +SKIP
         >>> run.learners[0] is run.learners[1], run.results[0].frames  # doctest: +SKIP
         (True, 512)
@@ -51,34 +49,31 @@ class FlatSchedule(Schedule):
     stacks_seeds = True
 
     def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:
-        done = group.finished(0)
-        if done is None:
-            cfg = flat_config(task)
-            num_envs = int(cfg.num_envs)
-            episodes = None if task.start_states(None) is not None else int(cfg.eval_episodes)
-            on_evaluate = None
-            if group.probe is not None:
+        cfg = flat_config(task)
+        num_envs = int(cfg.num_envs)
+        episodes = None if task.start_states(None) is not None else int(cfg.eval_episodes)
+        on_evaluate = None
+        if group.probe is not None:
 
-                def on_evaluate(learner: Learner, frames: int) -> None:
-                    group.probe([learner] * task.num_stages, frames)
+            def on_evaluate(learner: Learner, frames: int) -> None:
+                group.probe([learner] * task.num_stages, frames)
 
-            gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
-            checkpoints = group.begin(0)
-            trained = run_stage(
-                task,
-                0,
-                cfg,
-                lambda copies: task.task_env(num_envs, start_stage=None, train=True, copies=copies),
-                lambda copies: task.task_env(episodes, copies=copies),
-                group,
-                on_evaluate=on_evaluate,
-                name="flat",
-                checkpoints=checkpoints,
-                gammas=gammas,
-                postproc=StageDiscount(gammas, float(cfg.gamma)),
-                extra_keys=["steps_to_next_obs"],
-            )
-            done = group.keep(0, trained, checkpoints)
+        gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
+        train = functools.partial(
+            run_stage,
+            task,
+            0,
+            cfg,
+            lambda copies: task.task_env(num_envs, start_stage=None, train=True, copies=copies),
+            lambda copies: task.task_env(episodes, copies=copies),
+            group,
+            on_evaluate=on_evaluate,
+            name="flat",
+            gammas=gammas,
+            postproc=StageDiscount(gammas, float(cfg.gamma)),
+            extra_keys=["steps_to_next_obs"],
+        )
+        done = group.stage(0, train)
         return [Trained([learner] * task.num_stages, [result]) for learner, result in done]
 
     def checkpoint_scope(self, stage: int) -> int:

@@ -1,29 +1,37 @@
 """The paper's Algorithm 1 (``schedule=joint``): every stage learner keeps learning while the
-start region moves back, phase k collecting whole-task episodes from stage-k starts."""
+start region moves back, phase k collecting whole-task episodes from stage-k starts; one replay
+buffer per stage, each transition rewarded, as it leaves its stage, with the next one's value."""
 
 from __future__ import annotations
 
+import functools
 import logging
+import statistics
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.utils import NestedKey, unravel_key
 from torchrl.envs import Compose, RewardSum, TransformedEnv
 
-from torchrl_stages.checkpoint import StateOf
-from torchrl_stages.early_stop import Evaluation, SeedEarlyStops
+from torchrl_stages.checkpoint import CHECKPOINT_FORMAT, SavedCounters, StageCheckpoints, StateOf
+from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, seed_rows
 from torchrl_stages.evaluate import evaluate_greedy
-from torchrl_stages.learners.stacking import unstack_learner
-from torchrl_stages.loop import Stopwatch
+from torchrl_stages.failures import stage_failures
+from torchrl_stages.learners import Learner, make_learner
+from torchrl_stages.learners.stacking import stack_learners, unstack_learner
+from torchrl_stages.loop import SeedLoop, Stopwatch
+from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.policy import StackedPolicy
+from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.schedules.base import Probe, Schedule, SeedGroup, Trained, register_schedule
-from torchrl_stages.schedules.team import JointCounters, StageTeam
 from torchrl_stages.seeding import EVAL_OFFSET, phase_seed, stage_seed
-from torchrl_stages.stage import StageResult
+from torchrl_stages.stage import StageResult, gradient_steps
 from torchrl_stages.task import StagedTask, tile_starts
-from torchrl_stages.transforms import StageTransform
+from torchrl_stages.transforms import StageRewardTransform, StageTransform
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +39,39 @@ log = logging.getLogger(__name__)
 JOINT = "joint"
 
 
-class JointTrainer(StageTeam):
+_NEXT_TAGS = ("stage", "stage_transition", "reward", "terminated", "truncated", "done")
+#: what every stage's buffer keeps besides its loss's entries
+TAGS: tuple[NestedKey, ...] = ("stage", *(("next", key) for key in _NEXT_TAGS))
+
+
+@dataclass
+class JointCounters(SavedCounters):
+    """What a joint run counts (per seed where seeds differ), saved with its checkpoints."""
+
+    stages: int
+    seeds: int
+    phase: int = 0  # the phase in progress
+    frames: int = 0  # every phase's frames so far, per seed (the checkpoints' names)
+    in_phase: bool = False  # whether the newest checkpoint is inside a phase
+    seconds: float = 0.0
+    log: dict[str, Any] = field(default_factory=dict)
+    trained: list[int] = field(default_factory=list)  # each seed's frames while it trained
+    phase_frames: list[int] = field(default_factory=list)  # ... in the phase in progress
+    stored: list[list[int]] = field(default_factory=list)  # per seed and stage
+    updates: list[list[int]] = field(default_factory=list)  # per seed and stage
+    phases: list[list[dict[str, Any]]] = field(default_factory=list)  # per seed
+    format: int = CHECKPOINT_FORMAT  # what a resumed run checks first
+
+    def __post_init__(self) -> None:
+        n, stages = self.seeds, self.stages
+        self.trained = self.trained or [0] * n
+        self.phase_frames = self.phase_frames or [0] * n
+        self.stored = self.stored or [[0] * stages for _ in range(n)]
+        self.updates = self.updates or [[0] * stages for _ in range(n)]
+        self.phases = self.phases or [[] for _ in range(n)]
+
+
+class JointTrainer(SeedLoop):
     """Trains all stage learners of ``task`` together for every seed of ``seeds`` at once.
 
     Phase k (k = N-1, ..., 0; without stage starts: one phase from the task's own) collects
@@ -44,22 +84,113 @@ class JointTrainer(StageTeam):
         >>> from torchrl_stages.learners.dqn import DQNConfig
         >>> tiny = DQNConfig(frames=512, frames_per_batch=128, num_envs=16,
         ...                  init_random_frames=128, batch_size=32, eval_every=0)
-        >>> task = StagedTask(OmegaConf.create({
-        ...     "name": "grid", "stages": {"a": tiny, "b": tiny},
-        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
-        ...             "num_stages": 2},
-        ... }))
+        >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10, "num_stages": 2}
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": {"a": tiny, "b": tiny},
+        ...                                     "env": env}))
         >>> runs = JointTrainer(task, [0, 1]).train()  # doctest: +SKIP
         >>> [[p["start_stage"] for p in run.extra["phases"]] for run in runs]  # doctest: +SKIP
         [[1, 0], [1, 0]]
     """
 
     def __init__(
-        self, task: StagedTask, seeds: Sequence[int] = (0,), *, probe: Probe | None = None, **kwargs
+        self,
+        task: StagedTask,
+        seeds: Sequence[int] = (0,),
+        *,
+        logs: Sequence[MetricsLog] | None = None,
+        progress: bool = False,
+        checkpoints: StageCheckpoints | None = None,
+        compile: str = "off",
+        probe: Probe | None = None,
     ) -> None:
-        super().__init__(task, seeds, **kwargs)
+        super().__init__(len(seeds), logs, seeds, progress, checkpoints)
+        self.task, stages = task, task.num_stages
+        self.make = [
+            functools.partial(make_learner, task.stage_cfg(m), task.specs(m), compile, task.device)
+            for m in range(stages)
+        ]
+        self.learners = self._seeded_learners()
+        self.rows = seed_rows(self.learners, moments=True)  # what an early stop keeps of a seed
+        self.gammas = [float(task.stage_cfg(m).gamma) for m in range(stages)]
+        self.transforms, self.buffers, self.keys = [], [], []
+        for m, learner in enumerate(self.learners):
+            next_value = self.learners[m + 1].value(live=True) if m + 1 < stages else None
+            self.transforms.append(
+                StageRewardTransform(m, stages, next_value=next_value, gamma=self.gammas[m])
+            )
+            size = int(task.stage_cfg(m).buffer_size)
+            self.buffers.append(SeedReplayBuffer(size, num_seeds=self.n, device=learner.device))
+            # stage m's loss entries, the tags, what the next stage's value reads
+            keys = [*learner.replay_keys, *TAGS]
+            if next_value is not None:
+                keys += [unravel_key(("next", k)) for k in next_value.in_keys]
+            self.keys.append(list(dict.fromkeys(keys)))
         self.probe = probe
-        self.starts = list(reversed(range(task.num_stages))) if task.stage_starts else [None]
+        self.starts = list(reversed(range(stages))) if task.stage_starts else [None]
+
+    def _seeded_learners(self) -> list[Learner]:
+        """Every stage's learner; row i of a stacked one: what ``seeds[i]`` alone starts from."""
+        stages = range(self.task.num_stages)
+        rows: list[list[Learner]] = [[] for _ in stages]
+        for seed in self.seeds:  # each seed's generator builds its stages 0..N-1 in turn
+            torch.manual_seed(seed)
+            for m in stages:
+                rows[m].append(self.make[m]())
+        if self.n == 1:
+            return [row[0] for row in rows]
+        return [stack_learners(self.make[m](seeds=self.n), rows[m]) for m in stages]
+
+    @functools.cached_property
+    def _value(self) -> StackedPolicy:
+        """What evaluations read V from: every stage's target networks themselves (live)."""
+        return StackedPolicy([learner.value(live=True) for learner in self.learners])
+
+    def _route(self, batch: TensorDictBase, active: list[int], counters: JointCounters) -> None:
+        """Stores each training seed's transitions in the buffer of the stage of s_t, counted."""
+        n = self.n
+        parts = batch.reshape(n, -1)  # seed-major
+        stage = parts.get("stage").reshape(n, -1)
+        training = torch.zeros(n, dtype=torch.bool, device=stage.device)
+        training[active] = True
+        owner = torch.arange(n, device=stage.device).unsqueeze(1).expand_as(stage)
+        for m, buffer in enumerate(self.buffers):
+            rows = (stage == m) & training.unsqueeze(1)
+            added = rows.sum(1).tolist()
+            if any(added):
+                buffer.extend(parts[rows].select(*self.keys[m], strict=False), seeds=owner[rows])
+                for i, count in enumerate(added):
+                    counters.stored[i][m] += count
+        for i in active:
+            counters.phase_frames[i] += parts.shape[1]
+            counters.trained[i] += parts.shape[1]
+
+    def _update(
+        self, active: list[int], counters: JointCounters, watch: Stopwatch
+    ) -> dict[int, list[dict]]:
+        """Every stage's gradient steps, last stage first, for the training seeds ready for it."""
+        stored, losses = counters.stored, {}
+        for m in reversed(range(self.task.num_stages)):
+            cfg, learner = self.task.stage_cfg(m), self.learners[m]
+            need = max(int(cfg.init_random_frames), int(cfg.batch_size), 1)
+            ready = [i for i in active if stored[i][m] >= need]
+            if not ready:
+                continue
+            learner.anneal(round(statistics.mean(stored[i][m] for i in ready)))
+            rows = None if len(ready) == self.n else torch.tensor(ready, device=learner.device)
+            buffer, name = self.buffers[m], self.task.stage_names[m]
+            kept, seeds = [self.rows[i] for i in ready], [self.seeds[i] for i in ready]
+            with stage_failures(m, name, learner, buffer, kept, seeds):
+                losses[m] = gradient_steps(learner, buffer, cfg, rows, watch, self.transforms[m])
+            for i in ready:
+                counters.updates[i][m] += int(cfg.updates_per_batch)
+        return losses
+
+    def _learner_states(self) -> list[dict]:
+        return [learner.checkpoint() for learner in self.learners]
+
+    def _load_learner_states(self, states: Sequence[dict]) -> None:
+        for learner, state in zip(self.learners, states, strict=True):
+            learner.load_checkpoint(state)
 
     def _phase_envs(self, k: int, start_stage: int | None, cfg) -> tuple[Any, Any]:
         """Phase ``k``'s whole-task training and evaluation envs from stage ``start_stage``'s
@@ -216,14 +347,10 @@ class JointSchedule(Schedule):
         seeds, keepers, stages = group.seeds, group.keepers, range(task.num_stages)
         done = [group.finished(k) for k in stages]
         if all(d is not None for d in done):
-            return [
-                Trained(
-                    [done[k][i][0] for k in stages],
-                    [done[k][i][1] for k in stages],
-                    {"phases": list(keepers[i].kept("phases") or [])},
-                )
-                for i in range(len(seeds))
-            ]
+            trained = Trained.per_seed(done)
+            for run, keeper in zip(trained, keepers, strict=True):
+                run.extra["phases"] = list(keeper.kept("phases") or [])
+            return trained
         scope = group.begin("joint")
         trained = JointTrainer(
             task,
@@ -235,28 +362,23 @@ class JointSchedule(Schedule):
             compile=group.compile,
         ).train()
         for seed, keeper, run in zip(seeds, keepers, trained, strict=True):
-            phases = run.extra["phases"]
-            log_phases(phases, "joint" if len(seeds) == 1 else f"seed {seed}: joint")
+            who = "joint" if len(seeds) == 1 else f"seed {seed}: joint"
+            for phase in run.extra["phases"]:  # one line per phase
+                start = phase["start_stage"]
+                log.info(
+                    "%s phase from %s: %d frames, whole-task success %.2f, value error %.3f%s",
+                    who,
+                    "the task's own starts" if start is None else f"stage {start} starts",
+                    phase["frames"],
+                    phase["success_rate"] if phase["success_rate"] is not None else float("nan"),
+                    phase["value_error"] if phase["value_error"] is not None else float("nan"),
+                    " (early stop)" if phase["early_stopped"] else " (budget used, best restored)",
+                )
             if keeper is not None:  # its phases, for a resumed launch's eval.json
-                keeper.keep("phases", list(phases))
+                keeper.keep("phases", list(run.extra["phases"]))
                 for k, learner in enumerate(run.learners):
                     keeper.save(k, learner, run.results[k])
                 keeper.clear("joint")
         if scope is not None:
             scope.clear()
         return trained
-
-
-def log_phases(phases: Sequence[dict[str, Any]], who: str = "joint") -> None:
-    """One line per phase: where it started, its frames, its whole-task evaluation."""
-    for phase in phases:
-        start = phase["start_stage"]
-        log.info(
-            "%s phase from %s: %d frames, whole-task success %.2f, value error %.3f%s",
-            who,
-            "the task's own starts" if start is None else f"stage {start} starts",
-            phase["frames"],
-            phase["success_rate"] if phase["success_rate"] is not None else float("nan"),
-            phase["value_error"] if phase["value_error"] is not None else float("nan"),
-            " (early stop)" if phase["early_stopped"] else " (budget used, best restored)",
-        )
