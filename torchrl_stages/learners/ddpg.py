@@ -7,7 +7,6 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 from torch.func import functional_call
-from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
 from torchrl.objectives.utils import distance_loss
 
@@ -47,14 +46,8 @@ class DDPGLearner(DeterministicActorCriticLearner):
     torchrl_loss = DDPGLoss
     stacks_seeds = True
 
-    def make_loss(self, cfg: DDPGConfig, spec: TensorSpec) -> DDPGLoss:
-        return DDPGLoss(
-            self.actor,
-            self.critic,
-            loss_function=cfg.loss_function,
-            delay_actor=True,
-            delay_value=True,
-        )
+    def loss_kwargs(self, cfg: DDPGConfig) -> dict:
+        return {"delay_actor": True, "delay_value": True}
 
     def make_losses(self) -> None:
         targets = self.loss.target_value_network_params["module"]

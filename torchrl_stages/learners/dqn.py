@@ -15,17 +15,8 @@ from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import flag, free, in_range, one_of
-from torchrl_stages.learners.base import (
-    LOSS_FUNCTIONS,
-    Learner,
-    StageSpecs,
-    register_algorithm,
-)
-from torchrl_stages.learners.ops import (
-    linear_schedule,
-    taken,
-    td0_target,
-)
+from torchrl_stages.learners.base import LOSS_FUNCTIONS, Learner, StageSpecs, register_algorithm
+from torchrl_stages.learners.ops import linear_schedule, taken, td0_target
 from torchrl_stages.values import QMaxValue, with_params
 
 
@@ -35,16 +26,12 @@ class DQNConfig(StageConfig):
 
     algo: str = free("dqn")
     double_dqn: bool = flag(True)  # double-DQN targets (torchrl's DQNLoss(double_dqn=...))
-    # dueling Q-network: separate state-value and advantage heads. Where actions differ by little
-    # (a blocked move in the grid world costs 1 - gamma of the value) the advantages are learned
-    # apart from the value they would otherwise be lost in, and the greedy action stops flipping.
+    # dueling Q-network: separate state-value and advantage heads, so that small differences
+    # between actions are not lost in the value
     dueling: bool = flag(True)
     loss_function: str = one_of(*LOSS_FUNCTIONS, default="l2")
-    # advantage learning (Baird 1999; Bellemare et al. 2016, "Increasing the action gap"):
-    # the target y - alpha (max_b Q_target(s, b) - Q_target(s, a)). Where discounting leaves
-    # the actions of a state (1 - gamma) V(s) apart, a Q error that size flips the greedy
-    # action and a greedy policy loops; this widens every gap by about 1 / (1 - alpha) and
-    # changes neither the greedy policy nor max_a Q, the value a stage hands on. 0: plain DQN
+    # advantage learning (Bellemare et al. 2016): the target y - alpha (max_b Q_target(s, b) -
+    # Q_target(s, a)) widens action gaps about 1 / (1 - alpha), keeping max_a Q; 0: plain DQN
     advantage_learning: float = in_range(0, 1, 0.0, high_open=True)
     eps_init: float = in_range(0, 1, 1.0)
     eps_end: float = in_range(0, 1, 0.05)  # epsilon decays linearly to it over `annealing_frames`
