@@ -266,14 +266,14 @@ class EntropyRegularized:
         """Nothing to anneal: the entropy coefficient is learned."""
 
 
-def soft_value(module: type[nn.Module], loss, actor, critic, critics, live: bool, *args):
-    """``module`` (a soft value) of ``loss``'s actor, the ``critics`` parameters of ``critic``
+def soft_value(module: type[nn.Module], loss, critics, live: bool, *args) -> TensorDictModule:
+    """``module`` (a soft value) of ``loss``'s actor, its critic with the ``critics`` parameters
     and ``log_alpha`` (read in place with ``live``, else copies) as a ``TensorDictModule``."""
-    network = actor[0]
+    network = loss.actor_network[0]
     params = loss.actor_network_params["module", "0", "module"]
     value = module(
         with_params(network.module, params, live=live),
-        critic,
+        loss.qvalue_network.module,
         critics if live else critics.detach().clone(),
         loss.log_alpha if live else loss.log_alpha.detach().clone(),
         *args,

@@ -141,8 +141,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
     def value_from_loss(cls, loss: DiscreteSACLoss, live: bool = False) -> TensorDictModuleBase:
         """:class:`DiscreteSoftValue` of a ``DiscreteSACLoss``'s target critics."""
         critics = loss.target_qvalue_network_params["module"]
-        critic = loss.qvalue_network.module
-        return soft_value(DiscreteSoftValue, loss, loss.actor_network, critic, critics, live)
+        return soft_value(DiscreteSoftValue, loss, critics, live)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         return self.value_from_loss(self.loss, live=live)

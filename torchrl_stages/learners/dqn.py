@@ -7,7 +7,6 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
-from torch import nn
 from torchrl.data import OneHot
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss
@@ -58,8 +57,10 @@ class DQNLearner(Learner):
     def __init__(self, cfg: DQNConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
         spec = specs.action_spec
+        net = self.network(spec.space.n, dueling=cfg.dueling)
+        self.__dict__["q_module"] = net  # obs in, one Q-value per action out
         self.qnet = QValueActor(
-            self.network(spec.space.n, dueling=cfg.dueling),
+            net,
             in_keys=specs.observation_keys,
             spec=spec,
             action_key=specs.action_key,
@@ -86,11 +87,6 @@ class DQNLearner(Learner):
         target = self.loss.target_value_network_params.get(("module", "0", "module"))
         self.__dict__["_target_q"] = with_params(self.q_module, target, live=True)
         self._loss_fn = self.compiled(self._plain_loss)
-
-    @property
-    def q_module(self) -> nn.Module:
-        """The online Q-network: observation tensors in, one Q-value per action out."""
-        return self.qnet.module[0].module
 
     @classmethod
     def value_from_loss(cls, loss: DQNLoss, live: bool = False) -> TensorDictModuleBase:

@@ -166,9 +166,8 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         """:class:`SoftValue` of a ``SACLoss``'s target critics (or ``critics``)."""
         if critics is None:
             critics = loss.target_qvalue_network_params
-        actor, critic = loss.actor_network, loss.qvalue_network.module
-        kwargs = actor[1].distribution_kwargs
-        return soft_value(SoftValue, loss, actor, critic, critics["module"], live, kwargs, samples)
+        kwargs = loss.actor_network[1].distribution_kwargs
+        return soft_value(SoftValue, loss, critics["module"], live, kwargs, samples)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         """:class:`SoftValue`; with a shared encoder the critics read the target one."""
