@@ -15,9 +15,8 @@ class StackedPolicy(TensorDictModuleBase):
     """Runs, for every batch element, the policy of its stage (its ``stage_key`` entry, else
     ``stage_fn(td)``); an output of other stages is zero there.
 
-    Each stage's policy runs on the whole batch; a stage absent from the batch is not run
-    (``skip_absent=False``: every stage runs at every call, so that exploring policies draw the
-    same random numbers whichever stages the batch holds).
+    Each stage's policy runs on the whole batch, but not a stage absent from it unless
+    ``skip_absent=False`` (exploring policies then draw the same random numbers at every call).
 
     Examples:
         >>> import torch

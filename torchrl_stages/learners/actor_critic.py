@@ -30,11 +30,9 @@ class ActorCriticConfig(StageConfig):
 
     actor_lr: float = positive(1e-3)
     loss_function: str = one_of(*LOSS_FUNCTIONS, default="l2")
-    # one input encoder (the CNN of image observations) for the actor and the critic(s),
-    # trained by the critic loss alone; the actor reads its features detached (as SAC-AE and
-    # DrQ do). An update then encodes s and s' once each (s' with the target encoder) instead
-    # of once per network (five with twin critics). A different network from separate
-    # encoders. Without an image input or fourier_features there is no encoder to share.
+    # one input encoder (CNN, fourier_features) for the actor and critic(s), trained by the
+    # critic loss alone, the actor reading its features detached (as SAC-AE and DrQ do); off
+    # without an image input or fourier_features
     shared_encoder: bool = flag(False)
 
 
@@ -45,15 +43,13 @@ class DeterministicActorCriticConfig(ActorCriticConfig):
     sigma_init: float = non_negative(0.5)  # exploration noise std (in action units) at the start
     sigma_end: float = non_negative(0.1)
     # weight of mean(relu(|pre-tanh actor output| - 2)^2) in the actor loss: keeps the actor out
-    # of deep tanh saturation, where its gradient vanishes and the actor stays at an action bound
-    # for good (the manipulator's fine stage failed from one elbow configuration without it, the
-    # cargo slider circled); zero inside |action| <= 0.96 of the bound (0: off)
+    # of deep tanh saturation, where its gradient vanishes (0: off)
     saturation_penalty: float = non_negative(1.0)
 
 
 class ActorCriticLearner(Learner):
     """An actor and ``Q(s, a)`` critics, the parameters in the torchrl loss module: subclasses
-    implement ``make_actor(net, spec)``, ``make_loss(cfg, spec)`` and ``_plain_losses(batch)``."""
+    implement ``make_actor(net, spec)`` and ``_plain_losses(batch)``."""
 
     action_spaces = ("continuous",)
     lr_keys = ("lr", "actor_lr")
@@ -66,9 +62,7 @@ class ActorCriticLearner(Learner):
         spec = specs.action_spec
         action_dim = spec.shape[-1]
         actor_net = self.network(self.ACTOR_OUTPUTS * action_dim)
-        # the actor network: observation tensors in, e.g. the pre-tanh action out (a
-        # sub-module of self.actor, not a second one)
-        self.__dict__["actor_module"] = actor_net
+        self.__dict__["actor_module"] = actor_net  # obs in, e.g. the pre-tanh action out
         self.actor = self.make_actor(actor_net, spec)
         self.shared_encoder = bool(cfg.shared_encoder) and hasattr(actor_net, "encoder")
         self.critic = ValueOperator(
@@ -80,7 +74,9 @@ class ActorCriticLearner(Learner):
         )
         self.policy = self.actor
         self.exploration_policy = self.make_exploration()
-        loss = self.make_loss(cfg, spec)
+        loss = self.torchrl_loss(
+            self.actor, self.critic, loss_function=cfg.loss_function, **self.loss_kwargs(cfg)
+        )
         if self.shared_encoder:  # the critics read the (target) actor's encoder, not copies
             for name in (f"{self.CRITIC}_params", f"target_{self.CRITIC}_params"):
                 del loss._modules[name]["module", "encoder"]  # _modules: no updater warning
@@ -95,6 +91,16 @@ class ActorCriticLearner(Learner):
             "critic": self.adam(critic_params, cfg.lr),
         }
         self.make_losses()
+
+    def loss_kwargs(self, cfg: ActorCriticConfig) -> dict:
+        """:attr:`torchrl_loss`'s other keyword arguments: twin critics, their targets delayed;
+        a shared encoder's copies in the critics are views of the actor's."""
+        return {
+            "action_spec": self.specs.action_spec,
+            "num_qvalue_nets": 2,
+            "delay_qvalue": True,
+            "separate_losses": self.shared_encoder,
+        }
 
     def make_losses(self) -> None:
         self._losses = self.compiled(self._plain_losses)
@@ -227,11 +233,12 @@ class EntropyRegularized:
 
     lr_keys = ("lr", "actor_lr", "alpha_lr")
 
-    def stack_alpha(self) -> None:
-        """Gives a seed-stacked learner one ``log_alpha`` per seed (``[N]``)."""
+    def learn_alpha(self) -> None:
+        """Adds the ``alpha`` optimizer of ``log_alpha``, one per seed (``[N]``) if seed-stacked."""
         if self.seeds is not None:
             log_alpha = self.loss.log_alpha.detach()
             self.loss.log_alpha = nn.Parameter(log_alpha.expand(self.seeds).clone())
+        self.optimizers["alpha"] = self.adam([self.loss.log_alpha], self.cfg.alpha_lr)
 
     def alpha(self, like: torch.Tensor) -> torch.Tensor:
         """The entropy coefficient, detached, shaped to broadcast against ``like``."""
@@ -259,14 +266,14 @@ class EntropyRegularized:
         """Nothing to anneal: the entropy coefficient is learned."""
 
 
-def soft_value(module: type[nn.Module], loss, actor, critic, critics, live: bool, *args):
-    """``module`` (a soft value) of ``loss``'s actor, the ``critics`` parameters of ``critic``
+def soft_value(module: type[nn.Module], loss, critics, live: bool, *args) -> TensorDictModule:
+    """``module`` (a soft value) of ``loss``'s actor, its critic with the ``critics`` parameters
     and ``log_alpha`` (read in place with ``live``, else copies) as a ``TensorDictModule``."""
-    network = actor[0]
+    network = loss.actor_network[0]
     params = loss.actor_network_params["module", "0", "module"]
     value = module(
         with_params(network.module, params, live=live),
-        critic,
+        loss.qvalue_network.module,
         critics if live else critics.detach().clone(),
         loss.log_alpha if live else loss.log_alpha.detach().clone(),
         *args,

@@ -86,8 +86,7 @@ class Learner(nn.Module, ABC):
     action_spaces: tuple[str, ...] = ()  #: "discrete" and/or "continuous"
     lr_keys: tuple[str, ...] = ("lr",)  #: what a diverged stage's message suggests lowering
     torchrl_loss: type | None = None  #: the loss module :meth:`value_from_loss` reads
-    #: whether :meth:`update` draws from torch's global generator (else the stage loop
-    #: samples all of a batch's minibatches in one draw)
+    #: whether :meth:`update` draws random numbers (else a batch's minibatches are drawn at once)
     update_draws_random: bool = False
     stacks_seeds: bool = False  #: networks from :mod:`.networks`, losses :meth:`batch_mean`
 
@@ -153,8 +152,7 @@ class Learner(nn.Module, ABC):
 
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
-        """The algorithm's checks that relate a stage's keys (each key's bound is checked
-        before, from its ``Config`` field)."""
+        """The algorithm's checks relating a stage's keys (each key's bound is checked first)."""
 
     @classmethod
     def value_from_loss(cls, loss: Any, live: bool = False) -> TensorDictModuleBase:
@@ -218,8 +216,7 @@ class Learner(nn.Module, ABC):
         self._step(total, *names)
         if targets:
             self.target_updater.step()
-        # copies: under compile=reduce-overhead a loss is a CUDA graph's output, overwritten
-        # by its next replay
+        # copies: under reduce-overhead a loss is a CUDA graph output its next replay overwrites
         return {name: loss.detach().clone() for name, loss in losses.items()}
 
     def _step(self, loss: torch.Tensor, *names: str) -> None:

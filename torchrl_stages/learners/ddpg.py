@@ -6,8 +6,6 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
-from torch.func import functional_call
-from torchrl.data import TensorSpec
 from torchrl.objectives import DDPGLoss
 from torchrl.objectives.utils import distance_loss
 
@@ -47,14 +45,8 @@ class DDPGLearner(DeterministicActorCriticLearner):
     torchrl_loss = DDPGLoss
     stacks_seeds = True
 
-    def make_loss(self, cfg: DDPGConfig, spec: TensorSpec) -> DDPGLoss:
-        return DDPGLoss(
-            self.actor,
-            self.critic,
-            loss_function=cfg.loss_function,
-            delay_actor=True,
-            delay_value=True,
-        )
+    def loss_kwargs(self, cfg: DDPGConfig) -> dict:
+        return {"delay_actor": True, "delay_value": True}
 
     def make_losses(self) -> None:
         targets = self.loss.target_value_network_params["module"]
@@ -75,9 +67,8 @@ class DDPGLearner(DeterministicActorCriticLearner):
         loss_value = self.batch_mean(distance_loss(pred, target, self.cfg.loss_function))
         features = [f.detach() for f in features]
         u = self.actor_head(features)
-        net = self.critic_net
-        detached = {n: p.detach() for n, p in net.named_parameters()}
-        q = functional_call(net, detached, self.critic_inputs(features, self.squash(u)))
+        critic = self.loss.value_network_params.detach()
+        (q,) = self.critic_values(critic, features, self.squash(u))
         return -self.batch_mean(q), loss_value, self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:

@@ -16,12 +16,7 @@ from torchrl.objectives.utils import distance_loss
 from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import free, in_range, one_of, positive
 from torchrl_stages.learners.actor_critic import EntropyRegularized, soft_value
-from torchrl_stages.learners.base import (
-    LOSS_FUNCTIONS,
-    Learner,
-    StageSpecs,
-    register_algorithm,
-)
+from torchrl_stages.learners.base import LOSS_FUNCTIONS, Learner, StageSpecs, register_algorithm
 from torchrl_stages.learners.ops import stacked_calls, taken, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 
@@ -37,11 +32,8 @@ class DiscreteSACConfig(StageConfig):
     # the entropy coefficient at the start, small for the reason SACConfig.alpha_init gives
     alpha_init: float = positive(0.01)
     alpha_lr: float = positive(3e-4)  # its learning rate (automatic entropy tuning)
-    # the target entropy is this fraction of the uniform policy's, log(number of actions).
-    # Low: an episode that does not end collects the entropy bonus at every step, so a high
-    # target (torchrl's default 0.98) made wandering worth more than the goal (0% success in
-    # the grid world, values growing past 1.8); at 0.1 alpha decays and the greedy path is
-    # optimal
+    # the target entropy as a fraction of the uniform policy's, log(number of actions); low,
+    # or the entropy bonus makes wandering worth more than the goal (torchrl's default: 0.98)
     target_entropy_weight: float = in_range(0, 1, 0.1)
 
 
@@ -117,12 +109,11 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
             delay_qvalue=True,
         )
         self.use_loss(loss)
-        self.stack_alpha()
         self.optimizers = {
             "actor": self.adam(self.loss.actor_network_params.values(True, True), cfg.actor_lr),
             "critic": self.adam(self.loss.qvalue_network_params.values(True, True), cfg.lr),
-            "alpha": self.adam([self.loss.log_alpha], cfg.alpha_lr),
         }
+        self.learn_alpha()
         self._losses = self.compiled(self._plain_losses)
 
     def _plain_losses(self, batch: TensorDictBase):
@@ -150,8 +141,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
     def value_from_loss(cls, loss: DiscreteSACLoss, live: bool = False) -> TensorDictModuleBase:
         """:class:`DiscreteSoftValue` of a ``DiscreteSACLoss``'s target critics."""
         critics = loss.target_qvalue_network_params["module"]
-        critic = loss.qvalue_network.module
-        return soft_value(DiscreteSoftValue, loss, loss.actor_network, critic, critics, live)
+        return soft_value(DiscreteSoftValue, loss, critics, live)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         return self.value_from_loss(self.loss, live=live)

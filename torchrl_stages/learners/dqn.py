@@ -7,7 +7,6 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
-from torch import nn
 from torchrl.data import OneHot
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss
@@ -15,17 +14,8 @@ from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import flag, free, in_range, one_of
-from torchrl_stages.learners.base import (
-    LOSS_FUNCTIONS,
-    Learner,
-    StageSpecs,
-    register_algorithm,
-)
-from torchrl_stages.learners.ops import (
-    linear_schedule,
-    taken,
-    td0_target,
-)
+from torchrl_stages.learners.base import LOSS_FUNCTIONS, Learner, StageSpecs, register_algorithm
+from torchrl_stages.learners.ops import linear_schedule, taken, td0_target
 from torchrl_stages.values import QMaxValue, with_params
 
 
@@ -35,16 +25,12 @@ class DQNConfig(StageConfig):
 
     algo: str = free("dqn")
     double_dqn: bool = flag(True)  # double-DQN targets (torchrl's DQNLoss(double_dqn=...))
-    # dueling Q-network: separate state-value and advantage heads. Where actions differ by little
-    # (a blocked move in the grid world costs 1 - gamma of the value) the advantages are learned
-    # apart from the value they would otherwise be lost in, and the greedy action stops flipping.
+    # dueling Q-network: separate state-value and advantage heads, so that small differences
+    # between actions are not lost in the value
     dueling: bool = flag(True)
     loss_function: str = one_of(*LOSS_FUNCTIONS, default="l2")
-    # advantage learning (Baird 1999; Bellemare et al. 2016, "Increasing the action gap"):
-    # the target y - alpha (max_b Q_target(s, b) - Q_target(s, a)). Where discounting leaves
-    # the actions of a state (1 - gamma) V(s) apart, a Q error that size flips the greedy
-    # action and a greedy policy loops; this widens every gap by about 1 / (1 - alpha) and
-    # changes neither the greedy policy nor max_a Q, the value a stage hands on. 0: plain DQN
+    # advantage learning (Bellemare et al. 2016): the target y - alpha (max_b Q_target(s, b) -
+    # Q_target(s, a)) widens action gaps about 1 / (1 - alpha), keeping max_a Q; 0: plain DQN
     advantage_learning: float = in_range(0, 1, 0.0, high_open=True)
     eps_init: float = in_range(0, 1, 1.0)
     eps_end: float = in_range(0, 1, 0.05)  # epsilon decays linearly to it over `annealing_frames`
@@ -71,8 +57,10 @@ class DQNLearner(Learner):
     def __init__(self, cfg: DQNConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
         spec = specs.action_spec
+        net = self.network(spec.space.n, dueling=cfg.dueling)
+        self.__dict__["q_module"] = net  # obs in, one Q-value per action out
         self.qnet = QValueActor(
-            self.network(spec.space.n, dueling=cfg.dueling),
+            net,
             in_keys=specs.observation_keys,
             spec=spec,
             action_key=specs.action_key,
@@ -99,11 +87,6 @@ class DQNLearner(Learner):
         target = self.loss.target_value_network_params.get(("module", "0", "module"))
         self.__dict__["_target_q"] = with_params(self.q_module, target, live=True)
         self._loss_fn = self.compiled(self._plain_loss)
-
-    @property
-    def q_module(self) -> nn.Module:
-        """The online Q-network: observation tensors in, one Q-value per action out."""
-        return self.qnet.module[0].module
 
     @classmethod
     def value_from_loss(cls, loss: DQNLoss, live: bool = False) -> TensorDictModuleBase:

@@ -131,7 +131,7 @@ class _Encoded(nn.Module):
         return self.body(self.encoder(*inputs))
 
 
-class SharedEncoderCritic(nn.Module):
+class SharedEncoderCritic(_Encoded):
     """``Q(s, a) = body([encoder(s), a])`` over the actor's own input encoder.
 
     Examples:
@@ -141,11 +141,9 @@ class SharedEncoderCritic(nn.Module):
     """
 
     def __init__(self, encoder: nn.Module, action_dim: int, num_cells: list[int]) -> None:
-        super().__init__()
-        self.encoder = encoder
-        self.body = stack_for_seeds(
-            MLP(in_features=encoder.out_features + action_dim, out_features=1, num_cells=num_cells)
-        )
+        width = encoder.out_features + action_dim
+        body = MLP(in_features=width, out_features=1, num_cells=num_cells)
+        super().__init__(encoder, stack_for_seeds(body))
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         *obs, action = inputs

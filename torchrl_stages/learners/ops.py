@@ -34,13 +34,9 @@ class FusedSoftUpdate(SoftUpdate):
 
 def seed_grad_norms(grads: list[torch.Tensor], num_seeds: int, axes: Sequence[int]) -> torch.Tensor:
     """The 2-norm of each seed's gradients (``[num_seeds]``), seeds on axis ``axes[i]``."""
-    per_tensor = torch.stack(
-        [
-            g.movedim(a, 0).reshape(num_seeds, -1).norm(dim=1)
-            for g, a in zip(grads, axes, strict=True)
-        ]
-    )
-    return torch.linalg.vector_norm(per_tensor, 2.0, dim=0)
+    pairs = zip(grads, axes, strict=True)
+    per_tensor = [g.movedim(a, 0).reshape(num_seeds, -1).norm(dim=1) for g, a in pairs]
+    return torch.linalg.vector_norm(torch.stack(per_tensor), 2.0, dim=0)
 
 
 def clip_seed_grads(

@@ -33,10 +33,8 @@ class SACConfig(ActorCriticConfig):
     entropy coefficient tuned to a target entropy (``SACLoss``'s objective, version 2)."""
 
     algo: str = free("sac")
-    # the entropy coefficient at the start. Small: the entropy bonus summed over an episode,
-    # about alpha |H| / (1 - gamma), must stay well under the tasks' unit rewards, or the soft
-    # value a stage hands on is mostly entropy (alpha 1, torchrl's default, left the
-    # manipulator's stages at 0% success with values 12 off; 0.01 reached 100%)
+    # the entropy coefficient at the start; small, so that the entropy bonus over an episode,
+    # about alpha |H| / (1 - gamma), stays well under the rewards (torchrl's default: 1)
     alpha_init: float = positive(0.01)
     alpha_lr: float = positive(3e-4)  # its learning rate (automatic entropy tuning)
     # any number; null: -(action dimensions), torchrl's "auto"
@@ -106,8 +104,7 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
     def __init__(self, cfg: SACConfig, specs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
         self.loss.target_entropy  # noqa: B018 - a lazy buffer: in the state dict from the start
-        self.stack_alpha()
-        self.optimizers["alpha"] = self.adam([self.loss.log_alpha], cfg.alpha_lr)
+        self.learn_alpha()
 
     def make_actor(self, actor_net: nn.Module, spec: TensorSpec) -> TensorDictModuleBase:
         keys = self.specs
@@ -124,20 +121,14 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
             distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
         )
 
-    def make_loss(self, cfg: SACConfig, spec: TensorSpec) -> SACLoss:
-        # a shared encoder needs a target copy (the target actor's) for the target critics
-        return SACLoss(
-            self.actor,
-            self.critic,
-            num_qvalue_nets=2,
-            loss_function=cfg.loss_function,
-            alpha_init=cfg.alpha_init,
-            action_spec=spec,
-            target_entropy="auto" if cfg.target_entropy is None else cfg.target_entropy,
-            delay_actor=self.shared_encoder,
-            delay_qvalue=True,
-            separate_losses=self.shared_encoder,
-        )
+    def loss_kwargs(self, cfg: SACConfig) -> dict:
+        return {
+            **super().loss_kwargs(cfg),
+            "alpha_init": cfg.alpha_init,
+            "target_entropy": "auto" if cfg.target_entropy is None else cfg.target_entropy,
+            # a shared encoder needs a target copy (the target actor's) for the target critics
+            "delay_actor": self.shared_encoder,
+        }
 
     def _dist(self, out: torch.Tensor) -> TanhNormal:
         """The policy's distribution from the actor network's output."""
@@ -175,9 +166,8 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         """:class:`SoftValue` of a ``SACLoss``'s target critics (or ``critics``)."""
         if critics is None:
             critics = loss.target_qvalue_network_params
-        actor, critic = loss.actor_network, loss.qvalue_network.module
-        kwargs = actor[1].distribution_kwargs
-        return soft_value(SoftValue, loss, actor, critic, critics["module"], live, kwargs, samples)
+        kwargs = loss.actor_network[1].distribution_kwargs
+        return soft_value(SoftValue, loss, critics["module"], live, kwargs, samples)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         """:class:`SoftValue`; with a shared encoder the critics read the target one."""

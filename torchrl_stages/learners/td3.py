@@ -6,7 +6,6 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import TensorSpec
 from torchrl.objectives import TD3Loss
 from torchrl.objectives.utils import distance_loss
 
@@ -48,20 +47,9 @@ class TD3Learner(DeterministicActorCriticLearner):
     update_draws_random = True  # the target policy's smoothing noise
     stacks_seeds = True
 
-    def make_loss(self, cfg: TD3Config, spec: TensorSpec) -> TD3Loss:
-        # separate_losses: a shared encoder's copies in the critics are views of the actor's
-        return TD3Loss(
-            self.actor,
-            self.critic,
-            action_spec=spec,
-            num_qvalue_nets=2,
-            policy_noise=cfg.policy_noise,
-            noise_clip=cfg.noise_clip,
-            loss_function=cfg.loss_function,
-            delay_actor=True,
-            delay_qvalue=True,
-            separate_losses=self.shared_encoder,
-        )
+    def loss_kwargs(self, cfg: TD3Config) -> dict:
+        noise = {"policy_noise": cfg.policy_noise, "noise_clip": cfg.noise_clip}
+        return {**super().loss_kwargs(cfg), **noise, "delay_actor": True}
 
     def make_losses(self) -> None:
         self._value_loss = self.compiled(self._plain_value_loss)
