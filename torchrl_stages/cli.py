@@ -90,16 +90,13 @@ def _train_app(cfg: DictConfig) -> float:
             validate_sweeper(hydra_cfg.sweeper, cfg)
         # all_stages (experiment=smoke) in every stage, but not over a stage's own override
         cfg = apply_all_stages(cfg, keep=stage_keys_set(hydra_cfg.overrides.task))
-        # seeds=[...]: several seeds in one process, one directory each
         experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
-    except RunDirError as err:  # the directory holds another run (or process): touch nothing
-        _fail(run_dir, str(err), EXIT_INVALID)
     except ConfigError as err:
         if multirun:  # the job's own fresh directory: the sweep summary shows why
             RunDir(run_dir).write_hydra_files(_hydra_files(cfg))
         _fail(run_dir, f"invalid config: {err}", EXIT_INVALID, status="invalid")
-    except OSError as err:
-        _fail(run_dir, _cannot_write(err, run_dir), EXIT_INVALID)
+    except (RunDirError, OSError) as err:  # a directory of another run (or process): untouched
+        _fail(run_dir, _reason(err, run_dir), EXIT_INVALID)
     try:  # how a run that does not finish ended is in its status.json (Experiment.run)
         results = experiment.run()
     except Interrupted as err:
@@ -107,10 +104,8 @@ def _train_app(cfg: DictConfig) -> float:
         _exit("stages-train", f"{err}; what it needs to continue is written. {fix}", err.exit_code)
     except DivergenceError as err:
         _fail(run_dir, str(err), EXIT_DIVERGED)
-    except (RunDirError, CheckpointDamagedError) as err:
-        _fail(run_dir, str(err), EXIT_INVALID)
-    except OSError as err:
-        _fail(run_dir, _cannot_write(err, run_dir), EXIT_INVALID)
+    except (RunDirError, CheckpointDamagedError, OSError) as err:
+        _fail(run_dir, _reason(err, run_dir), EXIT_INVALID)
     except (EnvError, SuccessKeyError) as err:
         _fail(run_dir, str(err), EXIT_FAILED)
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
@@ -124,7 +119,10 @@ def _train_app(cfg: DictConfig) -> float:
     return objective
 
 
-def _cannot_write(err: OSError, run_dir: Path) -> str:
+def _reason(err: Exception, run_dir: Path) -> str:
+    """``err``'s message; for an ``OSError``, what could not be written and how to fix it."""
+    if not isinstance(err, OSError):
+        return str(err)
     return (
         f"cannot write {err.filename or run_dir}: {err.strerror or err}. Fix: free space on that "
         "disk or make it writable, then rerun with resume=true (or pick another hydra.run.dir)"
@@ -244,10 +242,8 @@ def evaluate(argv: list[str] | None = None) -> None:
             result = evaluate_run(run.cfg, run.task, run.learners, args.run_dir, training=training)
             if directory.has_record():
                 directory.claim_new(before)
-        except RunDirError as err:
-            _exit("stages-eval", str(err))
-        except OSError as err:
-            _exit("stages-eval", _cannot_write(err, args.run_dir))
+        except (RunDirError, OSError) as err:
+            _exit("stages-eval", _reason(err, args.run_dir))
     print(format_summary(result, args.run_dir))
 
 

@@ -43,11 +43,7 @@ def evaluate_run(
     policy = StackedPolicy([learner.policy for learner in learners])
     seed = int(cfg.seed) + TASK_EVAL_OFFSET
     evaluation = evaluate_task(task, policy, int(cfg.eval.episodes), seed, interruptible=True)
-    result: dict[str, Any] = {
-        "task": cfg.task.name,
-        **evaluation.summary(),
-        "training": training,
-    }
+    result: dict[str, Any] = {"task": cfg.task.name, **evaluation.summary(), "training": training}
     report = task_report(str(cfg.task.name))
     if report is not None and report.report is not None:
         result["task_metrics"] = report.report(

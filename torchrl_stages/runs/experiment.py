@@ -22,6 +22,7 @@ from torchrl_stages.runs.directory import drop_checkpoints, refuse_links, scope_
 from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
 from torchrl_stages.runs.seed_run import SeedRun, build_task, compile_mode
 from torchrl_stages.schedules import SCHEDULES, get_schedule
+from torchrl_stages.sweeps import summarize_sweep
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import hold_threads
 
@@ -68,21 +69,19 @@ def check_stackable(task: StagedTask, num_seeds: int) -> None:
             ) from None
 
 
-def _for_seed(cfg: DictConfig, seed: int) -> DictConfig:
+def _for_seed(
+    cfg: DictConfig, seed: int, files: dict[str, Any] | None = None
+) -> tuple[DictConfig, dict[str, Any] | None]:
+    """Seed ``seed``'s config and ``.hydra/`` files (the sweep summary groups seeds by their
+    ``seed=`` override)."""
     out = copy.deepcopy(cfg)
     with open_dict(out):
         out.seed, out.seeds = seed, None
-    return out
-
-
-def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[str, Any]:
-    """Seed ``seed``'s ``.hydra/`` files: the sweep summary groups seeds by ``seed=`` overrides."""
-    out = dict(files)
-    out["config.yaml"] = cfg
+    if not files:
+        return out, files
     overrides = [str(o) for o in files.get("overrides.yaml", [])]
     kept = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in ("seeds", "seed")]
-    out["overrides.yaml"] = [*kept, f"seed={seed}"]
-    return out
+    return out, {**files, "config.yaml": out, "overrides.yaml": [*kept, f"seed={seed}"]}
 
 
 class Experiment:
@@ -119,13 +118,12 @@ class Experiment:
             self.runs.append(SeedRun(cfg, self.run_dir, hydra_files, observers))
             return
         # before any directory is made: the config, and whether it stacks
-        check_stackable(build_task(_for_seed(cfg, self.seeds[0])), len(self.seeds))
+        check_stackable(build_task(_for_seed(cfg, self.seeds[0])[0]), len(self.seeds))
         try:
             for seed in self.seeds:
-                seed_cfg = _for_seed(cfg, seed)
-                files = hydra_files and _hydra_files_for(hydra_files, seed_cfg, seed)
+                seed_cfg, files = _for_seed(cfg, seed, hydra_files)
                 path = seed_dir(self.run_dir, seed)
-                self.runs.append(SeedRun(seed_cfg, path, files, observers))
+                self.runs.append(SeedRun(seed_cfg, path, files, observers, seed=seed))
         except BaseException:
             self.close()
             raise
@@ -149,8 +147,6 @@ class Experiment:
         finally:
             self.close()
         if self.stacked:  # best effort: the runs are written
-            from torchrl_stages.sweeps import summarize_sweep
-
             try:
                 summarize_sweep(self.run_dir, plots=bool(cfg.eval.get("plots", True)))
             except Exception as err:  # noqa: BLE001 - say why, go on
@@ -159,10 +155,8 @@ class Experiment:
 
     def _run(self) -> list[dict[str, Any]]:
         runs, cfg = self.runs, self.runs[0].cfg
-        for seed, run in zip(self.seeds, runs, strict=True):
+        for run in runs:
             run.start()
-            if self.stacked:
-                run.seed = seed  # its log lines name it
         # several seeds' stacked networks train uncompiled: compiling them is unmeasured
         compile = "off" if self.stacked else compile_mode(cfg)
         if compile != "off":
@@ -176,7 +170,7 @@ class Experiment:
             logs=[run.log for run in runs],
             checkpoints=self._checkpoints() if self.stacked else runs[0].checkpoints,
             progress=bool(cfg.progress),
-            probe=runs[0].probe() if len(runs) == 1 else None,
+            probe=runs[0].probe(),  # None for several seeds: validate_seeds refuses eval.probe
             compile=compile,
         )
         if self.stacked:

@@ -123,6 +123,7 @@ class SeedRun:
         run_dir: str | Path,
         hydra_files: dict[str, Any] | None = None,
         observers: Sequence[Observer] = (),
+        seed: int | None = None,
     ) -> None:
         cfg, self.schedule = checked_config(cfg)
         self.cfg, self.run_dir = cfg, RunDir(run_dir)
@@ -136,7 +137,7 @@ class SeedRun:
         self.restarted: dict[int, list[str]] = {}  # resumed stages whose config changed
         self.reuse: StageReuse | None = None
         self.log = MetricsLog(None)
-        self.seed: int | None = None  # of a launch of several seeds: its log lines name it
+        self.seed = seed  # of a launch of several seeds: its log lines name it
         self._lock = self.run_dir.lock()
         try:
             self.resuming = self._check_run_dir()
