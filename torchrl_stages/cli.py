@@ -160,11 +160,8 @@ def with_template_stages(text: str) -> str:
         "  # made from the env: s0, s1, ... for its num_stages, each task.stage_template with "
         f"its own task.stages.s<k> keys over it; listed once the env can be built ({reason})"
     )
-    block = re.search(r"^task:\n(?:[ \t].*\n|\n)*?(  stages:.*)$", text, re.M)
-    if block is None:
-        return text
-    at = block.end(1)
-    return text[:at] + " ".join(note.splitlines()) + text[at:]
+    stages = re.compile(r"^task:\n(?:[ \t].*\n|\n)*?  stages:.*$", re.M)
+    return stages.sub(lambda block: block[0] + " ".join(note.splitlines()), text, count=1)
 
 
 @hydra.main(config_path="pkg://torchrl_stages.conf", config_name="tune", version_base="1.3")
@@ -212,7 +209,6 @@ def evaluate(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--episodes",
         type=_positive_int,
-        default=None,
         help="whole-task episodes from random starts (default: the run's eval.episodes; "
         "envs that enumerate their starts are evaluated from each one)",
     )

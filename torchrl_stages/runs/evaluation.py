@@ -27,9 +27,8 @@ def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict
     """Whole-task success rate of the current learners, plus the task's own probe metrics."""
     policy = StackedPolicy([learner.policy for learner in learners])
     episodes = int(task.stage_cfg(0).eval_episodes)
-    out = {
-        "success_rate": evaluate_task(task, policy, episodes, seed).stats.summary()["success_rate"]
-    }
+    stats = evaluate_task(task, policy, episodes, seed).stats.summary()
+    out = {"success_rate": stats["success_rate"]}
     extra = task_report(task.name)
     if extra is not None and extra.probe is not None:
         out.update(extra.probe(task, learners))
