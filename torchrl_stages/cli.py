@@ -195,20 +195,13 @@ def tune() -> None:
     tune_app()
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
-
-
 def evaluate(argv: list[str] | None = None) -> None:
     """``stages-eval RUN_DIR``: re-evaluate a finished run and rewrite its ``eval.json``."""
     parser = argparse.ArgumentParser(prog="stages-eval", description=evaluate.__doc__)
     parser.add_argument("run_dir", type=Path, help="a run directory written by stages-train")
     parser.add_argument(
         "--episodes",
-        type=_positive_int,
+        type=int,
         help="whole-task episodes from random starts (default: the run's eval.episodes; "
         "envs that enumerate their starts are evaluated from each one)",
     )
@@ -220,6 +213,8 @@ def evaluate(argv: list[str] | None = None) -> None:
         "directory of yours): its env is imported and called. Only for runs you made or checked",
     )
     args = parser.parse_args(argv)
+    if args.episodes is not None and args.episodes < 1:
+        parser.error(f"argument --episodes: must be a positive integer, got {args.episodes}")
     torch.set_num_threads(1)
     directory = RunDir(args.run_dir)
     with contextlib.ExitStack() as stack:

@@ -98,10 +98,8 @@ def build_task(cfg: DictConfig, schedule: Schedule | None = None) -> StagedTask:
 
 
 class SeedRun:
-    """One seed's run of ``cfg`` in ``run_dir``: the
-    :class:`~torchrl_stages.schedules.StageKeeper` its schedule trains into. Config and
-    directory are checked before anything is written; the directory is locked until
-    :meth:`close`.
+    """One seed's run of ``cfg`` in ``run_dir``, the :class:`~torchrl_stages.schedules.StageKeeper`
+    its schedule trains into: checked before anything is written, locked until :meth:`close`.
 
     Examples:
         >>> import tempfile
