@@ -95,7 +95,7 @@ def _train_app(cfg: DictConfig) -> float:
         if multirun:  # the job's own fresh directory: the sweep summary shows why
             RunDir(run_dir).write_hydra_files(_hydra_files(cfg))
         _fail(run_dir, f"invalid config: {err}", EXIT_INVALID, status="invalid")
-    except (RunDirError, OSError) as err:  # a directory of another run (or process): untouched
+    except (RunDirError, OSError) as err:  # RunDirError: another run's directory, left as it was
         _fail(run_dir, _reason(err, run_dir), EXIT_INVALID)
     try:  # how a run that does not finish ended is in its status.json (Experiment.run)
         results = experiment.run()
