@@ -90,16 +90,13 @@ def _train_app(cfg: DictConfig) -> float:
             validate_sweeper(hydra_cfg.sweeper, cfg)
         # all_stages (experiment=smoke) in every stage, but not over a stage's own override
         cfg = apply_all_stages(cfg, keep=stage_keys_set(hydra_cfg.overrides.task))
-        # seeds=[...]: several seeds in one process, one directory each
         experiment = Experiment(cfg, run_dir, hydra_files=_hydra_files(cfg))
-    except RunDirError as err:  # the directory holds another run (or process): touch nothing
-        _fail(run_dir, str(err), EXIT_INVALID)
     except ConfigError as err:
         if multirun:  # the job's own fresh directory: the sweep summary shows why
             RunDir(run_dir).write_hydra_files(_hydra_files(cfg))
         _fail(run_dir, f"invalid config: {err}", EXIT_INVALID, status="invalid")
-    except OSError as err:
-        _fail(run_dir, _cannot_write(err, run_dir), EXIT_INVALID)
+    except (RunDirError, OSError) as err:  # RunDirError: another run's directory, left as it was
+        _fail(run_dir, _reason(err, run_dir), EXIT_INVALID)
     try:  # how a run that does not finish ended is in its status.json (Experiment.run)
         results = experiment.run()
     except Interrupted as err:
@@ -107,10 +104,8 @@ def _train_app(cfg: DictConfig) -> float:
         _exit("stages-train", f"{err}; what it needs to continue is written. {fix}", err.exit_code)
     except DivergenceError as err:
         _fail(run_dir, str(err), EXIT_DIVERGED)
-    except (RunDirError, CheckpointDamagedError) as err:
-        _fail(run_dir, str(err), EXIT_INVALID)
-    except OSError as err:
-        _fail(run_dir, _cannot_write(err, run_dir), EXIT_INVALID)
+    except (RunDirError, CheckpointDamagedError, OSError) as err:
+        _fail(run_dir, _reason(err, run_dir), EXIT_INVALID)
     except (EnvError, SuccessKeyError) as err:
         _fail(run_dir, str(err), EXIT_FAILED)
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
@@ -124,7 +119,10 @@ def _train_app(cfg: DictConfig) -> float:
     return objective
 
 
-def _cannot_write(err: OSError, run_dir: Path) -> str:
+def _reason(err: Exception, run_dir: Path) -> str:
+    """``err``'s message; for an ``OSError``, what could not be written and how to fix it."""
+    if not isinstance(err, OSError):
+        return str(err)
     return (
         f"cannot write {err.filename or run_dir}: {err.strerror or err}. Fix: free space on that "
         "disk or make it writable, then rerun with resume=true (or pick another hydra.run.dir)"
@@ -162,11 +160,8 @@ def with_template_stages(text: str) -> str:
         "  # made from the env: s0, s1, ... for its num_stages, each task.stage_template with "
         f"its own task.stages.s<k> keys over it; listed once the env can be built ({reason})"
     )
-    block = re.search(r"^task:\n(?:[ \t].*\n|\n)*?(  stages:.*)$", text, re.M)
-    if block is None:
-        return text
-    at = block.end(1)
-    return text[:at] + " ".join(note.splitlines()) + text[at:]
+    stages = re.compile(r"^task:\n(?:[ \t].*\n|\n)*?  stages:.*$", re.M)
+    return stages.sub(lambda block: block[0] + " ".join(note.splitlines()), text, count=1)
 
 
 @hydra.main(config_path="pkg://torchrl_stages.conf", config_name="tune", version_base="1.3")
@@ -200,21 +195,13 @@ def tune() -> None:
     tune_app()
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
-
-
 def evaluate(argv: list[str] | None = None) -> None:
     """``stages-eval RUN_DIR``: re-evaluate a finished run and rewrite its ``eval.json``."""
     parser = argparse.ArgumentParser(prog="stages-eval", description=evaluate.__doc__)
     parser.add_argument("run_dir", type=Path, help="a run directory written by stages-train")
     parser.add_argument(
         "--episodes",
-        type=_positive_int,
-        default=None,
+        type=int,
         help="whole-task episodes from random starts (default: the run's eval.episodes; "
         "envs that enumerate their starts are evaluated from each one)",
     )
@@ -226,6 +213,8 @@ def evaluate(argv: list[str] | None = None) -> None:
         "directory of yours): its env is imported and called. Only for runs you made or checked",
     )
     args = parser.parse_args(argv)
+    if args.episodes is not None and args.episodes < 1:
+        parser.error(f"argument --episodes: must be a positive integer, got {args.episodes}")
     torch.set_num_threads(1)
     directory = RunDir(args.run_dir)
     with contextlib.ExitStack() as stack:
@@ -244,10 +233,8 @@ def evaluate(argv: list[str] | None = None) -> None:
             result = evaluate_run(run.cfg, run.task, run.learners, args.run_dir, training=training)
             if directory.has_record():
                 directory.claim_new(before)
-        except RunDirError as err:
-            _exit("stages-eval", str(err))
-        except OSError as err:
-            _exit("stages-eval", _cannot_write(err, args.run_dir))
+        except (RunDirError, OSError) as err:
+            _exit("stages-eval", _reason(err, args.run_dir))
     print(format_summary(result, args.run_dir))
 
 

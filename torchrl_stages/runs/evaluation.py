@@ -27,9 +27,8 @@ def probe_task(task: StagedTask, learners: Sequence[Learner], seed: int) -> dict
     """Whole-task success rate of the current learners, plus the task's own probe metrics."""
     policy = StackedPolicy([learner.policy for learner in learners])
     episodes = int(task.stage_cfg(0).eval_episodes)
-    out = {
-        "success_rate": evaluate_task(task, policy, episodes, seed).stats.summary()["success_rate"]
-    }
+    stats = evaluate_task(task, policy, episodes, seed).stats.summary()
+    out = {"success_rate": stats["success_rate"]}
     extra = task_report(task.name)
     if extra is not None and extra.probe is not None:
         out.update(extra.probe(task, learners))
@@ -43,11 +42,7 @@ def evaluate_run(
     policy = StackedPolicy([learner.policy for learner in learners])
     seed = int(cfg.seed) + TASK_EVAL_OFFSET
     evaluation = evaluate_task(task, policy, int(cfg.eval.episodes), seed, interruptible=True)
-    result: dict[str, Any] = {
-        "task": cfg.task.name,
-        **evaluation.summary(),
-        "training": training,
-    }
+    result: dict[str, Any] = {"task": cfg.task.name, **evaluation.summary(), "training": training}
     report = task_report(str(cfg.task.name))
     if report is not None and report.report is not None:
         result["task_metrics"] = report.report(

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import logging
 from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
@@ -14,18 +13,16 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError, check
-from torchrl_stages.failures import DivergenceError, one_line
 from torchrl_stages.learners import make_learner
-from torchrl_stages.loggers import Observer, StopRun
-from torchrl_stages.preemption import Interrupted, handle_signals
+from torchrl_stages.loggers import Observer
+from torchrl_stages.preemption import handle_signals
 from torchrl_stages.runs.directory import drop_checkpoints, refuse_links, scope_checkpoints
 from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
 from torchrl_stages.runs.seed_run import SeedRun, build_task, compile_mode
 from torchrl_stages.schedules import SCHEDULES, get_schedule
+from torchrl_stages.sweeps import summarize_or_say
 from torchrl_stages.task import StagedTask
 from torchrl_stages.threads import hold_threads
-
-log = logging.getLogger("torchrl_stages")
 
 
 def validate_seeds(cfg: DictConfig) -> list[int]:
@@ -68,21 +65,19 @@ def check_stackable(task: StagedTask, num_seeds: int) -> None:
             ) from None
 
 
-def _for_seed(cfg: DictConfig, seed: int) -> DictConfig:
+def _for_seed(
+    cfg: DictConfig, seed: int, files: dict[str, Any] | None = None
+) -> tuple[DictConfig, dict[str, Any] | None]:
+    """Seed ``seed``'s config and ``.hydra/`` files (the sweep summary groups seeds by their
+    ``seed=`` override)."""
     out = copy.deepcopy(cfg)
     with open_dict(out):
         out.seed, out.seeds = seed, None
-    return out
-
-
-def _hydra_files_for(files: dict[str, Any], cfg: DictConfig, seed: int) -> dict[str, Any]:
-    """Seed ``seed``'s ``.hydra/`` files: the sweep summary groups seeds by ``seed=`` overrides."""
-    out = dict(files)
-    out["config.yaml"] = cfg
+    if not files:
+        return out, files
     overrides = [str(o) for o in files.get("overrides.yaml", [])]
     kept = [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in ("seeds", "seed")]
-    out["overrides.yaml"] = [*kept, f"seed={seed}"]
-    return out
+    return out, {**files, "config.yaml": out, "overrides.yaml": [*kept, f"seed={seed}"]}
 
 
 class Experiment:
@@ -119,13 +114,12 @@ class Experiment:
             self.runs.append(SeedRun(cfg, self.run_dir, hydra_files, observers))
             return
         # before any directory is made: the config, and whether it stacks
-        check_stackable(build_task(_for_seed(cfg, self.seeds[0])), len(self.seeds))
+        check_stackable(build_task(_for_seed(cfg, self.seeds[0])[0]), len(self.seeds))
         try:
             for seed in self.seeds:
-                seed_cfg = _for_seed(cfg, seed)
-                files = hydra_files and _hydra_files_for(hydra_files, seed_cfg, seed)
+                seed_cfg, files = _for_seed(cfg, seed, hydra_files)
                 path = seed_dir(self.run_dir, seed)
-                self.runs.append(SeedRun(seed_cfg, path, files, observers))
+                self.runs.append(SeedRun(seed_cfg, path, files, observers, seed=seed))
         except BaseException:
             self.close()
             raise
@@ -142,27 +136,20 @@ class Experiment:
                 try:
                     results = self._run()
                 except Exception as err:  # recorded before a launcher's handler runs
-                    outcome, reason, extra = _outcome(err)
                     for run in self.runs:
-                        run.ended(outcome, reason, **extra)
+                        run.ended(err)
                     raise
         finally:
             self.close()
         if self.stacked:  # best effort: the runs are written
-            from torchrl_stages.sweeps import summarize_sweep
-
-            try:
-                summarize_sweep(self.run_dir, plots=bool(cfg.eval.get("plots", True)))
-            except Exception as err:  # noqa: BLE001 - say why, go on
-                log.warning("the summary of %s was not written: %s", self.run_dir, one_line(err))
+            failure = f"the summary of {self.run_dir} was not written"
+            summarize_or_say(self.run_dir, bool(cfg.eval.get("plots", True)), failure)
         return results
 
     def _run(self) -> list[dict[str, Any]]:
         runs, cfg = self.runs, self.runs[0].cfg
-        for seed, run in zip(self.seeds, runs, strict=True):
+        for run in runs:
             run.start()
-            if self.stacked:
-                run.seed = seed  # its log lines name it
         # several seeds' stacked networks train uncompiled: compiling them is unmeasured
         compile = "off" if self.stacked else compile_mode(cfg)
         if compile != "off":
@@ -174,9 +161,9 @@ class Experiment:
             self.seeds,
             keepers=runs,
             logs=[run.log for run in runs],
-            checkpoints=self._checkpoints() if self.stacked else runs[0].checkpoints,
+            checkpoints=self._checkpoints(),
             progress=bool(cfg.progress),
-            probe=runs[0].probe() if len(runs) == 1 else None,
+            probe=runs[0].probe(),  # None for several seeds: validate_seeds refuses eval.probe
             compile=compile,
         )
         if self.stacked:
@@ -186,8 +173,10 @@ class Experiment:
         return [run.finish(one) for run, one in zip(runs, trained, strict=True)]
 
     def _checkpoints(self) -> Callable[[int | str], StageCheckpoints]:
-        """Several seeds' checkpoints per scope: kept only when every seed resumes."""
+        """One seed's checkpoints; several seeds' per scope, kept only when every seed resumes."""
         root, first = self.checkpoint_root, self.runs[0]
+        if not self.stacked:
+            return partial(first.run_dir.checkpoints, cfg=first.cfg)
         refuse_links([root])
         if not all(run.resuming for run in self.runs):
             drop_checkpoints(root, every=True)
@@ -195,14 +184,3 @@ class Experiment:
         for stage in first.restarted:  # resumed stages whose config changed
             at(first.schedule.checkpoint_scope(stage)).clear()
         return at
-
-
-def _outcome(err: Exception) -> tuple[str, str, dict[str, str]]:
-    """How ``status.json`` records a launch that ``err`` ended."""
-    if isinstance(err, Interrupted):
-        return "interrupted", str(err), {"signal": err.signal_name}
-    if isinstance(err, StopRun):  # an observer ended it (stages-tune: a pruned trial)
-        return err.status, str(err), {}
-    if isinstance(err, DivergenceError):
-        return "diverged", str(err), {}
-    return "failed", one_line(err), {}

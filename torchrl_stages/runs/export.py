@@ -102,8 +102,6 @@ def export_policy(
     path: str | Path,
     example: TensorDictBase | None = None,
     *,
-    in_keys: Sequence[NestedKey] | None = None,
-    out_keys: Sequence[NestedKey] | None = None,
     trust: bool = False,
 ) -> Path:
     """Exports the greedy policy of a run directory (or a :class:`StackedPolicy`) to ``path``;
@@ -118,15 +116,12 @@ def export_policy(
         if example is None:
             raise ValueError("exporting a policy needs example=, a TensorDict of the env's")
         policy = source
-        if out_keys is None:
-            out_keys = [k for k in policy.out_keys if _last(k) == "action"] or policy.out_keys
+        out_keys = [k for k in policy.out_keys if _last(k) == "action"] or policy.out_keys
     else:
         run = load_run(source, trust=trust)
         policy = run_policy(run)
-        if out_keys is None:
-            out_keys = list(
-                dict.fromkeys(run.task.specs(k).action_key for k in range(len(run.learners)))
-            )
+        actions = (run.task.specs(k).action_key for k in range(len(run.learners)))
+        out_keys = list(dict.fromkeys(actions))
         if example is None:
             env = run.task.base_env(2)
             try:
@@ -138,7 +133,7 @@ def export_policy(
             f"example has batch size {list(example.batch_size)}. Fix: pass a TensorDict with "
             "one batch dimension of at least 2 (e.g. the reset of an env with batch_size=(2,))"
         )
-    keys = list(in_keys) if in_keys is not None else input_keys(policy, example)
+    keys = input_keys(policy, example)
     inputs = tuple(example.get(k) for k in keys)
     module = TensorPolicy(policy, keys, out_keys).eval()
     batch = torch.export.Dim("batch", min=1)

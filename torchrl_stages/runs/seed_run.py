@@ -15,7 +15,6 @@ import torch
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig, open_dict
 
-from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import (
     ConfigError,
     apply_all_stages,
@@ -24,11 +23,12 @@ from torchrl_stages.config import (
 )
 from torchrl_stages.config.checks import validate_task
 from torchrl_stages.config.env_checks import check_env_keys
+from torchrl_stages.failures import DivergenceError, one_line
 from torchrl_stages.learners import ALGORITHMS, Learner, learner_class
-from torchrl_stages.loggers import Observer, make_logger
+from torchrl_stages.loggers import Observer, StopRun, make_logger
 from torchrl_stages.metric_names import FINAL, TASK, metric_name
 from torchrl_stages.metrics import MetricsLog
-from torchrl_stages.preemption import stop_if_asked
+from torchrl_stages.preemption import Interrupted, stop_if_asked
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.evaluation import evaluate_run, probe_task
 from torchrl_stages.runs.layout import METRICS_FILE, STATUS_FILE, RunDirError
@@ -98,10 +98,8 @@ def build_task(cfg: DictConfig, schedule: Schedule | None = None) -> StagedTask:
 
 
 class SeedRun:
-    """One seed's run of ``cfg`` in ``run_dir``: the
-    :class:`~torchrl_stages.schedules.StageKeeper` its schedule trains into. Config and
-    directory are checked before anything is written; the directory is locked until
-    :meth:`close`.
+    """One seed's run of ``cfg`` in ``run_dir``, the :class:`~torchrl_stages.schedules.StageKeeper`
+    its schedule trains into: checked before anything is written, locked until :meth:`close`.
 
     Examples:
         >>> import tempfile
@@ -123,6 +121,7 @@ class SeedRun:
         run_dir: str | Path,
         hydra_files: dict[str, Any] | None = None,
         observers: Sequence[Observer] = (),
+        seed: int | None = None,
     ) -> None:
         cfg, self.schedule = checked_config(cfg)
         self.cfg, self.run_dir = cfg, RunDir(run_dir)
@@ -136,7 +135,7 @@ class SeedRun:
         self.restarted: dict[int, list[str]] = {}  # resumed stages whose config changed
         self.reuse: StageReuse | None = None
         self.log = MetricsLog(None)
-        self.seed: int | None = None  # of a launch of several seeds: its log lines name it
+        self.seed = seed  # of a launch of several seeds: its log lines name it
         self._lock = self.run_dir.lock()
         try:
             self.resuming = self._check_run_dir()
@@ -192,8 +191,15 @@ class SeedRun:
             )
         return True
 
-    def ended(self, outcome: str, reason: str, **extra: Any) -> None:
-        """Records how a launch that did not finish ended (best effort: the disk may be why)."""
+    def ended(self, err: Exception) -> None:
+        """Records how ``err`` ended the launch in ``status.json`` (best effort, as disks fail)."""
+        outcome, reason, extra = "failed", one_line(err), {}
+        if isinstance(err, Interrupted):
+            outcome, reason, extra = "interrupted", str(err), {"signal": err.signal_name}
+        elif isinstance(err, StopRun):  # an observer ended it (stages-tune: a pruned trial)
+            outcome, reason = err.status, str(err)
+        elif isinstance(err, DivergenceError):
+            outcome, reason = "diverged", str(err)
         with contextlib.suppress(OSError):
             self.run_dir.update_launch(outcome)
             self.run_dir.write_status(outcome, reason, **extra)
@@ -300,9 +306,6 @@ class SeedRun:
                 f"task.stages.{key}.frames",
                 logging.WARNING,
             )
-
-    def checkpoints(self, scope: int | str) -> StageCheckpoints:
-        return self.run_dir.checkpoints(scope, self.cfg)
 
     def keep(self, key: str, value: Any) -> None:
         self.run_dir.record[key] = value
