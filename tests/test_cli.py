@@ -13,6 +13,7 @@ import csv
 import json
 import os
 import shutil
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +23,7 @@ import torch
 import yaml
 from helpers import Launched, assert_figure, console_script
 
-from torchrl_stages import StackedPolicy, StagedTask, load_policy, load_run
+from torchrl_stages import StackedPolicy, StagedTask, cli, load_policy, load_run
 from torchrl_stages.cli import evaluate as stages_eval_main
 from torchrl_stages.envs.gridworld.report import greedy_path
 
@@ -138,6 +139,11 @@ BAD_OVERRIDES = {
     "added_unknown_key": ("+task.stages.s0.lrr=1", "Fix: did you mean task.stages.s0.lr?"),
     "env_id": ("task.env.env_id=CartPole-v1", "Fix: did you mean task=gym?"),
     "added_env_id": ("+task.env.env_id=CartPole-v1", "Fix: did you mean task=gym?"),
+    # refused by Hydra itself, said as the package's own refusals are
+    "root_key": ("nokey=1", "Key 'nokey' not in 'TrainConfig'"),
+    "added_root_key": ("+eval.episode=3", "Fix: did you mean eval.episodes?"),
+    "type": ("task.stages.s0.lr=abc", "'abc' of type 'str' could not be converted to Float"),
+    "group_option": ("task=nope", "Available options in 'task': cargo, custom, gridworld"),
 }
 # a refused run's directory: one it makes (with its parents), one of the user's
 REFUSED_DIRS = {"new": "new/date/time", "existing": "existing"}
@@ -453,6 +459,16 @@ def test_invalid_config_fails_before_training(bad_runs, name):
     lines = [line for line in result.stderr.splitlines() if line.startswith("stages-train:")]
     assert len(lines) == 1 and key in lines[0], result.stderr[-2000:]
     assert "invalid config" in lines[0] and "Fix:" in lines[0]
+
+
+def test_a_run_directory_hydra_cannot_make_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
+    (tmp_path / "file").write_text("")
+    monkeypatch.setattr(sys, "argv", ["stages-train", f"hydra.run.dir={tmp_path / 'file'}"])
+    with pytest.raises(SystemExit) as exited:
+        cli.train()
+    err = capsys.readouterr().err
+    assert exited.value.code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"stages-train: cannot write {tmp_path / 'file'}") and "Fix:" in err
 
 
 def test_a_refused_run_leaves_the_directories_it_made_and_keeps_the_users(commands, refused):

@@ -7,10 +7,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import os
 import re
 import sys
 import time
 import traceback
+from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 from typing import Any, NoReturn
@@ -19,8 +21,10 @@ import hydra
 import torch
 from hydra._internal.utils import get_args_parser
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_stages.callbacks import RunDirCallback
 from torchrl_stages.checkpoint import CheckpointDamagedError
@@ -129,18 +133,56 @@ def _reason(err: Exception, run_dir: Path) -> str:
     )
 
 
+@contextlib.contextmanager
+def hydra_refusals(prog: str) -> Iterator[None]:
+    """Hydra's own refusals (an unknown key or group option, a value of the wrong type, an
+    override it cannot parse, a directory it cannot make) in one line with exit 2, as the
+    package's own; ``HYDRA_FULL_ERROR=1`` keeps Hydra's report."""
+    if os.environ.get("HYDRA_FULL_ERROR") == "1":
+        yield
+        return
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises what it would print
+    try:
+        yield
+    except (HydraException, OmegaConfBaseException) as err:
+        fix = f"Fix: `{prog} --cfg job` lists the keys and values, `{prog} --help` the options"
+        _exit(prog, f"invalid config: {_hydra_message(err)}. {fix}")
+    except OSError as err:  # Hydra makes the run directory before the job starts
+        _exit(prog, _reason(err, Path(err.filename or ".")))
+    except JobFailed as err:  # a multirun's failed job, said once it ended (its status.json)
+        _exit(prog, str(err), EXIT_FAILED)
+    finally:
+        del os.environ["HYDRA_FULL_ERROR"]
+
+
+def _hydra_message(err: Exception) -> str:
+    """Hydra's message (and its OmegaConf cause) on one line, without the search path."""
+    text = str(err).split("Config search path")[0]
+    if isinstance(err.__cause__, OmegaConfBaseException):
+        text += "\n" + str(err.__cause__).splitlines()[0]
+    parts: list[str] = []
+    for raw in text.splitlines():
+        line = raw.strip().rstrip(".")
+        if raw.startswith("\t") and parts:  # one of a listing's entries
+            parts[-1] += (" " if parts[-1].endswith(":") else ", ") + line
+        elif line:
+            parts.append(line)
+    return "; ".join(parts)
+
+
 def train() -> None:
     """``stages-train [OVERRIDES...]``: train a task (Hydra CLI)."""
     register_configs(ALGORITHMS)
-    if get_args_parser().parse_known_args(sys.argv[1:])[0].cfg not in ("job", "all"):
-        _train_app()
-        return
-    shown = io.StringIO()  # --cfg job|all: Hydra's YAML, with the stages of a template task
-    try:
-        with contextlib.redirect_stdout(shown):
+    with hydra_refusals("stages-train"):
+        if get_args_parser().parse_known_args(sys.argv[1:])[0].cfg not in ("job", "all"):
             _train_app()
-    finally:
-        sys.stdout.write(with_template_stages(shown.getvalue()))
+            return
+        shown = io.StringIO()  # --cfg job|all: Hydra's YAML, with the stages of a template task
+        try:
+            with contextlib.redirect_stdout(shown):
+                _train_app()
+        finally:
+            sys.stdout.write(with_template_stages(shown.getvalue()))
 
 
 def with_template_stages(text: str) -> str:
@@ -192,7 +234,8 @@ def tune_app(cfg: DictConfig) -> None:
 def tune() -> None:
     """``stages-tune [OVERRIDES...]``: an Optuna study of ``stages-train`` runs (Hydra CLI)."""
     register_configs(ALGORITHMS)
-    tune_app()
+    with hydra_refusals("stages-tune"):
+        tune_app()
 
 
 def evaluate(argv: list[str] | None = None) -> None:

@@ -105,7 +105,15 @@ free = functools.partial(bound, free=True)  # any value of the field's type (a n
 
 
 def check_bounds(node: Any, schema: type, prefix: str) -> None:
-    """Refuses every key of ``node`` (at ``prefix``) outside its ``schema`` field's bound."""
+    """Refuses every key of ``node`` (at ``prefix``) outside its ``schema`` field's bound, and
+    every key the schema does not have (Hydra lets ``+key=value`` add one)."""
+    known = schema_keys(schema)
+    for name in node:
+        if name not in known:  # the value as given (an interpolation is not resolved)
+            key, close = f"{prefix}.{name}" if prefix else name, nearest(name, known)
+            fix = f"did you mean {key.removesuffix(name)}{close}?" if close else f"drop {key}"
+            value = OmegaConf.to_container(node, resolve=False)[name]
+            check(False, key, value, "not a key of the config", fix)
     for f in fields(schema):
         if f.name not in node or OmegaConf.is_missing(node, f.name):
             continue
