@@ -104,12 +104,12 @@ torch_device = functools.partial(
 free = functools.partial(bound, free=True)  # any value of the field's type (a name, a mapping)
 
 
-def check_bounds(node: Any, schema: type, prefix: str) -> None:
-    """Refuses every key of ``node`` (at ``prefix``) outside its ``schema`` field's bound, and
-    every key the schema does not have (Hydra lets ``+key=value`` add one)."""
+def check_bounds(node: Any, schema: type, prefix: str, closed: bool = False) -> None:
+    """Refuses every key of ``node`` (at ``prefix``) outside its ``schema`` field's bound; with
+    ``closed``, every key the schema does not have too (Hydra lets ``+key=value`` add one)."""
     known = schema_keys(schema)
     for name in node:
-        if name not in known:  # the value as given (an interpolation is not resolved)
+        if closed and name not in known:  # the value as given (an interpolation unresolved)
             key, close = f"{prefix}.{name}" if prefix else name, nearest(name, known)
             fix = f"did you mean {key.removesuffix(name)}{close}?" if close else f"drop {key}"
             value = OmegaConf.to_container(node, resolve=False)[name]
@@ -119,7 +119,7 @@ def check_bounds(node: Any, schema: type, prefix: str) -> None:
             continue
         key, value = f"{prefix}.{f.name}" if prefix else f.name, node[f.name]
         if is_dataclass(f.default_factory) and value is not None:
-            check_bounds(value, f.default_factory, key)
+            check_bounds(value, f.default_factory, key, closed)
         elif (bound := f.metadata.get("bound")) and (problem := bound.problem(value)):
             check(False, key, value, problem, bound.fix(key))
 

@@ -140,7 +140,7 @@ def validate_config(
             ok = not isinstance(value, float) or math.isfinite(value)
             check(ok, key, value, "must be a finite number", f"set {key} to a finite value")
     check_env_keys(cfg)
-    check_bounds(cfg, TuneAppConfig if "tune" in cfg else TrainConfig, "")
+    check_bounds(cfg, TuneAppConfig if "tune" in cfg else TrainConfig, "", closed=True)
     package = LOGGER_PACKAGES.get(cfg.logger.backend)
     check(
         package is None or importlib.util.find_spec(package) is not None,
