@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import os
 import shutil
 import sys
@@ -464,6 +465,10 @@ def test_invalid_config_fails_before_training(bad_runs, name):
 def test_a_run_directory_hydra_cannot_make_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
     (tmp_path / "file").write_text("")
     monkeypatch.setattr(sys, "argv", ["stages-train", f"hydra.run.dir={tmp_path / 'file'}"])
+    # Hydra points the root logger at this test's captured stdout, closed once it ends
+    root = logging.getLogger()
+    monkeypatch.setattr(root, "handlers", [])
+    monkeypatch.setattr(root, "level", root.level)
     with pytest.raises(SystemExit) as exited:
         cli.train()
     err = capsys.readouterr().err
