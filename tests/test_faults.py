@@ -453,17 +453,21 @@ def test_a_signal_checkpoints_then_hands_over_to_the_handler_before(finished, tm
 
 
 # ---------------------------------------------------------------------- hostile files, continued
-@pytest.mark.parametrize("escape", ["", "\\"])
-def test_an_interpolation_that_would_build_a_target_is_refused(copy, tmp_path, escape):
+@pytest.mark.parametrize("value", ["oc.create", "escaped", "oc.env"])
+def test_an_interpolation_in_a_run_s_config_is_refused_unresolved(
+    copy, tmp_path, monkeypatch, value
+):
+    monkeypatch.setenv("SECRET", "s3cr3t")
     marker = tmp_path / "ran"
+    create = f"${{oc.create:{{_target_: os.makedirs, name: {marker}}}}}"
+    interpolation = {"oc.create": create, "escaped": "\\" + create, "oc.env": "${oc.env:SECRET}"}
     text = (copy / "config.yaml").read_text()
-    create = f"{escape}${{oc.create:{{_target_: os.makedirs, name: {marker}}}}}"
-    text = text.replace("size: 10", f"size: '{create}'", 1)
+    text = text.replace("size: 10", f"size: '{interpolation[value]}'", 1)
     (copy / "config.yaml").write_text(text)
     (copy / ".stages" / "run.json").unlink()
-    with pytest.raises(RunDirError, match="interpolation"):
+    with pytest.raises(RunDirError, match="size holds an interpolation") as refused:
         load_run(copy)
-    assert not marker.exists()
+    assert not marker.exists() and "s3cr3t" not in str(refused.value)
 
 
 def test_a_linked_checkpoints_directory_is_refused_and_nothing_is_deleted(copy, tmp_path):

@@ -254,7 +254,7 @@ class RunDir:
             loaded = OmegaConf.load(path)
             if not isinstance(loaded, DictConfig):
                 raise ValueError("it is not a mapping")
-            container = OmegaConf.to_container(loaded, resolve=True)
+            container = OmegaConf.to_container(loaded)  # unresolved: nothing it names runs
             for key, text in _interpolations(container):
                 raise ValueError(f"{key} holds an interpolation, {text!r}")
             cfg = OmegaConf.create({**ADDED_KEYS, **container})
