@@ -399,6 +399,7 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_one_before(runs):
     assert result.returncode == 0, result.stderr[-3000:]
     logs = result.stdout + result.stderr
     assert "is damaged" in logs and storage.name in logs
+    assert logs.count(f"checkpoint {checkpoints[-1]} is damaged") == 1, logs  # said once
     assert f"resuming from the checkpoint before it: {checkpoints[-2]}" in logs
     assert_same_run(reference, damaged)
 

@@ -139,6 +139,7 @@ class StageCheckpoints:
         self.on_save = on_save
         self._next = self.every
         self._verified: Path | None = None
+        self._damaged: dict[Path, DamagedFileError] = {}  # each reported once
 
     def due(self, frames: int) -> bool:
         return self.every > 0 and frames >= self._next
@@ -165,25 +166,29 @@ class StageCheckpoints:
         return path
 
     def latest(self) -> Path | None:
-        """The newest whole checkpoint, if any (damaged ones skipped with a warning)."""
+        """The newest whole checkpoint, if any (damaged ones skipped, each with one warning)."""
         found = self.directory.iterdir() if self.directory.is_dir() else ()
         # every entry of the rotation's form, readable or not
         candidates = [p for p in found if re.fullmatch(rf"{PREFIX}-\d+", p.name)]
         candidates.sort(key=_frames, reverse=True)
-        if not candidates or candidates[0] == self._verified:
-            return next(iter(candidates), None)
-        damaged = []
+        damaged: list[DamagedFileError] = []
         for path in candidates:
-            try:
-                verify_checkpoint(path)
-            except DamagedFileError as err:
-                damaged.append(err)
-                log.warning("checkpoint %s is damaged (%s); it is not used", path, err)
-                continue
-            if damaged:
-                log.warning("resuming from the checkpoint before it: %s", path)
-            self._verified = path
-            return path
+            err = self._damaged.get(path)
+            if err is None and path != self._verified:
+                try:
+                    verify_checkpoint(path)
+                except DamagedFileError as found_err:
+                    err = self._damaged[path] = found_err
+                    log.warning("checkpoint %s is damaged (%s); it is not used", path, err)
+                else:
+                    if damaged:
+                        log.warning("resuming from the checkpoint before it: %s", path)
+                    self._verified = path
+            if err is None:
+                return path
+            damaged.append(err)
+        if not damaged:
+            return None
         err = damaged[0]
         raise CheckpointDamagedError(
             f"{err.path} is damaged ({err.reason}), and no other checkpoint of "
@@ -221,7 +226,7 @@ class StageCheckpoints:
 
     def clear(self) -> None:
         shutil.rmtree(self.directory, ignore_errors=True)
-        self._verified = None
+        self._verified, self._damaged = None, {}
 
 
 def _frames(path: Path) -> int:
