@@ -452,6 +452,15 @@ def test_a_signal_checkpoints_then_hands_over_to_the_handler_before(finished, tm
         assert all(torch.equal(a["model"][n], b["model"][n]) for n in a["model"])
 
 
+def test_a_deleted_stage_file_retrains_it_and_the_stages_after_it_keeping_every_row(copy, caplog):
+    rows = (copy / "metrics.csv").read_text()
+    (copy / "stage_1.pt").unlink()  # stage 0 was trained against it: it trains again too
+    with caplog.at_level("INFO", logger="torchrl_stages"):
+        train(copy, "resume=true")
+    assert "finished earlier" not in caplog.text
+    assert (copy / "metrics.csv").read_text() == rows  # each row once, in the order written
+
+
 # ---------------------------------------------------------------------- hostile files, continued
 @pytest.mark.parametrize("value", ["oc.create", "escaped", "oc.env"])
 def test_an_interpolation_in_a_run_s_config_is_refused_unresolved(

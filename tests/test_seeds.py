@@ -369,6 +369,20 @@ def test_stages_train_seeds_writes_one_ordinary_run_per_seed(tmp_path):
     assert again.returncode == 0, again.stderr[-2000:]
     assert (again.stdout + again.stderr).count("finished earlier, loaded") == 4
     assert "seed 3: stage 0 (s0): finished earlier, loaded" in again.stdout
+    # a damaged stage file: its fix, followed as printed, retrains that stage and those trained
+    # after it for every seed, so that no seed keeps a stage trained against another stage 1
+    damaged = run_dir / "seed_3" / "stage_1.pt"
+    damaged.write_bytes(damaged.read_bytes()[:100])
+    refused = run_cli([*argv, "resume=true"], tmp_path)
+    assert refused.returncode == 2, refused.stderr[-2000:]
+    fix = f"delete it and rerun the same stages-train command with hydra.run.dir={run_dir} "
+    assert f"{damaged} is damaged" in refused.stderr and fix in refused.stderr
+    damaged.unlink()
+    repaired = run_cli([*argv, "resume=true"], tmp_path)
+    assert repaired.returncode == 0, repaired.stderr[-2000:]
+    assert "stage 1 is finished for some seeds but not for seeds [3]" in repaired.stdout
+    for seed in (0, 3):
+        assert all(f"seed {seed}: stage {k} (s{k}, dqn): " in repaired.stdout for k in (0, 1))
     # a learner that does not stack (the user's own): refused before anything is trained or
     # written
     other = tmp_path / "other"

@@ -110,8 +110,9 @@ class RunDir:
         (False, 'stage_3.pt')
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, launch: str | Path | None = None) -> None:
         self.path = Path(path)
+        self.launch = Path(launch or path)  # the hydra.run.dir whose stages-train writes it
         self.config_file = self.path / CONFIG_FILE
         self.record_file = self.path / LOCK_DIR / RECORD_FILE
         self._launch_start: float | None = None
@@ -281,8 +282,8 @@ class RunDir:
         if not path.is_file():
             return None
         fix = (
-            f"delete it and rerun the same stages-train command with hydra.run.dir={self.path} "
-            f"resume=true to retrain stage {stage}"
+            f"delete it and rerun the same stages-train command with hydra.run.dir={self.launch} "
+            f"resume=true to retrain stage {stage} and the stages trained after it"
         )
         self._verify(path, fix)
         try:

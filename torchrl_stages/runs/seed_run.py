@@ -124,7 +124,8 @@ class SeedRun:
         seed: int | None = None,
     ) -> None:
         cfg, self.schedule = checked_config(cfg)
-        self.cfg, self.run_dir = cfg, RunDir(run_dir)
+        launch = None if seed is None else Path(run_dir).parent  # several seeds' launch
+        self.cfg, self.run_dir = cfg, RunDir(run_dir, launch)
         self.hydra_files, self.observers = hydra_files, observers
         self.resume, self.overwrite = bool(cfg.get("resume")), bool(cfg.get("overwrite"))
         if self.resume and self.overwrite:

@@ -121,7 +121,7 @@ def train_stage(
         cfg,
         lambda copies: task.stage_env(stage, int(cfg.num_envs), next_value, copies=copies),
         lambda copies: task.stage_eval_env(stage, next_value, copies=copies),
-        group or SeedGroup(BackwardSchedule.name, list(seeds), **kwargs),
+        group or SeedGroup(list(seeds), **kwargs),
         on_evaluate=on_evaluate,
         name=task.stage_names[stage],
         checkpoints=checkpoints,

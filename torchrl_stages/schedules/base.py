@@ -3,6 +3,7 @@ and what it returns (:class:`Trained`)."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol
@@ -19,6 +20,8 @@ from torchrl_stages.task import StagedTask
 #: ``probe(learners, frames)`` (``eval.probe``): the whole task followed at the evaluations of
 #: the stage that holds its starts, with the frames so far over all stages
 Probe = Callable[[list[Learner], int], None]
+
+log = logging.getLogger(__name__)
 
 
 class StageKeeper(Protocol):
@@ -61,7 +64,6 @@ class SeedGroup:
     """The seeds one :meth:`Schedule.train` call trains together, each one's keeper and log, the
     checkpoints of a loop scope (one state for all the seeds), and how the loops run."""
 
-    schedule: str
     seeds: list[int]
     keepers: Sequence[StageKeeper | None] | None = None
     logs: Sequence[MetricsLog] | None = None
@@ -69,23 +71,24 @@ class SeedGroup:
     progress: bool = False
     probe: Probe | None = None
     compile: str = "off"
+    trained: bool = field(default=False, init=False)  # whether a stage trained in this launch
 
     def __post_init__(self) -> None:
         self.keepers = list(self.keepers or [None] * len(self.seeds))
 
     def finished(self, stage: int) -> list[tuple[Learner, StageResult]] | None:
-        """Each seed's finished ``stage`` when every keeper has it, ``None`` when none has."""
+        """Each seed's finished ``stage`` when every keeper has it, else ``None`` (a stage
+        finished for some seeds only is trained again for all of them)."""
         done = [keeper.finished(stage) if keeper is not None else None for keeper in self.keepers]
-        if all(d is None for d in done):
-            return None
         missing = [s for s, d in zip(self.seeds, done, strict=True) if d is None]
-        if missing:
-            raise RuntimeError(
-                f"stage {stage}: finished for some seeds but not for seeds {missing}; Fix: resume "
-                f"those seeds' run directories one by one (stages-train schedule={self.schedule} "
-                "seed=<s> resume=true hydra.run.dir=<its directory>)"
+        if missing and len(missing) < len(done):
+            log.warning(
+                "stage %d is finished for some seeds but not for seeds %s: it trains again for "
+                "every seed, and so do the stages trained after it",
+                stage,
+                missing,
             )
-        return done
+        return None if missing else done
 
     def begin(self, scope: int | str) -> StageCheckpoints | None:
         """The checkpoints of loop ``scope`` (none to go on from: each keeper starts it afresh)."""
@@ -102,9 +105,13 @@ class SeedGroup:
         train: Callable[..., list[tuple[Learner, StageResult]]],
     ) -> list[tuple[Learner, StageResult]]:
         """Each seed's ``stage``: finished earlier, else ``train(checkpoints=...)``, kept (its
-        checkpoints dropped)."""
-        done = self.finished(stage)
+        checkpoints dropped). Once a stage trains, every stage after it trains too: a stage
+        finished earlier was trained against the stages before it as they were then."""
+        done = None if self.trained else self.finished(stage)
         if done is None:
+            if self.trained and self.checkpoints is not None:
+                self.checkpoints(stage).clear()  # of an attempt against the earlier stages
+            self.trained = True
             checkpoints = self.begin(stage)
             done = train(checkpoints=checkpoints)
             for keeper, (learner, result) in zip(self.keepers, done, strict=True):
@@ -136,7 +143,7 @@ class Schedule:
 
     def train(self, task: StagedTask, seeds: Sequence[int] = (0,), **kwargs: Any) -> list[Trained]:
         """Trains what is left of ``task`` for every seed (``kwargs``: :class:`SeedGroup`'s)."""
-        return self.run(task, SeedGroup(self.name, list(seeds), **kwargs))
+        return self.run(task, SeedGroup(list(seeds), **kwargs))
 
     def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:
         """What each schedule implements: one :class:`Trained` per seed of ``group``."""
