@@ -26,7 +26,7 @@ from torchrl_stages.checkpoint import CheckpointDamagedError, StageCheckpoints
 from torchrl_stages.cli import evaluate
 from torchrl_stages.config import ConfigError, register_configs
 from torchrl_stages.failures import DivergenceError, EnvError
-from torchrl_stages.integrity import atomic_write
+from torchrl_stages.integrity import DamagedFileError, atomic_write
 from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.experiment import Experiment
@@ -459,6 +459,16 @@ def test_a_deleted_stage_file_retrains_it_and_the_stages_after_it_keeping_every_
         train(copy, "resume=true")
     assert "finished earlier" not in caplog.text
     assert (copy / "metrics.csv").read_text() == rows  # each row once, in the order written
+
+
+def test_a_metrics_file_cut_short_is_refused_on_resume_and_left_as_it_is(copy):
+    metrics = copy / "metrics.csv"
+    rows = metrics.read_bytes()
+    metrics.write_bytes(rows[: len(rows) // 2])  # cut mid-row: the rows of stage 0 are lost
+    cut = metrics.read_bytes()
+    with pytest.raises(DamagedFileError, match="metrics.csv: .* rows were lost. Fix: restore"):
+        train(copy, "resume=true")
+    assert metrics.read_bytes() == cut  # not padded with NUL bytes to its old length
 
 
 # ---------------------------------------------------------------------- hostile files, continued

@@ -39,6 +39,7 @@ from torchrl_stages.failures import (
     one_line,
 )
 from torchrl_stages.gym_env import SuccessKeyError
+from torchrl_stages.integrity import DamagedFileError
 from torchrl_stages.learners import ALGORITHMS
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.runs.directory import RunDir
@@ -108,7 +109,7 @@ def _train_app(cfg: DictConfig) -> float:
         _exit("stages-train", f"{err}; what it needs to continue is written. {fix}", err.exit_code)
     except DivergenceError as err:
         _fail(run_dir, str(err), EXIT_DIVERGED)
-    except (RunDirError, CheckpointDamagedError, OSError) as err:
+    except (RunDirError, CheckpointDamagedError, DamagedFileError, OSError) as err:
         _fail(run_dir, _reason(err, run_dir), EXIT_INVALID)
     except (EnvError, SuccessKeyError) as err:
         _fail(run_dir, str(err), EXIT_FAILED)

@@ -12,6 +12,8 @@ from omegaconf import DictConfig
 from torch import Tensor
 from torchrl.record.loggers import CSVLogger, Logger, get_logger
 
+from torchrl_stages.integrity import DamagedFileError
+
 METRICS_HEADER = ["name", "step", "value"]
 
 #: ``observer(metrics, step)`` sees each group of scalars logged together, once written; it
@@ -104,11 +106,21 @@ class RunLogger(Logger):
         return {name: f.stat().st_size for name, f in self._files().items() if f.is_file()}
 
     def rewind(self, position: dict[str, int]) -> None:
-        """Truncates the files to a :meth:`position` (files made after it are emptied)."""
-        for name, f in self._files().items():
-            if f.is_file():
-                with f.open("r+b") as handle:
-                    handle.truncate(position.get(name, 0))
+        """Truncates the files to a :meth:`position` (files made after it are emptied);
+        :class:`DamagedFileError` for one shorter than it was there (rows were lost)."""
+        files = {name: f for name, f in self._files().items() if f.is_file()}
+        for name, f in files.items():
+            size, written = f.stat().st_size, position.get(name, 0)
+            if size < written:
+                raise DamagedFileError(
+                    f,
+                    f"{size} bytes, where the run had written {written} by the point it resumes "
+                    "from: rows were lost. Fix: restore it from a copy of the run, or retrain "
+                    "with overwrite=true",
+                )
+        for name, f in files.items():
+            with f.open("r+b") as handle:
+                handle.truncate(position.get(name, 0))
         if self.metrics_file.stat().st_size == 0:
             self._append(METRICS_HEADER)
 
