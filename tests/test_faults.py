@@ -471,6 +471,20 @@ def test_a_metrics_file_cut_short_is_refused_on_resume_and_left_as_it_is(copy):
     assert metrics.read_bytes() == cut  # not padded with NUL bytes to its old length
 
 
+def test_stages_eval_holding_a_run_says_it_is_the_holder(copy, monkeypatch, capsys):
+    lock = copy / ".stages" / "lock"
+    lock.write_text("process 1 on elsewhere since 2020-01-01T00:00:00: stages-train")  # ended
+    seen = []
+
+    def evaluate_run(*args, **kwargs):
+        seen.append(lock.read_text())
+        raise OSError(errno.EIO, "stop here", str(copy))
+
+    monkeypatch.setattr("torchrl_stages.cli.evaluate_run", evaluate_run)
+    one_line_eval(copy, capsys)
+    assert seen and seen[0].startswith(f"process {os.getpid()} on "), seen
+
+
 # ---------------------------------------------------------------------- hostile files, continued
 @pytest.mark.parametrize("value", ["oc.create", "escaped", "oc.env"])
 def test_an_interpolation_in_a_run_s_config_is_refused_unresolved(
