@@ -223,6 +223,14 @@ def test_summary_without_finished_jobs(tmp_path):
     assert _aggregate(summary, "(defaults)").mean is None
 
 
+def test_a_job_whose_files_are_not_utf8_is_summarized_without_them(tmp_path, capsys):
+    job = make_job(tmp_path, "0", ["seed=0"], success=1.0, curve=[(128, 1.0)])
+    for name in (".hydra/overrides.yaml", "metrics.csv", "status.json"):
+        (job / name).write_bytes(b"- lr=\xff\xfe\n\0\0")
+    report([str(tmp_path)])
+    assert "(defaults): success 1.000" in capsys.readouterr().out
+
+
 def test_report_rejects_a_directory_without_jobs(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
         report([str(tmp_path)])

@@ -4,6 +4,7 @@ never pyplot: the user's backend is left alone)."""
 from __future__ import annotations
 
 import csv
+import io
 from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
@@ -30,14 +31,15 @@ Series = dict[tuple[str, str, str], list[tuple[float, float]]]  # (kind, scope, 
 
 
 def read_metrics(metrics_csv: str | Path) -> dict[str, list[tuple[float, float]]]:
-    """A ``metrics.csv``'s points (step, value) by metric name, rows without numbers left out."""
+    """A ``metrics.csv``'s points (step, value) by metric name, rows without numbers (or
+    damaged: bytes that are not UTF-8, NULs) left out."""
     out: dict[str, list[tuple[float, float]]] = defaultdict(list)
-    with open(metrics_csv, newline="") as handle:
-        for row in csv.DictReader(handle):
-            try:
-                out[row.get("name") or ""].append((float(row["step"]), float(row["value"])))
-            except (KeyError, TypeError, ValueError):
-                continue
+    text = Path(metrics_csv).read_text(errors="replace").replace("\0", "")
+    for row in csv.DictReader(io.StringIO(text, newline="")):
+        try:
+            out[row.get("name") or ""].append((float(row["step"]), float(row["value"])))
+        except (KeyError, TypeError, ValueError):
+            continue
     return out
 
 
