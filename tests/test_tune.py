@@ -234,3 +234,36 @@ def test_values_overrides_and_storage_as_written_on_the_command_line():
     assert storage_location("sqlite:///study.db", "/runs") == "sqlite:////runs/study.db"
     assert storage_location("study.log", "/runs") == "/runs/study.log"
     assert storage_location("postgresql://host/optuna", "/runs") == "postgresql://host/optuna"
+
+
+def _run_study(tmp_path: Path, *overrides: str) -> int:
+    overrides = [*STUDY, *overrides]
+    with hydra_config():
+        cfg = hydra.compose("tune", overrides=overrides)
+        compose = lambda o: hydra.compose("config", overrides=o)  # noqa: E731
+        return run_study(cfg, StudyContext(tmp_path / "study", tmp_path, overrides, compose))
+
+
+def test_a_storage_in_a_missing_directory_is_refused_before_anything_is_written(tmp_path):
+    with pytest.raises(
+        ConfigError, match="storage='sqlite:///missing/study.db': .*missing is not a directory"
+    ):
+        _run_study(tmp_path, "tune.storage=sqlite:///missing/study.db")
+    assert list(tmp_path.iterdir()) == []
+
+
+@needs_optuna
+def test_a_study_counts_only_its_own_trials(tmp_path, monkeypatch, capsys):
+    import optuna
+
+    from torchrl_stages.tune.study import TrialFailed
+
+    def failing_beside_another(trial, *args):  # another process finishes a trial meanwhile
+        other = optuna.load_study(study_name="lr", storage=f"sqlite:///{tmp_path / 'study.db'}")
+        other.add_trial(optuna.trial.create_trial(params={}, distributions={}, value=1.0))
+        raise TrialFailed("the env failed")
+
+    monkeypatch.setattr("torchrl_stages.tune.study._run_trial", failing_beside_another)
+    assert _run_study(tmp_path, "tune.n_trials=1") == 1  # every trial of this command failed
+    out = capsys.readouterr().out
+    assert "1 trials run here (0 finished, 0 pruned, 1 failed), 2 in the study" in out

@@ -188,7 +188,14 @@ def _load_study(cfg: DictConfig, location: str) -> Any:
 
     file = location if "://" not in location else _sqlite_file(location)
     if file is not None:
-        Path(file).parent.mkdir(parents=True, exist_ok=True)
+        folder = Path(file).parent
+        check(
+            folder.is_dir(),
+            "tune.storage",
+            cfg.tune.storage,
+            f"{folder} is not a directory",
+            "make that directory first, or name a file in one that exists",
+        )
     storage: Any = location  # an RDB URL
     if "://" not in location:  # a journal file
         storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(file))
@@ -258,11 +265,16 @@ def run_study(cfg: DictConfig, context: StudyContext) -> int:
             f"cannot open the study in tune.storage={tune.storage} ({one_line(err)}). Fix: "
             "check the URL (sqlite:///study.db), its database driver, or the journal file's path"
         ) from None
-    before = len(study.get_trials(deepcopy=False))
     context.study_dir.mkdir(parents=True, exist_ok=True)
+    mine: set[int] = set()  # another process may add trials to the same study meanwhile
+
+    def objective(trial: Any) -> float:
+        mine.add(trial.number)
+        return _run_trial(trial, cfg, space, base, context)
+
     try:
         study.optimize(
-            lambda trial: _run_trial(trial, cfg, space, base, context),
+            objective,
             n_trials=int(tune.n_trials),
             catch=(TrialFailed,),
         )
@@ -274,13 +286,14 @@ def run_study(cfg: DictConfig, context: StudyContext) -> int:
             print(f"Study summary: {summary.files['summary.md']}")
         best = _best(study, cfg, location)
         (context.study_dir / BEST_FILE).write_text(yaml.safe_dump(best, sort_keys=False))
-    states = [t.state for t in study.get_trials(deepcopy=False)[before:]]
+    trials = study.get_trials(deepcopy=False)
+    states = [t.state for t in trials if t.number in mine]
     state = optuna.trial.TrialState
     pruned, failed = states.count(state.PRUNED), states.count(state.FAIL)
     print(
         f"stages-tune: study {study.study_name}: {len(states)} trials run here "
         f"({len(states) - failed - pruned} finished, {pruned} pruned, {failed} failed), "
-        f"{before + len(states)} in the study"
+        f"{len(trials)} in the study"
     )
     if best["best"] is None:
         print("stages-tune: no trial of the study has finished yet")
