@@ -22,6 +22,8 @@ import torch
 from helpers import Launched
 from omegaconf import OmegaConf
 
+from torchrl_stages.integrity import write_checksums
+
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 TIMEOUT_S = 300
@@ -384,21 +386,26 @@ def test_a_second_process_in_the_same_directory_exits_2_naming_the_first(tmp_pat
 
 
 # ---------------------------------------------------------------------- damaged checkpoints
-def test_a_damaged_newest_checkpoint_falls_back_to_the_one_before(runs):
+@pytest.mark.parametrize("damage", ["truncated", "forged"])
+def test_a_damaged_newest_checkpoint_falls_back_to_the_one_before(runs, damage):
     root, reference, killed = runs
-    damaged = root / "damaged_checkpoint"
+    damaged = root / f"{damage}_checkpoint"
     shutil.copytree(killed, damaged)
     checkpoints = sorted((damaged / "checkpoints" / "stage_1").glob("frames-*"))
     assert len(checkpoints) >= 2
-    storage = max(
-        (p for p in checkpoints[-1].rglob("*.memmap") if "replay_buffer" in str(p)),
-        key=lambda p: p.stat().st_size,
-    )
-    storage.write_bytes(storage.read_bytes()[: storage.stat().st_size // 2])  # truncated
+    buffer = next((checkpoints[-1] / "components").glob("*replay_buffer"))
+    if damage == "truncated":  # its checksum tells
+        storage = max(buffer.rglob("*.memmap"), key=lambda p: p.stat().st_size)
+        storage.write_bytes(storage.read_bytes()[: storage.stat().st_size // 2])
+        why = storage.name
+    else:  # checksummed anew: it only fails to load
+        (buffer / "state.json").write_text('{"kind": "dict", "items": []}')
+        write_checksums(buffer)
+        why = "cannot be read back"
     result = run(damaged, "resume=true")
     assert result.returncode == 0, result.stderr[-3000:]
     logs = result.stdout + result.stderr
-    assert "is damaged" in logs and storage.name in logs
+    assert "is damaged" in logs and why in logs
     assert logs.count(f"checkpoint {checkpoints[-1]} is damaged") == 1, logs  # said once
     assert f"resuming from the checkpoint before it: {checkpoints[-2]}" in logs
     assert_same_run(reference, damaged)

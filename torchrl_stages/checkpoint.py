@@ -197,21 +197,36 @@ class StageCheckpoints:
 
     def load(self, path: Path, components: Mapping[str, Any]) -> Path:
         """Restores those of ``components`` that ``path`` holds, and the global generators."""
-        fix = (
-            f"delete {path} to resume from the checkpoint before it, or delete {self.directory} "
-            "to restart this stage"
-        )
         try:
-            if path != self._verified:
-                verify_checkpoint(path)
-                self._verified = path
+            self._read(path, components)
+        except DamagedFileError as err:
+            raise CheckpointDamagedError(
+                f"{err.path} is damaged ({err.reason}). Fix: delete {path} to resume from the "
+                f"checkpoint before it, or delete {self.directory} to restart this stage"
+            ) from err
+        return path
+
+    def load_latest(self, components: Mapping[str, Any]) -> Path | None:
+        """Loads the newest checkpoint that reads back into ``components`` (one that does not
+        is skipped as a damaged one is), if any."""
+        while (path := self.latest()) is not None:
+            try:
+                self._read(path, components)
+                return path
+            except DamagedFileError as err:
+                self._damaged[path] = err
+                log.warning("checkpoint %s is damaged (%s); it is not used", path, err)
+        return None
+
+    def _read(self, path: Path, components: Mapping[str, Any]) -> None:
+        """Loads ``path`` into ``components``; :class:`DamagedFileError` where it cannot."""
+        if path != self._verified:
+            verify_checkpoint(path)
+            self._verified = path
+        try:
             saved = Checkpoint.manifest(path)["components"]
             selected = {k: v for k, v in components.items() if k in saved}
             self._checkpoint(selected).load(path)
-        except DamagedFileError as err:
-            raise CheckpointDamagedError(
-                f"{err.path} is damaged ({err.reason}). Fix: {fix}"
-            ) from err
         except (CheckpointError, OSError, RuntimeError, ValueError, KeyError, TypeError) as err:
             if isinstance(err.__cause__, CheckpointFormatError):  # wrapped by torchrl
                 raise CheckpointDamagedError(
@@ -219,10 +234,9 @@ class StageCheckpoints:
                     f"kept another state ({err.__cause__}). Fix: delete {self.directory} to "
                     "restart this stage, or finish the run with the version that wrote it"
                 ) from err
-            why = f"{type(err).__name__}: {str(err)[:200]}"
-            raise CheckpointDamagedError(f"{path} cannot be read back ({why}). Fix: {fix}") from err
+            why = f"it cannot be read back: {type(err).__name__}: {str(err)[:200]}"
+            raise DamagedFileError(path, why) from err
         self._after(_frames(path))
-        return path
 
     def clear(self) -> None:
         shutil.rmtree(self.directory, ignore_errors=True)

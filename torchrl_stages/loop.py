@@ -224,11 +224,13 @@ class SeedLoop:
         self.seeds = list(seeds) if seeds is not None else list(range(n))
         self.progress, self.checkpoints = progress, checkpoints
 
-    def latest(self, counters: SavedCounters, where: str) -> str | None:
-        """The newest checkpoint, its ``counters`` loaded first (its form is checked there)."""
-        latest = self.checkpoints.latest() if self.checkpoints is not None else None
+    def latest(self, counters: SavedCounters, where: str, state: dict[str, Any]) -> str | None:
+        """The newest checkpoint that loads whole, loaded into ``counters`` (its form checked
+        first) and ``state`` (loaded again by :meth:`restore`, once the loop is built)."""
+        if self.checkpoints is None:
+            return None
+        latest = self.checkpoints.load_latest({"counters": counters, **state})
         if latest is not None:
-            self.checkpoints.load(latest, {"counters": counters})
             seeds = f", {self.n} seeds" if self.n > 1 else ""
             log.info("%s%s: resuming from %s", where, seeds, latest)
         return latest

@@ -159,7 +159,7 @@ class StageTrainer(SeedLoop):
             "replay_buffer": buffer,
         }
         where = f"stage {self.stage} ({self.name})"
-        latest = self.latest(LoopCounters(0), where)  # its counters' form checked first
+        latest = self.latest(LoopCounters(0), where, state)
         watch = Stopwatch()
         policy, rows = learner.exploration_policy, seed_rows(learner)
         loop = self.loop(

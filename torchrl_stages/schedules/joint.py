@@ -218,7 +218,7 @@ class JointTrainer(SeedLoop):
             "counters": counters,
             **{f"replay_buffer_{m}": b for m, b in enumerate(self.buffers)},
         }
-        latest = self.latest(counters, "joint")
+        latest = self.latest(counters, "joint", stateful)
         start = time.perf_counter() - counters.seconds
         watch = Stopwatch()
         for index in range(counters.phase, len(self.starts)):
