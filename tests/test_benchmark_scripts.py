@@ -11,6 +11,7 @@ from pathlib import Path
 import helpers
 import pytest
 from helpers import TINY_STAGE
+from omegaconf import OmegaConf
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 TINY = {**TINY_STAGE, "eval_every": 0}  # no stage evaluations: what is compared is reuse
@@ -35,6 +36,8 @@ def test_benchmark_gym_runs_the_guide_s_commands(tmp_path):
     rows = json.loads((tmp_path / "rows.json").read_text())
     assert [r["variant"] for r in rows] == ["discrete/dqn", "box/sac"]
     assert all(len(r["stage_frames"]) == 3 for r in rows)  # the env's three stages
+    box = OmegaConf.load(tmp_path / "box_sac_seed0" / "config.yaml").task.stages
+    assert [box[s].algo for s in ("s0", "s1", "s2")] == ["sac"] * 3  # the template's algo
     table = (tmp_path / "table.md").read_text()
     assert "benchmark_gym.py" in table and "machine speed" in table
 

@@ -38,11 +38,6 @@ from torchrl_stages.transforms import StageTransform
 TESTS = Path(__file__).resolve().parent
 TIMEOUT_S = 300
 LINE = ["task.env.env_id=line_env:LineWorld-v0", "task.env.stage_fn._target_=line_env.line_stage"]
-WAYPOINTS = [
-    "task.env.env_id=waypoints:Waypoints-v0",
-    "task.env.stage_fn._target_=waypoints.waypoint_stage",
-]
-SCRIPTS = TESTS.parent / "scripts"
 COMMANDS = {
     # no stage starts: the joint schedule from the task's own starts
     "joint": ["task=gym", "task.stage_starts=false", "schedule=joint", *LINE],
@@ -54,16 +49,6 @@ COMMANDS = {
         "task.env._target_=torchrl_stages.envs.GridWorldEnv",
         "+task.env.size=10",
         "+task.env.num_stages=2",
-    ],
-    # the README's 3-stage example (scripts/waypoints.py), the template's defaults: it learns
-    "waypoints": ["task=gym", *WAYPOINTS, "eval.episodes=32"],
-    # ... and with Box actions and SAC (a smoke budget: only that the path runs)
-    "waypoints_box": [
-        "task=gym",
-        *WAYPOINTS,
-        "+task.env.continuous=true",
-        "algo@task.stage_template=sac",
-        "experiment=smoke",
     ],
     # a success key the env does not report: stopped with the key and the fix
     "bad_success_key": ["task=gym", *LINE, "+task.env.pit=true", "task.env.success_key=is_succes"],
@@ -80,12 +65,10 @@ COMMANDS = {
 @pytest.fixture(scope="module")
 def cli(tmp_path_factory):
     root = tmp_path_factory.mktemp("byoe")
-    path = os.pathsep.join([str(TESTS), str(SCRIPTS), os.environ.get("PYTHONPATH", "")])
+    path = os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])
     launched = {}
     for name, args in COMMANDS.items():
-        argv = ["stages-train", *args]
-        if not name.startswith("waypoints"):
-            argv += ["experiment=smoke", "eval.episodes=8"]
+        argv = ["stages-train", *args, "experiment=smoke", "eval.episodes=8"]
         argv.append(f"hydra.run.dir={root / name}")
         launched[name] = Launched(argv, root, TIMEOUT_S, PYTHONPATH=path)
 
@@ -113,27 +96,6 @@ def test_gymnasium_env_trains_from_the_cli(cli, name):
     saved = OmegaConf.load(run_dir / "config.yaml")
     assert saved.task.env.stage_fn._target_ == "line_env.line_stage"
     assert_figure(run_dir / "learning_curves.png")
-
-
-@pytest.mark.e2e
-@pytest.mark.slow
-def test_a_three_stage_env_learns_with_the_templates_defaults(cli):
-    code, out, err, run_dir = cli("waypoints")
-    assert code == 0, (out + err)[-4000:]
-    result = json.loads((run_dir / "eval.json").read_text())
-    assert result["success_rate"] >= 0.9  # every stage stops early on its criterion
-    saved = OmegaConf.load(run_dir / "config.yaml")
-    assert list(saved.task.stages) == ["s0", "s1", "s2"]  # from the env's num_stages
-    assert [s["frames"] < 200_000 for s in result["training"]["stages"]] == [True] * 3
-
-
-@pytest.mark.e2e
-@pytest.mark.slow
-def test_the_box_action_example_runs_with_sac(cli):
-    code, out, err, run_dir = cli("waypoints_box")
-    assert code == 0, (out + err)[-4000:]
-    saved = OmegaConf.load(run_dir / "config.yaml")
-    assert [saved.task.stages[s].algo for s in ("s0", "s1", "s2")] == ["sac"] * 3
 
 
 def test_torchrl_env_of_ones_own_trains_from_the_cli(cli):
