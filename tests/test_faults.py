@@ -486,18 +486,21 @@ def test_stages_eval_holding_a_run_says_it_is_the_holder(copy, monkeypatch, caps
 
 
 # ---------------------------------------------------------------------- hostile files, continued
+@pytest.mark.parametrize("file", ["config.yaml", ".hydra/config.yaml"])
 @pytest.mark.parametrize("value", ["oc.create", "escaped", "oc.env"])
 def test_an_interpolation_in_a_run_s_config_is_refused_unresolved(
-    copy, tmp_path, monkeypatch, value
+    copy, tmp_path, monkeypatch, value, file
 ):
     monkeypatch.setenv("SECRET", "s3cr3t")
     marker = tmp_path / "ran"
     create = f"${{oc.create:{{_target_: os.makedirs, name: {marker}}}}}"
     interpolation = {"oc.create": create, "escaped": "\\" + create, "oc.env": "${oc.env:SECRET}"}
-    text = (copy / "config.yaml").read_text()
-    text = text.replace("size: 10", f"size: '{interpolation[value]}'", 1)
-    (copy / "config.yaml").write_text(text)
+    text = (copy / file).read_text()
+    assert "size: 10" in text
+    (copy / file).write_text(text.replace("size: 10", f"size: '{interpolation[value]}'", 1))
     (copy / ".stages" / "run.json").unlink()
+    if file != "config.yaml":  # read in its place, references to other keys and all
+        (copy / "config.yaml").unlink()
     with pytest.raises(RunDirError, match="size holds an interpolation") as refused:
         load_run(copy)
     assert not marker.exists() and "s3cr3t" not in str(refused.value)

@@ -255,9 +255,10 @@ class RunDir:
             loaded = OmegaConf.load(path)
             if not isinstance(loaded, DictConfig):
                 raise ValueError("it is not a mapping")
-            container = OmegaConf.to_container(loaded)  # unresolved: nothing it names runs
-            for key, text in _interpolations(container):
-                raise ValueError(f"{key} holds an interpolation, {text!r}")
+            hydra = path != self.config_file  # as Hydra writes it: with references
+            for key, text in _interpolations(OmegaConf.to_container(loaded), references=hydra):
+                raise ValueError(f"{key} holds an interpolation, {text!r}")  # checked unresolved
+            container = OmegaConf.to_container(loaded, resolve=True)
             cfg = OmegaConf.create({**ADDED_KEYS, **container})
             missing = [f.name for f in fields(TrainConfig) if f.name not in cfg]
             if missing:

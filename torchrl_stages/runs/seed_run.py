@@ -250,10 +250,11 @@ class SeedRun:
     def _info(self, message: str, level: int = logging.INFO) -> None:
         log.log(level, message if self.seed is None else f"seed {self.seed}: {message}")
 
-    def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
-        """Stage ``stage`` as an earlier launch trained it, or taken from ``reuse``."""
+    def finished(self, stage: int, earlier: bool = True) -> tuple[Learner, StageResult] | None:
+        """Stage ``stage`` as an earlier launch trained it (``earlier``), or taken from
+        ``reuse``."""
         name, device = self.schedule.stage_name(self.task, stage), str(self.cfg.device)
-        if self.resuming:
+        if self.resuming and earlier:
             loaded = load_stage(self.run_dir, self.task, stage, device, name)
             if loaded is not None:
                 self._info(f"stage {stage} ({name}): finished earlier, loaded")

@@ -47,9 +47,17 @@ def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...]
 ADDED_KEYS: dict[str, Any] = {"all_stages": {}}
 
 
-def _interpolations(node: Any) -> Iterator[tuple[str, str]]:
-    """``(dotted key, text)`` of every string under ``node`` holding ``${``."""
-    return ((k, v) for k, v in leaves(node) if isinstance(v, str) and "${" in v)
+def _interpolations(node: Any, references: bool = False) -> Iterator[tuple[str, str]]:
+    """``(dotted key, text)`` of every string under ``node`` holding ``${``; ``references``:
+    but those that only refer to other keys or call the package's own ``stages_*`` resolvers
+    (as Hydra writes ``.hydra/config.yaml``)."""
+    for key, value in leaves(node):
+        if not isinstance(value, str) or "${" not in value:
+            continue
+        resolvers = re.findall(r"\$\{\s*([^}:\s]+)\s*:", value)
+        escaped = "\\$" in value  # unescaped when resolved: then read again
+        if not references or escaped or any(not r.startswith("stages_") for r in resolvers):
+            yield key, value
 
 
 def shippedtargets(task_name: str) -> dict[str, str] | None:

@@ -27,8 +27,9 @@ log = logging.getLogger(__name__)
 class StageKeeper(Protocol):
     """Where a schedule keeps a seed's stages (:class:`~torchrl_stages.runs.seed_run.SeedRun`)."""
 
-    def finished(self, stage: int) -> tuple[Learner, StageResult] | None:
-        """The stage if a previous launch trained it, else ``None``."""
+    def finished(self, stage: int, earlier: bool = True) -> tuple[Learner, StageResult] | None:
+        """The stage if a previous launch trained it (``earlier``: else only one that a shared
+        store has under its identity and the later stages'), else ``None``."""
 
     def begin(self, scope: int | str) -> None:
         """Loop ``scope`` starts afresh: the logs are rewound to where it starts."""
@@ -76,10 +77,13 @@ class SeedGroup:
     def __post_init__(self) -> None:
         self.keepers = list(self.keepers or [None] * len(self.seeds))
 
-    def finished(self, stage: int) -> list[tuple[Learner, StageResult]] | None:
-        """Each seed's finished ``stage`` when every keeper has it, else ``None`` (a stage
-        finished for some seeds only is trained again for all of them)."""
-        done = [keeper.finished(stage) if keeper is not None else None for keeper in self.keepers]
+    def finished(
+        self, stage: int, earlier: bool = True
+    ) -> list[tuple[Learner, StageResult]] | None:
+        """Each seed's finished ``stage`` (:meth:`StageKeeper.finished`) when every keeper has
+        it, else ``None`` (a stage finished for some seeds only trains again for all)."""
+        keepers = self.keepers
+        done = [k.finished(stage, earlier) if k is not None else None for k in keepers]
         missing = [s for s, d in zip(self.seeds, done, strict=True) if d is None]
         if missing and len(missing) < len(done):
             log.warning(
@@ -105,12 +109,14 @@ class SeedGroup:
         train: Callable[..., list[tuple[Learner, StageResult]]],
     ) -> list[tuple[Learner, StageResult]]:
         """Each seed's ``stage``: finished earlier, else ``train(checkpoints=...)``, kept (its
-        checkpoints dropped). Once a stage trains, every stage after it trains too: a stage
-        finished earlier was trained against the stages before it as they were then."""
-        done = None if self.trained else self.finished(stage)
+        checkpoints dropped). Once a stage trains, the run's own files and checkpoints of the
+        stages after it are not used: they were trained against the stages before as they were.
+        """
+        done = self.finished(stage, earlier=not self.trained)
         if done is None:
-            if self.trained and self.checkpoints is not None:
-                self.checkpoints(stage).clear()  # of an attempt against the earlier stages
+            kept = any(keeper is not None for keeper in self.keepers)  # else none of them is
+            if self.trained and kept and self.checkpoints is not None:
+                self.checkpoints(stage).clear()
             self.trained = True
             checkpoints = self.begin(stage)
             done = train(checkpoints=checkpoints)
