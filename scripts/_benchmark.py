@@ -69,8 +69,30 @@ def command_line() -> str:
     with (an empty inductor cache makes a compiled run pay its compilation) in front."""
     launch = _launch_environ()
     env = [f"{name}={shlex.quote(launch[name])}" for name in TIMING_ENV if name in launch]
-    argv = shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])
+    argv = shlex.join([os.path.relpath(sys.argv[0]), *portable(sys.argv[1:])])
     return " ".join([*env, "python", argv])
+
+
+def portable(argv: list[str]) -> list[str]:
+    """``argv`` with the paths under the ``--out`` directory's parent (a scratch folder of the
+    machine it ran on) as ``runs/...``, so that the command shown runs anywhere.
+
+    Examples:
+        >>> portable(["--out", "/scratch/b/x", "--next-run=/scratch/b/y/s0", "/etc/z"])
+        ['--out', 'runs/x', '--next-run=runs/y/s0', '/etc/z']
+    """
+    out = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--out"), None)
+    if out is None or not os.path.isabs(out):
+        return argv
+    scratch = os.path.dirname(os.path.normpath(out)) + os.sep
+
+    def fix(token: str) -> str:
+        key, eq, value = token.rpartition("=") if "=" in token else ("", "", token)
+        if not value.startswith(scratch):
+            return token
+        return f"{key}{eq}runs/{value.removeprefix(scratch)}"
+
+    return [fix(token) for token in argv]
 
 
 def parse_args(doc: str, variants: list[str], **extra: Any) -> argparse.Namespace:
