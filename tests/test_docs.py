@@ -445,6 +445,11 @@ def test_mkdocs_build_strict(tmp_path):
     )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-6000:]
     assert (tmp_path / "reference" / "config" / "index.html").is_file()
+    # formulas are MathML, which a browser draws with no script: none is left as LaTeX
+    assert (
+        '<math xmlns="http://www.w3.org/1998/Math/MathML"' in (tmp_path / "index.html").read_text()
+    )
+    assert not [p for p in tmp_path.rglob("*.html") if 'class="arithmatex"' in p.read_text()]
 
 
 @pytest.mark.e2e
