@@ -18,6 +18,7 @@ from omegaconf.errors import OmegaConfBaseException
 from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import ConfigError, apply_all_stages, check, stage_keys_set
 from torchrl_stages.failures import EXIT_FAILED, DivergenceError, EnvError, one_line
+from torchrl_stages.integrity import DamagedFileError
 from torchrl_stages.loggers import StopRun
 from torchrl_stages.metric_names import is_loop_evaluation
 from torchrl_stages.preemption import Interrupted
@@ -160,7 +161,13 @@ def _run_trial(
         raise optuna.TrialPruned(str(err)) from None
     except Interrupted:
         raise
-    except (DivergenceError, EnvError, RunDirError, CheckpointDamagedError) as err:
+    except (
+        DivergenceError,
+        EnvError,
+        RunDirError,
+        CheckpointDamagedError,
+        DamagedFileError,
+    ) as err:
         raise TrialFailed(str(err)) from None
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
