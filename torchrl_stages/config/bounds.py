@@ -107,13 +107,10 @@ free = functools.partial(bound, free=True)  # any value of the field's type (a n
 def check_bounds(node: Any, schema: type, prefix: str, closed: bool = False) -> None:
     """Refuses every key of ``node`` (at ``prefix``) outside its ``schema`` field's bound; with
     ``closed``, every key the schema does not have too (Hydra lets ``+key=value`` add one)."""
-    known = schema_keys(schema)
-    for name in node:
-        if closed and name not in known:  # the value as given (an interpolation unresolved)
-            key, close = f"{prefix}.{name}" if prefix else name, nearest(name, known)
-            fix = f"did you mean {key.removesuffix(name)}{close}?" if close else f"drop {key}"
-            value = OmegaConf.to_container(node, resolve=False)[name]
-            check(False, key, value, "not a key of the config", fix)
+    given = OmegaConf.to_container(node, resolve=False) if closed else {}  # as given
+    for name, value in given.items():
+        key = f"{prefix}.{name}" if prefix else name
+        check_known(prefix, name, value, schema_keys(schema), "the config", f"drop {key}")
     for f in fields(schema):
         if f.name not in node or OmegaConf.is_missing(node, f.name):
             continue
@@ -140,9 +137,9 @@ def check_known(
     """Refuses ``{prefix}.{name}`` (naming the nearest) unless ``name`` is in ``known``."""
     if name in known:
         return
-    close = nearest(name, known)
-    hint = f"did you mean {prefix}.{close}?" if close else fix
-    raise ConfigError(f"{prefix}.{name}={value!r}: not {what} of {owner}. Fix: {hint}")
+    dot = f"{prefix}." if prefix else ""
+    hint = f"did you mean {dot}{close}?" if (close := nearest(name, known)) else fix
+    raise ConfigError(f"{dot}{name}={value!r}: not {what} of {owner}. Fix: {hint}")
 
 
 def schema_keys(schema: type) -> list[str]:

@@ -11,19 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_stages.metric_names import STAGE, TASK, MetricName, parse_metric
+from torchrl_stages.metric_names import STAGE, TASK, MetricName, is_loop_evaluation, parse_metric
 from torchrl_stages.plots import read_metrics, save_figure
 from torchrl_stages.sweeps.jobs import Job, result_metrics
 from torchrl_stages.sweeps.jobs import configs as configs_of
 from torchrl_stages.sweeps.stats import Aggregate, finished_scores, performance_profiles
-
-
-def _curve(name: str) -> MetricName | None:
-    """A learning curve of the summary: the success of the whole-task probe or of a loop."""
-    parsed = parse_metric(name)
-    if parsed is None or parsed.kind != "eval" or parsed.metric != "success_rate":
-        return None
-    return parsed if parsed.scope == TASK or parsed.index is not None else None
 
 
 def short_labels(names: Sequence[str]) -> dict[str, str]:
@@ -32,22 +24,26 @@ def short_labels(names: Sequence[str]) -> dict[str, str]:
     return {c: " ".join(p for p in c.split(" ") if p not in common) or c for c in names}
 
 
-def _read_curves(metrics_csv: Path) -> dict[str, list[tuple[float, float]]]:
+def _read_curves(metrics_csv: Path) -> dict[MetricName, list[tuple[float, float]]]:
+    """A run's curves of the summary: the success of the whole-task probe and of each loop."""
     try:
         points = read_metrics(metrics_csv)
     except OSError:
         return {}
-    return {name: sorted(p) for name, p in points.items() if _curve(name) is not None}
+    probe = MetricName("eval", TASK, None, "success_rate")
+    return {
+        parse_metric(name): sorted(p)
+        for name, p in points.items()
+        if is_loop_evaluation(name) or parse_metric(name) == probe
+    }
 
 
-def _curve_order(name: str) -> tuple[int, str, int]:
+def _curve_order(curve: MetricName) -> tuple[int, str, int]:
     """The whole task first, then stages, then other loops' phases."""
-    curve = _curve(name)
     return (0, "", 0) if curve.index is None else (curve.scope != STAGE, curve.scope, curve.index)
 
 
-def _curve_title(name: str) -> str:
-    curve = _curve(name)
+def _curve_title(curve: MetricName) -> str:
     if curve.index is None:
         return "whole task (eval.probe), frames of all stages"
     if curve.scope == STAGE:

@@ -99,16 +99,10 @@ class ParamSpec:
             rule = "choices cannot go with low, high, log or step"
             fix = "keep either choices or the range"
             check(set(spec) == {"choices"}, where, dict(spec), rule, fix)
-            ok = isinstance(choices, Sequence) and not isinstance(choices, str) and choices
-            check(bool(ok), f"{where}.choices", choices, "must be a non-empty list", example)
-            for choice in choices:
-                check(
-                    choice is None or isinstance(choice, bool | int | float | str),
-                    f"{where}.choices",
-                    list(choices),
-                    f"{choice!r} is not a number, a string, a boolean or null",
-                    "list plain values (a config group's options by name)",
-                )
+            listed = isinstance(choices, Sequence) and not isinstance(choices, str) and choices
+            plain = listed and all(c is None or isinstance(c, int | float | str) for c in choices)
+            rule = "must be a non-empty list of numbers, strings, booleans or nulls"
+            check(bool(plain), f"{where}.choices", choices, rule, f"write it as {example}")
             return cls(key, "categorical", choices=tuple(choices))
         for bound in ("low", "high"):
             value = spec.get(bound)

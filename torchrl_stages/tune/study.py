@@ -280,11 +280,7 @@ def run_study(cfg: DictConfig, context: StudyContext) -> int:
         return _run_trial(trial, cfg, space, base, context)
 
     try:
-        study.optimize(
-            objective,
-            n_trials=int(tune.n_trials),
-            catch=(TrialFailed,),
-        )
+        study.optimize(objective, n_trials=int(tune.n_trials), catch=(TrialFailed,))
     finally:
         summary = summarize_or_say(
             context.study_dir, bool(tune.plots), "stages-tune: no study summary"
