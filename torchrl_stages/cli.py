@@ -30,6 +30,7 @@ from torchrl_stages.callbacks import RunDirCallback
 from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import ConfigError, apply_all_stages, register_configs, stage_keys_set
 from torchrl_stages.config.checks import validate_sweeper
+from torchrl_stages.config.registration import hydra_message
 from torchrl_stages.failures import (
     EXIT_DIVERGED,
     EXIT_FAILED,
@@ -147,28 +148,13 @@ def hydra_refusals(prog: str) -> Iterator[None]:
         yield
     except (HydraException, OmegaConfBaseException) as err:
         fix = f"Fix: `{prog} --cfg job` lists the keys and values, `{prog} --help` the options"
-        _exit(prog, f"invalid config: {_hydra_message(err)}. {fix}")
+        _exit(prog, f"invalid config: {hydra_message(err)}. {fix}")
     except OSError as err:  # Hydra makes the run directory before the job starts
         _exit(prog, _reason(err, Path(err.filename or ".")))
     except JobFailed as err:  # a multirun's failed job, said once it ended (its status.json)
         _exit(prog, str(err), EXIT_FAILED)
     finally:
         del os.environ["HYDRA_FULL_ERROR"]
-
-
-def _hydra_message(err: Exception) -> str:
-    """Hydra's message (and its OmegaConf cause) on one line, without the search path."""
-    text = str(err).split("Config search path")[0]
-    if isinstance(err.__cause__, OmegaConfBaseException):
-        text += "\n" + str(err.__cause__).splitlines()[0]
-    parts: list[str] = []
-    for raw in text.splitlines():
-        line = raw.strip().rstrip(".")
-        if raw.startswith("\t") and parts:  # one of a listing's entries
-            parts[-1] += (" " if parts[-1].endswith(":") else ", ") + line
-        elif line:
-            parts.append(line)
-    return "; ".join(parts)
 
 
 def train() -> None:

@@ -1,6 +1,6 @@
-"""The schemas in Hydra's ConfigStore and the resolvers ``conf/`` uses. ``task.stages``, each
-stage and ``task.env`` stay open (``validate_config`` checks their keys), so that one form of a
-key works on every task."""
+"""The schemas in Hydra's ConfigStore, the resolvers ``conf/`` uses and Hydra's errors in one
+line. ``task.stages``, each stage and ``task.env`` stay open (``validate_config`` checks their
+keys), so that one form of a key works on every task."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_stages.config.schema import LoggerConfig, ScheduleConfig, TrainConfig, TuneAppConfig
 
@@ -71,3 +72,18 @@ def _options(loader: Any, group: str) -> tuple[str, ...]:
     with contextlib.suppress(HydraException):
         return tuple(n for n in loader.get_group_options(group) if not n.endswith("_schema"))
     return ()
+
+
+def hydra_message(err: BaseException) -> str:
+    """Hydra's message (and its OmegaConf cause) on one line, without the search path."""
+    text = str(err).split("Config search path")[0]
+    if isinstance(err.__cause__, OmegaConfBaseException):
+        text += "\n" + str(err.__cause__).splitlines()[0]
+    parts: list[str] = []
+    for raw in text.splitlines():
+        line = raw.strip().rstrip(".")
+        if raw.startswith("\t") and parts:  # one of a listing's entries
+            parts[-1] += (" " if parts[-1].endswith(":") else ", ") + line
+        elif line:
+            parts.append(line)
+    return "; ".join(parts) or type(err).__name__

@@ -18,7 +18,7 @@ from torchrl_stages.config import ConfigError, apply_all_stages, check, stage_ke
 from torchrl_stages.config.bounds import check_bounds
 from torchrl_stages.config.checks import validate_config
 from torchrl_stages.config.expansion import override_key
-from torchrl_stages.config.registration import config_group_options
+from torchrl_stages.config.registration import config_group_options, hydra_message
 from torchrl_stages.config.schema import TuneConfig
 from torchrl_stages.learners import ALGORITHMS, learner_class
 from torchrl_stages.runs.seed_run import with_env_stages
@@ -197,16 +197,6 @@ def train_config(compose: Compose, overrides: list[str]) -> DictConfig:
     return cfg
 
 
-def compose_error(err: BaseException) -> str:
-    """Hydra's message in one line, with its cause's (without the indented details)."""
-    parts, cause = [], err
-    while cause is not None and len(parts) < 2:
-        lines = [line for line in str(cause).splitlines() if line.strip() and not line[0].isspace()]
-        parts.extend(lines[:1])
-        cause = cause.__cause__
-    return ": ".join(parts) if parts else type(err).__name__
-
-
 def _fail(where: str, problem: str, fix: str) -> None:
     raise ConfigError(f"{where}: {problem}. Fix: {fix}")
 
@@ -217,7 +207,7 @@ def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> No
     try:
         cfg = train_config(compose, base)
     except (HydraException, OmegaConfBaseException) as err:
-        message = f"the command's overrides do not compose: {compose_error(err)}"
+        message = f"the command's overrides do not compose: {hydra_message(err)}"
         raise ConfigError(message) from None
     set_by_command = {override_key(o) for o in base}
     for spec in space:
@@ -253,7 +243,7 @@ def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> No
             try:
                 train_config(compose, [*base, override])
             except (HydraException, OmegaConfBaseException) as err:
-                problem = f"{override} does not fit the config ({compose_error(err)})"
+                problem = f"{override} does not fit the config ({hydra_message(err)})"
                 _fail(where, problem, "give the key values of its type")
             except ConfigError as err:
                 problem = f"{override} makes an invalid config ({str(err).split('. Fix: ')[0]})"

@@ -17,6 +17,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
 from torchrl_stages.config import ConfigError, apply_all_stages, check, stage_keys_set
+from torchrl_stages.config.registration import hydra_message
 from torchrl_stages.failures import EXIT_FAILED, DivergenceError, EnvError, one_line
 from torchrl_stages.integrity import DamagedFileError
 from torchrl_stages.loggers import StopRun
@@ -32,7 +33,6 @@ from torchrl_stages.tune.space import (
     ParamSpec,
     check_settings,
     check_space,
-    compose_error,
     hydra_value,
     search_space,
     train_overrides,
@@ -149,7 +149,7 @@ def _run_trial(
     except OSError as err:
         raise StudyError(f"cannot write {err.filename or run_dir}: {err.strerror or err}") from None
     except (ConfigError, HydraException, OmegaConfBaseException) as err:
-        invalid = err if isinstance(err, ConfigError) else compose_error(err)
+        invalid = err if isinstance(err, ConfigError) else hydra_message(err)
         directory = RunDir(run_dir)  # the trial's own directory: the summary shows why
         directory.write_hydra_files({"overrides.yaml": overrides})
         directory.write_status("invalid", f"invalid config: {invalid}")
