@@ -17,7 +17,6 @@ from torchrl_stages.config.bounds import (
     check,
     check_bounds,
     check_known,
-    nearest,
     schema_keys,
 )
 from torchrl_stages.config.env_checks import check_env_keys, validate_env_protocol
@@ -82,17 +81,10 @@ def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
         if _is_stage(stage) or (template and isinstance(stage, DictConfig)):
             nodes[f"task.stages.{name}"] = (stage, stage if _is_stage(stage) else template)
             continue
-        close = nearest(str(name), named)
-        check(
-            False,
-            f"task.stages.{name}",
-            stage,
-            f"task '{cfg.task.get('name')}' has no stage {name} (its stages: {', '.join(named)})",
-            f"did you mean task.stages.{close}?"
-            if close
-            else f"set a key of one of them, or add the stage with "
-            f"+algo@task.stages.{name}=<algo> ({'|'.join(algorithms)})",
-        )
+        task = f"task '{cfg.task.get('name')}' (its stages: {', '.join(named)})"
+        add = f"+algo@task.stages.{name}=<algo> ({'|'.join(algorithms)})"
+        fix = f"set a key of one of them, or add the stage with {add}"
+        check_known("task.stages", str(name), stage, named, task, fix, what="a stage")
     listing = f"stages-train task={cfg.task.get('name')} --cfg job"
     for key, (node, typed) in nodes.items():
         schema = stage_schema(typed)  # a template's stage: its own keys over the template
