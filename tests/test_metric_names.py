@@ -4,7 +4,7 @@ a schedule's own loops (a scope of their own) are plotted and pruned on like the
 from torchrl_stages.metric_names import STAGE, TASK, is_loop_evaluation, metric_name, parse_metric
 from torchrl_stages.plots import read_stage_metrics
 from torchrl_stages.schedules.joint import JOINT
-from torchrl_stages.sweeps.figures import _curve
+from torchrl_stages.sweeps.figures import _read_curves
 from torchrl_stages.tune import TrialPruning
 
 
@@ -21,7 +21,7 @@ def test_every_loop_scope_is_read_back_by_every_reader(tmp_path):
     csv.write_text("name,step,value\n" + "".join(f"{n},64,0.5\n" for n in names))
     rows = read_stage_metrics(csv)
     assert ("eval", "phase", "success_rate") in rows[0]
-    assert all(_curve(n) is not None for n in names)
+    assert set(_read_curves(csv)) == {parse_metric(n) for n in names}  # the sweep's figures
 
     class Trial:
         reported: list = []
