@@ -37,14 +37,19 @@ class DiscreteSACConfig(StageConfig):
     target_entropy_weight: float = in_range(0, 1, 0.1)
 
 
-def _log_probs(probs: torch.Tensor) -> torch.Tensor:
-    """``log pi`` as ``DiscreteSACLoss``'s target takes it (a zero probability as 1e-8)."""
-    return torch.log(torch.where(probs == 0, 1e-8, probs))
+def _soft_value(actor, critic, critic_params, log_alpha, obs) -> torch.Tensor:
+    """``V(s) = sum_a pi(a|s) (min_i Q_i(s, a) - alpha log pi(a|s))``, a zero probability's log
+    that of 1e-8 (as ``DiscreteSACLoss``'s target); ``actor`` maps observations to logits,
+    ``critic`` to every action's value."""
+    probs = torch.distributions.Categorical(logits=actor(*obs)).probs
+    q = torch.stack(stacked_calls(critic, critic_params, *obs)).amin(0)
+    alpha = per_seed(seed_rows(log_alpha).detach().exp(), probs)
+    soft = q - alpha * torch.log(torch.where(probs == 0, 1e-8, probs))
+    return (probs * soft).sum(-1, keepdim=True)
 
 
 class DiscreteSoftValue(nn.Module):
-    """``V(s) = sum_a pi(a|s) (min_i Q_i(s, a) - alpha log pi(a|s))``; ``actor`` maps
-    observations to logits, ``critic`` to every action's value."""
+    """:func:`_soft_value` of the ``critic_params`` and ``log_alpha`` it holds."""
 
     def __init__(self, actor: nn.Module, critic: nn.Module, critic_params, log_alpha) -> None:
         super().__init__()
@@ -52,11 +57,7 @@ class DiscreteSoftValue(nn.Module):
         self.critic_params, self.log_alpha = critic_params, log_alpha
 
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
-        probs = torch.distributions.Categorical(logits=self.actor(*obs)).probs
-        q = torch.stack(stacked_calls(self.critic, self.critic_params, *obs)).amin(0)
-        alpha = per_seed(seed_rows(self.log_alpha).detach().exp(), probs)
-        soft = q - alpha * _log_probs(probs)
-        return (probs * soft).sum(-1, keepdim=True)
+        return _soft_value(self.actor, self.critic, self.critic_params, self.log_alpha, obs)
 
 
 @register_algorithm
@@ -120,12 +121,11 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
         """``DiscreteSACLoss``: the actor's, the critics' and the entropy coefficient's losses."""
         actor, critic = self.actor[0].module, self.critic.module
         obs, next_obs = self.inputs(batch), self.inputs(batch, nxt=True)
-        critics, targets = self.loss.qvalue_network_params, self.loss.target_qvalue_network_params
+        critics = self.loss.qvalue_network_params
         with torch.no_grad():
-            next_probs = torch.distributions.Categorical(logits=actor(*next_obs)).probs
-            next_q = torch.stack(stacked_calls(critic, targets["module"], *next_obs))
-            soft = next_q.min(0).values - self.alpha(next_probs) * _log_probs(next_probs)
-            target = td0_target(batch, (next_probs * soft).sum(-1, keepdim=True), self.cfg.gamma)
+            targets = self.loss.target_qvalue_network_params["module"]
+            next_value = _soft_value(actor, critic, targets, self.loss.log_alpha, next_obs)
+            target = td0_target(batch, next_value, self.cfg.gamma)
         q = torch.stack(stacked_calls(critic, critics["module"], *obs))
         one_hot = isinstance(self.specs.action_spec, OneHot)
         chosen = taken(q, batch.get(self.specs.action_key), one_hot, lead=1)
