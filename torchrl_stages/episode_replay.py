@@ -85,9 +85,8 @@ class EpisodeReplay(gymnasium.Wrapper):
         True
     """
 
-    def __init__(self, env: gymnasium.Env, max_steps: int = MAX_REPLAY_STEPS) -> None:
+    def __init__(self, env: gymnasium.Env) -> None:
         super().__init__(env)
-        self.max_steps = int(max_steps)
         self.pending_episode: dict | None = None  # a state for rebuild_pending (a vector env's)
         self._start: dict | None = None
         self._actions: list[np.ndarray] = []
@@ -112,8 +111,8 @@ class EpisodeReplay(gymnasium.Wrapper):
     def step(self, action: Any):
         out = self.env.step(action)
         if self._why_not is None:
-            if len(self._actions) >= self.max_steps:
-                self._why_not = f"its episode is longer than {self.max_steps} steps"
+            if len(self._actions) >= MAX_REPLAY_STEPS:
+                self._why_not = f"its episode is longer than {MAX_REPLAY_STEPS} steps"
                 self._actions = []
             elif isinstance(action, np.ndarray | np.generic | int | float):
                 self._actions.append(np.array(action))  # a copy: the caller may reuse its array
