@@ -125,8 +125,9 @@ class ActorCriticLearner(Learner):
             [*critic.values(), *(actor[k] for k in encoder)],
         )
 
-    def with_target_encoder(self, critic_params: TensorDictBase) -> TensorDictBase:
-        """Target critic parameters, with a shared encoder the target actor's."""
+    def target_critics(self) -> TensorDictBase:
+        """The loss's target critic parameters, with a shared encoder the target actor's."""
+        critic_params = getattr(self.loss, f"target_{self.CRITIC}_params")
         if not self.shared_encoder:
             return critic_params
         encoder = self.loss.target_actor_network_params[(*self.ACTOR_PATH, "encoder")]
@@ -223,8 +224,7 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
         )
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
-        critics = self.with_target_encoder(getattr(self.loss, f"target_{self.CRITIC}_params"))
-        return self.value_from_loss(self.loss, live, critics)
+        return self.value_from_loss(self.loss, live, self.target_critics())
 
 
 class EntropyRegularized:

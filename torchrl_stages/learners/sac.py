@@ -171,5 +171,4 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         """:class:`SoftValue`; with a shared encoder the critics read the target one."""
-        critics = self.with_target_encoder(self.loss.target_qvalue_network_params)
-        return self.value_from_loss(self.loss, live, critics, self.cfg.value_samples)
+        return self.value_from_loss(self.loss, live, self.target_critics(), self.cfg.value_samples)
