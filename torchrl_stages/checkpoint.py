@@ -171,25 +171,23 @@ class StageCheckpoints:
         # every entry of the rotation's form, readable or not
         candidates = [p for p in found if re.fullmatch(rf"{PREFIX}-\d+", p.name)]
         candidates.sort(key=_frames, reverse=True)
-        damaged: list[DamagedFileError] = []
-        for path in candidates:
-            err = self._damaged.get(path)
-            if err is None and path != self._verified:
+        for i, path in enumerate(candidates):  # each newer one is damaged
+            if path in self._damaged:
+                continue
+            if path != self._verified:
                 try:
                     verify_checkpoint(path)
-                except DamagedFileError as found_err:
-                    err = self._damaged[path] = found_err
+                except DamagedFileError as err:
+                    self._damaged[path] = err
                     log.warning("checkpoint %s is damaged (%s); it is not used", path, err)
-                else:
-                    if damaged:
-                        log.warning("resuming from the checkpoint before it: %s", path)
-                    self._verified = path
-            if err is None:
-                return path
-            damaged.append(err)
-        if not damaged:
+                    continue
+                if i:
+                    log.warning("resuming from the checkpoint before it: %s", path)
+                self._verified = path
+            return path
+        if not candidates:
             return None
-        err = damaged[0]
+        err = self._damaged[candidates[0]]
         raise CheckpointDamagedError(
             f"{err.path} is damaged ({err.reason}), and no other checkpoint of "
             f"{self.directory} is whole. Fix: delete {self.directory} to restart this stage"
@@ -244,4 +242,4 @@ class StageCheckpoints:
 
 
 def _frames(path: Path) -> int:
-    return int(path.name.removeprefix(f"{PREFIX}-").removesuffix(".torchrl"))
+    return int(path.name.removeprefix(f"{PREFIX}-"))

@@ -189,16 +189,6 @@ class TaskEvaluation:
         }
 
 
-def _same_starts(env: EnvBase, rollout: TensorDictBase, first: TensorDictBase) -> bool:
-    """Whether every episode of ``rollout`` starts from the observation of ``first``."""
-    starts = rollout[:, 0].select(*env.observation_spec.keys(True, True), strict=False)
-    return all(
-        torch.equal(value, first.get(key).expand_as(value))
-        for key, value in starts.items(True, True)
-        if isinstance(value, torch.Tensor)
-    )
-
-
 @torch.no_grad()
 def evaluate_task(
     task: StagedTask,
@@ -213,7 +203,7 @@ def evaluate_task(
     all_starts = task.start_states(None) is not None
     sizes = [None] if all_starts else [min(CHUNK, episodes - i) for i in range(0, episodes, CHUNK)]
     chunks, per_stage, final, handoffs, first = [], [], [], [], None
-    one_start = not all_starts  # so far, every episode from the first one's start observation
+    one_start = not all_starts
     gammas = [float(task.stage_cfg(k).gamma) for k in range(task.num_stages)]
     for i, size in enumerate(sizes):
         if interruptible:  # a resumed run evaluates again
@@ -230,7 +220,13 @@ def evaluate_task(
         final.append(rollout.get("next")[rows, chunk.length - 1])
         handoffs.append(collect_handoffs(rollout, chunk.length, gammas))
         first = rollout if first is None else first
-        one_start = one_start and _same_starts(env, rollout, first[0, 0])
+        if one_start:  # every episode so far starts from the first one's observation
+            starts = rollout[:, 0].select(*env.observation_spec.keys(True, True), strict=False)
+            one_start = all(
+                torch.equal(value, first[0, 0].get(key).expand_as(value))
+                for key, value in starts.items(True, True)
+                if isinstance(value, torch.Tensor)
+            )
     stats = EpisodeStats.cat(chunks)
     one_start = one_start and len(stats.length) > 1
     return TaskEvaluation(
