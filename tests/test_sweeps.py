@@ -242,7 +242,7 @@ def test_report_rejects_a_directory_without_jobs(tmp_path, capsys):
 
 # ------------------------------------------------------------------ real sweeps
 SWEEPS = {
-    # the acceptance command: the shortest real sweep
+    # the shortest real sweep, the sweeps guide's (its page's block is run here, not twice)
     "smoke": ["-m", "experiment=smoke", "seed=0,1"],
     # every job refused by validation: the summary is written although the sweep fails
     "invalid": ["-m", "experiment=smoke", "task.stages.s0.gamma=1.5,2.0", "eval.plots=false"],
@@ -269,6 +269,9 @@ def sweeps(tmp_path_factory):
 @pytest.mark.e2e
 @pytest.mark.slow
 def test_smoke_sweep_writes_its_summary(sweeps):
+    guide = (Path(__file__).parents[1] / "docs" / "guides" / "sweeps.md").read_text()
+    assert "stages-train -m experiment=smoke seed=0,1 hydra.sweep.dir=sweeps/smoke" in guide
+    assert "stages-report sweeps/smoke " in guide  # test_stages_report_reproduces_the_summary
     code, output, sweep_dir = sweeps("smoke")
     assert code == 0, output[-4000:]
     assert f"Sweep summary: {sweep_dir / 'summary.md'} (2 of 2 jobs finished)" in output
