@@ -1,7 +1,7 @@
 """What the benchmark scripts share: arguments, configs, training one run, the results table.
 
 Every script writes its rows as ``rows.json`` and its table as ``table.md`` (the command that
-made it on top) into its output directory, and with ``--table docs/results/<name>.md`` to the
+made it on top) into its output directory, and with ``--table docs/tables/<name>.md`` to the
 file the docs include: a published table is written by the script, never typed.
 """
 
@@ -48,9 +48,9 @@ def _launch_environ() -> dict[str, str]:
 
 
 def add_table_argument(parser: argparse.ArgumentParser) -> None:
-    """``--table PATH``: a second copy of ``table.md`` (e.g. ``docs/results/<name>.md``)."""
+    """``--table PATH``: a second copy of ``table.md`` (e.g. ``docs/tables/<name>.md``)."""
     parser.add_argument(
-        "--table", type=Path, default=None, help="also write the table here (docs/results/...)"
+        "--table", type=Path, default=None, help="also write the table here (docs/tables/...)"
     )
 
 

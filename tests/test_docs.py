@@ -20,7 +20,7 @@ from cli_server import ONE_THREAD, plain_command, shared_server
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 PAGES = [ROOT / "README.md"] + sorted(
-    p for p in DOCS.rglob("*.md") if p.relative_to(DOCS).parts[0] not in ("results", "hooks")
+    p for p in DOCS.rglob("*.md") if p.relative_to(DOCS).parts[0] not in ("tables", "hooks")
 )
 FENCE = re.compile(
     r"^(?P<indent> *)```(?P<lang>[\w-]*)(?P<info>[^\n]*)\n(?P<body>.*?)^(?P=indent)```[ \t]*$",
