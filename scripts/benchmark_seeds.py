@@ -41,6 +41,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from _benchmark import add_table_argument, command_line, machine_speed, save_table, speed_note
@@ -96,9 +97,11 @@ def timed(argv: list[str], log: Path) -> tuple[float, float]:
     return seconds, usage.ru_maxrss / 1024
 
 
-def sweep_argv(way: str, seeds: list[int], out: Path, jobs: int = 2) -> list[str]:
+def sweep_argv(
+    way: str, seeds: list[int], out: Path, jobs: int = 2, overrides: Sequence[str] = ()
+) -> list[str]:
     listed = ",".join(str(s) for s in seeds)
-    common = ["eval.plots=false", "progress=false"]
+    common = ["eval.plots=false", "progress=false", *overrides]
     if way.startswith("vectorized"):
         threads = 2 if way.endswith("2t") else 1
         return [
@@ -210,7 +213,7 @@ def timing(args: argparse.Namespace) -> list[str]:
         order = args.ways if rep % 2 == 0 else tuple(reversed(args.ways))
         for way in order:
             out = args.out / f"timing_{way}_{rep}"
-            argv = sweep_argv(way, args.seeds, out, args.jobs)
+            argv = sweep_argv(way, args.seeds, out, args.jobs, args.overrides)
             seconds, rss = timed(argv, out.with_suffix(".log"))
             measured[way].append((seconds, rss))
             print(f"{way} (repeat {rep}): {seconds:.1f} s, {rss:.0f} MiB", flush=True)
@@ -232,7 +235,8 @@ def timing(args: argparse.Namespace) -> list[str]:
     notes = []
     if args.memory:
         one = args.out / "memory_one_seed"
-        _, rss_one = timed(sweep_argv("vectorized", args.seeds[:1], one), one.with_suffix(".log"))
+        argv = sweep_argv("vectorized", args.seeds[:1], one, overrides=args.overrides)
+        _, rss_one = timed(argv, one.with_suffix(".log"))
         rss_all = max(r for _, r in measured["vectorized"])
         per_seed = (rss_all - rss_one) / max(len(args.seeds) - 1, 1)
         notes.append(
@@ -323,6 +327,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="--scaling's device (cuda: a GPU)")
     parser.add_argument("--out", type=Path, required=True)
     add_table_argument(parser)
+    parser.add_argument("overrides", nargs="*", help="--timing's: Hydra overrides of every run")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     speed = machine_speed()

@@ -1,0 +1,139 @@
+"""Regenerates the headline tables: every result the README's results table shows.
+
+Each table file in ``docs/tables/`` starts with the commands that wrote it; this script runs
+them again, in order, into ``--out/<table>`` (the launches of one table share it: their rows
+make one table) and writes the table back to ``docs/tables/<table>.md``. That is hours on a
+2-core CPU (MiniGrid most of it); ``--only`` picks tables.
+
+``--quick`` runs each benchmark script once, on the first launch of its first table, with
+``experiment=smoke``'s budgets and one seed: minutes, so the whole pipeline is tested. Its
+tables stay in ``--out`` (the docs' copies are left alone).
+
+    python scripts/regenerate.py --list
+    python scripts/regenerate.py --out runs/regenerated                 # the full runs
+    python scripts/regenerate.py --quick --out /tmp/quick
+    python scripts/regenerate.py --only gridworld_seeds_0_9 --out runs/regenerated
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLES = ROOT / "docs" / "tables"
+
+#: the README's results, each row's tables
+HEADLINES = (
+    "gridworld_seeds_0_9",
+    "gridworld_seeds_10_19",
+    "manipulator_ddpg_seeds_0_7",
+    "manipulator_ddpg_seeds_8_17",
+    "cargo_sdql_and_single_robots",
+    "minigrid_keycorridor_s3r2_settings",
+    "minigrid_keycorridor_s3r3_settings",
+    "minigrid_keycorridor_s3r3_settings_flat",
+    "minigrid_doorkey16_eval256",
+    "minigrid_doorkey16_eval256_joint",
+    "minigrid_doorkey16_eval256_flat",
+    "minigrid_unlockpickup_advantage",
+    "waypoints_gym_env",
+    "seeds_wallclock_four_ways",
+)
+
+
+def launches(table: Path) -> list[list[str]]:
+    """The commands at the top of ``table``, each as ``[script, args...]`` (its ``--out`` and
+    ``--table`` left out: this script sets them)."""
+    text = table.read_text()
+    header = text.split("```text\n", 1)[1].split("\n```", 1)[0] if "```text\n" in text else ""
+    found = []
+    for line in header.splitlines():
+        if not line.startswith("$ "):
+            continue
+        words = shlex.split(line[2:])
+        start = words.index("python") + 1
+        script, args = Path(words[start]).name, words[start + 1 :]
+        kept: list[str] = []
+        skip = False
+        for word in args:
+            if skip:
+                skip = False
+            elif word in ("--out", "--table"):
+                skip = True
+            else:
+                kept.append(word)
+        found.append([script, *kept])
+    if not found:
+        raise SystemExit(f"error: {table} names no command (a line '$ python ...' on its top)")
+    return found
+
+
+def quick(argv: list[str]) -> list[str]:
+    """``argv`` on the shortest budgets: one seed (two for the many-seeds timing, in the two
+    ways that need no extra), one repeat, one job, ``experiment=smoke`` after any preset of its
+    own."""
+    script, args = argv[0], argv[1:]
+    seeds = 2 if script == "benchmark_seeds.py" else 1
+    out: list[str] = []
+    if script == "benchmark_seeds.py":  # the two ways that need no extra (joblib's: [sweep])
+        args = [a for a in args if a != "--memory"] + ["--ways", "vectorized", "sequential"]
+    index = 0
+    while index < len(args):
+        word = args[index]
+        values = []
+        while index + 1 < len(args) and args[index + 1].lstrip("-").isdigit():
+            index += 1
+            values.append(args[index])
+        if word == "--seeds":
+            out += [word, *values[:seeds]]
+        elif word == "--repeats":
+            out += [word, "1"]
+        elif word != "--jobs":
+            out += [word, *values]
+        index += 1
+    overrides = [w for w in out if "=" in w and not w.startswith("-")]
+    options = [w for w in out if w not in overrides]
+    presets = [w for w in overrides if w.startswith("experiment=")]
+    if presets:
+        overrides[overrides.index(presets[0])] = presets[0].replace("=", "=[", 1) + ",smoke]"
+    else:
+        overrides.append("experiment=smoke")
+    return [script, *overrides, *options]  # first: an option of several values ends there
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("runs/regenerated"))
+    parser.add_argument("--only", nargs="+", choices=HEADLINES, default=list(HEADLINES))
+    parser.add_argument("--quick", action="store_true", help="tiny budgets, tables in --out")
+    parser.add_argument("--list", action="store_true", help="print the commands, run nothing")
+    args = parser.parse_args()
+    planned: list[tuple[str, list[str]]] = []
+    scripts_seen: set[str] = set()
+    for name in args.only:
+        for argv in launches(TABLES / f"{name}.md"):
+            if args.quick:
+                if argv[0] in scripts_seen:
+                    break
+                scripts_seen.add(argv[0])
+                argv = quick(argv)
+            planned.append((name, argv))
+    for name, argv in planned:
+        out = args.out.resolve() / name  # shown as runs/<name> in the table (portable paths)
+        command = [sys.executable, *argv, "--out", str(out)]
+        if not args.quick:
+            command += ["--table", f"../docs/tables/{name}.md"]  # from scripts/, as it is run
+        print(f"{name}: {shlex.join(command[1:])}", flush=True)
+        if args.list:
+            continue
+        done = subprocess.run(command, cwd=ROOT / "scripts")
+        if done.returncode != 0:
+            raise SystemExit(f"error: {name}: exit {done.returncode}: {shlex.join(command[1:])}")
+
+
+if __name__ == "__main__":
+    main()
