@@ -26,22 +26,30 @@ def run_script(name: str, *args: str) -> subprocess.CompletedProcess:
     return helpers.run_script(SCRIPTS / name, *args, cwd=SCRIPTS)
 
 
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    """``regenerate.py --quick``: every headline benchmark script once, on tiny budgets."""
+    out = tmp_path_factory.mktemp("quick")
+    tables = sorted((SCRIPTS.parent / "docs" / "tables").glob("*.md"))
+    before = {path: path.read_bytes() for path in tables}
+    done = run_script("regenerate.py", "--quick", "--out", str(out))
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert {path: path.read_bytes() for path in tables} == before  # the docs' copies untouched
+    return out
+
+
 @pytest.mark.e2e
 @pytest.mark.slow
 @pytest.mark.skipif(minigrid is None, reason=MISSING)
-def test_regenerate_runs_every_headline_benchmark(tmp_path):
+def test_regenerate_runs_every_headline_benchmark(quick, tmp_path):
     """The full mode replays each headline table's own commands into docs/tables/; the quick
     mode runs each script once on tiny budgets and leaves the docs' tables alone."""
-    tables = sorted((SCRIPTS.parent / "docs" / "tables").glob("*.md"))
-    before = {path: path.read_bytes() for path in tables}
     listed = run_script("regenerate.py", "--list", "--out", str(tmp_path))
     assert listed.returncode == 0, listed.stderr[-3000:]
     shown = listed.stdout.splitlines()
     assert len(shown) > 14 and all("--table ../docs/tables/" in line for line in shown)
     assert any("--seeds 10 11 12 13 14 15 16 17 18 19" in line for line in shown)
-    done = run_script("regenerate.py", "--quick", "--out", str(tmp_path))
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-    ran = sorted(p.parent.name for p in tmp_path.glob("*/table.md"))
+    ran = sorted(p.parent.name for p in quick.glob("*/table.md"))
     assert ran == [
         "cargo_sdql_and_single_robots",
         "gridworld_seeds_0_9",
@@ -50,12 +58,11 @@ def test_regenerate_runs_every_headline_benchmark(tmp_path):
         "seeds_wallclock_four_ways",
         "waypoints_gym_env",
     ]
-    for table in tmp_path.glob("*/table.md"):
+    for table in quick.glob("*/table.md"):
         text = table.read_text()
-        assert "experiment=" in text and str(tmp_path) not in text, table  # portable commands
-    assert {path: path.read_bytes() for path in tables} == before
+        assert "experiment=" in text and str(quick) not in text, table  # portable commands
     # the bring-your-own-env guide's commands: the template's stages, one per env stage
-    gym = tmp_path / "waypoints_gym_env"
+    gym = quick / "waypoints_gym_env"
     rows = json.loads((gym / "rows.json").read_text())
     assert [r["variant"] for r in rows] == ["discrete/dqn", "box/sac"]
     assert all(len(r["stage_frames"]) == 3 for r in rows)  # the env's three stages
@@ -79,24 +86,23 @@ def test_benchmark_gym_vector_compares_the_three_ways(tmp_path):
 @pytest.mark.e2e
 @pytest.mark.slow
 @pytest.mark.skipif(minigrid is None, reason=MISSING)
-def test_benchmark_minigrid_writes_its_table(tmp_path):
-    level = "MiniGrid-DoorKey-5x5-v0"
-    args = ["--levels", level, "--seeds", "0", "--schedules", "backward"]
-    done = run_script("benchmark_minigrid.py", *args, "--out", str(tmp_path), "experiment=smoke")
-    assert done.returncode == 0, done.stderr[-3000:]
-    rows = json.loads((tmp_path / "rows.json").read_text())
+def test_benchmark_minigrid_writes_its_table_and_its_failures(quick, tmp_path):
+    out_dir = quick / "minigrid_keycorridor_s3r2_settings"
+    level = "MiniGrid-KeyCorridorS3R2-v0"
+    rows = json.loads((out_dir / "rows.json").read_text())
     assert [(r["level"], r["schedule"]) for r in rows] == [(level, "backward")]
     assert len(rows[0]["stage_frames"]) == 3 and rows[0]["episodes"] == 32
-    assert (tmp_path / f"minigrid_{level}_backward_seed0.png").is_file()
-    assert f"{level} backward: success mean" in (tmp_path / "table.md").read_text()
+    assert (out_dir / f"minigrid_{level}_backward_seed0.png").is_file()
+    assert f"{level} backward: success mean" in (out_dir / "table.md").read_text()
     # where its greedy stage policy fails: the loop each failed start ends in
-    run_dir = tmp_path / f"{level}_backward_seed0"
+    run_dir = out_dir / f"{level}_backward_seed0"
     out = tmp_path / "failures"
     args = ["--stage", "2", "--starts", "4", "--steps", "12", "--out", str(out), str(run_dir)]
     done = run_script("minigrid_greedy_failures.py", *args)
     assert done.returncode == 0, done.stderr[-3000:]
     row = (out / "table.md").read_text().splitlines()[-1].split(" | ")
-    assert row[0] == f"| {run_dir.name}" and row[1] == "gamma=0.99" and row[2] == "2"
+    assert row[0] == f"| {run_dir.name}" and row[2] == "2"
+    assert row[1] == "view_doors=True, gamma=0.95, advantage_learning=0.9"  # the family's
     loops = row[4].removesuffix(" |")
     failed = 0 if loops == "-" else sum(int(p.rsplit(" ", 1)[1]) for p in loops.split("; "))
     assert row[3].endswith("/4") and int(row[3].split("/")[0]) + failed == 4
@@ -106,7 +112,7 @@ def test_benchmark_minigrid_writes_its_table(tmp_path):
     done = run_script("minigrid_greedy_failures.py", *args[:-1], str(run_dir), str(again))
     assert done.returncode == 0, done.stderr[-3000:]
     names = [r.split(" | ")[0] for r in (out / "table.md").read_text().splitlines()[-2:]]
-    assert names == [f"| {tmp_path.name}/{run_dir.name}", f"| again/{run_dir.name}"]
+    assert names == [f"| {out_dir.name}/{run_dir.name}", f"| again/{run_dir.name}"]
 
 
 def test_a_failed_greedy_episode_is_classified_by_its_loop(monkeypatch):
