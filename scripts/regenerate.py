@@ -1,8 +1,9 @@
-"""Regenerates the headline tables: every result the README's results table shows.
+"""Regenerates the headline tables and the README's figure: every result its table shows.
 
 Each table file in ``docs/tables/`` starts with the commands that wrote it; this script runs
 them again, in order, into ``--out/<table>`` (the launches of one table share it: their rows
-make one table) and writes the table back to ``docs/tables/<table>.md``. That is hours on a
+make one table) and writes the table back to ``docs/tables/<table>.md``; the MiniGrid tables'
+runs are drawn as ``docs/minigrid_schedules.png``. That is hours on a
 2-core CPU (MiniGrid most of it); ``--only`` picks tables.
 
 ``--quick`` runs each benchmark script once, on the first launch of its first table, with
@@ -43,6 +44,11 @@ HEADLINES = (
     "waypoints_gym_env",
     "seeds_wallclock_four_ways",
 )
+
+
+#: the README's figure: every MiniGrid headline table's runs (scripts/figure_minigrid.py)
+FIGURE = ROOT / "docs" / "minigrid_schedules.png"
+MINIGRID_FIGURE = tuple(name for name in HEADLINES if name.startswith("minigrid_"))
 
 
 def launches(table: Path) -> list[list[str]]:
@@ -130,9 +136,25 @@ def main() -> None:
         print(f"{name}: {shlex.join(command[1:])}", flush=True)
         if args.list:
             continue
-        done = subprocess.run(command, cwd=ROOT / "scripts")
-        if done.returncode != 0:
-            raise SystemExit(f"error: {name}: exit {done.returncode}: {shlex.join(command[1:])}")
+        run(name, command)
+    minigrid = [n for n in dict.fromkeys(n for n, _ in planned) if n in MINIGRID_FIGURE]
+    if minigrid:  # the figure of the MiniGrid tables (in --quick: the quick ones, in --out)
+        tables = [TABLES / f"{n}.md" for n in MINIGRID_FIGURE]
+        figure = FIGURE
+        if args.quick:
+            tables = [args.out.resolve() / n / "table.md" for n in minigrid]
+            figure = args.out.resolve() / FIGURE.name
+        draw = [sys.executable, "figure_minigrid.py", "--out", str(figure), *map(str, tables)]
+        print(f"{FIGURE.name}: {shlex.join(draw[1:])}", flush=True)
+        if not args.list:
+            run(FIGURE.name, draw)
+
+
+def run(name: str, command: list[str]) -> None:
+    """Runs ``command`` from ``scripts/``; a failure ends the regeneration, naming it."""
+    done = subprocess.run(command, cwd=ROOT / "scripts")
+    if done.returncode != 0:
+        raise SystemExit(f"error: {name}: exit {done.returncode}: {shlex.join(command[1:])}")
 
 
 if __name__ == "__main__":

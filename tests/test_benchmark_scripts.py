@@ -10,7 +10,7 @@ from pathlib import Path
 
 import helpers
 import pytest
-from helpers import TINY_STAGE
+from helpers import TINY_STAGE, assert_figure
 from omegaconf import OmegaConf
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
@@ -46,8 +46,9 @@ def test_regenerate_runs_every_headline_benchmark(quick, tmp_path):
     mode runs each script once on tiny budgets and leaves the docs' tables alone."""
     listed = run_script("regenerate.py", "--list", "--out", str(tmp_path))
     assert listed.returncode == 0, listed.stderr[-3000:]
-    shown = listed.stdout.splitlines()
+    *shown, figure = listed.stdout.splitlines()
     assert len(shown) > 14 and all("--table ../docs/tables/" in line for line in shown)
+    assert figure.startswith("minigrid_schedules.png: figure_minigrid.py --out ")
     assert any("--seeds 10 11 12 13 14 15 16 17 18 19" in line for line in shown)
     ran = sorted(p.parent.name for p in quick.glob("*/table.md"))
     assert ran == [
@@ -58,6 +59,7 @@ def test_regenerate_runs_every_headline_benchmark(quick, tmp_path):
         "seeds_wallclock_four_ways",
         "waypoints_gym_env",
     ]
+    assert_figure(quick / "minigrid_schedules.png")  # the README's figure, of the quick run
     for table in quick.glob("*/table.md"):
         text = table.read_text()
         assert "experiment=" in text and str(quick) not in text, table  # portable commands
