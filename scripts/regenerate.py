@@ -3,12 +3,12 @@
 Each table file in ``docs/tables/`` starts with the commands that wrote it; this script runs
 them again, in order, into ``--out/<table>`` (the launches of one table share it: their rows
 make one table) and writes the table back to ``docs/tables/<table>.md``; the MiniGrid tables'
-runs are drawn as ``docs/minigrid_schedules.png``. That is hours on a
-2-core CPU (MiniGrid most of it); ``--only`` picks tables.
+runs are drawn as ``docs/minigrid_schedules.png``. That is hours on a 2-core CPU (MiniGrid most
+of it); ``--only`` picks tables.
 
 ``--quick`` runs each benchmark script once, on the first launch of its first table, with
-``experiment=smoke``'s budgets and one seed: minutes, so the whole pipeline is tested. Its
-tables stay in ``--out`` (the docs' copies are left alone).
+``experiment=smoke``'s budgets, one seed and its first variant: minutes, so that the whole
+pipeline is tested. Its tables stay in ``--out`` (the docs' copies are left alone).
 
     python scripts/regenerate.py --list
     python scripts/regenerate.py --out runs/regenerated                 # the full runs
@@ -80,35 +80,30 @@ def launches(table: Path) -> list[list[str]]:
 
 def quick(argv: list[str]) -> list[str]:
     """``argv`` on the shortest budgets: one seed (two for the many-seeds timing, in the two
-    ways that need no extra), one repeat, one job, ``experiment=smoke`` after any preset of its
-    own."""
+    ways that need no extra), the first variant, one repeat, one job, ``experiment=smoke``
+    after any preset of its own."""
     script, args = argv[0], argv[1:]
-    seeds = 2 if script == "benchmark_seeds.py" else 1
-    out: list[str] = []
     if script == "benchmark_seeds.py":  # the two ways that need no extra (joblib's: [sweep])
         args = [a for a in args if a != "--memory"] + ["--ways", "vectorized", "sequential"]
-    index = 0
-    while index < len(args):
-        word = args[index]
-        values = []
-        while index + 1 < len(args) and args[index + 1].lstrip("-").isdigit():
-            index += 1
-            values.append(args[index])
-        if word == "--seeds":
-            out += [word, *values[:seeds]]
-        elif word == "--repeats":
-            out += [word, "1"]
-        elif word != "--jobs":
-            out += [word, *values]
-        index += 1
-    overrides = [w for w in out if "=" in w and not w.startswith("-")]
-    options = [w for w in out if w not in overrides]
+    keep = {"--seeds": 2 if script == "benchmark_seeds.py" else 1, "--variants": 1}
+    overrides, options = [w for w in args if "=" in w and not w.startswith("-")], []
+    for word in (w for w in args if w not in overrides):
+        if word.startswith("--"):
+            options.append([word])
+        else:  # a value of the option before it
+            options[-1].append(word)
+    out = []
+    for option, *values in options:
+        if option == "--repeats":
+            values = ["1"]
+        if option != "--jobs":
+            out += [option, *values[: keep.get(option, len(values))]]
     presets = [w for w in overrides if w.startswith("experiment=")]
     if presets:
         overrides[overrides.index(presets[0])] = presets[0].replace("=", "=[", 1) + ",smoke]"
     else:
         overrides.append("experiment=smoke")
-    return [script, *overrides, *options]  # first: an option of several values ends there
+    return [script, *overrides, *out]  # first: an option of several values ends there
 
 
 def main() -> None:
