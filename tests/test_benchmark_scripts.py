@@ -22,8 +22,8 @@ except ImportError:
     minigrid = None
 
 
-def run_script(name: str, *args: str) -> subprocess.CompletedProcess:
-    return helpers.run_script(SCRIPTS / name, *args, cwd=SCRIPTS)
+def run_script(name: str, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return helpers.run_script(SCRIPTS / name, *args, cwd=SCRIPTS, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +32,7 @@ def quick(tmp_path_factory):
     out = tmp_path_factory.mktemp("quick")
     tables = sorted((SCRIPTS.parent / "docs" / "tables").glob("*.md"))
     before = {path: path.read_bytes() for path in tables}
-    done = run_script("regenerate.py", "--quick", "--out", str(out))
+    done = run_script("regenerate.py", "--quick", "--out", str(out), timeout=1200)  # ~4 min
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert {path: path.read_bytes() for path in tables} == before  # the docs' copies untouched
     return out
