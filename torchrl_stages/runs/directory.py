@@ -43,8 +43,6 @@ from torchrl_stages.stage import StageResult
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = ["RunDir", "drop_checkpoints", "refuse_links", "scope_checkpoints"]
-
 
 def scope_checkpoints(
     root: Path, scope: int | str, cfg: DictConfig | None = None, on_save: Callable | None = None

@@ -28,8 +28,6 @@ METADATA = "policy.json"
 #: entries of an env's TensorDicts that are no observation
 _NOT_OBSERVED = {"done", "terminated", "truncated", "reward", "is_init", "success", "_reset"}
 
-__all__ = ["METADATA", "TensorPolicy", "export_policy", "input_keys", "main"]
-
 
 class TensorPolicy(nn.Module):
     """A stacked policy on plain tensors: ``in_keys``' tensors in, ``out_keys``' out. Every

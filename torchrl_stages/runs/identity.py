@@ -10,8 +10,6 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["STAGE_SEMANTICS", "stage_identities", "stage_identity_inputs"]
-
 #: bumped by any change of the package that alters the weights a stage config trains to, so
 #: that stored stages written before it are never served after it
 STAGE_SEMANTICS = 1

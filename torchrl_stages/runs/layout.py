@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["EVAL_FILE", "RunDirError", "seed_dir"]
-
 EVAL_FILE = "eval.json"
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"

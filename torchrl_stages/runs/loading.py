@@ -21,8 +21,6 @@ from torchrl_stages.schedules import get_schedule
 from torchrl_stages.stage import StageResult
 from torchrl_stages.task import StagedTask
 
-__all__ = ["LoadedRun", "load_policy", "load_run", "run_policy"]
-
 
 @dataclass
 class LoadedRun:

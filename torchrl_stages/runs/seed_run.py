@@ -42,8 +42,6 @@ from torchrl_stages.task import StagedTask
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = ["SeedRun", "build_task", "compile_mode", "with_env_stages"]
-
 
 def compile_mode(cfg: DictConfig) -> str:
     """``cfg.compile``, ``auto`` resolved: ``off`` on CPU (compiling the small update costs more

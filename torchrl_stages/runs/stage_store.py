@@ -32,8 +32,6 @@ from torchrl_stages.task import StagedTask
 
 log = logging.getLogger("torchrl_stages")
 
-__all__ = ["SharedStageStore", "StageEntry", "StageReuse", "StoreError"]
-
 ENTRIES, LOCKS, TMP = "entries", "locks", "tmp"
 STAGE_FILE, ENTRY_FILE = "stage.pt", "entry.json"
 ENTRY_FORMAT = "torchrl-stages stage"
