@@ -165,8 +165,10 @@ class StageCheckpoints:
             self.on_save(path)
         return path
 
-    def latest(self) -> Path | None:
-        """The newest whole checkpoint, if any (damaged ones skipped, each with one warning)."""
+    def latest(self, components: Mapping[str, Any] | None = None) -> Path | None:
+        """The newest whole checkpoint, if any (damaged ones skipped, each with one warning);
+        with ``components``: the newest that loads back into them (one that does not is
+        skipped as a damaged one is), loaded."""
         found = self.directory.iterdir() if self.directory.is_dir() else ()
         # every entry of the rotation's form, readable or not
         candidates = [p for p in found if re.fullmatch(rf"{PREFIX}-\d+", p.name)]
@@ -174,16 +176,18 @@ class StageCheckpoints:
         for i, path in enumerate(candidates):  # each newer one is damaged
             if path in self._damaged:
                 continue
-            if path != self._verified:
-                try:
+            try:
+                if path != self._verified:
                     verify_checkpoint(path)
-                except DamagedFileError as err:
-                    self._damaged[path] = err
-                    log.warning("checkpoint %s is damaged (%s); it is not used", path, err)
-                    continue
-                if i:
-                    log.warning("resuming from the checkpoint before it: %s", path)
-                self._verified = path
+                    if i:
+                        log.warning("resuming from the checkpoint before it: %s", path)
+                    self._verified = path
+                if components is not None:
+                    self._read(path, components)
+            except DamagedFileError as err:
+                self._damaged[path] = err
+                log.warning("checkpoint %s is damaged (%s); it is not used", path, err)
+                continue
             return path
         if not candidates:
             return None
@@ -203,18 +207,6 @@ class StageCheckpoints:
                 f"checkpoint before it, or delete {self.directory} to restart this stage"
             ) from err
         return path
-
-    def load_latest(self, components: Mapping[str, Any]) -> Path | None:
-        """Loads the newest checkpoint that reads back into ``components`` (one that does not
-        is skipped as a damaged one is), if any."""
-        while (path := self.latest()) is not None:
-            try:
-                self._read(path, components)
-                return path
-            except DamagedFileError as err:
-                self._damaged[path] = err
-                log.warning("checkpoint %s is damaged (%s); it is not used", path, err)
-        return None
 
     def _read(self, path: Path, components: Mapping[str, Any]) -> None:
         """Loads ``path`` into ``components``; :class:`DamagedFileError` where it cannot."""

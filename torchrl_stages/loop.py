@@ -229,7 +229,7 @@ class SeedLoop:
         first) and ``state`` (loaded again by :meth:`restore`, once the loop is built)."""
         if self.checkpoints is None:
             return None
-        latest = self.checkpoints.load_latest({"counters": counters, **state})
+        latest = self.checkpoints.latest({"counters": counters, **state})
         if latest is not None:
             seeds = f", {self.n} seeds" if self.n > 1 else ""
             log.info("%s%s: resuming from %s", where, seeds, latest)
