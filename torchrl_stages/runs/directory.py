@@ -181,8 +181,7 @@ class RunDir:
     def adopt_legacy(self) -> None:
         self.claim(*self._run_files(LEGACY_ENTRIES, REPORT_FILES))
 
-    def _write_verified(self, name: str, write: Callable[[Path], None]) -> Path:
-        path = self.path / name
+    def _write_verified(self, name: str, write: Callable[[Path], None]) -> None:
         self.claim(name)
 
         def write_and_record(tmp: Path) -> None:
@@ -195,8 +194,7 @@ class RunDir:
             self.record["entries"][name] = entry
             self._save_record()
 
-        atomic_write(path, write_and_record)
-        return path
+        atomic_write(self.path / name, write_and_record)
 
     def _verify(self, path: Path, fix: str) -> None:
         entry = self.record["entries"].get(path.relative_to(self.path).as_posix())
@@ -270,11 +268,10 @@ class RunDir:
 
     def save_stage(
         self, stage: int, name: str, learner: Learner, result: StageResult, log: dict[str, int]
-    ) -> Path:
+    ) -> None:
         """Writes ``stage_<k>.pt``; ``log``: the logger's file sizes."""
         state = stage_state(stage, learner, result, name=name, log=dict(log))
-        path = self.stage_file(stage)
-        return self._write_verified(path.name, lambda tmp: write_stage_file(tmp, state))
+        self._write_verified(self.stage_file(stage).name, lambda tmp: write_stage_file(tmp, state))
 
     def read_stage(self, stage: int, map_location: Any = "cpu") -> dict[str, Any] | None:
         path = self.stage_file(stage)

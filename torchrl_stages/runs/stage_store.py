@@ -126,7 +126,7 @@ class SharedStageStore:
             raise DamagedFileError(entry, f"{type(err).__name__}: {err}") from err
         return state, meta
 
-    def put(self, identity: str, state: dict[str, Any], meta: dict[str, Any]) -> Path:
+    def put(self, identity: str, state: dict[str, Any], meta: dict[str, Any]) -> None:
         """Writes entry ``identity``; an entry that another job wrote first is kept."""
         entry = self.path(identity)
         tmp = self.root / TMP / f"{identity}.{uuid.uuid4().hex}"
@@ -143,7 +143,6 @@ class SharedStageStore:
                     os.rename(tmp, entry)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-        return entry
 
     def lock(self, identity: str) -> RunLock:
         return RunLock(self.root, file=self.root / LOCKS / identity)
