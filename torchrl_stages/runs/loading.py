@@ -48,25 +48,24 @@ def load_stage(
             f"{run.stage_file(stage)} holds stage {state.get('name')!r}, but the run's stage "
             f"{stage} is {name!r}. Fix: {fix}"
         )
-    learner = restore_learner(task, stage, state, device, run.stage_file(stage), fix)
+    learner, _ = restore_learner(task, stage, state, device, run.stage_file(stage), fix)
     return learner, state["result"]
 
 
 def restore_learner(
     task: StagedTask, stage: int, state: dict, device: str | torch.device, source: Path, fix: str
-) -> Learner:
-    """Stage ``stage``'s learner loaded from ``state``; :class:`RunDirError` names ``source``
-    and ``fix`` when it does not fit the task's config."""
+) -> tuple[Learner, StageResult]:
+    """Stage ``stage``'s learner loaded from ``state``, and its result; :class:`RunDirError`
+    names ``source`` and ``fix`` when they do not fit the task's config."""
     learner = make_learner(task.stage_cfg(stage), task.specs(stage), device=device)
     try:
         learner.load_checkpoint(state)
-        StageResult(**state["result"])
+        return learner, StageResult(**state["result"])
     except (KeyError, RuntimeError, ValueError, TypeError) as err:
         raise RunDirError(
             f"{source} does not match the run's config ({type(err).__name__}: "
             f"{str(err).splitlines()[0][:200]}). Fix: {fix}"
         ) from err
-    return learner
 
 
 def load_run(

@@ -258,8 +258,8 @@ class StageReuse:
             if state is not None:
                 source = init.stage_file(stage)
                 fix = f"retrain it: drop init_from, or delete {source}"
-                learner = restore_learner(task, stage, state, device, source, fix)
-                return learner, StageResult(**state["result"]), f"init_from {init.path}"
+                restored = restore_learner(task, stage, state, device, source, fix)
+                return *restored, f"init_from {init.path}"
         if self.store is None:
             return None
         found = self._from_store(task, stage, device)
@@ -291,8 +291,8 @@ class StageReuse:
             return None
         entry = self.store.path(identity)
         fix = f"stages-store rm {self.store.root} {identity[:12]}, then rerun"
-        learner = restore_learner(task, stage, state, device, entry / STAGE_FILE, fix)
-        return learner, StageResult(**state["result"]), f"stage store {entry}"
+        restored = restore_learner(task, stage, state, device, entry / STAGE_FILE, fix)
+        return *restored, f"stage store {entry}"
 
     def trained(self, task: StagedTask, stage: int, learner: Learner, result: StageResult) -> None:
         if self.store is not None:
