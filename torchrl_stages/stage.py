@@ -104,8 +104,9 @@ class StageTrainer(SeedLoop):
     """Trains stage ``stage`` for every seed of ``learner`` (ordinary: one seed); ``env`` and
     ``eval_env`` hold one copy of their batch per seed, ``cfg``'s budgets are per seed. The flat
     schedule passes ``gammas`` (evaluations' stage discounts), ``postproc`` (applied to each
-    batch) and ``extra_keys`` (stored too). :meth:`train` returns each seed's ordinary learner
-    (``make_learner()`` builds the one a stacked row is taken into) and result.
+    batch) and ``extra_keys`` (stored too); ``on_evaluate(learner, frames)`` follows each
+    evaluation. :meth:`train` returns each seed's ordinary learner (``make_learner()`` builds the
+    one a stacked row is taken into) and result.
 
     Examples:
         >>> from omegaconf import OmegaConf
@@ -139,7 +140,7 @@ class StageTrainer(SeedLoop):
         gammas: Sequence[float] | None = None,
         postproc: Callable[[TensorDictBase], TensorDictBase] | None = None,
         extra_keys: Sequence[NestedKey] = (),
-        on_evaluate: Callable[[int], None] | None = None,
+        on_evaluate: Callable[[Learner, int], None] | None = None,
     ) -> None:
         super().__init__(int(learner.seeds or 1), logs, seeds, progress, checkpoints)
         self.stage, self.learner, self.env, self.eval_env = stage, learner, env, eval_env
@@ -191,7 +192,7 @@ class StageTrainer(SeedLoop):
         loop.register_op("log", log)
         loop.register_op("evaluate", functools.partial(self.evaluate, active=stops.active))
         if self.on_evaluate is not None:
-            loop.register_op("evaluated", lambda ev: self.on_evaluate(collector.frames // n))
+            loop.register_op("evaluated", lambda ev: self.on_evaluate(learner, ev.frames[0]))
         with stage_failures(self.stage, self.name, learner, buffer, stops.rows, self.seeds):
             loop.train()
         return [self._result(i, stops, collector, watch) for i in range(n)]

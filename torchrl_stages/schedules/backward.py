@@ -54,13 +54,11 @@ def run_stage(
     train_env: Callable[[int], EnvBase],
     eval_env: Callable[[int], EnvBase],
     group: SeedGroup,
-    *,
-    on_evaluate: Callable[[Learner, int], None] | None = None,
     **kwargs,
 ) -> list[tuple[Learner, StageResult]]:
     """Trains a learner of ``cfg`` as stage ``stage`` for every seed of ``group``, its envs
     (``train_env(copies)``, ``eval_env(copies)``) seeded by the seeding rule; ``kwargs``:
-    :class:`StageTrainer`'s. ``on_evaluate(learner, frames)``: one seed."""
+    :class:`StageTrainer`'s."""
     seeds, specs = group.seeds, task.specs(stage)
 
     def make(seeds: int | None = None) -> Learner:
@@ -84,7 +82,6 @@ def run_stage(
         make_learner=make,
         progress=group.progress,
         seeds=seeds,
-        on_evaluate=None if on_evaluate is None else functools.partial(on_evaluate, learner),
         **kwargs,
     )
     return trainer.train()
