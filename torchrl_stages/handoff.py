@@ -78,7 +78,8 @@ def handoff_diagnostics(
     seed: int,
 ) -> list[dict[str, Any]]:
     """One record per boundary (``eval.json``'s ``"handoff"``): ``|V_{k+1}(s') - G|`` at the
-    handoff states and their distance to stage k+1's training starts."""
+    handoff states and their distance to stage k+1's training starts (a warning where they lie
+    outside them)."""
     records = []
     for k, handoff in enumerate(handoffs):
         name = f"{task.stage_names[k]} -> {task.stage_names[k + 1]}"
@@ -100,6 +101,13 @@ def handoff_diagnostics(
         )
         if task.stage_starts:
             record.update(_distance_to_starts(task, k + 1, handoff.states, seed))
+        if record.get("extrapolated"):
+            log.warning(
+                f"handoff {name}: {100 * record['outside_starts']:.0f}% of the states stage {k} "
+                f"hands over lie outside stage {k + 1}'s training starts, where its value is "
+                f"extrapolated (|V - G| {record['value_error_mean']:.3g} on average). Fix: make "
+                f"the env's start_stage={k + 1} starts cover where stage {k} arrives"
+            )
     return records
 
 
@@ -135,19 +143,6 @@ def _distance_to_starts(
         "outside_starts": outside,
         "extrapolated": outside > OUTSIDE_WARNING,
     }
-
-
-def warn_extrapolated(records: Sequence[dict[str, Any]]) -> None:
-    """Logs a warning for every boundary whose handoff states lie outside the starts."""
-    for r in records:
-        if r.get("extrapolated"):
-            k = r["stage"]
-            log.warning(
-                f"handoff {r['boundary']}: {100 * r['outside_starts']:.0f}% of the states stage "
-                f"{k} hands over lie outside stage {k + 1}'s training starts, where its value is "
-                f"extrapolated (|V - G| {r['value_error_mean']:.3g} on average). Fix: make the "
-                f"env's start_stage={k + 1} starts cover where stage {k} arrives"
-            )
 
 
 def plot_handoffs(records: Sequence[dict[str, Any]], out: str | Path) -> Path | None:

@@ -12,7 +12,7 @@ import torch
 from omegaconf import DictConfig
 
 from torchrl_stages.evaluate import evaluate_task
-from torchrl_stages.handoff import handoff_diagnostics, plot_handoffs, warn_extrapolated
+from torchrl_stages.handoff import handoff_diagnostics, plot_handoffs
 from torchrl_stages.integrity import atomic_write
 from torchrl_stages.learners import Learner
 from torchrl_stages.policy import StackedPolicy
@@ -51,7 +51,6 @@ def evaluate_run(
         result["headline_metrics"] = list(report.headline)
     if evaluation.handoffs:  # how each stage's value holds where the stage before hands over
         records = handoff_diagnostics(task, learners, evaluation.handoffs, seed)
-        warn_extrapolated(records)
         if cfg.eval.plots:
             plot_handoffs(records, run_dir / "handoff.png")
         keep = ("values", "returns")
