@@ -74,13 +74,14 @@ def gradient_steps(
     learner: Learner,
     buffer: SeedReplayBuffer,
     cfg: StageConfig,
-    rows: torch.Tensor | None,
+    seeds: Sequence[int],
     watch: Stopwatch,
     transform: Callable[[TensorDictBase], TensorDictBase] | None = None,
 ) -> list[dict[str, torch.Tensor]]:
-    """A batch's gradient steps of ``learner``'s seeds ``rows`` (``None``: all): one draw for all
-    the steps unless the update itself draws random numbers (TD3)."""
+    """A batch's gradient steps of ``learner``'s rows ``seeds``: one draw for all the steps
+    unless the update itself draws random numbers (TD3)."""
     n = int(learner.seeds or 1)
+    rows = None if len(seeds) == n else torch.tensor(seeds, device=learner.device)
     steps, size = int(cfg.updates_per_batch), int(cfg.batch_size)
     draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
     losses: list[dict[str, torch.Tensor]] = []
@@ -178,9 +179,7 @@ class StageTrainer(SeedLoop):
             learner.anneal(frames)
             if frames < self.cfg.init_random_frames:
                 return []
-            active = stops.active()  # the seeds that have not stopped
-            rows = None if len(active) == n else torch.tensor(active, device=learner.device)
-            return gradient_steps(learner, buffer, self.cfg, rows, watch)
+            return gradient_steps(learner, buffer, self.cfg, stops.active(), watch)
 
         def log(batch: TensorDictBase, losses: list[dict[str, torch.Tensor]]) -> None:
             updates, steps = [{self.stage: learner.num_updates}] * n, [collector.frames // n] * n

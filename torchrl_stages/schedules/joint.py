@@ -176,11 +176,10 @@ class JointTrainer(SeedLoop):
             if not ready:
                 continue
             learner.anneal(round(statistics.mean(stored[i][m] for i in ready)))
-            rows = None if len(ready) == self.n else torch.tensor(ready, device=learner.device)
             buffer, name = self.buffers[m], self.task.stage_names[m]
             kept, seeds = [self.rows[i] for i in ready], [self.seeds[i] for i in ready]
             with stage_failures(m, name, learner, buffer, kept, seeds):
-                losses[m] = gradient_steps(learner, buffer, cfg, rows, watch, self.transforms[m])
+                losses[m] = gradient_steps(learner, buffer, cfg, ready, watch, self.transforms[m])
             for i in ready:
                 counters.updates[i][m] += int(cfg.updates_per_batch)
         return losses
