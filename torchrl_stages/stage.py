@@ -74,14 +74,14 @@ def gradient_steps(
     learner: Learner,
     buffer: SeedReplayBuffer,
     cfg: StageConfig,
-    seeds: Sequence[int],
+    active: Sequence[int],
     watch: Stopwatch,
     transform: Callable[[TensorDictBase], TensorDictBase] | None = None,
 ) -> list[dict[str, torch.Tensor]]:
-    """A batch's gradient steps of ``learner``'s rows ``seeds``: one draw for all the steps
-    unless the update itself draws random numbers (TD3)."""
+    """A batch's gradient steps of ``learner``'s ``active`` rows (the seeds still training, by
+    position): one draw for all the steps unless the update itself draws random numbers (TD3)."""
     n = int(learner.seeds or 1)
-    rows = None if len(seeds) == n else torch.tensor(seeds, device=learner.device)
+    rows = None if len(active) == n else torch.tensor(active, device=learner.device)
     steps, size = int(cfg.updates_per_batch), int(cfg.batch_size)
     draws, per_draw = (steps, 1) if learner.update_draws_random else (min(steps, 1), steps)
     losses: list[dict[str, torch.Tensor]] = []
