@@ -515,6 +515,11 @@ def test_a_linked_checkpoints_directory_is_refused_and_nothing_is_deleted(copy, 
         Experiment(compose("resume=true"), copy)
     with pytest.raises(RunDirError, match="symbolic link"):
         RunDir(copy).clear_checkpoints(0)
+    (copy / "checkpoints").unlink()
+    (copy / "csv" / "deep").mkdir()
+    (copy / "csv" / "deep" / "linked").symlink_to(victim, target_is_directory=True)
+    with pytest.raises(RunDirError, match="deep/linked is a symbolic link"):
+        RunDir(copy).clear_checkpoints(0)
     assert (victim / "stage_0" / "keep.txt").read_text() == "mine"
 
 

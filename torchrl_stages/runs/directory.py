@@ -351,10 +351,11 @@ class RunDir:
 
 
 def refuse_links(paths: Iterable[Path]) -> None:
-    """Refuses a link among ``paths`` and what their directories hold."""
+    """Refuses a link among ``paths`` and what their directories hold (each entry seen once)."""
     for path in paths:
         if path.is_dir() and not path.is_symlink():
-            refuse_links(path.rglob("*"))
+            with os.scandir(path) as entries:
+                refuse_links([Path(entry.path) for entry in entries])
         elif path.is_symlink():
             raise RunDirError(
                 f"{path} is a symbolic link: a run directory's own files are never "
