@@ -227,11 +227,16 @@ def test_a_changed_stage_file_fails_its_checksum(copy, capsys):
     assert "differ from those written" in one_line_eval(copy, capsys)
 
 
-def test_a_missing_config_is_read_from_hydra_and_restored_on_resume(copy):
+def test_a_missing_config_is_read_from_hydra_and_restored_on_resume(copy, caplog):
     (copy / "config.yaml").unlink()
     assert len(load_run(copy).learners) == 2
+    caplog.clear()
     train(copy, "resume=true")
     assert (copy / "config.yaml").is_file()
+    said = [r.getMessage() for r in caplog.records if "config.yaml" in r.getMessage()]
+    assert said == [
+        f"{copy / 'config.yaml'} is missing: reading {copy / '.hydra/config.yaml'} instead"
+    ]
 
 
 def test_a_full_disk_names_the_path_and_leaves_no_temporary_file(tmp_path, monkeypatch):

@@ -218,8 +218,7 @@ class SeedRun:
             changed = ", ".join(keys)
             log.info(f"resume=true: {changed} changed; stage {stage} had not finished and restarts")
             run.clear_checkpoints(self.schedule.checkpoint_scope(stage))
-        if self.resuming and not run.config_file.is_file():  # checked against .hydra/config.yaml
-            log.warning("%s was missing: restored from .hydra/config.yaml", run.config_file)
+        # a resumed run missing its config.yaml was read from .hydra/config.yaml (and said so)
         if not self.resuming or self.restarted or not run.config_file.is_file():
             run.write_config(cfg)
         run.begin_launch()
