@@ -37,6 +37,7 @@ TIMEOUT_S = 300
 MAX_STEPS = 30  # episode cap (the grid world's default is 200): evaluations stay cheap
 HETERO = [0.9, 0.9, 0.9, 0.99, 0.9]
 HOMO = [0.99] * NUM_STAGES
+PROBED = ("success_rate", "seconds", "path_optimal", "value_error")  # the grid world's probe
 
 
 def tiny_overrides(
@@ -86,7 +87,8 @@ class Commands:
     def argv(self, name: str) -> list[str]:
         train, root = console_script("stages-train"), self.root
         if name == "smoke":
-            return [train, *tiny_overrides(), f"hydra.run.dir={root / 'run'}"]
+            # eval.probe: stage 0's evaluations follow the whole task (eval/task/...)
+            return [train, *tiny_overrides(), "eval.probe=true", f"hydra.run.dir={root / 'run'}"]
         if name == "multirun":
             return [
                 train,
@@ -317,6 +319,10 @@ def test_metrics_csv(run_dir):
         assert any(name.startswith(f"train/stage_{k}/") for name in names)
     assert "train/stage_4/loss" in names
     assert "eval/final/success_rate" in names
+    # eval.probe=true: every evaluation of stage 0, the last stage trained, follows the whole task
+    probed = {row[0]: int(row[1]) for row in rows[1:] if row[0].startswith("eval/task/")}
+    assert probed.keys() == {f"eval/task/{m}" for m in PROBED}
+    assert set(probed.values()) == {FRAMES * NUM_STAGES}  # against the frames of all stages
     for name, step, value in rows[1:]:
         assert name.split("/")[0] in ("train", "eval"), name
         int(step)
