@@ -215,6 +215,22 @@ def test_updating_some_rows_updates_those_seeds_alone(algo, monkeypatch):
             torch.testing.assert_close(out[key], value, rtol=1e-4, atol=1e-6, msg=key)
 
 
+def test_the_value_of_a_stage_of_many_seeds_is_read_from_the_learner_they_trained_in():
+    task = two_stage_grid(DQNConfig(num_cells=[8]))
+    cfg, specs = task.stage_cfg(1), task.specs(1)
+    stacked = make_learner(cfg, specs, seeds=2)
+    rows = [unstack_learner(stacked, i, make_learner(cfg, specs)) for i in range(2)]
+    for i, row in enumerate(rows):
+        row.stacked_row = (stacked, i)
+    obs = task.stage_env(1, 4, copies=2).reset()
+    read = backward_module.stage_value(task, 1, rows)(obs.clone())["state_value"]
+    # in another order the rows are not those of the stacked learner: stacked anew
+    swap = torch.arange(8).roll(4)  # the seeds' halves of the batch swapped
+    restacked = backward_module.stage_value(task, 1, rows[::-1])(obs[swap].clone())
+    assert torch.equal(read, restacked["state_value"][swap])
+    assert not torch.equal(read[:4], read[4:])
+
+
 def test_stacked_networks_refuse_what_cannot_be_stacked():
     own = OmegaConf.create({"algo": "tiny_q", "learner": {"_target_": "my_learner.TinyQLearner"}})
     specs = StageSpecs(["observation"], 3, "action", Categorical(4))

@@ -228,5 +228,5 @@ class StageTrainer(SeedLoop):
         if self.learner.seeds is None:
             return self.learner, result
         plain = unstack_learner(self.learner, i, self.make_learner())
-        plain.num_updates = result.updates
+        plain.num_updates, plain.stacked_row = result.updates, (self.learner, i)
         return plain, result

@@ -101,6 +101,9 @@ class Learner(nn.Module, ABC):
         self.grad_norms: dict[str, torch.Tensor] = {}  # of the last update, per optimizer
         self.num_updates = 0
         self.seeds: int | None = current_seeds()  # seeds its networks stack; None: one
+        #: the seed-stacked learner this one was trained in, and its row (a stage's value for
+        #: several seeds is then read from it, not stacked anew)
+        self.stacked_row: tuple[Learner, int] | None = None
 
     def batch_mean(self, x: torch.Tensor) -> torch.Tensor:
         """The mean over the batch: a scalar, or one per seed (``[N]``) when seed-stacked."""

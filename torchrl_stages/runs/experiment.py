@@ -114,12 +114,13 @@ class Experiment:
             self.runs.append(SeedRun(cfg, self.run_dir, hydra_files, observers))
             return
         # before any directory is made: the config, and whether it stacks
-        check_stackable(build_task(_for_seed(cfg, self.seeds[0])[0]), len(self.seeds))
+        task = build_task(_for_seed(cfg, self.seeds[0])[0])  # the seeds' task, built once
+        check_stackable(task, len(self.seeds))
         try:
             for seed in self.seeds:
                 seed_cfg, files = _for_seed(cfg, seed, hydra_files)
                 path = seed_dir(self.run_dir, seed)
-                self.runs.append(SeedRun(seed_cfg, path, files, observers, seed=seed))
+                self.runs.append(SeedRun(seed_cfg, path, files, observers, seed=seed, task=task))
         except BaseException:
             self.close()
             raise

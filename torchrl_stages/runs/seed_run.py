@@ -97,7 +97,8 @@ def build_task(cfg: DictConfig, schedule: Schedule | None = None) -> StagedTask:
 
 class SeedRun:
     """One seed's run of ``cfg`` in ``run_dir``, the :class:`~torchrl_stages.schedules.StageKeeper`
-    its schedule trains into: checked before anything is written, locked until :meth:`close`.
+    its schedule trains into: checked before anything is written, locked until :meth:`close`
+    (``task``: the one :func:`build_task` built of the same ``cfg.task``, for another seed).
 
     Examples:
         >>> import tempfile
@@ -120,6 +121,7 @@ class SeedRun:
         hydra_files: dict[str, Any] | None = None,
         observers: Sequence[Observer] = (),
         seed: int | None = None,
+        task: StagedTask | None = None,
     ) -> None:
         cfg, self.schedule = checked_config(cfg)
         launch = None if seed is None else Path(run_dir).parent  # several seeds' launch
@@ -138,7 +140,7 @@ class SeedRun:
         self._lock = self.run_dir.lock()
         try:
             self.resuming = self._check_run_dir()
-            self.task = build_task(cfg, self.schedule)
+            self.task = build_task(cfg, self.schedule) if task is None else task
             # stage_store / init_from: checked (and the stage store created) before any training
             if cfg.get("stage_store") or cfg.get("init_from"):
                 self.reuse = StageReuse(cfg, self.run_dir.path)

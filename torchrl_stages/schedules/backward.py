@@ -39,12 +39,17 @@ def train_backward(task: StagedTask, seeds: Sequence[int] = (0,), **kwargs) -> l
 
 
 def stage_value(task: StagedTask, stage: int, learners: Sequence[Learner]) -> TensorDictModuleBase:
-    """The frozen value of ``stage`` (several seeds: of their seed-stacked learner)."""
+    """The frozen value of ``stage`` (several seeds: of their seed-stacked learner, the one
+    they were trained in where each is its row)."""
     if len(learners) == 1:
         return learners[0].value()
-    cfg, specs = task.stage_cfg(stage), task.specs(stage)
-    stacked = make_learner(cfg, specs, device=task.device, seeds=len(learners))
-    return stack_learners(stacked, learners).value()
+    rows = [learner.stacked_row for learner in learners]
+    stacked = rows[0][0] if rows[0] is not None else None
+    if stacked is None or rows != [(stacked, i) for i in range(len(learners))]:
+        cfg, specs = task.stage_cfg(stage), task.specs(stage)
+        stacked = make_learner(cfg, specs, device=task.device, seeds=len(learners))
+        stack_learners(stacked, learners)
+    return stacked.value()
 
 
 def run_stage(
