@@ -187,18 +187,20 @@ class ManipulatorEnv(StageStarts, EnvBase):
         return theta, d >= self.switch_distance
 
     def observation_of(
-        self, theta: torch.Tensor, target: torch.Tensor, stage: torch.Tensor
+        self, theta: torch.Tensor, target: torch.Tensor, stage: torch.Tensor, kinematics=None
     ) -> torch.Tensor:
         """The observation ``[..., 6]`` of joint angles ``[..., 2]`` reaching for ``target``
-        ``[..., 2]`` in ``stage`` (int64 ``[...]``)."""
-        elbow, eff = forward_kinematics(theta)
+        ``[..., 2]`` in ``stage`` (int64 ``[...]``); ``kinematics``: their
+        :func:`forward_kinematics`, where computed already."""
+        elbow, eff = forward_kinematics(theta) if kinematics is None else kinematics
         diff = (target - eff) / self._scales_t[stage].unsqueeze(-1)
         return torch.cat([elbow, eff, diff], -1)
 
-    def _observe(self, **flags: torch.Tensor) -> TensorDict:
+    def _observe(self, kinematics=None, **flags: torch.Tensor) -> TensorDict:
         bs = self.batch_size
+        observation = self.observation_of(self._theta, self._target, self._stage, kinematics)
         return TensorDict(
-            observation=self.observation_of(self._theta, self._target, self._stage).reshape(*bs, 6),
+            observation=observation.reshape(*bs, 6),
             stage=self._stage.reshape(*bs, 1).clone(),
             **flags,
             batch_size=bs,
@@ -219,10 +221,11 @@ class ManipulatorEnv(StageStarts, EnvBase):
         action = tensordict.get("action").reshape(self._n, 2).to(self._theta.dtype)
         step = self._u_max_t[self._stage].unsqueeze(-1) * action.clamp(-1.0, 1.0)
         self._theta.copy_(wrap_angle(self._theta + step))
-        d = self._distance()
+        kinematics = forward_kinematics(self._theta)  # the hot path computes them once
+        d = (self._target - kinematics[1]).norm(dim=-1)
         if self.num_stages > 1:
             self._stage.copy_(torch.where(d < self.switch_distance, 1, self._stage))
-        return self._observe(**self._step_flags(d <= self.success_distance))
+        return self._observe(kinematics, **self._step_flags(d <= self.success_distance))
 
     def stage_observation_keys(self, stage: int) -> list[str]:
         """Network inputs of every stage: only ``"observation"`` (``"stage"`` is a tag)."""
