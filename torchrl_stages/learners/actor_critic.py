@@ -157,10 +157,14 @@ class ActorCriticLearner(Learner):
         """The critic network after the shared encoder (the whole critic without one)."""
         return self.critic_module.body if self.shared_encoder else self.critic_module
 
-    def critic_values(self, params: TensorDictBase, features, action) -> list[torch.Tensor]:
-        """``Q_i(s, a)`` of each critic of the loss ``params`` on :meth:`features`."""
+    def critic_values(
+        self, params: TensorDictBase, features, action, **kwargs
+    ) -> list[torch.Tensor]:
+        """``Q_i(s, a)`` of each critic of the loss ``params`` on :meth:`features` (``kwargs``:
+        :func:`.stacked_calls`')."""
         params = params["module", "body"] if self.shared_encoder else params["module"]
-        return stacked_calls(self.critic_net, params, *self.critic_inputs(features, action))
+        inputs = self.critic_inputs(features, action)
+        return stacked_calls(self.critic_net, params, *inputs, **kwargs)
 
 
 class DeterministicActorCriticLearner(ActorCriticLearner):

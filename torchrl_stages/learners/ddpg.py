@@ -67,8 +67,8 @@ class DDPGLearner(DeterministicActorCriticLearner):
         loss_value = self.batch_mean(distance_loss(pred, target, self.cfg.loss_function))
         features = [f.detach() for f in features]
         u = self.actor_head(features)
-        critic = self.loss.value_network_params.detach()
-        (q,) = self.critic_values(critic, features, self.squash(u))
+        critic = self.loss.value_network_params
+        (q,) = self.critic_values(critic, features, self.squash(u), detach=True)
         return -self.batch_mean(q), loss_value, self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:

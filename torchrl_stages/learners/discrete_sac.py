@@ -133,7 +133,8 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
         loss_q = self.batch_mean(distances.sum(0))
         dist = torch.distributions.Categorical(logits=actor(*obs))
         probs, log_probs = dist.probs, dist.logits
-        min_q = torch.stack(stacked_calls(critic, critics["module"].detach(), *obs)).min(0).values
+        frozen = stacked_calls(critic, critics["module"], *obs, detach=True)  # the actor's
+        min_q = torch.stack(frozen).min(0).values
         loss_actor = self.batch_mean((probs * (self.alpha(probs) * log_probs - min_q)).sum(-1))
         return loss_actor, loss_q, self.alpha_loss((log_probs * probs).sum(-1))
 

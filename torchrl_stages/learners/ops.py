@@ -60,15 +60,23 @@ def td0_target(batch: TensorDictBase, next_value: torch.Tensor, gamma: float) ->
     return reward + discount * alive * next_value
 
 
-def stacked_calls(module: nn.Module, params: TensorDictBase, *inputs: torch.Tensor) -> list:
-    """``module(*inputs)`` with each parameter set of the stacked ``params`` (twin critics),
-    or the one set of unstacked ``params``."""
+def stacked_calls(
+    module: nn.Module,
+    params: TensorDictBase,
+    *inputs: torch.Tensor,
+    detach: bool = False,
+    count: int | None = None,
+) -> list:
+    """``module(*inputs)`` with each parameter set of the stacked ``params`` (twin critics; the
+    first ``count``), or the one set of unstacked ``params``; ``detach``: no gradient to them."""
     flat = dict(params.flatten_keys(".").items())
+    if detach:  # tensor by tensor: detaching the TensorDict costs more than the call itself
+        flat = {n: p.detach() for n, p in flat.items()}
     if not params.batch_dims:
         return [functional_call(module, flat, inputs)]
+    sets = params.batch_size[0] if count is None else count
     return [
-        functional_call(module, {n: p[i] for n, p in flat.items()}, inputs)
-        for i in range(params.batch_size[0])
+        functional_call(module, {n: p[i] for n, p in flat.items()}, inputs) for i in range(sets)
     ]
 
 

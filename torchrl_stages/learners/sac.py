@@ -155,7 +155,7 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         loss_q = self.batch_mean(distances.sum(0))
         features = [f.detach() for f in features]
         action, log_prob = rsample_and_log_prob(self._dist(self.actor_head(features)))
-        q = torch.stack(self.critic_values(critics.detach(), features, action))
+        q = torch.stack(self.critic_values(critics, features, action, detach=True))
         loss_actor = self.batch_mean(self.alpha(log_prob) * log_prob - q.min(0).values.squeeze(-1))
         return loss_actor, loss_q, self.alpha_loss(log_prob)
 

@@ -77,8 +77,8 @@ class TD3Learner(DeterministicActorCriticLearner):
         with torch.no_grad():
             features = self.features(self.inputs(batch))
         u = self.actor_head(features)
-        first = self.loss.qvalue_network_params.detach()[:1]
-        (q,) = self.critic_values(first, features, self.squash(u))
+        critics = self.loss.qvalue_network_params
+        (q,) = self.critic_values(critics, features, self.squash(u), detach=True, count=1)
         return -self.batch_mean(q), self.penalty(u)
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
