@@ -158,13 +158,13 @@ class ActorCriticLearner(Learner):
         return self.critic_module.body if self.shared_encoder else self.critic_module
 
     def critic_values(
-        self, params: TensorDictBase, features, action, **kwargs
+        self, params: TensorDictBase, features, action, detach: bool = False, count=None
     ) -> list[torch.Tensor]:
-        """``Q_i(s, a)`` of each critic of the loss ``params`` on :meth:`features` (``kwargs``:
-        :func:`.stacked_calls`')."""
+        """``Q_i(s, a)`` of each critic (the first ``count``) of the loss ``params`` on
+        :meth:`features`; ``detach``: no gradient to ``params``."""
         params = params["module", "body"] if self.shared_encoder else params["module"]
         inputs = self.critic_inputs(features, action)
-        return stacked_calls(self.critic_net, params, *inputs, **kwargs)
+        return stacked_calls(self.critic_net, params, *inputs, detach=detach, count=count)
 
 
 class DeterministicActorCriticLearner(ActorCriticLearner):
