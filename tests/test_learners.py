@@ -1,6 +1,7 @@
 """Per-stage learners (DQN, DDPG, TD3) behind the Learner interface, and a small end-to-end run of
 the backward schedule that must find the optimal whole-task paths."""
 
+import copy
 import io
 import warnings
 
@@ -117,6 +118,98 @@ def test_fused_adam_makes_the_same_updates_up_to_rounding(algo):
     for learner in learners.values():
         learner.update(batch_for(learner.specs, seed=9))
         assert all(torch.isfinite(v).all() for v in snapshot(learner).values())
+
+
+def _adam_pair(**kw):
+    """Two copies of a small network, one under torch's fused Adam, one under FusedAdam."""
+    from torchrl_stages.learners.ops import FusedAdam
+
+    torch.manual_seed(0)
+    nets = [torch.nn.Sequential(torch.nn.Linear(5, 8), torch.nn.ReLU(), torch.nn.Linear(8, 2))]
+    nets.append(copy.deepcopy(nets[0]))
+    kw = {"lr": 1e-2, **kw}
+    reference = torch.optim.Adam(nets[0].parameters(), fused=True, **kw)
+    return nets, reference, FusedAdam(nets[1].parameters(), **kw)
+
+
+def _adam_steps(nets, optimizers, steps=6):
+    for i in range(steps):
+        x = torch.randn(16, 5, generator=torch.Generator().manual_seed(i))
+        for net, optimizer in zip(nets, optimizers, strict=True):
+            net(x).pow(2).mean().backward()
+            step = getattr(optimizer, "direct_step", optimizer.step)
+            step()
+            optimizer.zero_grad(set_to_none=True)
+            for group in optimizer.param_groups:
+                group["lr"] *= 0.9  # the stage loop's learning-rate decay
+
+
+@pytest.mark.parametrize("kw", [{}, {"weight_decay": 0.1, "betas": (0.8, 0.99), "eps": 1e-6}])
+def test_fused_adam_direct_step_is_torchs_fused_adam_bit_for_bit(kw):
+    nets, reference, direct = _adam_pair(**kw)
+    calls, adam_steps = [], []
+    kernel, adam_step = torch._fused_adam_, direct.step
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(torch, "_fused_adam_", lambda *a, **k: calls.append(1) or kernel(*a, **k))
+        patch.setattr(direct, "step", lambda: adam_steps.append(1) or adam_step())
+        _adam_steps(nets, [reference, direct])
+    assert len(calls) == 2 * 6  # both optimizers ran the kernel at every step
+    assert len(adam_steps) == 1  # Adam.step only for the first (it creates the state)
+    for a, b in zip(nets[0].parameters(), nets[1].parameters(), strict=True):
+        assert torch.equal(a, b)
+    for a, b in zip(reference.state.values(), direct.state.values(), strict=True):
+        assert all(torch.equal(a[k], b[k]) for k in a)
+    # the state is Adam's: each loads the other's and both go on equally
+    direct.load_state_dict(copy.deepcopy(reference.state_dict()))
+    _adam_steps(nets, [reference, direct], steps=2)
+    pairs = zip(nets[0].parameters(), nets[1].parameters(), strict=True)
+    assert all(torch.equal(a, b) for a, b in pairs)
+
+
+def test_fused_adam_direct_step_runs_adam_step_where_it_must():
+    """Hooks, a parameter without a gradient or an AMSGrad group: ``Adam.step`` itself."""
+    nets, _, direct = _adam_pair()
+    _adam_steps([nets[1]], [direct], steps=1)
+    seen = []
+    handle = direct.register_step_post_hook(lambda *a: seen.append(1))
+    _adam_steps([nets[1]], [direct], steps=2)
+    assert seen == [1, 1]  # once per step, not skipped nor doubled
+    handle.remove()
+    nets[1][0].weight.requires_grad_(False)  # no gradient for one parameter
+    before = nets[1][2].weight.clone()
+    _adam_steps([nets[1]], [direct], steps=1)
+    assert not torch.equal(before, nets[1][2].weight)
+    for kw in ({"amsgrad": True}, {"maximize": True}, {"lr": torch.tensor(1e-2)}):
+        nets, _, other = _adam_pair(**kw)
+        _adam_steps([nets[1]], [other], steps=1)
+        assert not other._direct(), kw
+    # the state of a non-fused Adam turns fused off: direct_step is then that Adam's step
+    nets, _, direct = _adam_pair()
+    plain = torch.optim.Adam(nets[0].parameters(), lr=1e-2)
+    _adam_steps([nets[0]], [plain], steps=2)
+    nets[1].load_state_dict(nets[0].state_dict())
+    direct.load_state_dict(copy.deepcopy(plain.state_dict()))
+    assert not direct._direct()
+    _adam_steps(nets, [plain, direct], steps=2)
+    pairs = zip(nets[0].parameters(), nets[1].parameters(), strict=True)
+    assert all(torch.equal(a, b) for a, b in pairs)
+    # an empty parameter group is skipped, as Adam.step skips it
+    nets, reference, direct = _adam_pair()
+    for optimizer in (reference, direct):
+        optimizer.add_param_group({"params": []})
+    _adam_steps(nets, [reference, direct], steps=3)
+    pairs = zip(nets[0].parameters(), nets[1].parameters(), strict=True)
+    assert all(torch.equal(a, b) for a, b in pairs)
+
+
+def test_total_grad_norm_is_torchs_total_norm():
+    from torchrl_stages.learners.ops import total_grad_norm
+
+    grads = [torch.randn(64, 14), torch.randn(64), torch.randn(4, 64), torch.randn(1)]
+    assert torch.equal(total_grad_norm(grads), torch.nn.utils.get_total_norm(grads))
+    mixed = [grads[0], grads[1].double()]  # two dtypes: torch's own grouping
+    assert torch.equal(total_grad_norm(mixed), torch.nn.utils.get_total_norm(mixed))
+    assert total_grad_norm([]).item() == 0.0
 
 
 @pytest.mark.parametrize("algo", list(ALGOS))

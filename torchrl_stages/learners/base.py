@@ -17,10 +17,12 @@ from torchrl.objectives import LossModule, ValueEstimators
 from torchrl_stages.config import StageChecks, StageConfig, as_dataclass
 from torchrl_stages.learners.networks import ConvSpec, mlp
 from torchrl_stages.learners.ops import (
+    FusedAdam,
     FusedSoftUpdate,
     clip_seed_grads,
     linear_schedule,
     seed_grad_norms,
+    total_grad_norm,
 )
 from torchrl_stages.learners.stacking import current_rows, current_seeds, seed_axes
 
@@ -186,8 +188,8 @@ class Learner(nn.Module, ABC):
         return torch.compile(fn, mode=None if self.compile_mode == "default" else self.compile_mode)
 
     def adam(self, params, lr: float) -> torch.optim.Adam:
-        """Adam, its fused kernel with ``cfg.fused_adam``."""
-        return torch.optim.Adam(params, lr=lr, fused=True if self.cfg.fused_adam else None)
+        """Adam, its fused kernel called directly with ``cfg.fused_adam`` (:class:`.FusedAdam`)."""
+        return FusedAdam(params, lr=lr) if self.cfg.fused_adam else torch.optim.Adam(params, lr=lr)
 
     def anneal(self, frames: int) -> None:
         """Sets exploration and learning rates (linear to ``cfg.lr_end_factor`` of their start
@@ -233,7 +235,7 @@ class Learner(nn.Module, ABC):
             params = [p for group in self.optimizers[name].param_groups for p in group["params"]]
             grads = [p.grad for p in params if p.grad is not None]
             if self.seeds is None:
-                norm = torch.nn.utils.get_total_norm(grads)
+                norm = total_grad_norm(grads)
                 if max_norm is not None:
                     torch.nn.utils.clip_grads_with_norm_(params, float(max_norm), norm)
             else:
@@ -245,8 +247,9 @@ class Learner(nn.Module, ABC):
                 raise NonFiniteError(f"the gradient of the {name} parameters", self.num_updates + 1)
             self.grad_norms[name] = norm.detach()
         for name in names:
-            self.optimizers[name].step()
-            self.optimizers[name].zero_grad(set_to_none=True)
+            optimizer = self.optimizers[name]
+            getattr(optimizer, "direct_step", optimizer.step)()
+            optimizer.zero_grad(set_to_none=True)
 
     def _seed_axes_of(self, name: str, params: list[torch.Tensor]) -> list[int]:
         """The seeds' axis of each of optimizer ``name``'s ``params`` that has a gradient."""
