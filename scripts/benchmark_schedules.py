@@ -6,8 +6,9 @@ stage 0 (backward), of phase 0 (joint) or of the flat learner, the greedy whole-
 error against dynamic programming) is logged against the frames of all stages so far. The table
 reports the final whole-task success, the frames and wall-clock to the first optimal path from
 (0, 0) (grid world), the final merged value error, and the frames and training wall-clock; the
-figure ``schedules_<task>.png`` plots the followed numbers against frames per schedule (mean
-over seeds, band from the lowest to the highest seed).
+figure ``schedules_<task>.png`` plots the followed numbers against frames per schedule (the
+median over seeds, its band from the lowest to the highest seed); ``--figures DIR`` writes a
+copy there too (``../docs``, beside the table the docs include).
 
 Tasks: gridworld-homo, gridworld-hetero, manipulator, cargo. The flat baseline is one learner
 over the whole task; cargo's stages act on different action entries, so its flat run is the
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import shutil
 import statistics
 from collections import defaultdict
 from pathlib import Path
@@ -92,7 +94,8 @@ def _fmt(value, spec: str) -> str:
 
 
 def plot(rows: list[dict], out: Path) -> list[Path]:
-    """One figure per task: the followed numbers against frames, per schedule."""
+    """One figure per task: the followed numbers against frames, per schedule (the median over
+    seeds; the band, the lowest to the highest seed)."""
     paths = []
     for task in dict.fromkeys(r["task"] for r in rows):
         done = [r for r in rows if r["task"] == task]
@@ -114,8 +117,12 @@ def plot(rows: list[dict], out: Path) -> list[Path]:
                         for c in runs
                     ]
                 )
-                ax.plot(grid, np.nanmean(ys, 0), color=f"C{i}", label=f"{schedule} ({len(runs)})")
-                ax.fill_between(grid, np.nanmin(ys, 0), np.nanmax(ys, 0), color=f"C{i}", alpha=0.2)
+                label = f"{schedule}: median of {len(runs)} seeds"
+                z = len(SCHEDULES) - i  # the stacked schedules' short curves drawn on top
+                median = np.nanmedian(ys, 0)
+                ax.plot(grid, median, ".-", ms=5, lw=2, color=f"C{i}", label=label, zorder=z + 3)
+                low, high = np.nanmin(ys, 0), np.nanmax(ys, 0)
+                ax.fill_between(grid, low, high, color=f"C{i}", alpha=0.2, zorder=z)
             ax.set(xlabel="frames (all stages)", ylabel=metric, title=f"{task}: {metric}")
             if metric == "value_error":
                 ax.set_yscale("log")
@@ -154,7 +161,7 @@ def summary(rows: list[dict]) -> list[str]:
 
 def main() -> None:
     variants = [f"{t}/{s}" for t in TASKS for s in SCHEDULES]
-    args: argparse.Namespace = parse_args(__doc__, variants)
+    args: argparse.Namespace = parse_args(__doc__, variants, figures="")  # e.g. ../docs
     columns = ["task / schedule", "seed", "success", "frames to optimal path"]
     columns += ["wall-clock to optimal path (s)", "max abs V error", "frames", "train (s)"]
     rows = run_table(
@@ -175,6 +182,11 @@ def main() -> None:
     )
     for path in plot(rows, args.out):
         print(f"wrote {path}")
+        if args.figures:
+            copy = Path(args.figures) / path.name
+            copy.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(path, copy)
+            print(f"wrote {copy}")
 
 
 if __name__ == "__main__":

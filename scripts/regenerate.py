@@ -1,10 +1,12 @@
-"""Regenerates the headline tables and the README's figure: every result its table shows.
+"""Regenerates the headline tables and figures: every result the README and the schedules'
+figures show.
 
 Each table file in ``docs/tables/`` starts with the commands that wrote it; this script runs
 them again, in order, into ``--out/<table>`` (the launches of one table share it: their rows
 make one table) and writes the table back to ``docs/tables/<table>.md``; the MiniGrid tables'
-runs are drawn as ``docs/minigrid_schedules.png``. That is hours on a 2-core CPU (MiniGrid most
-of it); ``--only`` picks tables.
+runs are drawn as ``docs/minigrid_schedules.png``, and the schedules' tables draw
+``docs/schedules_<task>.png`` themselves (``--figures ../docs``). That is hours on a 2-core
+CPU (MiniGrid most of it); ``--only`` picks tables.
 
 ``--quick`` runs each benchmark script once, on the first launch of its first table, with
 ``experiment=smoke``'s budgets, one seed and its first variant: minutes, so that the whole
@@ -44,6 +46,8 @@ HEADLINES = (
     "waypoints_gym_env",
     "seeds_wallclock_four_ways",
 )
+#: the schedules' figures (success against frames, per task family) and their tables
+SCHEDULES = ("schedules_gridworld", "schedules_manipulator", "schedules_cargo")
 
 
 #: the README's figure: every MiniGrid headline table's runs (scripts/figure_minigrid.py)
@@ -52,8 +56,8 @@ MINIGRID_FIGURE = tuple(name for name in HEADLINES if name.startswith("minigrid_
 
 
 def launches(table: Path) -> list[list[str]]:
-    """The commands at the top of ``table``, each as ``[script, args...]`` (its ``--out`` and
-    ``--table`` left out: this script sets them)."""
+    """The commands at the top of ``table``, each as ``[script, args...]`` (its ``--out``,
+    ``--table`` and ``--figures`` left out: this script sets them)."""
     text = table.read_text()
     header = text.split("```text\n", 1)[1].split("\n```", 1)[0] if "```text\n" in text else ""
     found = []
@@ -68,7 +72,7 @@ def launches(table: Path) -> list[list[str]]:
         for word in args:
             if skip:
                 skip = False
-            elif word in ("--out", "--table"):
+            elif word in ("--out", "--table", "--figures"):
                 skip = True
             else:
                 kept.append(word)
@@ -109,7 +113,8 @@ def quick(argv: list[str]) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("runs/regenerated"))
-    parser.add_argument("--only", nargs="+", choices=HEADLINES, default=list(HEADLINES))
+    every = [*HEADLINES, *SCHEDULES]
+    parser.add_argument("--only", nargs="+", choices=every, default=every)
     parser.add_argument("--quick", action="store_true", help="tiny budgets, tables in --out")
     parser.add_argument("--list", action="store_true", help="print the commands, run nothing")
     args = parser.parse_args()
@@ -126,8 +131,9 @@ def main() -> None:
     for name, argv in planned:
         out = args.out.resolve() / name  # shown as runs/<name> in the table (portable paths)
         command = [sys.executable, *argv, "--out", str(out)]
-        if not args.quick:
-            command += ["--table", f"../docs/tables/{name}.md"]  # from scripts/, as it is run
+        if not args.quick:  # the docs' copies, from scripts/ as it is run
+            command += ["--table", f"../docs/tables/{name}.md"]
+            command += ["--figures", "../docs"] if name in SCHEDULES else []
         print(f"{name}: {shlex.join(command[1:])}", flush=True)
         if args.list:
             continue

@@ -30,7 +30,8 @@ def run_script(name: str, *args: str, timeout: float = 300) -> subprocess.Comple
 def quick(tmp_path_factory):
     """``regenerate.py --quick``: every headline benchmark script once, on tiny budgets."""
     out = tmp_path_factory.mktemp("quick")
-    tables = sorted((SCRIPTS.parent / "docs" / "tables").glob("*.md"))
+    docs = SCRIPTS.parent / "docs"
+    tables = sorted([*(docs / "tables").glob("*.md"), *docs.glob("*.png")])
     before = {path: path.read_bytes() for path in tables}
     done = run_script("regenerate.py", "--quick", "--out", str(out), timeout=1200)  # ~4 min
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
@@ -42,8 +43,9 @@ def quick(tmp_path_factory):
 @pytest.mark.slow
 @pytest.mark.skipif(minigrid is None, reason=MISSING)
 def test_regenerate_runs_every_headline_benchmark(quick, tmp_path):
-    """The full mode replays each headline table's own commands into docs/tables/; the quick
-    mode runs each script once on tiny budgets and leaves the docs' tables alone."""
+    """The full mode replays each headline table's own commands into docs/tables/ (the
+    schedules' figures into docs/); the quick mode runs each script once on tiny budgets and
+    leaves the docs' tables alone."""
     listed = run_script("regenerate.py", "--list", "--out", str(tmp_path))
     assert listed.returncode == 0, listed.stderr[-3000:]
     *shown, figure = listed.stdout.splitlines()
@@ -56,10 +58,14 @@ def test_regenerate_runs_every_headline_benchmark(quick, tmp_path):
         "gridworld_seeds_0_9",
         "manipulator_ddpg_seeds_0_7",
         "minigrid_keycorridor_s3r2_settings",
+        "schedules_gridworld",
         "seeds_wallclock_four_ways",
         "waypoints_gym_env",
     ]
     assert_figure(quick / "minigrid_schedules.png")  # the README's figure, of the quick run
+    # the schedules' figure: success (and the merged value error) against frames
+    assert_figure(quick / "schedules_gridworld" / "schedules_gridworld-homo.png")
+    assert any("--figures ../docs" in line for line in shown if "schedules_cargo" in line)
     for table in quick.glob("*/table.md"):
         text = table.read_text()
         assert "experiment=" in text and str(quick) not in text, table  # portable commands
