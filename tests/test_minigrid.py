@@ -17,6 +17,7 @@ import gymnasium  # noqa: E402
 
 from torchrl_stages.config import ConfigError  # noqa: E402
 from torchrl_stages.envs.minigrid import (  # noqa: E402
+    BLOCKER,
     DOORS,
     FEATURES,
     MiniGridEnv,
@@ -75,19 +76,19 @@ def test_the_level_steps_as_before_without_drawing_its_own_view(level):
 def test_the_stage_follows_the_level_and_never_goes_back(level):
     env = StagedMiniGrid(gymnasium.make(level))
     obs, _ = env.reset(seed=3)
-    assert obs["stage"].tolist() == [0] and obs["observation"].shape == (len(FEATURES),)
-    _face(env, env.key.cur_pos)
+    assert obs["stage"].tolist() == [0] and obs["observation"].shape == (len(env.features),)
+    _face(env, env.plan.key.cur_pos)
     obs, reward, *_ = env.step(env.action("pickup"))
     assert obs["stage"].tolist() == [1] and reward == 0.0  # the key is carried
-    _face(env, env.door.cur_pos)
+    _face(env, env.plan.door.cur_pos)
     obs, *_ = env.step(env.action("toggle"))
-    assert obs["stage"].tolist() == [2] and env.door.is_open  # the key opened the door
+    assert obs["stage"].tolist() == [2] and env.plan.door.is_open  # the key opened the door
     obs, *_ = env.step(env.action("toggle"))  # closing the door again
-    assert obs["stage"].tolist() == [2] and not env.door.is_open
+    assert obs["stage"].tolist() == [2] and not env.plan.door.is_open
     env.step(env.action("toggle"))
     level_env = env.unwrapped
     level_env.carrying = None  # as if it had dropped the key
-    target = env.target
+    target = env.plan.target
     if target.type == "goal":
         _face(env, target.cur_pos)
         obs, reward, terminated, truncated, _ = env.step(env.action("forward"))
@@ -95,6 +96,53 @@ def test_the_stage_follows_the_level_and_never_goes_back(level):
         _face(env, target.cur_pos)
         obs, reward, terminated, truncated, _ = env.step(env.action("pickup"))
     assert obs["stage"].tolist() == [2] and terminated and reward == 1.0 and not truncated
+
+
+def test_a_blocked_door_and_a_key_in_a_box_are_stages_of_their_own():
+    env = StagedMiniGrid(gymnasium.make("MiniGrid-ObstructedMaze-1Dlhb-v0"))
+    obs, _ = env.reset(seed=1)
+    plan, level = env.plan, env.unwrapped
+
+    def features() -> dict[str, float]:
+        return dict(zip(env.features, obs["observation"].tolist(), strict=True))
+
+    size = max(level.width, level.height)
+    box = (np.array(plan.box.cur_pos) - level.agent_pos) / size  # the key hides in its box
+    assert (features()["key_dx"], features()["key_dy"]) == pytest.approx(tuple(box))
+    _face(env, plan.blocked)
+    obs, *_ = env.step(env.action("pickup"))
+    assert obs["stage"].tolist() == [0] and features()["carries_blocker"] == 1.0  # not put down
+    free = next(
+        (x, y)
+        for y in range(1, level.height - 1)
+        for x in range(1, 5)
+        if (x, y) != plan.blocked and level.grid.get(x, y) is None
+    )
+    _face(env, free)
+    obs, *_ = env.step(env.action("drop"))
+    assert obs["stage"].tolist() == [1] and level.grid.get(*free) is plan.blocker
+    _face(env, plan.box.cur_pos)
+    obs, *_ = env.step(env.action("toggle"))  # the box opens: the key lies where it was
+    assert obs["stage"].tolist() == [1] and features()["front_key"] == 1.0
+    obs, *_ = env.step(env.action("pickup"))
+    assert obs["stage"].tolist() == [2] and level.carrying is plan.key
+    _face(env, plan.door.cur_pos)
+    obs, *_ = env.step(env.action("toggle"))
+    assert obs["stage"].tolist() == [3] and plan.door.is_open
+    level.carrying = None  # as if it had dropped the key
+    _face(env, plan.target.cur_pos)
+    obs, reward, terminated, *_ = env.step(env.action("pickup"))
+    assert obs["stage"].tolist() == [3] and terminated and reward == 1.0
+    for stage in range(4):  # starts inside each stage: every earlier goal done
+        env = StagedMiniGrid(gymnasium.make("MiniGrid-ObstructedMaze-1Dlhb-v0"), stage)
+        for seed in range(4):
+            obs, _ = env.reset(seed=seed)
+            plan, level = env.plan, env.unwrapped
+            assert obs["stage"].tolist() == [stage]
+            moved = level.grid.get(*plan.blocked) is None and level.carrying is not plan.blocker
+            assert moved == (stage >= 1) and (level.carrying is plan.key) == (stage >= 2)
+            assert (level.grid.get(*plan.box.cur_pos) is plan.box) == (stage < 2)
+            assert plan.door.is_open == (stage == 3)
 
 
 def test_the_box_does_not_break_so_that_every_termination_is_a_success():
@@ -107,18 +155,18 @@ def test_the_box_does_not_break_so_that_every_termination_is_a_success():
     assert box.toggle(level.unwrapped, box.cur_pos)  # MiniGrid's own box opens
     env = StagedMiniGrid(gymnasium.make("MiniGrid-UnlockPickup-v0"), start_stage=2)
     env.reset(seed=0)
-    _face(env, env.target.cur_pos)
+    _face(env, env.plan.target.cur_pos)
     for _ in range(3):
         obs, reward, terminated, truncated, _ = env.step(env.action("toggle"))
         assert not terminated and reward == 0.0
-        assert env.unwrapped.grid.get(*env.target.cur_pos) is env.target
+        assert env.unwrapped.grid.get(*env.plan.target.cur_pos) is env.plan.target
     env.unwrapped.carrying = None  # as if it had dropped the key
     obs, reward, terminated, truncated, _ = env.step(env.action("pickup"))
     assert terminated and reward == 1.0  # still there to pick up
     # a ball (KeyCorridor) cannot be broken: toggling it changes nothing
     env = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R1-v0"), start_stage=2)
     env.reset(seed=0)
-    _face(env, env.target.cur_pos)
+    _face(env, env.plan.target.cur_pos)
     assert not env.step(env.action("toggle"))[2]
 
 
@@ -131,8 +179,8 @@ def test_episodes_start_inside_the_stage_where_the_agent_can_stand(level, stage)
         obs, _ = env.reset(seed=seed)
         level_env = env.unwrapped
         assert obs["stage"].tolist() == [stage]
-        assert (level_env.carrying is env.key) == (stage >= 1)
-        assert env.door.is_open == (stage == 2) and env.door.is_locked == (stage < 2)
+        assert (level_env.carrying is env.plan.key) == (stage >= 1)
+        assert env.plan.door.is_open == (stage == 2) and env.plan.door.is_locked == (stage < 2)
         there = level_env.grid.get(*level_env.agent_pos)  # a free cell or an open doorway
         assert there is None or (there.type == "door" and there.is_open)
         assert np.isfinite(obs["observation"]).all() and np.abs(obs["observation"]).max() <= 1
@@ -149,10 +197,10 @@ def test_stage_starts_cover_open_rooms_and_doorways():
         env.reset(seed=seed)
         level = env.unwrapped
         doors = [o for o in level.grid.grid if o is not None and o.type == "door"]
-        open_doors.add(sum(d.is_open for d in doors if d is not env.door))
+        open_doors.add(sum(d.is_open for d in doors if d is not env.plan.door))
         there = level.grid.get(*level.agent_pos)
         doorway += there is not None and there.type == "door"
-        assert env.door.is_locked and not env.door.is_open  # stage 1: still locked
+        assert env.plan.door.is_locked and not env.plan.door.is_open  # stage 1: still locked
     assert doorway > 0 and len(open_doors) > 2
 
 
@@ -181,7 +229,9 @@ def test_stage_0_starts_spread_over_the_rooms_only_where_the_level_has_rooms():
 
 def test_view_doors_adds_where_the_doors_around_the_agent_are():
     # a closed door is as blocked as a wall in blocked_*: door_* tells them apart
-    plain = StagedMiniGrid(gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"), start_stage=0)
+    plain = StagedMiniGrid(
+        gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"), start_stage=0, view_doors=False
+    )
     doors = StagedMiniGrid(
         gymnasium.make("MiniGrid-KeyCorridorS3R3-v0"), start_stage=0, view_doors=True
     )
@@ -209,7 +259,7 @@ def test_view_doors_adds_where_the_doors_around_the_agent_are():
             a = plain.step(action)[0]
             b = doors.step(action)[0]
     assert seen_closed
-    env = MiniGridEnv("MiniGrid-KeyCorridorS3R1-v0", batch_size=(2,), view_doors=True)
+    env = MiniGridEnv("MiniGrid-KeyCorridorS3R1-v0", batch_size=(2,))  # rooms: doors in view
     try:
         assert env.reset()["observation"].shape == (2, len(FEATURES) + len(DOORS))
     finally:
@@ -273,12 +323,44 @@ def test_the_agent_uses_the_actions_its_family_needs():
         vector.close()
 
 
-def test_stage_names_and_levels_without_the_stages_are_refused():
-    assert stage_names("MiniGrid-DoorKey-16x16-v0") == ["key", "door", "goal"]
-    assert stage_names("MiniGrid-UnlockPickup-v0")[-1] == "box"
-    with pytest.raises(ValueError, match=r"not a MiniGrid level with a key.*Fix: pick one"):
-        MiniGridEnv("MiniGrid-Empty-5x5-v0", batch_size=(1,))
-    with pytest.raises(ValueError, match=r"Fix: pick one"):  # never imports a module it names
+@pytest.mark.parametrize(
+    "level, stages, actions, view_doors",
+    [
+        ("MiniGrid-DoorKey-16x16-v0", ["key", "door", "goal"], 5, False),
+        ("MiniGrid-UnlockPickup-v0", ["key", "door", "box"], 6, False),
+        ("MiniGrid-KeyCorridorS6R3-v0", ["key", "door", "ball"], 6, True),
+        ("MiniGrid-LockedRoom-v0", ["key", "door", "goal"], 5, True),
+        ("MiniGrid-ObstructedMaze-1Dlh-v0", ["key", "door", "ball"], 6, False),
+        ("MiniGrid-ObstructedMaze-1Dlhb-v0", ["blocker", "key", "door", "ball"], 6, False),
+        ("MiniGrid-BlockedUnlockPickup-v0", ["blocker", "key", "door", "box"], 6, False),
+    ],
+)
+def test_the_stages_come_from_the_levels_objects(level, stages, actions, view_doors):
+    # one locked door, its key (maybe in a box), maybe a ball in front of it, and a target
+    env = StagedMiniGrid(gymnasium.make(level))
+    assert stage_names(level) == env.stage_names == stages and env.num_stages == len(stages)
+    assert len(env.actions) == actions and ("drop" in env.actions) == (actions == 6)
+    blocker = BLOCKER if stages[0] == "blocker" else ()
+    assert env.features == FEATURES + DOORS * view_doors + blocker
+
+
+@pytest.mark.parametrize(
+    "level, why",
+    [
+        ("MiniGrid-Empty-5x5-v0", "it has 0 locked doors"),
+        ("MiniGrid-ObstructedMaze-2Dl-v0", "it has 2 locked doors"),
+        ("MiniGrid-Unlock-v0", "it has no object to pick up and 0 goal squares"),
+    ],
+)
+def test_a_level_without_linear_stages_is_refused_saying_why(level, why):
+    with pytest.raises(ValueError, match=rf"{level} cannot be staged: {why}.*Fix: pick such"):
+        MiniGridEnv(level, batch_size=(1,))
+
+
+def test_levels_that_are_not_minigrid_ids_are_refused():
+    with pytest.raises(ValueError, match=r"not a MiniGrid level.*Fix: pick a MiniGrid"):
+        MiniGridEnv("CartPole-v1", batch_size=(1,))
+    with pytest.raises(ValueError, match=r"Fix: pick a MiniGrid"):  # never imports a module
         MiniGridEnv("os:MiniGrid-DoorKey-5x5-v0", batch_size=(1,))
     with pytest.raises(ValueError, match=r"start_stage=3 is out of range"):
         StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), start_stage=3)
@@ -304,7 +386,7 @@ def test_the_vector_env_restarts_finished_copies_inside_their_stage():
 
 def test_an_env_id_of_another_family_is_refused_before_training(compose_cfg):
     cfg = compose_cfg("task=minigrid", "task.env.env_id=CartPole-v1")
-    with pytest.raises(ConfigError, match=r"(?s)task\.env: cannot build.*Fix: pick one"):
+    with pytest.raises(ConfigError, match=r"(?s)task\.env: cannot build.*Fix: pick a MiniGrid"):
         build_task(cfg)
 
 
@@ -331,12 +413,16 @@ def test_a_levels_settings_come_with_its_id(
     compose_cfg, env_id, view_doors, gamma, advantage_learning, eval_episodes
 ):
     task = build_task(compose_cfg("task=minigrid", f"task.env.env_id={env_id}"))
-    assert task.cfg.env.view_doors is view_doors
+    assert _features(task) == len(FEATURES) + len(DOORS) * view_doors  # doors: where rooms are
     for k in range(task.num_stages):
         cfg = task.stage_cfg(k)
         settings = (cfg.gamma, cfg.advantage_learning, cfg.eval_episodes, cfg.algo)
         assert settings == (gamma, advantage_learning, eval_episodes, "dqn")
     task.spec_env.close()
+
+
+def _features(task) -> int:
+    return task.spec_env.observation_spec["observation"].shape[-1]
 
 
 def test_a_levels_settings_give_way_to_the_command_line(compose_cfg):
@@ -361,7 +447,8 @@ def test_a_levels_settings_give_way_to_the_command_line(compose_cfg):
 def test_the_keycorridor_preset_is_s3r3_with_its_settings(compose_cfg):
     for level in ([], ["task.env.env_id=MiniGrid-KeyCorridorS3R2-v0"]):
         task = build_task(compose_cfg("experiment=minigrid_keycorridor", *level))
-        assert task.cfg.env.env_id.startswith("MiniGrid-KeyCorridorS3R") and task.cfg.env.view_doors
+        assert task.cfg.env.env_id.startswith("MiniGrid-KeyCorridorS3R")
+        assert _features(task) == len(FEATURES) + len(DOORS)
         for k in range(task.num_stages):
             cfg = task.stage_cfg(k)
             assert (cfg.gamma, cfg.advantage_learning, cfg.algo) == (0.95, 0.9, "dqn")

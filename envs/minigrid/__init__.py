@@ -1,5 +1,6 @@
-"""MiniGrid's multi-stage levels (DoorKey, KeyCorridor, UnlockPickup; the ``minigrid`` extra):
-the staged env, the report of a run's evaluation and the figure."""
+"""MiniGrid's levels with a locked door (DoorKey, KeyCorridor, UnlockPickup, LockedRoom,
+ObstructedMaze-1D*, ...; the ``minigrid`` extra): the staged env, the report of a run's
+evaluation and the figure."""
 
 from torchrl_stages.task_registry import register_task
 

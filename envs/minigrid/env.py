@@ -1,6 +1,6 @@
-"""MiniGrid's levels with a key, a locked door and a goal (DoorKey, KeyCorridor, UnlockPickup)
-as 3-stage tasks: the gymnasium wrapper :class:`StagedMiniGrid` and the batched
-:class:`MiniGridEnv`. ``docs/tasks/minigrid.md`` says what each choice is for."""
+"""MiniGrid's levels with a locked door as multi-stage tasks: the gymnasium wrapper
+:class:`StagedMiniGrid` and the batched :class:`MiniGridEnv`. The stages come from the level's
+objects (:class:`LevelPlan`); ``docs/tasks/minigrid.md`` says what each choice is for."""
 
 from __future__ import annotations
 
@@ -16,32 +16,21 @@ import torch
 from torchrl_stages.gym_env import GymStageEnv
 
 from .._common import check_start_stage
+from .plan import LevelPlan, UnstageableLevel, probe, refuse, registered_layouts
 
 __all__ = [
-    "ACTIONS",
+    "BLOCKER",
     "DOORS",
-    "FAMILIES",
     "FEATURES",
+    "LevelPlan",
     "MiniGridEnv",
     "StagedMiniGrid",
+    "UnstageableLevel",
     "import_minigrid",
     "level_actions",
     "stage_names",
 ]
 
-#: the level families (the start of their ids) and what their last stage heads for
-FAMILIES = {
-    "MiniGrid-DoorKey-": "goal",
-    "MiniGrid-KeyCorridor": "ball",
-    "MiniGrid-UnlockPickup-": "box",
-}
-#: the actions each family's levels need (``done`` never does anything; ``drop`` only where the
-#: key must be put down to pick up the target): an action no level needs costs exploration
-ACTIONS = {
-    "MiniGrid-DoorKey-": ("left", "right", "forward", "pickup", "toggle"),
-    "MiniGrid-KeyCorridor": ("left", "right", "forward", "pickup", "drop", "toggle"),
-    "MiniGrid-UnlockPickup-": ("left", "right", "forward", "pickup", "drop", "toggle"),
-}
 VIEW = 2  # the local view: the (2 * VIEW + 1)^2 cells around the agent
 #: observation features, in order (``(dx, dy)``: offset from the agent, in grid widths)
 FEATURES = (
@@ -58,6 +47,8 @@ FEATURES = (
 #: the features ``view_doors=True`` appends: which cells around the agent are doors (in
 #: ``blocked_*`` a closed door looks like a wall)
 DOORS = tuple(f"door_{dx}_{dy}" for dy in range(-VIEW, VIEW + 1) for dx in range(-VIEW, VIEW + 1))
+#: the features a level whose door is blocked appends: the blocker carried, where, in front
+BLOCKER = ("carries_blocker", "blocker_dx", "blocker_dy", "front_blocker")
 
 
 def import_minigrid() -> Any:
@@ -72,115 +63,111 @@ def import_minigrid() -> Any:
     return minigrid
 
 
-def _family(env_id: str) -> str:
-    if ":" in env_id or not env_id.startswith(tuple(FAMILIES)):
-        raise ValueError(
-            f"env_id={env_id!r} is not a MiniGrid level with a key, a locked door and a goal. "
-            f"Fix: pick one of the {', '.join(f + '*' for f in FAMILIES)} ids (task=gym takes "
-            "any other gymnasium env with a stage function of yours)"
+def _check_id(env_id: str) -> None:
+    """Refuses an id that is not a registered MiniGrid level (``module:id`` would import)."""
+    spec = None if ":" in env_id else gymnasium.registry.get(env_id)
+    if spec is None or not str(spec.entry_point).startswith("minigrid."):
+        raise UnstageableLevel(
+            f"env_id={env_id!r} is not a MiniGrid level. Fix: pick a MiniGrid level id such "
+            "as MiniGrid-DoorKey-8x8-v0 (task=gym takes any other gymnasium env with a stage "
+            "function of yours)"
         )
-    return next(f for f in FAMILIES if env_id.startswith(f))
 
 
 def stage_names(env_id: str) -> list[str]:
-    """The stages of a level.
+    """The stages of a level, from its objects.
 
     Examples:
         >>> stage_names("MiniGrid-KeyCorridorS3R3-v0")
         ['key', 'door', 'ball']
+        >>> stage_names("MiniGrid-ObstructedMaze-1Dlhb-v0")
+        ['blocker', 'key', 'door', 'ball']
     """
-    return ["key", "door", FAMILIES[_family(env_id)]]
+    import_minigrid()
+    _check_id(env_id)
+    return list(registered_layouts(env_id, ())[0])
 
 
 def level_actions(env_id: str) -> tuple[str, ...]:
-    """The actions a level's tasks use by default.
+    """The actions a level's stages need.
 
     Examples:
         >>> level_actions("MiniGrid-DoorKey-16x16-v0")
         ('left', 'right', 'forward', 'pickup', 'toggle')
     """
-    return ACTIONS[_family(env_id)]
+    import_minigrid()
+    _check_id(env_id)
+    return registered_layouts(env_id, ())[1]
 
 
 class StagedMiniGrid(gymnasium.Wrapper):
-    """A MiniGrid level as a 3-stage task: its stage, features and stage-k starts.
+    """A MiniGrid level with a locked door as a multi-stage task: its stage, features and
+    stage-k starts, from the level's objects (:class:`LevelPlan`).
 
-    The stage is 0 until the agent first carries the key, 1 until the locked door is open,
-    then 2, and never goes back. The observation is ``{"observation": float32 [len(features)],
-    "stage": int64 [1]}`` (:data:`FEATURES`, plus :data:`DOORS` with ``view_doors``); the
-    reward is 1 on success (plus ``no_op_reward`` for an action that changes nothing); episodes
-    terminate on success only, and UnlockPickup's box cannot be broken. ``actions`` (MiniGrid's
-    names, ``"all"``, or ``None``: :data:`ACTIONS`) are the wrapper's actions, in order.
-    ``start_stage=k`` starts inside stage k: key carried (k >= 1), door open (k = 2), the other
-    doors open at random, the agent on a drawn reachable cell.
+    The stage starts at 0 and moves on by one on the step that completes its goal (blocker
+    put down off the door's cell, key carried, door open), never going back; the last stage
+    ends on the level's own success. The observation is ``{"observation": float32
+    [len(features)], "stage": int64 [1]}`` (:data:`FEATURES`, then :data:`DOORS` with
+    ``view_doors``, then :data:`BLOCKER` where the door is blocked); the reward is 1 on success
+    (plus ``no_op_reward`` for an action that changes nothing); episodes terminate on success
+    only, and a box to pick up cannot be broken. ``actions`` (MiniGrid's names, ``"all"``, or
+    ``None``: :attr:`LevelPlan.actions`) are the wrapper's actions, in order; ``view_doors=None``
+    turns the doors on where the level has doors that open without a key. ``start_stage=k``
+    starts inside stage k: every earlier goal done (blocker moved to a drawn cell, key carried,
+    door open), the other doors open at random, the agent on a drawn reachable cell.
 
     Examples:
         >>> env = StagedMiniGrid(gymnasium.make("MiniGrid-DoorKey-5x5-v0"), start_stage=2)
         >>> obs, _ = env.reset(seed=0)
         >>> int(obs["stage"][0]), obs["observation"].shape == (len(FEATURES),)
         (2, True)
-        >>> env.unwrapped.carrying.type, env.door.is_open
-        ('key', True)
+        >>> env.unwrapped.carrying.type, env.plan.door.is_open, env.stage_names
+        ('key', True, ['key', 'door', 'goal'])
         >>> env.actions, int(env.action_space.n)
         (('left', 'right', 'forward', 'pickup', 'toggle'), 5)
     """
-
-    num_stages = 3
 
     def __init__(
         self,
         env: gymnasium.Env,
         start_stage: int | None = None,
         actions: Sequence[str] | str | None = None,
-        view_doors: bool = False,
+        view_doors: bool | None = None,
         no_op_reward: float = 0.0,
     ) -> None:
         super().__init__(env)
-        family = _family(env.spec.id if env.spec is not None else type(env.unwrapped).__name__)
+        stages, needed, rooms = probe(env.unwrapped)
         _skip_level_image(env.unwrapped)
+        self.stage_names = list(stages)
+        self.num_stages = len(stages)
         self.start_stage = check_start_stage(start_stage, self.num_stages)
-        self.actions = _actions(family, actions, env.unwrapped.actions)
+        self.actions = _actions(needed, actions, env.unwrapped.actions)
         self._level_actions = [int(env.unwrapped.actions[name]) for name in self.actions]
         self.action_space = gymnasium.spaces.Discrete(len(self.actions))
-        self.view_doors = bool(view_doors)
+        self.view_doors = rooms if view_doors is None else bool(view_doors)
         self.no_op_reward = float(no_op_reward)
         self.features = FEATURES + (DOORS if self.view_doors else ())
+        self.features += BLOCKER if stages[0] == "blocker" else ()
         self.observation_space = gymnasium.spaces.Dict(
             observation=gymnasium.spaces.Box(-1.0, 1.0, (len(self.features),), np.float32),
             stage=gymnasium.spaces.Box(0, self.num_stages - 1, (1,), np.int64),
         )
+        self.plan: LevelPlan | None = None  # the layout's, from each reset
         self.stage = 0
 
     def action(self, name: str) -> int:
         """The wrapper's index of the level's action ``name``."""
         return self.actions.index(name)
 
-    def _objects(self) -> None:
-        """Finds the key, the locked door and the target of the level just generated."""
-        level = self.env.unwrapped
-        self.key = self.door = self.target = None
-        self.rooms = False  # doors the agent can open without the key (KeyCorridor's rooms)
-        for obj in level.grid.grid:
-            if obj is None:
-                continue
-            if obj.type == "key":
-                self.key = obj
-            elif obj.type == "door" and obj.is_locked:
-                self.door = obj
-            elif obj.type == "door":
-                self.rooms = True
-            elif obj.type == "goal":
-                self.target = obj
-        if getattr(level, "obj", None) is not None:  # KeyCorridor, UnlockPickup
-            self.target = level.obj
-        if self.target is not None and self.target.type == "box":
-            self.target.toggle = _keep_closed  # breaking the box would make the level unsolvable
-
-    def _progress(self) -> int:
-        level = self.env.unwrapped
-        if self.door.is_open and not self.door.is_locked:
-            return 2
-        return 1 if level.carrying is self.key else 0
+    def _done(self, stage: int) -> bool:
+        """Whether stage ``stage``'s goal holds (the last stage's is the level's success)."""
+        plan, carrying = self.plan, self.env.unwrapped.carrying
+        name = self.stage_names[stage]
+        if name == "blocker":
+            return carrying is not plan.blocker and tuple(plan.blocker.cur_pos) != plan.blocked
+        if name == "key":
+            return carrying is plan.key
+        return name == "door" and plan.door.is_open and not plan.door.is_locked
 
     def _reachable(self) -> list[tuple[int, int]]:
         """The free cells and open doorways the agent can walk to, through doors it can open."""
@@ -202,20 +189,27 @@ class StagedMiniGrid(gymnasium.Wrapper):
         return cells + [start]
 
     def _start_inside(self, stage: int) -> None:
-        level = self.env.unwrapped
-        if stage >= 1:  # the key is carried
-            level.grid.set(*self.key.cur_pos, None)
-            self.key.cur_pos = np.array([-1, -1])
-            level.carrying = self.key
-        if stage >= 2:  # the door is open
-            self.door.is_locked, self.door.is_open = False, True
+        level, plan, done = self.env.unwrapped, self.plan, self.stage_names[:stage]
+        if "blocker" in done:  # put down on a drawn free cell of the agent's side
+            start = tuple(int(v) for v in level.agent_pos)
+            free = [c for c in self._reachable() if c != start and level.grid.get(*c) is None]
+            cell = free[int(self.np_random.integers(len(free)))]
+            level.grid.set(*plan.blocked, None)
+            level.grid.set(*cell, plan.blocker)
+            plan.blocker.cur_pos = np.array(cell)
+        if "key" in done:  # the key is carried (the box it hid in, opened, is gone)
+            level.grid.set(*(plan.key if plan.box is None else plan.box).cur_pos, None)
+            plan.key.cur_pos = np.array([-1, -1])
+            level.carrying = plan.key
+        if "door" in done:
+            plan.door.is_locked, plan.door.is_open = False, True
         # the other doors (KeyCorridor's rooms) open or closed, as an earlier stage may leave them
         for obj in level.grid.grid:
             if (
                 obj is not None
                 and obj.type == "door"
                 and not obj.is_locked
-                and obj is not self.door
+                and obj is not plan.door
             ):
                 obj.is_open = bool(self.np_random.integers(2))
         cells = self._reachable()
@@ -223,14 +217,17 @@ class StagedMiniGrid(gymnasium.Wrapper):
         level.agent_dir = int(self.np_random.integers(4))
 
     def _features(self) -> np.ndarray:
-        level = self.env.unwrapped
+        level, plan = self.env.unwrapped, self.plan
         size = float(max(level.width, level.height))
         ax, ay = (int(v) for v in level.agent_pos)
 
         def offset(obj) -> tuple[float, float]:
-            if obj is None or obj.cur_pos is None or obj.cur_pos[0] < 0:  # carried
+            pos = obj.cur_pos
+            if obj is plan.key and pos is None:  # still in its box, or where the box was
+                pos = plan.box.cur_pos
+            if pos[0] < 0:  # carried
                 return 0.0, 0.0
-            return (obj.cur_pos[0] - ax) / size, (obj.cur_pos[1] - ay) / size
+            return (pos[0] - ax) / size, (pos[1] - ay) / size
 
         front = level.grid.get(*level.front_pos)
         kinds = np.zeros(7, np.float32)
@@ -240,9 +237,9 @@ class StagedMiniGrid(gymnasium.Wrapper):
             kinds[1] = 1
         elif front.type == "door":
             kinds[3 if front.is_open else 2] = 1
-        elif front is self.key:
+        elif front is plan.key:
             kinds[4] = 1
-        elif front is self.target:
+        elif front is plan.target:
             kinds[5] = 1
         else:
             kinds[6] = 1
@@ -257,20 +254,30 @@ class StagedMiniGrid(gymnasium.Wrapper):
                     doors.append(float(cell is not None and cell.type == "door"))
         agent = [ax / size, ay / size, *np.eye(4)[level.agent_dir]]
         carrying = level.carrying
-        load = [carrying is self.key, carrying is not None and carrying is self.target]
-        door = [self.door.is_open, self.door.is_locked]
-        offsets = [*offset(self.key), *offset(self.door), *offset(self.target)]
-        return np.array([*agent, *load, *door, *offsets, *kinds, *blocked, *doors], np.float32)
+        load = [carrying is plan.key, carrying is not None and carrying is plan.target]
+        door = [plan.door.is_open, plan.door.is_locked]
+        offsets = [*offset(plan.key), *offset(plan.door), *offset(plan.target)]
+        blocker = []
+        if plan.blocker is not None:
+            blocker = [carrying is plan.blocker, *offset(plan.blocker), front is plan.blocker]
+        parts = [*agent, *load, *door, *offsets, *kinds, *blocked, *doors, *blocker]
+        return np.array(parts, np.float32)
 
     def _obs(self) -> dict[str, np.ndarray]:
         return {"observation": self._features(), "stage": np.array([self.stage], np.int64)}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         _, info = self.env.reset(seed=seed, options=options)
-        self._objects()
-        if self.start_stage is not None and (self.start_stage > 0 or self.rooms):
+        self.plan = plan = LevelPlan.of(self.env.unwrapped)
+        if plan.stages != self.stage_names:
+            raise refuse(str(self.env.spec and self.env.spec.id), "its layouts differ")
+        if plan.target.type == "box":
+            plan.target.toggle = _keep_closed  # breaking the box would make it unsolvable
+        if self.start_stage is not None and (self.start_stage > 0 or plan.rooms):
             self._start_inside(int(self.start_stage))
-        self.stage = self._progress()
+        self.stage = 0
+        while self.stage < self.num_stages - 1 and self._done(self.stage):
+            self.stage += 1
         return self._obs(), info
 
     def _state(self) -> tuple:
@@ -284,7 +291,8 @@ class StagedMiniGrid(gymnasium.Wrapper):
     def step(self, action):
         before = self._state() if self.no_op_reward else None
         _, reward, terminated, truncated, info = self.env.step(self._level_actions[int(action)])
-        self.stage = max(self.stage, self._progress())
+        if self.stage < self.num_stages - 1 and self._done(self.stage):
+            self.stage += 1  # one stage a step: the next stage's value is what it hands on
         reward = float(terminated and reward > 0)
         if before is not None and self._state() == before:
             reward += self.no_op_reward  # an action that changed nothing
@@ -308,30 +316,32 @@ def _keep_closed(env: Any, pos: Any) -> bool:
     return False
 
 
-def _actions(family: str, actions: Sequence[str] | str | None, enum: Any) -> tuple[str, ...]:
+def _actions(
+    needed: tuple[str, ...], actions: Sequence[str] | str | None, enum: Any
+) -> tuple[str, ...]:
     if actions is None:
-        return ACTIONS[family]
+        return needed
     names = [a.name for a in enum]
     chosen = tuple(names) if actions == "all" else tuple(str(a) for a in actions)
     unknown = [a for a in chosen if a not in names]
     if unknown or not chosen or len(set(chosen)) != len(chosen):
         raise ValueError(
             f"actions={list(chosen)}: not a list of distinct MiniGrid actions. Fix: name some "
-            f"of {', '.join(names)} once each (or 'all'; null: {', '.join(ACTIONS[family])})"
+            f"of {', '.join(names)} once each (or 'all'; null: {', '.join(needed)})"
         )
     return chosen
 
 
 class MiniGridEnv(GymStageEnv):
-    """A MiniGrid level (``env_id``) as a batched 3-stage TorchRL env: ``batch_size[0]`` copies
-    of :class:`StagedMiniGrid` (its keys) in a ``"sync"`` or ``"async"`` gymnasium vector env;
-    ``**kwargs`` go to the level (e.g. ``max_steps``).
+    """A MiniGrid level (``env_id``) as a batched multi-stage TorchRL env: ``batch_size[0]``
+    copies of :class:`StagedMiniGrid` (its keys) in a ``"sync"`` or ``"async"`` gymnasium vector
+    env; ``**kwargs`` go to the level (e.g. ``max_steps``).
 
     Examples:
         >>> env = MiniGridEnv("MiniGrid-DoorKey-5x5-v0", batch_size=(4,), start_stage=1)
         >>> td = env.reset()
-        >>> td["stage"].squeeze(-1).tolist(), td["observation"].shape
-        ([1, 1, 1, 1], torch.Size([4, 48]))
+        >>> td["stage"].squeeze(-1).tolist(), td["observation"].shape, env.num_stages
+        ([1, 1, 1, 1], torch.Size([4, 48]), 3)
         >>> env.close()
     """
 
@@ -344,12 +354,12 @@ class MiniGridEnv(GymStageEnv):
         device: str | torch.device = "cpu",
         start_stage: int | None = None,
         actions: Sequence[str] | str | None = None,
-        view_doors: bool = False,
+        view_doors: bool | None = None,
         no_op_reward: float = 0.0,
         **kwargs: Any,
     ) -> None:
         import_minigrid()
-        _family(env_id)
+        _check_id(env_id)
         wrapper = functools.partial(
             StagedMiniGrid,
             start_stage=start_stage,

@@ -14,7 +14,7 @@ from .._common import stage_segments
 
 __all__ = ["STAGE_COLORS", "plot_level"]
 
-STAGE_COLORS = ("tab:blue", "tab:orange", "tab:green")
+STAGE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red")
 
 
 def plot_level(
@@ -36,11 +36,23 @@ def plot_level(
     ax.imshow(frame)
     for k, name in enumerate(stage_names):
         for seg in stage_segments(xy, stage, k):
-            ax.plot(seg[:, 0], seg[:, 1], color=STAGE_COLORS[k % 3], linewidth=3, alpha=0.85)
-        ax.plot([], [], color=STAGE_COLORS[k % 3], linewidth=3, label=f"stage {k}: {name}")
+            ax.plot(
+                seg[:, 0],
+                seg[:, 1],
+                color=STAGE_COLORS[k % len(STAGE_COLORS)],
+                linewidth=3,
+                alpha=0.85,
+            )
+        ax.plot(
+            [],
+            [],
+            color=STAGE_COLORS[k % len(STAGE_COLORS)],
+            linewidth=3,
+            label=f"stage {k}: {name}",
+        )
     ax.plot(*xy[0], marker="o", color="white", markeredgecolor="k", markersize=9)
     for t in np.flatnonzero(np.diff(stage)) + 1:  # where each stage ends (key, door)
-        color = STAGE_COLORS[int(stage[t - 1]) % 3]
+        color = STAGE_COLORS[int(stage[t - 1]) % len(STAGE_COLORS)]
         ax.plot(*xy[t], marker="*", color=color, markeredgecolor="white", markersize=16)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.01), ncol=len(stage_names), fontsize=8)
     ax.set_axis_off()
