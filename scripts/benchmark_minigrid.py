@@ -1,9 +1,9 @@
 """MiniGrid benchmark: the backward, joint and flat schedules on MiniGrid levels, seeds apart.
 
 Each run is ``stages-train task=minigrid task.env.env_id=<level> schedule=<schedule>`` with the
-task's defaults: three stages of the same template, each with a budget of ``frames`` (300 000)
-and an early stop; the joint schedule's phases have the same budgets; the flat learner gets
-their sum. The whole-task evaluation is 200 greedy episodes from the level's own starts (a new
+task's defaults: a stage per goal of the level, of the same template, each with a budget of
+``frames`` (300 000) and an early stop; the joint schedule's phases have the same budgets; the
+flat learner gets their sum. The whole-task evaluation is 200 greedy episodes from the level's own starts (a new
 layout each). Table: success, frames and training wall-clock per run; ``--jobs 2`` runs two at a
 time, one thread each (the wall-clock is then measured beside another run, as under a sweep's
 joblib launcher). Rows accumulate in ``OUT/rows.json`` (a re-run replaces its row), so runs

@@ -135,7 +135,7 @@ def test_a_blocked_door_and_a_key_in_a_box_are_stages_of_their_own():
     assert obs["stage"].tolist() == [3] and terminated and reward == 1.0
     for stage in range(4):  # starts inside each stage: every earlier goal done
         env = StagedMiniGrid(gymnasium.make("MiniGrid-ObstructedMaze-1Dlhb-v0"), stage)
-        for seed in range(4):
+        for seed in (0, 1, 2, 807):  # 807: the ball and the box wall the agent's start in
             obs, _ = env.reset(seed=seed)
             plan, level = env.plan, env.unwrapped
             assert obs["stage"].tolist() == [stage]

@@ -16,7 +16,7 @@ import torch
 from torchrl_stages.gym_env import GymStageEnv
 
 from .._common import check_start_stage
-from .plan import LevelPlan, UnstageableLevel, probe, refuse, registered_layouts
+from .plan import LevelPlan, UnstageableLevel, probe, refuse, registered_layouts, side
 
 __all__ = [
     "BLOCKER",
@@ -192,7 +192,8 @@ class StagedMiniGrid(gymnasium.Wrapper):
         level, plan, done = self.env.unwrapped, self.plan, self.stage_names[:stage]
         if "blocker" in done:  # put down on a drawn free cell of the agent's side
             start = tuple(int(v) for v in level.agent_pos)
-            free = [c for c in self._reachable() if c != start and level.grid.get(*c) is None]
+            cells = sorted(side(level, plan.door) - {start, plan.blocked})
+            free = [cell for cell in cells if level.grid.get(*cell) is None]
             cell = free[int(self.np_random.integers(len(free)))]
             level.grid.set(*plan.blocked, None)
             level.grid.set(*cell, plan.blocker)

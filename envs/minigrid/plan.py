@@ -13,7 +13,15 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-__all__ = ["MOVES", "LevelPlan", "UnstageableLevel", "probe", "refuse", "registered_layouts"]
+__all__ = [
+    "MOVES",
+    "LevelPlan",
+    "UnstageableLevel",
+    "probe",
+    "refuse",
+    "registered_layouts",
+    "side",
+]
 
 #: the level's actions every staged level needs; ``drop`` joins them where the agent must put
 #: down what it carries (to pick up the target or the blocker); ``done`` never does anything
@@ -102,21 +110,21 @@ class LevelPlan:
             if len(goals) != 1:
                 raise refuse(name, f"it has no object to pick up and {len(goals)} goal squares")
             target = goals[0]
-        side = _side(level, door)
-        if tuple(target.cur_pos) in side:
+        on_side = side(level, door)
+        if tuple(target.cur_pos) in on_side:
             raise refuse(name, "its target can be reached without opening the locked door")
-        if tuple((key if box is None else box).cur_pos) not in side:
+        if tuple((key if box is None else box).cur_pos) not in on_side:
             raise refuse(name, "its key lies behind the locked door")
         blocker = blocked = None
         x, y = (int(v) for v in door.cur_pos)
         for cell in ((x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)):
-            obj = level.grid.get(*cell) if cell in side else None
+            obj = level.grid.get(*cell) if cell in on_side else None
             if obj is not None and obj.can_pickup() and obj not in (key, box, target):
                 blocker, blocked = obj, cell
         return cls(door, key, target, box, blocker, blocked, rooms)
 
 
-def _side(level: Any, door: Any) -> set[tuple[int, int]]:
+def side(level: Any, door: Any) -> set[tuple[int, int]]:
     """The cells the agent reaches without the locked ``door``, moving every object it meets."""
     start = tuple(int(v) for v in level.agent_pos)
     seen, queue = {start}, deque([start])
