@@ -3,11 +3,12 @@
 Each run is ``stages-train task=minigrid task.env.env_id=<level> schedule=<schedule>`` with the
 task's defaults: a stage per goal of the level, of the same template, each with a budget of
 ``frames`` (300 000) and an early stop; the joint schedule's phases have the same budgets; the
-flat learner gets their sum. The whole-task evaluation is 200 greedy episodes from the level's own starts (a new
-layout each). Table: success, frames and training wall-clock per run; ``--jobs 2`` runs two at a
-time, one thread each (the wall-clock is then measured beside another run, as under a sweep's
-joblib launcher). Rows accumulate in ``OUT/rows.json`` (a re-run replaces its row), so runs
-launched apart, or side by side, make one table (``--table-only`` rewrites it from the rows).
+flat learner gets their sum. The whole-task evaluation is 200 greedy episodes from the level's
+own starts (a new layout each). Table: success, frames and training wall-clock per run;
+``--jobs 2`` runs two at a time, one thread each (the wall-clock is then measured beside another
+run, as under a sweep's joblib launcher). Rows accumulate in ``OUT/rows.json`` (a re-run
+replaces its row), so runs launched apart, or side by side, make one table (``--table-only``
+rewrites it from the rows).
 
     python scripts/benchmark_minigrid.py --levels MiniGrid-DoorKey-8x8-v0 --seeds 0 1 2 3 4 \
         --jobs 2 --out results/minigrid [OVERRIDE ...]

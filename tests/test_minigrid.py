@@ -407,13 +407,16 @@ def test_the_task_has_three_stages_from_its_template(compose_cfg):
         ("MiniGrid-UnlockPickup-v0", False, 0.99, 0.9, 64),
         ("MiniGrid-DoorKey-16x16-v0", False, 0.99, 0.0, 256),
         ("MiniGrid-DoorKey-8x8-v0", False, 0.99, 0.0, 64),
+        ("MiniGrid-ObstructedMaze-1Dlhb-v0", False, 0.99, 0.9, 64),
+        ("MiniGrid-LockedRoom-v0", True, 0.99, 0.0, 64),
     ],
 )
 def test_a_levels_settings_come_with_its_id(
     compose_cfg, env_id, view_doors, gamma, advantage_learning, eval_episodes
 ):
     task = build_task(compose_cfg("task=minigrid", f"task.env.env_id={env_id}"))
-    assert _features(task) == len(FEATURES) + len(DOORS) * view_doors  # doors: where rooms are
+    blocker = len(BLOCKER) * (env_id == "MiniGrid-ObstructedMaze-1Dlhb-v0")
+    assert _features(task) == len(FEATURES) + len(DOORS) * view_doors + blocker
     for k in range(task.num_stages):
         cfg = task.stage_cfg(k)
         settings = (cfg.gamma, cfg.advantage_learning, cfg.eval_episodes, cfg.algo)
