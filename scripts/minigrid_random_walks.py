@@ -2,7 +2,8 @@
 needs: the exploration a stage's learner starts from.
 
 Each walk starts inside the stage (``StagedMiniGrid(start_stage=k)``, a new layout per walk) and
-takes uniformly drawn actions until it leaves the stage or ``--steps`` run out. Table: walks that
+takes uniformly drawn actions until it leaves the stage (the last one: the level's success) or
+``--steps`` run out (or the level's own step limit). Table: walks that
 left the stage, per level, stage and action set.
 
     python scripts/minigrid_random_walks.py --out results/random_walks \
@@ -31,10 +32,10 @@ def walks_leaving(level: str, stage: int, actions: str | None, walks: int, steps
         env.reset(seed=walk)
         for _ in range(steps):
             _, _, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
-            if env.stage > stage:
+            if env.stage > stage or terminated:  # the last stage ends on the level's success
                 left += 1
                 break
-            if terminated or truncated:
+            if truncated:
                 break
     env.close()
     return left

@@ -34,6 +34,7 @@ class UnstageableLevel(ValueError):
 
 
 def refuse(level: str, why: str) -> UnstageableLevel:
+    """The error for ``level``, which cannot be staged because ``why``, with the fix."""
     return UnstageableLevel(
         f"{level} cannot be staged: {why}. Staging takes one locked door, the one key of its "
         "color (on the floor or in a box; a ball may block the door) and, behind the door, a "
@@ -119,7 +120,8 @@ class LevelPlan:
         x, y = (int(v) for v in door.cur_pos)
         for cell in ((x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)):
             obj = level.grid.get(*cell) if cell in on_side else None
-            if obj is not None and obj.can_pickup() and obj not in (key, box, target):
+            movable = obj is not None and obj.can_pickup()
+            if movable and all(obj is not other for other in (key, box, target)):
                 blocker, blocked = obj, cell
         return cls(door, key, target, box, blocker, blocked, rooms)
 
