@@ -56,13 +56,14 @@ def failures(
     policy = learner.policy
     keys = run.cfg.task.env
     wrapper = {k: keys[k] for k in WRAPPER_KEYS if k in keys}
-    settings = [f"{k}={v}" for k, v in wrapper.items() if k != "actions" and v]
-    settings.append(f"gamma={learner.cfg.gamma}")
-    if getattr(learner.cfg, "advantage_learning", 0):
-        settings.append(f"advantage_learning={learner.cfg.advantage_learning}")
     env = StagedMiniGrid(
         gymnasium.make(str(keys.env_id), max_steps=steps), start_stage=stage, **wrapper
     )
+    # the wrapper's settings as it applies them (view_doors=null: from the level's doors)
+    settings = [f"{k}={getattr(env, k)}" for k in WRAPPER_KEYS[1:] if getattr(env, k)]
+    settings.append(f"gamma={learner.cfg.gamma}")
+    if getattr(learner.cfg, "advantage_learning", 0):
+        settings.append(f"advantage_learning={learner.cfg.advantage_learning}")
     left, kinds = 0, collections.Counter()
     for seed in range(1000, 1000 + starts):
         obs, _ = env.reset(seed=seed)
