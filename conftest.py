@@ -7,7 +7,10 @@ from pathlib import Path
 import pytest
 
 #: folder -> (module it needs, the extra that installs it)
-EXTRAS = {Path(__file__).parent / "envs" / "minigrid": ("minigrid", "minigrid")}
+EXTRAS = {
+    Path(__file__).parent / "envs" / "minigrid": ("minigrid", "minigrid"),
+    Path(__file__).parent / "envs" / "metaworld": ("metaworld", "metaworld"),
+}
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -31,15 +31,19 @@ from torchrl_stages.config import register_configs
 from torchrl_stages.learners import ALGORITHMS
 
 SCHEDULES = ("backward", "joint", "flat")
+#: the key that names a task's level
+LEVEL_KEYS = {"minigrid": "task.env.env_id", "metaworld": "task.env.env_name"}
 
 
-def run(level: str, schedule: str, seed: int, out: Path, overrides: list[str]) -> dict:
+def run(
+    level: str, schedule: str, seed: int, out: Path, overrides: list[str], task: str = "minigrid"
+) -> dict:
     register_configs(ALGORITHMS)
     run_dir = out / f"{level}_{schedule}_seed{seed}"
     result = train(
-        "minigrid",
+        task,
         run_dir,
-        f"task.env.env_id={level}",
+        f"{LEVEL_KEYS[task]}={level}",
         f"schedule={schedule}",
         f"seed={seed}",
         "threads=1",
@@ -119,13 +123,15 @@ def write_table(rows: list[dict], path: Path) -> str:
     return "\n".join(table)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--levels", nargs="+", default=["MiniGrid-DoorKey-8x8-v0"])
+def main(
+    task: str = "minigrid", level: str = "MiniGrid-DoorKey-8x8-v0", doc: str = __doc__
+) -> None:
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--levels", nargs="+", default=[level])
     parser.add_argument("--schedules", nargs="+", default=list(SCHEDULES), choices=SCHEDULES)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--out", type=Path, default=Path("results/minigrid"))
+    parser.add_argument("--out", type=Path, default=Path(f"results/{task}"))
     add_table_argument(parser)
     parser.add_argument(
         "--table-only", action="store_true", help="write the table of OUT/rows.json, run nothing"
@@ -143,7 +149,7 @@ def main() -> None:
     jobs = [(lv, sc, sd) for lv in args.levels for sc in args.schedules for sd in args.seeds]
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
-        futures = [pool.submit(run, *job, args.out, args.overrides) for job in jobs]
+        futures = [pool.submit(run, *job, args.out, args.overrides, task) for job in jobs]
         for future in futures:
             row = {**future.result(), "machine_speed": speed, "command": command}
             row["jobs"] = args.jobs
