@@ -179,6 +179,16 @@ def test_overwrite_refuses_run_files_its_record_does_not_list(copy):
     assert (copy / "stage_1.pt").is_file() and (copy / "config.yaml").is_file()
 
 
+def test_overwrite_forgets_what_the_replaced_run_recorded(copy):
+    record = json.loads((copy / ".stages" / "run.json").read_text())
+    record.update(reused={"s0": "a store"}, phases=[{"phase": 0}])  # what launches keep
+    (copy / ".stages" / "run.json").write_text(json.dumps(record))
+    run_dir = RunDir(copy)
+    run_dir.clear()
+    kept = json.loads((copy / ".stages" / "run.json").read_text())
+    assert kept == {"format": record["format"], "version": 1, "entries": {}, "launches": []}
+
+
 # ---------------------------------------------------------------------- 3. one writer
 def test_a_second_experiment_in_a_held_directory_is_refused(tmp_path):
     first = Experiment(compose(), tmp_path / "run")

@@ -145,7 +145,7 @@ class RunDir:
 
     @cached_property
     def record(self) -> dict[str, Any]:
-        empty = {"format": RECORD_FORMAT, "version": 1, "entries": {}, "launches": []}
+        empty = _new_record()
         if not self.has_record():
             return empty
         try:
@@ -344,10 +344,14 @@ class RunDir:
                 shutil.rmtree(entry)
             else:
                 entry.unlink()
-        self.record.update(entries={}, launches=[])
-        self.record.pop("phases", None)
+        self.record.clear()  # what the launches kept (phases, reused stages) went with them
+        self.record.update(_new_record())
         self._save_record()
         return removed
+
+
+def _new_record() -> dict[str, Any]:
+    return {"format": RECORD_FORMAT, "version": 1, "entries": {}, "launches": []}
 
 
 def refuse_links(paths: Iterable[Path]) -> None:
