@@ -16,7 +16,7 @@ from torchrl_stages.handoff import handoff_diagnostics, plot_handoffs
 from torchrl_stages.integrity import atomic_write
 from torchrl_stages.learners import Learner
 from torchrl_stages.policy import StackedPolicy
-from torchrl_stages.runs.layout import EVAL_FILE
+from torchrl_stages.runs.layout import EVAL_FILE, METRICS_FILE
 from torchrl_stages.seeding import TASK_EVAL_OFFSET
 from torchrl_stages.task import StagedTask
 from torchrl_stages.task_registry import task_report
@@ -55,13 +55,12 @@ def evaluate_run(
             plot_handoffs(records, run_dir / "handoff.png")
         keep = ("values", "returns")
         result["handoff"] = [{k: v for k, v in r.items() if k not in keep} for r in records]
-    if cfg.eval.plots and (run_dir / "metrics.csv").is_file():
+    if cfg.eval.plots and (run_dir / METRICS_FILE).is_file():
         from torchrl_stages.plots import plot_learning_curves
 
-        plot_learning_curves(run_dir / "metrics.csv", run_dir / "learning_curves.png")
+        plot_learning_curves(run_dir / METRICS_FILE, run_dir / "learning_curves.png")
     result = json.loads(json.dumps(result), parse_constant=lambda _: None)  # NaN, inf: null
-    text = json.dumps(result, indent=2, allow_nan=False)
-    atomic_write(run_dir / EVAL_FILE, lambda tmp: tmp.write_text(text))
+    atomic_write(run_dir / EVAL_FILE, lambda tmp: tmp.write_text(json.dumps(result, indent=2)))
     return result
 
 
@@ -76,10 +75,8 @@ def format_summary(result: dict[str, Any], run_dir: Path) -> str:
         f"{result['episodes']} whole-task episodes ({starts}), mean return "
         f"{result['mean_return']:.3f}, mean steps {result['mean_steps']:.1f}"
     ]
-    for key, value in result.get("task_metrics", {}).items():
-        if key != "path_from_origin":
-            lines.append(f"  {key}: {value}")
-    lines.append(f"Run directory: {run_dir}")
-    lines.append(f"  {EVAL_FILE}: {Path(run_dir) / EVAL_FILE}")
+    metrics = result.get("task_metrics", {}).items()
+    lines += [f"  {key}: {value}" for key, value in metrics if key != "path_from_origin"]
+    lines += [f"Run directory: {run_dir}", f"  {EVAL_FILE}: {Path(run_dir) / EVAL_FILE}"]
     lines += [f"  figure: {path}" for path in sorted(Path(run_dir).glob("*.png"))]
     return "\n".join(lines)

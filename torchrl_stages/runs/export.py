@@ -4,6 +4,7 @@ that runs with PyTorch alone (``stages-export RUN_DIR FILE``)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
 import sys
@@ -75,22 +76,16 @@ def _describe(keys: Sequence[NestedKey], tensors: Sequence[torch.Tensor]) -> lis
 
 
 def input_keys(policy: StackedPolicy, example: TensorDictBase) -> list[NestedKey]:
-    """The stage policies' inputs, plus ``example``'s observations if the stage function needs
-    more."""
+    """The policies' inputs, and ``example``'s observations if the stage function needs more."""
     keys = list(policy.in_keys)
     if policy.stage_fn is None:
         return keys
     try:
         policy.stage_fn(example.select(*keys))
     except KeyError:
+        others = example.exclude("next", policy.stage_key, *keys).keys(True, True)
         keys += [
-            k
-            for k in example.keys(True, True)
-            if k not in keys
-            and k != policy.stage_key
-            and not (isinstance(k, tuple) and k[0] == "next")
-            and _last(k) not in _NOT_OBSERVED
-            and "transition" not in _last(k)
+            k for k in others if _last(k) not in _NOT_OBSERVED and "transition" not in _last(k)
         ]
     return keys
 
@@ -121,11 +116,8 @@ def export_policy(
         actions = (run.task.specs(k).action_key for k in range(len(run.learners)))
         out_keys = list(dict.fromkeys(actions))
         if example is None:
-            env = run.task.base_env(2)
-            try:
+            with contextlib.closing(run.task.base_env(2)) as env:
                 example = env.reset()
-            finally:
-                env.close()
     if example.batch_dims != 1 or example.batch_size[0] < 2:
         raise ValueError(
             f"example has batch size {list(example.batch_size)}. Fix: pass a TensorDict with "

@@ -17,9 +17,15 @@ LOCK_DIR = ".stages"
 
 
 class RunLockedError(RunDirError):
-    """Another process holds the lock (``holder``: who, in words)."""
+    """Another process (``holder``: who, in words) holds the lock of run directory ``path``."""
 
-    holder: str
+    def __init__(self, path: Path, holder: str) -> None:
+        super().__init__(
+            f"{path} is in use by another process ({holder}): one process at a time trains or "
+            "evaluates a run directory. Fix: wait for it to end (or stop it), or pick another "
+            "hydra.run.dir"
+        )
+        self.holder = holder
 
 
 class RunLock:
@@ -54,13 +60,7 @@ class RunLock:
             except BlockingIOError:
                 holder = os.read(fd, 4096).decode("utf-8", "replace").strip() or "holder unknown"
                 os.close(fd)
-                err = RunLockedError(
-                    f"{self.path} is in use by another process ({holder}): one "
-                    "process at a time trains or evaluates a run directory. Fix: wait for it "
-                    "to end (or stop it), or pick another hydra.run.dir"
-                )
-                err.holder = holder
-                raise err from None
+                raise RunLockedError(self.path, holder) from None
             # the file locked is still the lock file (a refused process may remove it)
             with contextlib.suppress(FileNotFoundError):
                 if os.stat(self.file).st_ino == os.fstat(fd).st_ino:

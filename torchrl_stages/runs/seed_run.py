@@ -83,8 +83,7 @@ def checked_config(cfg: DictConfig) -> tuple[DictConfig, Schedule]:
 
 
 def build_task(cfg: DictConfig, schedule: Schedule | None = None) -> StagedTask:
-    """Validates ``cfg`` and builds its task, before any training; a caller that validated
-    ``cfg`` already passes the ``schedule`` it validated it with."""
+    """Validates ``cfg`` (unless given the ``schedule`` it was validated with), builds its task."""
     if schedule is None:
         cfg, schedule = checked_config(cfg)
     try:
@@ -210,8 +209,7 @@ class SeedRun:
         cfg, run, hydra_files = self.cfg, self.run_dir, self.hydra_files
         self._lock.announce()
         if self.overwrite and run.holds_run():
-            removed = run.clear()
-            log.info("overwrite=true: removed %s", ", ".join(removed) or "nothing")
+            log.info("overwrite=true: removed %s", ", ".join(run.clear()) or "nothing")
         if self.resuming and not run.has_record():
             run.adopt_legacy()  # a run of a version without a record
         if hydra_files and (not self.resuming or self.restarted):
@@ -250,8 +248,7 @@ class SeedRun:
         log.log(level, message if self.seed is None else f"seed {self.seed}: {message}")
 
     def finished(self, stage: int, earlier: bool = True) -> tuple[Learner, StageResult] | None:
-        """Stage ``stage`` as an earlier launch trained it (``earlier``), or taken from
-        ``reuse``."""
+        """Stage ``stage`` as an earlier launch trained it (``earlier``), or from ``reuse``."""
         name, device = self.schedule.stage_name(self.task, stage), str(self.cfg.device)
         if self.resuming and earlier:
             loaded = load_stage(self.run_dir, self.task, stage, device, name)

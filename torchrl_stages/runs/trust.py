@@ -33,8 +33,7 @@ RESUMABLE_CHANGES = (
 
 def config_differences(old: DictConfig, new: DictConfig, ignore: tuple[str, ...] = ()) -> list[str]:
     """Dotted keys whose resolved values differ (``ignore``: key prefixes that may differ)."""
-    flat_old = dict(leaves(OmegaConf.to_container(old, resolve=True)))
-    flat_new = dict(leaves(OmegaConf.to_container(new, resolve=True)))
+    flat_old, flat_new = (dict(leaves(OmegaConf.to_container(c, resolve=True))) for c in (old, new))
     return [
         k
         for k in sorted(flat_old.keys() | flat_new.keys())
