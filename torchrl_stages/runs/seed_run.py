@@ -31,7 +31,7 @@ from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.preemption import Interrupted, stop_if_asked
 from torchrl_stages.runs.directory import RunDir
 from torchrl_stages.runs.evaluation import evaluate_run, probe_task
-from torchrl_stages.runs.layout import METRICS_FILE, STATUS_FILE, RunDirError
+from torchrl_stages.runs.layout import EVAL_FILE, METRICS_FILE, STATUS_FILE, RunDirError
 from torchrl_stages.runs.loading import load_stage
 from torchrl_stages.runs.stage_store import StageReuse
 from torchrl_stages.runs.trust import RESUMABLE_CHANGES, config_differences
@@ -276,7 +276,7 @@ class SeedRun:
         later = None
         if isinstance(scope, int) and scope + 1 < self.task.num_stages:
             later = self.run_dir.read_stage(scope + 1)
-        self.log.rewind({} if later is None else later.get("log", {}))
+        self.log.rewind({} if later is None else later["log"])  # read_stage checks it is there
 
     def save(self, stage: int, learner: Learner, result: StageResult) -> None:
         name = self.schedule.stage_name(self.task, stage)
@@ -331,7 +331,7 @@ class SeedRun:
                 f"trained: {', '.join(n for n in names if n not in reused) or 'none'}"
             )
         before = run.listing()
-        run.claim("eval.json")
+        run.claim(EVAL_FILE)
         result = evaluate_run(cfg, self.task, learners, run.path, training=training)
         run.claim_new(before)  # the task's figures
         if self.resuming and self.log.logger is not None:  # an earlier final evaluation's rows
