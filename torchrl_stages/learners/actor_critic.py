@@ -1,6 +1,5 @@
-"""What the actor-critic learners share: an actor, ``Q(s, a)`` critics in the torchrl loss
-module, optionally one input encoder for both (DDPG, TD3, SAC), a learned entropy coefficient
-(SAC, discrete SAC)."""
+"""What the actor-critic learners share: an actor and ``Q(s, a)`` critics in the torchrl loss
+module, optionally one input encoder for both; a learned entropy coefficient (SAC, discrete SAC)."""
 
 from __future__ import annotations
 
@@ -17,7 +16,7 @@ from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import flag, non_negative, one_of, positive
 from torchrl_stages.learners.base import LOSS_FUNCTIONS, Learner, StageSpecs
 from torchrl_stages.learners.networks import SharedEncoderCritic
-from torchrl_stages.learners.ops import linear_schedule, stacked_calls
+from torchrl_stages.learners.ops import stacked_calls
 from torchrl_stages.learners.stacking import per_seed, seed_rows
 from torchrl_stages.values import ActorCriticValue, with_params
 
@@ -65,13 +64,16 @@ class ActorCriticLearner(Learner):
         self.__dict__["actor_module"] = actor_net  # obs in, e.g. the pre-tanh action out
         self.actor = self.make_actor(actor_net, spec)
         self.shared_encoder = bool(cfg.shared_encoder) and hasattr(actor_net, "encoder")
-        self.critic = ValueOperator(
-            SharedEncoderCritic(actor_net.encoder, action_dim, list(cfg.num_cells))
-            if self.shared_encoder
-            else self.network(1, (action_dim,)),
-            in_keys=[*specs.observation_keys, specs.action_key],
-            out_keys=["state_action_value"],
-        )
+        if self.shared_encoder:
+            critic = SharedEncoderCritic(actor_net.encoder, action_dim, list(cfg.num_cells))
+        else:
+            critic = self.network(1, (action_dim,))
+        keys = [*specs.observation_keys, specs.action_key]
+        self.critic = ValueOperator(critic, in_keys=keys, out_keys=["state_action_value"])
+        # the critic network (observation and action tensors in, Q(s, a) out), and its part
+        # after a shared encoder (the whole critic without one); not registered twice
+        net = critic.body if self.shared_encoder else critic
+        self.__dict__.update(critic_module=critic, critic_net=net)
         self.policy = self.actor
         self.exploration_policy = self.make_exploration()
         loss = self.torchrl_loss(
@@ -108,22 +110,13 @@ class ActorCriticLearner(Learner):
     def make_exploration(self) -> TensorDictModuleBase:
         return self.actor
 
-    @property
-    def critic_module(self) -> nn.Module:
-        """The critic network: observation and action tensors in, ``Q(s, a)`` out."""
-        return self.critic.module
-
     def loss_parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """The (actor, critic) optimizers' parameters; a shared encoder is the critic's."""
         actor = self.loss.actor_network_params.flatten_keys(".")
         critic = getattr(self.loss, f"{self.CRITIC}_params").flatten_keys(".")
-        if not self.shared_encoder:
-            return list(actor.values()), list(critic.values())
-        encoder = [k for k in actor.keys() if ".encoder." in f".{k}"]
-        return (
-            [p for k, p in actor.items() if k not in encoder],
-            [*critic.values(), *(actor[k] for k in encoder)],
-        )
+        encoder = [k for k in actor.keys() if self.shared_encoder and ".encoder." in f".{k}"]
+        actor_params = [p for k, p in actor.items() if k not in encoder]
+        return actor_params, [*critic.values(), *(actor[k] for k in encoder)]
 
     def target_critics(self) -> TensorDictBase:
         """The loss's target critic parameters, with a shared encoder the target actor's."""
@@ -152,11 +145,6 @@ class ActorCriticLearner(Learner):
             return (torch.cat([*features, action], -1),)
         return (*features, action)
 
-    @property
-    def critic_net(self) -> nn.Module:
-        """The critic network after the shared encoder (the whole critic without one)."""
-        return self.critic_module.body if self.shared_encoder else self.critic_module
-
     def critic_values(
         self, params: TensorDictBase, features, action, detach: bool = False, count=None
     ) -> list[torch.Tensor]:
@@ -171,14 +159,9 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
     """A tanh actor into the action bounds with Gaussian exploration noise and a penalty on
     tanh saturation (DDPG, TD3)."""
 
-    def __init__(
-        self, cfg: DeterministicActorCriticConfig, specs: StageSpecs, *, compile: str = "off"
-    ) -> None:
-        low, high = specs.action_spec.space.low, specs.action_spec.space.high
-        self.__dict__["_bounds"] = (low, high, bool((low != -1).any() or (high != 1).any()))
-        super().__init__(cfg, specs, compile=compile)
-
     def make_actor(self, actor_net: nn.Module, spec: TensorSpec) -> TensorDictModuleBase:
+        low, high = spec.space.low, spec.space.high  # the TanhModule's, for squash
+        self.__dict__["_bounds"] = (low, high, bool((low != -1).any() or (high != 1).any()))
         keys = self.specs
         return TensorDictSequential(
             TensorDictModule(actor_net, in_keys=keys.observation_keys, out_keys=["_actor_param"]),
@@ -187,13 +170,7 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
 
     def make_exploration(self) -> TensorDictModuleBase:
         cfg = self.cfg
-        self.noise = AdditiveGaussianModule(
-            self.specs.action_spec,
-            sigma_init=float(cfg.sigma_init),
-            sigma_end=float(cfg.sigma_end),
-            annealing_num_steps=max(int(cfg.annealing_frames), 1),
-            action_key=self.specs.action_key,
-        )
+        self.noise = self.exploration_module(AdditiveGaussianModule, cfg.sigma_init, cfg.sigma_end)
         return TensorDictSequential(self.actor, self.noise)
 
     def squash(self, u: torch.Tensor) -> torch.Tensor:
@@ -210,10 +187,7 @@ class DeterministicActorCriticLearner(ActorCriticLearner):
         return self.cfg.saturation_penalty * self.batch_mean(excess.pow(2))
 
     def anneal_exploration(self, frames: int) -> None:
-        cfg = self.cfg
-        self.noise.sigma.fill_(
-            linear_schedule(cfg.sigma_init, cfg.sigma_end, frames, cfg.annealing_frames)
-        )
+        self.anneal_noise(self.noise.sigma, self.cfg.sigma_init, self.cfg.sigma_end, frames)
 
     @classmethod
     def value_from_loss(cls, loss, live: bool = False, critics=None) -> ActorCriticValue:
@@ -257,29 +231,24 @@ class EntropyRegularized:
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_actor, loss_q, loss_alpha = self._losses(batch)
         losses = {"loss_actor": loss_actor, "loss_qvalue": loss_q, "loss_alpha": loss_alpha}
-        out = self._apply(losses, loss_actor + loss_q + loss_alpha)
+        out = self._optimize(losses, loss_actor + loss_q + loss_alpha)
         self.num_updates += 1
-        return {
-            **out,
-            "alpha": seed_rows(self.loss.log_alpha).detach().exp().clone(),
-            "grad_norm_actor": self.grad_norms["actor"],
-            "grad_norm_critic": self.grad_norms["critic"],
-        }
+        out["alpha"] = seed_rows(self.loss.log_alpha).detach().exp().clone()
+        norms = self.grad_norms
+        return {**out, "grad_norm_actor": norms["actor"], "grad_norm_critic": norms["critic"]}
 
     def anneal_exploration(self, frames: int) -> None:
         """Nothing to anneal: the entropy coefficient is learned."""
 
-
-def soft_value(module: type[nn.Module], loss, critics, live: bool, *args) -> TensorDictModule:
-    """``module`` (a soft value) of ``loss``'s actor, its critic with the ``critics`` parameters
-    and ``log_alpha`` (read in place with ``live``, else copies) as a ``TensorDictModule``."""
-    network = loss.actor_network[0]
-    params = loss.actor_network_params["module", "0", "module"]
-    value = module(
-        with_params(network.module, params, live=live),
-        loss.qvalue_network.module,
-        critics if live else critics.detach().clone(),
-        loss.log_alpha if live else loss.log_alpha.detach().clone(),
-        *args,
-    )
-    return TensorDictModule(value, in_keys=list(network.in_keys), out_keys=["state_value"])
+    @staticmethod
+    def soft_value(module: type[nn.Module], loss, critics, live: bool, *args) -> TensorDictModule:
+        """``module`` (a soft value) of ``loss``'s actor, its critic with the ``critics``
+        parameters and ``log_alpha`` (read in place with ``live``, else copies) as a
+        ``TensorDictModule``."""
+        network, log_alpha = loss.actor_network[0], loss.log_alpha
+        if not live:
+            critics, log_alpha = critics.detach().clone(), log_alpha.detach().clone()
+        params = loss.actor_network_params["module", "0", "module"]
+        actor = with_params(network.module, params, live=live)
+        value = module(actor, loss.qvalue_network.module, critics, log_alpha, *args)
+        return TensorDictModule(value, in_keys=list(network.in_keys), out_keys=["state_value"])

@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from tensordict.utils import NestedKey
+from tensordict.utils import NestedKey, unravel_key
 from torch import nn
 from torchrl.data import Bounded, Categorical, OneHot, TensorSpec
 from torchrl.objectives import LossModule, ValueEstimators
@@ -21,7 +21,6 @@ from torchrl_stages.learners.ops import (
     FusedSoftUpdate,
     clip_seed_grads,
     linear_schedule,
-    seed_grad_norms,
     total_grad_norm,
 )
 from torchrl_stages.learners.stacking import current_rows, current_seeds, seed_axes
@@ -118,9 +117,8 @@ class Learner(nn.Module, ABC):
     def replay_keys(self) -> list[NestedKey]:
         """The entries of a transition its update reads (what the replay buffer keeps)."""
         obs = list(self.specs.observation_keys)
-        following = [("next", k) if isinstance(k, str) else ("next", *k) for k in obs]
-        done = [("next", "reward"), ("next", "done"), ("next", "terminated")]
-        return [*obs, self.specs.action_key, *following, *done]
+        following = [unravel_key(("next", k)) for k in [*obs, "reward", "done", "terminated"]]
+        return [*obs, self.specs.action_key, *following]
 
     @property
     def device(self) -> torch.device:
@@ -129,15 +127,22 @@ class Learner(nn.Module, ABC):
     def network(self, out_features: int, *extra_inputs: tuple[int, ...], dueling: bool = False):
         """A network from the observations and ``extra_inputs`` to ``out_features`` (``cfg``'s
         ``num_cells``, ``fourier_features`` and ``cnn_*``)."""
-        cfg = self.cfg
+        cfg, inputs = self.cfg, [*self.specs.input_shapes, *extra_inputs]
+        cnn = ConvSpec(tuple(cfg.cnn_channels), tuple(cfg.cnn_kernels), tuple(cfg.cnn_strides))
         return mlp(
-            [*self.specs.input_shapes, *extra_inputs],
-            out_features,
-            list(cfg.num_cells),
-            cfg.fourier_features,
-            ConvSpec(tuple(cfg.cnn_channels), tuple(cfg.cnn_kernels), tuple(cfg.cnn_strides)),
-            dueling=dueling,
+            inputs, out_features, list(cfg.num_cells), cfg.fourier_features, cnn, dueling=dueling
         )
+
+    def exploration_module(self, module: type[nn.Module], start: float, end: float) -> nn.Module:
+        """torchrl's exploration ``module`` (``EGreedyModule``, ``AdditiveGaussianModule``), its
+        noise ``start`` annealed to ``end`` over ``cfg.annealing_frames`` (:meth:`anneal_noise`)."""
+        steps = max(int(self.cfg.annealing_frames), 1)
+        spec, key = self.specs.action_spec, self.specs.action_key
+        return module(spec, float(start), float(end), steps, action_key=key)
+
+    def anneal_noise(self, noise: torch.Tensor, start: float, end: float, frames: int) -> None:
+        """Sets an exploration module's ``noise`` for ``frames`` collected frames."""
+        noise.fill_(linear_schedule(start, end, frames, self.cfg.annealing_frames))
 
     @classmethod
     def check_action_spec(cls, spec: TensorSpec) -> str | None:
@@ -149,11 +154,10 @@ class Learner(nn.Module, ABC):
             kind = "continuous"
         if not cls.action_spaces or kind in cls.action_spaces:
             return None
+        needs = " or ".join(cls.action_spaces)
         others = [name for name, c in ALGORITHMS.items() if kind in c.action_spaces]
-        return (
-            f"{cls.algo} needs a {' or '.join(cls.action_spaces)} action space, got "
-            f"{type(spec).__name__}" + (f"; use algo {' or '.join(others)}" if others else "")
-        )
+        hint = f"; use algo {' or '.join(others)}" if others else ""
+        return f"{cls.algo} needs a {needs} action space, got {type(spec).__name__}{hint}"
 
     @classmethod
     def validate(cls, checks: StageChecks) -> None:
@@ -215,7 +219,7 @@ class Learner(nn.Module, ABC):
             if not bool(torch.isfinite(value).all()):
                 raise NonFiniteError(name, self.num_updates + 1)
 
-    def _apply(self, losses: dict[str, torch.Tensor], total, *names: str, targets=True) -> dict:
+    def _optimize(self, losses: dict[str, torch.Tensor], total, *names: str, targets=True) -> dict:
         """Checks ``losses``, steps ``total`` and, with ``targets``, the target networks."""
         self._check_losses(**losses)
         self._step(total, *names)
@@ -240,9 +244,7 @@ class Learner(nn.Module, ABC):
                     torch.nn.utils.clip_grads_with_norm_(params, float(max_norm), norm)
             else:
                 axes = self._seed_axes_of(name, params)
-                norm = seed_grad_norms(grads, self.seeds, axes)
-                if max_norm is not None:
-                    clip_seed_grads(grads, float(max_norm), norm, axes)
+                norm = clip_seed_grads(grads, self.seeds, axes, max_norm)
             if not bool(torch.isfinite(norm).all()):
                 raise NonFiniteError(f"the gradient of the {name} parameters", self.num_updates + 1)
             self.grad_norms[name] = norm.detach()
@@ -269,9 +271,8 @@ class Learner(nn.Module, ABC):
     def check_finite(self) -> None:
         """Raises :class:`NonFiniteError` if a parameter or buffer is NaN or infinite."""
         # one check over every tensor at once; the walk only names the culprit
-        tensors = [
-            t.reshape(-1) for t in (*self.parameters(), *self.buffers()) if t.is_floating_point()
-        ]
+        every = (*self.parameters(), *self.buffers())
+        tensors = [t.reshape(-1) for t in every if t.is_floating_point()]
         if not tensors or bool(torch.cat(tensors).isfinite().all()):
             return
         for name, tensor in self.state_dict().items():
@@ -280,9 +281,10 @@ class Learner(nn.Module, ABC):
 
     def checkpoint(self) -> dict[str, Any]:
         """Weights (target networks included), exploration state and optimizer states."""
+        optimizers = {k: o.state_dict() for k, o in self.optimizers.items()}
         return {
             "model": self.state_dict(),
-            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "optimizers": optimizers,
             "num_updates": self.num_updates,
         }
 

@@ -74,10 +74,7 @@ class DDPGLearner(DeterministicActorCriticLearner):
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_actor, loss_value, penalty = self._losses(batch)
         losses = {"loss_actor": loss_actor, "loss_value": loss_value}
-        out = self._apply(losses, loss_actor + loss_value + penalty)
+        out = self._optimize(losses, loss_actor + loss_value + penalty)
         self.num_updates += 1
-        return {
-            **out,
-            "grad_norm_actor": self.grad_norms["actor"],
-            "grad_norm_critic": self.grad_norms["critic"],
-        }
+        norms = self.grad_norms
+        return {**out, "grad_norm_actor": norms["actor"], "grad_norm_critic": norms["critic"]}

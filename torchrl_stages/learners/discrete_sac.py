@@ -15,7 +15,7 @@ from torchrl.objectives.utils import distance_loss
 
 from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import free, in_range, one_of, positive
-from torchrl_stages.learners.actor_critic import EntropyRegularized, soft_value
+from torchrl_stages.learners.actor_critic import EntropyRegularized
 from torchrl_stages.learners.base import LOSS_FUNCTIONS, Learner, StageSpecs, register_algorithm
 from torchrl_stages.learners.ops import stacked_calls, taken, td0_target
 from torchrl_stages.learners.stacking import per_seed, seed_rows
@@ -37,19 +37,9 @@ class DiscreteSACConfig(StageConfig):
     target_entropy_weight: float = in_range(0, 1, 0.1)
 
 
-def _soft_value(actor, critic, critic_params, log_alpha, obs) -> torch.Tensor:
-    """``V(s) = sum_a pi(a|s) (min_i Q_i(s, a) - alpha log pi(a|s))``, a zero probability's log
-    that of 1e-8 (as ``DiscreteSACLoss``'s target); ``actor`` maps observations to logits,
-    ``critic`` to every action's value."""
-    probs = torch.distributions.Categorical(logits=actor(*obs)).probs
-    q = torch.stack(stacked_calls(critic, critic_params, *obs)).amin(0)
-    alpha = per_seed(seed_rows(log_alpha).detach().exp(), probs)
-    soft = q - alpha * torch.log(torch.where(probs == 0, 1e-8, probs))
-    return (probs * soft).sum(-1, keepdim=True)
-
-
 class DiscreteSoftValue(nn.Module):
-    """:func:`_soft_value` of the ``critic_params`` and ``log_alpha`` it holds."""
+    """``V(s) = sum_a pi(a|s) (min_i Q_i(s, a) - alpha log pi(a|s))`` of the ``critic_params``
+    and ``log_alpha`` it holds (``actor``: observations to logits, ``critic``: to Q(s, .))."""
 
     def __init__(self, actor: nn.Module, critic: nn.Module, critic_params, log_alpha) -> None:
         super().__init__()
@@ -57,7 +47,16 @@ class DiscreteSoftValue(nn.Module):
         self.critic_params, self.log_alpha = critic_params, log_alpha
 
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
-        return _soft_value(self.actor, self.critic, self.critic_params, self.log_alpha, obs)
+        return self.of(self.actor, self.critic, self.critic_params, self.log_alpha, obs)
+
+    @staticmethod
+    def of(actor, critic, critic_params, log_alpha, obs) -> torch.Tensor:
+        probs = torch.distributions.Categorical(logits=actor(*obs)).probs
+        q = torch.stack(stacked_calls(critic, critic_params, *obs)).amin(0)
+        alpha = per_seed(seed_rows(log_alpha).detach().exp(), probs)
+        # a zero probability's log is that of 1e-8, as in DiscreteSACLoss's target
+        soft = q - alpha * torch.log(torch.where(probs == 0, 1e-8, probs))
+        return (probs * soft).sum(-1, keepdim=True)
 
 
 @register_algorithm
@@ -81,22 +80,14 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
 
     def __init__(self, cfg: DiscreteSACConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
-        spec = specs.action_spec
+        spec, obs = specs.action_spec, specs.observation_keys
         num_actions = spec.space.n
+        logits = TensorDictModule(self.network(num_actions), obs, ["logits"])
+        dist = OneHotCategorical if isinstance(spec, OneHot) else torch.distributions.Categorical
         self.actor = ProbabilisticActor(
-            TensorDictModule(
-                self.network(num_actions), in_keys=specs.observation_keys, out_keys=["logits"]
-            ),
-            in_keys=["logits"],
-            out_keys=[specs.action_key],
-            spec=spec,
-            distribution_class=(
-                OneHotCategorical if isinstance(spec, OneHot) else torch.distributions.Categorical
-            ),
+            logits, ["logits"], [specs.action_key], spec=spec, distribution_class=dist
         )
-        self.critic = ValueOperator(
-            self.network(num_actions), in_keys=specs.observation_keys, out_keys=["action_value"]
-        )
+        self.critic = ValueOperator(self.network(num_actions), obs, ["action_value"])
         self.policy = self.exploration_policy = self.actor
         loss = DiscreteSACLoss(
             self.actor,
@@ -124,7 +115,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
         critics = self.loss.qvalue_network_params
         with torch.no_grad():
             targets = self.loss.target_qvalue_network_params["module"]
-            next_value = _soft_value(actor, critic, targets, self.loss.log_alpha, next_obs)
+            next_value = DiscreteSoftValue.of(actor, critic, targets, self.loss.log_alpha, next_obs)
             target = td0_target(batch, next_value, self.cfg.gamma)
         q = torch.stack(stacked_calls(critic, critics["module"], *obs))
         one_hot = isinstance(self.specs.action_spec, OneHot)
@@ -142,7 +133,7 @@ class DiscreteSACLearner(EntropyRegularized, Learner):
     def value_from_loss(cls, loss: DiscreteSACLoss, live: bool = False) -> TensorDictModuleBase:
         """:class:`DiscreteSoftValue` of a ``DiscreteSACLoss``'s target critics."""
         critics = loss.target_qvalue_network_params["module"]
-        return soft_value(DiscreteSoftValue, loss, critics, live)
+        return cls.soft_value(DiscreteSoftValue, loss, critics, live)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         return self.value_from_loss(self.loss, live=live)

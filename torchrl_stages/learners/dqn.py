@@ -15,7 +15,7 @@ from torchrl.objectives.utils import distance_loss
 from torchrl_stages.config import StageConfig
 from torchrl_stages.config.bounds import flag, free, in_range, one_of
 from torchrl_stages.learners.base import LOSS_FUNCTIONS, Learner, StageSpecs, register_algorithm
-from torchrl_stages.learners.ops import linear_schedule, taken, td0_target
+from torchrl_stages.learners.ops import taken, td0_target
 from torchrl_stages.values import QMaxValue, with_params
 
 
@@ -56,22 +56,11 @@ class DQNLearner(Learner):
 
     def __init__(self, cfg: DQNConfig, specs: StageSpecs, *, compile: str = "off") -> None:
         super().__init__(cfg, specs, compile=compile)
-        spec = specs.action_spec
+        spec, key = specs.action_spec, specs.action_key
         net = self.network(spec.space.n, dueling=cfg.dueling)
         self.__dict__["q_module"] = net  # obs in, one Q-value per action out
-        self.qnet = QValueActor(
-            net,
-            in_keys=specs.observation_keys,
-            spec=spec,
-            action_key=specs.action_key,
-        )
-        self.egreedy = EGreedyModule(
-            spec,
-            eps_init=float(cfg.eps_init),
-            eps_end=float(cfg.eps_end),
-            annealing_num_steps=max(int(cfg.annealing_frames), 1),
-            action_key=specs.action_key,
-        )
+        self.qnet = QValueActor(net, in_keys=specs.observation_keys, spec=spec, action_key=key)
+        self.egreedy = self.exploration_module(EGreedyModule, cfg.eps_init, cfg.eps_end)
         self.policy = self.qnet
         self.exploration_policy = TensorDictSequential(self.qnet, self.egreedy)
         loss = DQNLoss(
@@ -91,9 +80,8 @@ class DQNLearner(Learner):
     @classmethod
     def value_from_loss(cls, loss: DQNLoss, live: bool = False) -> TensorDictModuleBase:
         """``max_a Q_target(s, a)``."""
-        return QMaxValue(
-            with_params(loss.value_network, loss.target_value_network_params, live=live)
-        )
+        target = with_params(loss.value_network, loss.target_value_network_params, live=live)
+        return QMaxValue(target)
 
     def _plain_loss(self, batch: TensorDictBase) -> torch.Tensor:
         """``DQNLoss``; with ``advantage_learning`` (alpha) the target less
@@ -118,15 +106,12 @@ class DQNLearner(Learner):
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss = self._loss_fn(batch)
-        out = self._apply({"loss": loss}, loss)
+        out = self._optimize({"loss": loss}, loss)
         self.num_updates += 1
         return {**out, "grad_norm": self.grad_norms["qvalue"]}
 
     def anneal_exploration(self, frames: int) -> None:
-        cfg = self.cfg
-        self.egreedy.eps.fill_(
-            linear_schedule(cfg.eps_init, cfg.eps_end, frames, cfg.annealing_frames)
-        )
+        self.anneal_noise(self.egreedy.eps, self.cfg.eps_init, self.cfg.eps_end, frames)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         return self.value_from_loss(self.loss, live=live)

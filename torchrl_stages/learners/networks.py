@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -106,7 +107,8 @@ class InputEncoder(nn.Module):
 
 
 class Chain(nn.Sequential):
-    """``nn.Sequential`` whose first module takes several inputs (e.g. an image and a vector).
+    """``nn.Sequential`` whose first module takes several inputs (e.g. an image and a vector);
+    an ``OrderedDict`` names its modules (:func:`mlp`'s ``encoder`` and ``body``).
 
     Examples:
         >>> net = Chain(InputEncoder([(2,), (1,)]), nn.Linear(3, 1))
@@ -122,16 +124,7 @@ class Chain(nn.Sequential):
         return out
 
 
-class _Encoded(nn.Module):
-    def __init__(self, encoder: nn.Module, body: nn.Module) -> None:
-        super().__init__()
-        self.encoder, self.body = encoder, body
-
-    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        return self.body(self.encoder(*inputs))
-
-
-class SharedEncoderCritic(_Encoded):
+class SharedEncoderCritic(Chain):
     """``Q(s, a) = body([encoder(s), a])`` over the actor's own input encoder.
 
     Examples:
@@ -143,7 +136,7 @@ class SharedEncoderCritic(_Encoded):
     def __init__(self, encoder: nn.Module, action_dim: int, num_cells: list[int]) -> None:
         width = encoder.out_features + action_dim
         body = MLP(in_features=width, out_features=1, num_cells=num_cells)
-        super().__init__(encoder, stack_for_seeds(body))
+        super().__init__(OrderedDict(encoder=encoder, body=stack_for_seeds(body)))
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         *obs, action = inputs
@@ -163,27 +156,17 @@ def mlp(
     ``dueling``: ``Q = V + A - mean(A)``, the last hidden width feeding the two heads."""
     shapes = [(inputs,)] if isinstance(inputs, int) else [tuple(s) for s in inputs]
     encoder = None
-    width = sum(s[0] for s in shapes)
     if fourier > 0 or any(len(s) != 1 for s in shapes):
         encoder = InputEncoder(shapes, fourier=fourier, cnn=cnn)
-        width = encoder.out_features
+    width = sum(s[0] for s in shapes) if encoder is None else encoder.out_features
     if not dueling:
         net = MLP(in_features=width, out_features=out_features, num_cells=num_cells)
     else:
         *trunk, hidden = num_cells
-        net = DuelingMlpDQNet(
-            out_features,
-            mlp_kwargs_feature={
-                "in_features": width,
-                "num_cells": trunk,
-                "out_features": hidden,
-                "activation_class": nn.ReLU,
-            },
-            mlp_kwargs_output={
-                "in_features": hidden,
-                "num_cells": hidden,
-                "depth": 1,
-                "activation_class": nn.ReLU,
-            },
-        )
-    return stack_for_seeds(net if encoder is None else _Encoded(encoder, net))
+        relu = {"activation_class": nn.ReLU}  # torchrl's default: ELU
+        features = dict(in_features=width, num_cells=trunk, out_features=hidden, **relu)
+        heads = dict(in_features=hidden, num_cells=hidden, **relu)  # one hidden layer each
+        net = DuelingMlpDQNet(out_features, mlp_kwargs_feature=features, mlp_kwargs_output=heads)
+    if encoder is not None:
+        net = Chain(OrderedDict(encoder=encoder, body=net))
+    return stack_for_seeds(net)

@@ -51,9 +51,8 @@ class FusedAdam(torch.optim.Adam):
     def _direct(self) -> bool:
         """Whether ``step`` is one kernel call: no hooks, plain fused Adam, float lr, every
         parameter with a gradient and state, one device and dtype."""
-        if self._optimizer_step_pre_hooks or self._optimizer_step_post_hooks:
-            return False
-        if _global_optimizer_pre_hooks or _global_optimizer_post_hooks:
+        hooks = self._optimizer_step_pre_hooks or self._optimizer_step_post_hooks
+        if hooks or _global_optimizer_pre_hooks or _global_optimizer_post_hooks:
             return False
         kinds = set()
         for group in self.param_groups:
@@ -96,8 +95,6 @@ class FusedAdam(torch.optim.Adam):
                 weight_decay=group["weight_decay"],
                 eps=group["eps"],
                 maximize=False,
-                grad_scale=None,
-                found_inf=None,
             )
 
 
@@ -110,22 +107,22 @@ def total_grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
     return torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
 
 
-def seed_grad_norms(grads: list[torch.Tensor], num_seeds: int, axes: Sequence[int]) -> torch.Tensor:
-    """The 2-norm of each seed's gradients (``[num_seeds]``), seeds on axis ``axes[i]``."""
-    pairs = zip(grads, axes, strict=True)
-    per_tensor = [g.movedim(a, 0).reshape(num_seeds, -1).norm(dim=1) for g, a in pairs]
-    return torch.linalg.vector_norm(torch.stack(per_tensor), 2.0, dim=0)
-
-
 def clip_seed_grads(
-    grads: list[torch.Tensor], max_norm: float, norms: torch.Tensor, axes: Sequence[int]
-) -> None:
-    """``torch.nn.utils.clip_grads_with_norm_`` for each seed's gradients."""
-    coef = (max_norm / (norms + 1e-6)).clamp(max=1.0)
-    for g, a in zip(grads, axes, strict=True):
+    grads: list[torch.Tensor], num_seeds: int, axes: Sequence[int], max_norm: float | None
+) -> torch.Tensor:
+    """``torch.nn.utils.clip_grad_norm_`` for each seed's gradients (seeds on axis ``axes[i]``):
+    their 2-norms (``[num_seeds]``), each seed's clipped to ``max_norm`` (``None``: not clipped)."""
+    pairs = list(zip(grads, axes, strict=True))
+    per_tensor = [g.movedim(a, 0).reshape(num_seeds, -1).norm(dim=1) for g, a in pairs]
+    norms = torch.linalg.vector_norm(torch.stack(per_tensor), 2.0, dim=0)
+    if max_norm is None:
+        return norms
+    coef = (float(max_norm) / (norms + 1e-6)).clamp(max=1.0)
+    for g, a in pairs:
         shape = [1] * g.ndim
         shape[a] = -1
         g.mul_(coef.view(shape))
+    return norms
 
 
 def td0_target(batch: TensorDictBase, next_value: torch.Tensor, gamma: float) -> torch.Tensor:

@@ -19,7 +19,6 @@ from torchrl_stages.learners.actor_critic import (
     ActorCriticConfig,
     ActorCriticLearner,
     EntropyRegularized,
-    soft_value,
 )
 from torchrl_stages.learners.base import register_algorithm
 from torchrl_stages.learners.networks import Chain
@@ -50,9 +49,8 @@ class SoftValue(nn.Module):
 
     def __init__(self, actor, critic, critic_params, log_alpha, dist_kwargs, samples) -> None:
         super().__init__()
-        self.actor, self.critic, self.samples = actor, critic, int(samples)
-        self.critic_params = critic_params
-        self.log_alpha, self.dist_kwargs = log_alpha, dict(dist_kwargs)
+        self.actor, self.critic, self.critic_params = actor, critic, critic_params
+        self.log_alpha, self.dist_kwargs, self.samples = log_alpha, dict(dist_kwargs), int(samples)
 
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
         loc, scale = self.actor(*obs)
@@ -107,15 +105,12 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         self.learn_alpha()
 
     def make_actor(self, actor_net: nn.Module, spec: TensorSpec) -> TensorDictModuleBase:
-        keys = self.specs
+        net = Chain(actor_net, NormalParamExtractor())
+        loc_scale = TensorDictModule(net, self.specs.observation_keys, ["loc", "scale"])
         return ProbabilisticActor(
-            TensorDictModule(
-                Chain(actor_net, NormalParamExtractor()),
-                in_keys=keys.observation_keys,
-                out_keys=["loc", "scale"],
-            ),
+            loc_scale,
             in_keys=["loc", "scale"],
-            out_keys=[keys.action_key],
+            out_keys=[self.specs.action_key],
             spec=spec,
             distribution_class=TanhNormal,
             distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
@@ -167,7 +162,7 @@ class SACLearner(EntropyRegularized, ActorCriticLearner):
         if critics is None:
             critics = loss.target_qvalue_network_params
         kwargs = loss.actor_network[1].distribution_kwargs
-        return soft_value(SoftValue, loss, critics["module"], live, kwargs, samples)
+        return cls.soft_value(SoftValue, loss, critics["module"], live, kwargs, samples)
 
     def value(self, live: bool = False) -> TensorDictModuleBase:
         """:class:`SoftValue`; with a shared encoder the critics read the target one."""

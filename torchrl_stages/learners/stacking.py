@@ -13,6 +13,8 @@ from torch import nn
 
 _SEEDS: ContextVar[int | None] = ContextVar("torchrl_stages_seeds", default=None)
 _ROWS: ContextVar[torch.Tensor | None] = ContextVar("torchrl_stages_seed_rows", default=None)
+current_seeds = _SEEDS.get  # how many seeds the networks built now stack (:func:`stacked_networks`)
+current_rows = _ROWS.get  # the seeds computed now (:func:`update_rows`)
 
 
 class _StackedLayer(nn.Module):
@@ -47,10 +49,8 @@ class StackedLinear(_StackedLayer):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         weight, bias = self._rows()
-        n = weight.shape[0]
-        out = torch.baddbmm(
-            bias.unsqueeze(1), x.reshape(n, -1, x.shape[-1]), weight.transpose(1, 2)
-        )
+        seed_major = x.reshape(weight.shape[0], -1, x.shape[-1])
+        out = torch.baddbmm(bias.unsqueeze(1), seed_major, weight.transpose(1, 2))
         return out.reshape(*x.shape[:-1], out.shape[-1])
 
 
@@ -74,14 +74,8 @@ class StackedConv2d(_StackedLayer):
         n, (c, h, w) = weight.shape[0], x.shape[-3:]
         # seed-major [n, M, C, H, W] -> [M, n * C, H, W]: seed i's channels are group i
         grouped = x.reshape(n, -1, c, h, w).transpose(0, 1).reshape(-1, n * c, h, w)
-        out = nn.functional.conv2d(
-            grouped,
-            weight.reshape(-1, *weight.shape[2:]),
-            bias.reshape(-1),
-            self.stride,
-            self.padding,
-            groups=n,
-        )
+        kernels, biases = weight.flatten(0, 1), bias.flatten()  # seed i's: group i
+        out = nn.functional.conv2d(grouped, kernels, biases, self.stride, self.padding, groups=n)
         out = out.reshape(out.shape[0], n, weight.shape[1], *out.shape[-2:]).transpose(0, 1)
         return out.reshape(*x.shape[:-3], *out.shape[-3:])
 
@@ -109,10 +103,6 @@ def _stacked(name: str, layer: nn.Module, n: int) -> nn.Module | None:
     return None
 
 
-def current_seeds() -> int | None:
-    return _SEEDS.get()
-
-
 @contextmanager
 def _setting(var: ContextVar, value) -> Iterator[None]:
     token = var.set(value)
@@ -125,10 +115,6 @@ def _setting(var: ContextVar, value) -> Iterator[None]:
 def stacked_networks(num_seeds: int | None) -> AbstractContextManager[None]:
     """Networks built inside are stacked for ``num_seeds`` seeds (``None``: not stacked)."""
     return _setting(_SEEDS, num_seeds)
-
-
-def current_rows() -> torch.Tensor | None:
-    return _ROWS.get()
 
 
 def update_rows(rows: torch.Tensor | None) -> AbstractContextManager[None]:
@@ -169,14 +155,13 @@ def stack_for_seeds(module: nn.Module) -> nn.Module:
         new = _stacked(name, old, n)
         if new is None:
             continue
-        parent, _, attr = name.rpartition(".")
-        if parent or attr:
-            setattr(module.get_submodule(parent), attr, new)
-        else:
+        if name:
+            module.set_submodule(name, new)
+        else:  # the module is itself the layer
             module = new
     for name, m in module.named_modules():
-        stacked = isinstance(m, _StackedLayer)
-        if not stacked and any(True for _ in m.parameters(recurse=False)):
+        own = next(m.parameters(recurse=False), None)
+        if own is not None and not isinstance(m, _StackedLayer):
             raise TypeError(
                 f"{name or type(m).__name__} ({type(m).__name__}) holds parameters that cannot "
                 "be stacked for seeds: only Linear and Conv2d layers can"
@@ -187,9 +172,8 @@ def stack_for_seeds(module: nn.Module) -> nn.Module:
 def seed_axes(learner: nn.Module) -> dict[str, int | None]:
     """The seeds' axis of each ``state_dict`` entry of a seed-stacked ``learner`` (``None``:
     shared), read off twins built for 1 and 2 seeds."""
-    cached = learner.__dict__.get("_seed_axes")
-    if cached is not None:
-        return cached
+    if "_seed_axes" in learner.__dict__:
+        return learner.__dict__["_seed_axes"]
     twins = []
     with torch.random.fork_rng(devices=[]):
         for n in (1, 2):
@@ -197,9 +181,8 @@ def seed_axes(learner: nn.Module) -> dict[str, int | None]:
                 twins.append(type(learner)(learner.cfg, learner.specs).state_dict())
     axes: dict[str, int | None] = {}
     for key, one in twins[0].items():
-        two = twins[1][key]
-        differ = [i for i, (a, b) in enumerate(zip(one.shape, two.shape, strict=True)) if a != b]
-        axes[key] = differ[0] if differ else None
+        pairs = zip(one.shape, twins[1][key].shape, strict=True)
+        axes[key] = next((i for i, (a, b) in enumerate(pairs) if a != b), None)
     learner.__dict__["_seed_axes"] = axes
     return axes
 
@@ -210,12 +193,11 @@ def stack_learners(stacked: nn.Module, learners: Sequence[nn.Module]) -> nn.Modu
     if len(learners) != stacked.seeds:
         raise ValueError(f"{len(learners)} learners for {stacked.seeds} seeds")
     states, axes = [learner.state_dict() for learner in learners], seed_axes(stacked)
-    stacked.load_state_dict(
-        {
-            k: states[0][k] if axes[k] is None else torch.stack([s[k] for s in states], axes[k])
-            for k in stacked.state_dict()
-        }
-    )
+    merged = {
+        k: states[0][k] if axes[k] is None else torch.stack([s[k] for s in states], axes[k])
+        for k in stacked.state_dict()
+    }
+    stacked.load_state_dict(merged)
     stacked.num_updates = max(learner.num_updates for learner in learners)
     return stacked
 
@@ -223,11 +205,10 @@ def stack_learners(stacked: nn.Module, learners: Sequence[nn.Module]) -> nn.Modu
 def unstack_learner(stacked: nn.Module, seed: int, learner: nn.Module) -> nn.Module:
     """Loads row ``seed`` of ``stacked`` into the ordinary ``learner``; returns ``learner``."""
     axes = seed_axes(stacked)
-    learner.load_state_dict(
-        {
-            k: v.clone() if axes[k] is None else v.select(axes[k], seed).clone()
-            for k, v in stacked.state_dict().items()
-        }
-    )
+    row = {
+        k: v.clone() if axes[k] is None else v.select(axes[k], seed).clone()
+        for k, v in stacked.state_dict().items()
+    }
+    learner.load_state_dict(row)
     learner.num_updates = stacked.num_updates
     return learner

@@ -83,11 +83,11 @@ class TD3Learner(DeterministicActorCriticLearner):
 
     def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss_q = self._value_loss(batch)
-        out = self._apply({"loss_qvalue": loss_q}, loss_q, "critic", targets=False)
+        out = self._optimize({"loss_qvalue": loss_q}, loss_q, "critic", targets=False)
         out["grad_norm_critic"] = self.grad_norms["critic"]
         if (self.num_updates + 1) % self.cfg.policy_update_delay == 0:
             loss_actor, penalty = self._actor_loss(batch)
-            out |= self._apply({"loss_actor": loss_actor}, loss_actor + penalty, "actor")
+            out |= self._optimize({"loss_actor": loss_actor}, loss_actor + penalty, "actor")
             out["grad_norm_actor"] = self.grad_norms["actor"]
         self.num_updates += 1
         return out
