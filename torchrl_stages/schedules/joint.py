@@ -218,6 +218,9 @@ class JointTrainer(SeedLoop):
             **{f"replay_buffer_{m}": b for m, b in enumerate(self.buffers)},
         }
         latest = self.latest(counters, "joint", stateful)
+        if latest is not None and not counters.in_phase:  # resumed at a phase boundary
+            self.restore(latest, stateful, counters)
+            latest = None
         start = time.perf_counter() - counters.seconds
         watch = Stopwatch()
         for index in range(counters.phase, len(self.starts)):
@@ -241,31 +244,23 @@ class JointTrainer(SeedLoop):
         for m, learner in enumerate(self.learners):
             if learner.seeds is not None:
                 learner = unstack_learner(learner, i, self.make[m]())
-            learner.num_updates = counters.updates[i][m]
+            learner.num_updates = updates = counters.updates[i][m]
             learners.append(learner)
-            frames = counters.stored[i][m]
-            timing = dict(watch.seconds)
-            results.append(
-                StageResult(m, frames, learner.num_updates, seconds, timing=timing, **ended)
-            )
+            frames, timing = counters.stored[i][m], dict(watch.seconds)
+            results.append(StageResult(m, frames, updates, seconds, timing=timing, **ended))
         return Trained(learners, results, {"phases": phases})
 
     def _phase(self, start_stage, counters: JointCounters, stateful, latest, watch, t0) -> None:
-        """One phase for every seed, from ``start_stage``'s starts."""
+        """One phase for every seed, from ``start_stage``'s starts (``latest``: resumed in it)."""
         n, k = self.n, 0 if start_stage is None else start_stage
         cfg = self.task.stage_cfg(k)
-        resume_in_phase = latest is not None and counters.in_phase
-        if latest is not None and not resume_in_phase:  # resumed at a phase boundary
-            self.restore(latest, stateful, counters)
         env, eval_env = self._phase_envs(k, start_stage, cfg)
-        policy = StackedPolicy(
-            [learner.exploration_policy for learner in self.learners], skip_absent=False
-        )
-        where = "the joint phase from " + (
-            "the task's own starts"
-            if start_stage is None
-            else f"stage {start_stage} ({self.task.stage_names[start_stage]})"
-        )
+        explore = [learner.exploration_policy for learner in self.learners]
+        policy = StackedPolicy(explore, skip_absent=False)
+        if start_stage is None:
+            where = "the joint phase from the task's own starts"
+        else:
+            where = f"the joint phase from stage {k} ({self.task.stage_names[k]})"
         loop = self.loop(
             cfg,
             env,
@@ -276,12 +271,12 @@ class JointTrainer(SeedLoop):
             where,
             watch,
             saved=counters,
-            latest=latest if resume_in_phase else None,
+            latest=latest,
             start=t0,
             init_random=counters.phase == 0,
         )
         collector, stops = loop.collector, loop.early_stop
-        if not resume_in_phase:
+        if latest is None:
             counters.phase_frames = [0] * n
         counters.in_phase = True
         frames_before = loop.frames_before = counters.frames - collector.frames // n
@@ -302,28 +297,21 @@ class JointTrainer(SeedLoop):
         if self.probe is not None and k == 0:
             loop.register_op("evaluated", lambda ev: self.probe(self.learners, counters.frames))
         loop.train()
-        for i in range(n):
-            ended = stops.finish(i)
+        for i, phases in enumerate(counters.phases):
             frames = counters.phase_frames[i]
-            counters.phases[i].append({"start_stage": start_stage, "frames": frames, **ended})
+            phases.append({"start_stage": start_stage, "frames": frames, **stops.finish(i)})
 
     def evaluate(
         self, k: int, eval_env, counters: JointCounters, stops: SeedEarlyStops
     ) -> Evaluation:
         """Greedy whole-task episodes from stage-k starts for each seed."""
-        cfg = self.task.stage_cfg(k)
+        cfg, n = self.task.stage_cfg(k), self.n
         policy = StackedPolicy([learner.policy for learner in self.learners])
         max_steps = int(getattr(eval_env.base_env, "max_steps", 1000))
         if cfg.eval_max_steps:  # each stage an episode crosses may take eval_max_steps
             max_steps = min(max_steps, int(cfg.eval_max_steps) * (self.task.num_stages - k))
         summaries = evaluate_greedy(
-            eval_env,
-            policy,
-            self._value,
-            max_steps,
-            self.gammas,
-            cfg.value_error_reduce,
-            groups=self.n,
+            eval_env, policy, self._value, max_steps, self.gammas, cfg.value_error_reduce, groups=n
         )
         active, steps = stops.active(), counters.trained
         frames, updates = list(counters.phase_frames), [sum(u) for u in counters.updates]
