@@ -15,20 +15,19 @@ from tensordict.utils import NestedKey
 from torchrl.envs import EnvBase
 
 from torchrl_stages.checkpoint import StageCheckpoints, StateOf
-from torchrl_stages.collector import StageCollector
 from torchrl_stages.config import StageConfig
-from torchrl_stages.early_stop import Evaluation, SeedEarlyStops, seed_rows
+from torchrl_stages.early_stop import Evaluation, seed_rows
 from torchrl_stages.evaluate import evaluate_greedy
 from torchrl_stages.failures import stage_failures
 from torchrl_stages.learners import Learner
 from torchrl_stages.learners.stacking import unstack_learner, update_rows
-from torchrl_stages.loop import LoopCounters, SeedLoop, Stopwatch
+from torchrl_stages.loop import LoopCounters, SeedLoop, Stopwatch, Trainer
 from torchrl_stages.metric_names import STAGE
 from torchrl_stages.metrics import MetricsLog
 from torchrl_stages.replay import SeedReplayBuffer
 from torchrl_stages.threads import keep_threads
 
-__all__ = ["StageResult", "StageTrainer", "gradient_steps", "per_seed_metrics"]
+__all__ = ["SeedResults", "StageResult", "StageTrainer", "gradient_steps", "per_seed_metrics"]
 
 
 @dataclass
@@ -47,6 +46,10 @@ class StageResult:
     # the stage's objective: mean greedy discounted return at that evaluation (joint schedule:
     # that of the whole-task episodes of its last phase, for every stage)
     discounted_return: float | None = None
+
+
+#: each seed's learner and result of one stage
+SeedResults = list[tuple[Learner, StageResult]]
 
 
 def per_seed_metrics(
@@ -153,7 +156,7 @@ class StageTrainer(SeedLoop):
     def _value(self) -> TensorDictModuleBase:
         return self.learner.value(live=True)
 
-    def train(self) -> list[tuple[Learner, StageResult]]:
+    def train(self) -> SeedResults:
         learner, n = self.learner, self.n
         buffer = SeedReplayBuffer(int(self.cfg.buffer_size), num_seeds=n, device=learner.device)
         state = {
@@ -194,7 +197,7 @@ class StageTrainer(SeedLoop):
             loop.register_op("evaluated", lambda ev: self.on_evaluate(learner, ev.frames[0]))
         with stage_failures(self.stage, self.name, learner, buffer, stops.rows, self.seeds):
             loop.train()
-        return [self._result(i, stops, collector, watch) for i in range(n)]
+        return [self._result(i, loop) for i in range(n)]
 
     def evaluate(self, frames: int, active: Callable[[], list[int]] | None = None) -> Evaluation:
         """Greedy episodes from the evaluation env's starts for each seed (``active``: logged)."""
@@ -213,16 +216,15 @@ class StageTrainer(SeedLoop):
         steps, updates = [frames] * n, [self.learner.num_updates] * n
         return self.log_evaluation(summaries, STAGE, self.stage, seeds, steps, steps, updates)
 
-    def _result(
-        self, i: int, stops: SeedEarlyStops, collector: StageCollector, watch: Stopwatch
-    ) -> tuple[Learner, StageResult]:
+    def _result(self, i: int, loop: Trainer) -> tuple[Learner, StageResult]:
+        stops = loop.early_stop
         at, ended = stops.stopped_at[i], stops.finish(i)
         result = StageResult(
             self.stage,
-            collector.frames // self.n if at is None else at["frames"],
+            loop.collector.frames // self.n if at is None else at["frames"],
             self.learner.num_updates if at is None else at["updates"],
             time.perf_counter() - stops.start if at is None else at["seconds"],
-            timing=dict(watch.seconds),
+            timing=dict(loop.watch.seconds),
             **ended,
         )
         if self.learner.seeds is None:

@@ -16,7 +16,7 @@ from torchrl_stages.learners import Learner, make_learner
 from torchrl_stages.learners.stacking import stack_learners
 from torchrl_stages.schedules.base import Schedule, SeedGroup, Trained, register_schedule
 from torchrl_stages.seeding import EVAL_OFFSET, seeded, stage_seed
-from torchrl_stages.stage import StageResult, StageTrainer
+from torchrl_stages.stage import SeedResults, StageTrainer
 from torchrl_stages.task import StagedTask
 
 
@@ -60,14 +60,12 @@ def run_stage(
     eval_env: Callable[[int], EnvBase],
     group: SeedGroup,
     **kwargs,
-) -> list[tuple[Learner, StageResult]]:
+) -> SeedResults:
     """Trains a learner of ``cfg`` as stage ``stage`` for every seed of ``group``, its envs
     (``train_env(copies)``, ``eval_env(copies)``) seeded by the seeding rule; ``kwargs``:
     :class:`StageTrainer`'s."""
-    seeds, specs = group.seeds, task.specs(stage)
-
-    def make(seeds: int | None = None) -> Learner:
-        return make_learner(cfg, specs, group.compile, task.device, seeds=seeds)
+    seeds = group.seeds
+    make = functools.partial(make_learner, cfg, task.specs(stage), group.compile, task.device)
 
     def envs() -> tuple[EnvBase, EnvBase]:
         env = train_env(len(seeds))
@@ -77,7 +75,7 @@ def run_stage(
         return env, evaluation
 
     learner, (env, evaluation) = seeded(make, seeds, stage_seed(0, stage), envs)
-    trainer = StageTrainer(
+    return StageTrainer(
         stage,
         learner,
         env,
@@ -88,8 +86,7 @@ def run_stage(
         progress=group.progress,
         seeds=seeds,
         **kwargs,
-    )
-    return trainer.train()
+    ).train()
 
 
 def train_stage(
@@ -102,7 +99,7 @@ def train_stage(
     on_evaluate: Callable[[Learner, int], None] | None = None,
     group: SeedGroup | None = None,
     **kwargs,
-) -> list[tuple[Learner, StageResult]]:
+) -> SeedResults:
     """Trains stage ``stage`` against ``next_value`` (stage ``stage + 1``'s frozen value) for
     every seed of ``seeds`` (or of ``group``; ``kwargs``: :class:`SeedGroup`'s), as a backward run
     does; each seed's learner and result. A stage is seeded from the seed and its index alone.
@@ -141,15 +138,14 @@ class BackwardSchedule(Schedule):
 
     def run(self, task: StagedTask, group: SeedGroup) -> list[Trained]:
         num_stages = task.num_stages
-        done: list[list[tuple[Learner, StageResult]]] = [[] for _ in range(num_stages)]
+        done: list[SeedResults] = [[] for _ in range(num_stages)]
         next_value, frames_before = None, 0
         for k in reversed(range(num_stages)):
             on_evaluate = None
             if group.probe is not None and k == 0:
 
                 def on_evaluate(learner: Learner, frames: int, before=frames_before) -> None:
-                    probe_team = [learner, *(stage[0][0] for stage in done[1:])]
-                    group.probe(probe_team, before + frames)
+                    group.probe([learner, *(stage[0][0] for stage in done[1:])], before + frames)
 
             train = functools.partial(
                 train_stage, task, k, next_value, on_evaluate=on_evaluate, group=group

@@ -14,7 +14,7 @@ from torchrl_stages.checkpoint import StageCheckpoints
 from torchrl_stages.config import ConfigError
 from torchrl_stages.learners import Learner
 from torchrl_stages.metrics import MetricsLog
-from torchrl_stages.stage import StageResult
+from torchrl_stages.stage import SeedResults, StageResult
 from torchrl_stages.task import StagedTask
 
 #: ``probe(learners, frames)`` (``eval.probe``): the whole task followed at the evaluations of
@@ -55,7 +55,7 @@ class Trained:
     extra: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def per_seed(cls, stages: Sequence[Sequence[tuple[Learner, StageResult]]]) -> list[Trained]:
+    def per_seed(cls, stages: Sequence[SeedResults]) -> list[Trained]:
         """One per seed, from each stage's ``(learner, result)`` of every seed."""
         return [cls(*map(list, zip(*seed, strict=True))) for seed in zip(*stages, strict=True)]
 
@@ -77,13 +77,10 @@ class SeedGroup:
     def __post_init__(self) -> None:
         self.keepers = list(self.keepers or [None] * len(self.seeds))
 
-    def finished(
-        self, stage: int, earlier: bool = True
-    ) -> list[tuple[Learner, StageResult]] | None:
+    def finished(self, stage: int, earlier: bool = True) -> SeedResults | None:
         """Each seed's finished ``stage`` (:meth:`StageKeeper.finished`) when every keeper has
         it, else ``None`` (a stage finished for some seeds only trains again for all)."""
-        keepers = self.keepers
-        done = [k.finished(stage, earlier) if k is not None else None for k in keepers]
+        done = [k.finished(stage, earlier) if k is not None else None for k in self.keepers]
         missing = [s for s, d in zip(self.seeds, done, strict=True) if d is None]
         if missing and len(missing) < len(done):
             log.warning(
@@ -103,11 +100,7 @@ class SeedGroup:
                     keeper.begin(scope)
         return scoped
 
-    def stage(
-        self,
-        stage: int,
-        train: Callable[..., list[tuple[Learner, StageResult]]],
-    ) -> list[tuple[Learner, StageResult]]:
+    def stage(self, stage: int, train: Callable[..., SeedResults]) -> SeedResults:
         """Each seed's ``stage``: finished earlier, else ``train(checkpoints=...)``, kept (its
         checkpoints dropped). Once a stage trains, the run's own files and checkpoints of the
         stages after it are not used: they were trained against the stages before as they were.
