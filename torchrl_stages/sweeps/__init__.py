@@ -12,21 +12,15 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from torchrl_stages.sweeps.figures import (
-    plot_performance_profile,
-    plot_sweep_curves,
-    plot_sweep_final,
-)
+from torchrl_stages.sweeps import figures
 from torchrl_stages.sweeps.jobs import Job, configs, find_jobs, read_job, result_metrics
 from torchrl_stages.sweeps.stats import REPS, Aggregate, aggregate_jobs
 
 
 def _fmt(value: Any, digits: int = 3) -> str:
-    if value is None:
-        return ""
     if isinstance(value, float):
         return f"{value:.{digits}f}"
-    return str(value)
+    return "" if value is None else str(value)
 
 
 def _cell(text: Any) -> str:
@@ -106,17 +100,17 @@ def summarize_sweep(sweep_dir: str | Path, *, plots: bool = True, seed: int = 0)
     _write_csv(files["summary.csv"], header, (job.row(metrics) for job in jobs))
     header = [f.name for f in fields(Aggregate)]
     _write_csv(files["summary_configs.csv"], header, (vars(agg) for agg in aggregates))
-    figures = {}
+    drawn = {}
     if plots:
         made = (
-            plot_sweep_curves(jobs, root / "summary_curves.png"),
-            plot_sweep_final(jobs, aggregates, root / "summary_final.png"),
-            plot_performance_profile(jobs, root / "summary_profile.png", seed=seed),
+            figures.plot_sweep_curves(jobs, root / "summary_curves.png"),
+            figures.plot_sweep_final(jobs, aggregates, root / "summary_final.png"),
+            figures.plot_performance_profile(jobs, root / "summary_profile.png", seed=seed),
         )
-        figures = {path.name: path for path in made if path is not None}
-    files |= figures
+        drawn = {path.name: path for path in made if path is not None}
+    files |= drawn
     files["summary.md"] = root / "summary.md"
-    files["summary.md"].write_text(markdown(root, jobs, aggregates, list(figures)))
+    files["summary.md"].write_text(markdown(root, jobs, aggregates, list(drawn)))
     return SweepSummary(jobs, aggregates, files)
 
 

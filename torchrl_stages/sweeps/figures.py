@@ -71,19 +71,18 @@ def plot_sweep_curves(jobs: Sequence[Job], out: str | Path) -> Path | None:
     if not names:
         return None
     labels = short_labels(configs_of(jobs))
-    ncols = min(3, len(names))
-    nrows = math.ceil(len(names) / ncols)
+    ncols, nrows = min(3, len(names)), math.ceil(len(names) / 3)
     fig = Figure(figsize=(5.2 * ncols, 3.6 * nrows + 0.6))
-    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
-    for ax, name in zip(axes, names, strict=False):
+    for i, name in enumerate(names):
+        ax = fig.add_subplot(nrows, ncols, i + 1)
         for c, (config, curves) in enumerate(runs.items()):
             seeds = [s[name] for s in curves if name in s]
             if not seeds:
                 continue
             grid = np.unique(np.concatenate([[p[0] for p in s] for s in seeds]))
             values = np.stack([_forward_fill(s, grid) for s in seeds])
-            with warnings.catch_warnings():  # all-NaN columns: before a seed's first point
-                warnings.simplefilter("ignore", RuntimeWarning)
+            # all-NaN columns: before a seed's first point
+            with warnings.catch_warnings(action="ignore", category=RuntimeWarning):
                 mean = np.nanmean(values, axis=0)
                 low, high = np.nanmin(values, axis=0), np.nanmax(values, axis=0)
             color = f"C{c % 10}"
@@ -94,9 +93,7 @@ def plot_sweep_curves(jobs: Sequence[Job], out: str | Path) -> Path | None:
         ax.set_title(_curve_title(name), fontsize=10)
         ax.set(xlabel="frames", ylabel="success rate", ylim=(-0.05, 1.05))
         ax.grid(alpha=0.3)
-    for ax in axes[len(names) :]:
-        ax.set_visible(False)
-    handles, texts = axes[0].get_legend_handles_labels()
+    handles, texts = fig.axes[0].get_legend_handles_labels()
     fig.legend(handles, texts, loc="lower center", ncol=min(3, max(1, len(texts))), fontsize=8)
     fig.suptitle("greedy evaluation success per configuration (line: mean, band: min-max)")
     fig.tight_layout(rect=(0, 0.06 + 0.02 * math.ceil(len(texts) / 3), 1, 0.97))

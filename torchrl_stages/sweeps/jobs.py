@@ -102,10 +102,9 @@ def find_jobs(sweep_dir: str | Path) -> list[Path]:
 
 def _read(path: Path, load: Callable[[str], Any] = yaml.safe_load) -> Any:
     """What ``path`` holds; ``None`` when it is missing or damaged."""
-    try:
+    with contextlib.suppress(OSError, ValueError, yaml.YAMLError):
         return load(path.read_text())
-    except (OSError, ValueError, yaml.YAMLError):
-        return None
+    return None
 
 
 def finite_float(value: Any) -> float | None:
@@ -129,9 +128,16 @@ def _read_seed(path: Path, overrides: list[str]) -> int | None:
     return None
 
 
-def _status(job: Job, eval_file: Path, status_file: Path) -> dict[str, Any] | None:
-    """Sets ``job.status`` and ``job.reason``; returns ``eval.json`` if the job finished and no
-    newer ``status.json`` says otherwise."""
+def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
+    """One job directory: ``done`` (its ``eval.json``), the status of a newer ``status.json``,
+    or ``incomplete``."""
+    path = Path(path)
+    root = Path(sweep_dir) if sweep_dir is not None else path.parent
+    name = path.relative_to(root).as_posix() if path != root else "."
+    overrides = _read(path / ".hydra" / "overrides.yaml")
+    overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
+    job = Job(path, name, overrides, _read_seed(path, overrides), "incomplete")
+    eval_file, status_file = path / "eval.json", path / "status.json"
     result, status = _read(eval_file, json.loads), _read(status_file, json.loads)
     result = result if isinstance(result, dict) else None
     if isinstance(status, dict) and (
@@ -139,27 +145,12 @@ def _status(job: Job, eval_file: Path, status_file: Path) -> dict[str, Any] | No
     ):
         job.status = str(status.get("status") or "failed")
         job.reason = None if status.get("reason") is None else str(status["reason"])
-        return None
-    if result is not None:
-        job.status = "done"
-    elif eval_file.is_file():
-        job.reason = "eval.json is damaged"
-    else:
-        job.reason = "no eval.json nor status.json (still running, or killed)"
-    return result
-
-
-def read_job(path: str | Path, sweep_dir: str | Path | None = None) -> Job:
-    """One job directory: ``done``, the status of its ``status.json``, or ``incomplete``."""
-    path = Path(path)
-    root = Path(sweep_dir) if sweep_dir is not None else path.parent
-    name = path.relative_to(root).as_posix() if path != root else "."
-    overrides = _read(path / ".hydra" / "overrides.yaml")
-    overrides = [str(o) for o in overrides] if isinstance(overrides, list) else []
-    job = Job(path, name, overrides, _read_seed(path, overrides), "incomplete")
-    result = _status(job, path / "eval.json", path / "status.json")
-    if result is None:
         return job
+    if result is None:
+        killed = "no eval.json nor status.json (still running, or killed)"
+        job.reason = "eval.json is damaged" if eval_file.is_file() else killed
+        return job
+    job.status = "done"
     job.metrics = {m: finite_float(result.get(m)) for m in METRICS}
     task_metrics = result.get("task_metrics")
     headline = result.get("headline_metrics")

@@ -13,20 +13,18 @@ from torchrl_stages.sweeps.jobs import Job, configs, result_metrics
 
 #: bootstrap resamples (rliable's default is 50 000: these intervals are for a summary)
 REPS = 2000
+#: a statistic and its 95% interval (``(2, len)``: low, high)
+Estimate = tuple[np.ndarray, np.ndarray]
 
 
 def finished_scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray:
     """The finished runs' values as rliable's ``(runs, tasks)`` array, one task."""
-    values = [
-        v
-        for j in jobs
-        if j.config == config and j.status == "done" and (v := j.metrics.get(metric)) is not None
-    ]
-    return np.asarray(values, dtype=float).reshape(-1, 1)
+    done = (j.metrics.get(metric) for j in jobs if j.config == config and j.status == "done")
+    return np.asarray([v for v in done if v is not None], dtype=float).reshape(-1, 1)
 
 
-def interval_estimates(scores: np.ndarray, func, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``func(scores)`` and its stratified-bootstrap interval (``(2, len)``). rliable draws from
+def interval_estimates(scores: np.ndarray, func, seed: int = 0) -> Estimate:
+    """``func(scores)`` and its stratified-bootstrap :data:`Estimate`. rliable draws from
     numpy's global generator (it ignores ``random_state``): seeded for the call, then restored."""
     from rliable import library as rly  # here: ~1 s of imports that training never needs
 
@@ -90,10 +88,9 @@ def aggregate_jobs(jobs: Sequence[Job], seed: int = 0) -> list[Aggregate]:
 
 def performance_profiles(
     jobs: Sequence[Job], taus: np.ndarray, seed: int = 0
-) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+) -> dict[str, Estimate]:
     """Per configuration, the fraction of its runs with a success rate above each of ``taus``
     (rliable's score distribution) and its bootstrap interval."""
-    taus = np.asarray(taus, dtype=float)
 
     def profile(scores: np.ndarray) -> np.ndarray:
         # rliable's score_distributions, every tau at once (it loops with np.vectorize)
