@@ -99,16 +99,16 @@ class RunLogger(Logger):
         root, files = self.metrics_file.parent, [self.metrics_file]
         if isinstance(self.backend, CSVLogger):
             files += sorted(Path(self.backend.experiment.log_dir).rglob("*.csv"))
-        return {f.relative_to(root).as_posix(): f for f in files}
+        return {f.relative_to(root).as_posix(): f for f in files if f.is_file()}
 
     def position(self) -> dict[str, int]:
         """The size of every file this logger appends to, for :meth:`rewind`."""
-        return {name: f.stat().st_size for name, f in self._files().items() if f.is_file()}
+        return {name: f.stat().st_size for name, f in self._files().items()}
 
     def rewind(self, position: dict[str, int]) -> None:
         """Truncates the files to a :meth:`position` (files made after it are emptied);
         :class:`DamagedFileError` for one shorter than it was there (rows were lost)."""
-        files = {name: f for name, f in self._files().items() if f.is_file()}
+        files = self._files()
         for name, f in files.items():
             size, written = f.stat().st_size, position.get(name, 0)
             if size < written:

@@ -3,6 +3,7 @@ never pyplot: the user's backend is left alone)."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 from collections import defaultdict
@@ -36,10 +37,8 @@ def read_metrics(metrics_csv: str | Path) -> dict[str, list[tuple[float, float]]
     out: dict[str, list[tuple[float, float]]] = defaultdict(list)
     text = Path(metrics_csv).read_text(errors="replace").replace("\0", "")
     for row in csv.DictReader(io.StringIO(text, newline="")):
-        try:
+        with contextlib.suppress(KeyError, TypeError, ValueError):
             out[row.get("name") or ""].append((float(row["step"]), float(row["value"])))
-        except (KeyError, TypeError, ValueError):
-            continue
     return out
 
 
@@ -86,15 +85,13 @@ def plot_learning_curves(metrics_csv: str | Path, out: str | Path) -> Path | Non
 
     width, height = 3.6 * ncols, 2.7 * len(rows) + 0.4  # a panel with its labels: 3.6 x 2.7 in
     fig = Figure(figsize=(width, height))
-    axes = fig.subplots(len(rows), ncols, squeeze=False)
     # fixed margins in inches: tight_layout draws the figure once more (a third of its cost)
     pad = {"left": 0.75 / width, "right": 1 - 0.15 / width, "wspace": 0.45, "hspace": 0.55}
     fig.subplots_adjust(bottom=0.5 / height, top=1 - 0.3 / height, **pad)
     for r, (stage, panels) in enumerate(rows):
         series = stages[stage]
-        for ax in axes[r, len(panels) :]:
-            ax.set_visible(False)
-        for ax, (title, keys) in zip(axes[r], panels, strict=False):
+        for c, (title, keys) in enumerate(panels):
+            ax = fig.add_subplot(len(rows), ncols, r * ncols + c + 1)
             for i, (kind, scope, metric) in enumerate(keys):
                 steps, vals = zip(*sorted(series[kind, scope, metric]), strict=True)
                 label = metric if scope == "stage" else f"{metric} (joint phase {stage})"
