@@ -53,7 +53,7 @@ class RunDirCallback(Callback):
     @classmethod
     def remove_made(cls, run_dir: Path) -> None:
         """Removes the Hydra log this launch made in ``run_dir``, then its new empty directories."""
-        if cls.run_dir is None or cls.run_dir != Path(os.path.abspath(run_dir)):
+        if cls.run_dir != Path(os.path.abspath(run_dir)):  # None: nothing noted
             return
         root = logging.getLogger()
         for handler in list(root.handlers):

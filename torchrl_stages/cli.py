@@ -250,9 +250,7 @@ def evaluate(argv: list[str] | None = None) -> None:
     with contextlib.ExitStack() as stack:
         try:
             if directory.holds_run():  # a second process would write the same files
-                held = directory.lock()
-                stack.callback(held.release)
-                held.announce()  # who holds it, for a process it refuses
+                stack.enter_context(directory.lock()).announce()  # named to a process it refuses
             run = load_run(args.run_dir, trust=args.trust)
             if args.episodes is not None:
                 run.cfg.eval.episodes = args.episodes

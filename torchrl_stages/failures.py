@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from functools import partial
 from typing import Any
 
 from tensordict.utils import NestedKey
@@ -23,10 +24,9 @@ __all__ = ["DivergenceError", "EnvError", "one_line", "stage_failures"]
 class EnvError(RuntimeError):
     """The env returned a NaN or infinite observation or reward (``key``) in stage ``stage``."""
 
-    def __init__(self, stage: int, name: str, key: NestedKey, cause: str = "") -> None:
-        where = f" ({cause})" if cause else ""
+    def __init__(self, stage: int, name: str, key: NestedKey, cause: str) -> None:
         super().__init__(
-            f"stage {stage} ({name}): the env returned a non-finite {key!r}{where}. Nothing "
+            f"stage {stage} ({name}): the env returned a non-finite {key!r} ({cause}). Nothing "
             f"of stage {stage} was saved. Fix: the env's step/reset must return finite "
             "observations and rewards (check it with torchrl's check_env_specs and a rollout)"
         )
@@ -52,16 +52,13 @@ def stage_failures(
     try:
         yield
     except (NonFiniteError, NonFiniteValueError) as err:
+        env_error = partial(EnvError, stage, name)
         if isinstance(err, NonFiniteInputError):
-            raise EnvError(
-                stage, name, err.key, "the next stage's value of it is not finite"
-            ) from err
+            raise env_error(err.key, "the next stage's value of it is not finite") from err
         action, held = _path(learner.specs.action_key), buffer.held()
         for key, value in held.items(True, True) if held is not None else ():
             if action not in (_path(key), _path(key)[-1:]) and not value.isfinite().all():
-                raise EnvError(
-                    stage, name, key, f"found in the replay buffer after: {err}"
-                ) from err
+                raise env_error(key, f"found in the replay buffer after: {err}") from err
         cause = err
         if len(seeds) > 1:
             finite = [all(v.isfinite().all() for v in row.state_dict().values()) for row in rows]
