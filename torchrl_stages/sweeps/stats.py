@@ -13,8 +13,6 @@ from torchrl_stages.sweeps.jobs import Job, configs, result_metrics
 
 #: bootstrap resamples (rliable's default is 50 000: these intervals are for a summary)
 REPS = 2000
-#: a statistic and its 95% interval (``(2, len)``: low, high)
-Estimate = tuple[np.ndarray, np.ndarray]
 
 
 def finished_scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray:
@@ -23,8 +21,8 @@ def finished_scores(jobs: Sequence[Job], config: str, metric: str) -> np.ndarray
     return np.asarray([v for v in done if v is not None], dtype=float).reshape(-1, 1)
 
 
-def interval_estimates(scores: np.ndarray, func, seed: int = 0) -> Estimate:
-    """``func(scores)`` and its stratified-bootstrap :data:`Estimate`. rliable draws from
+def interval_estimates(scores: np.ndarray, func, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``func(scores)`` and its stratified-bootstrap interval (``(2, len)``). rliable draws from
     numpy's global generator (it ignores ``random_state``): seeded for the call, then restored."""
     from rliable import library as rly  # here: ~1 s of imports that training never needs
 
@@ -76,19 +74,17 @@ def aggregate_jobs(jobs: Sequence[Job], seed: int = 0) -> list[Aggregate]:
     for config in configs(jobs):
         failed = sum(j.status != "done" for j in jobs if j.config == config)
         for metric in result_metrics(jobs):
-            scores = finished_scores(jobs, config, metric)
-            if scores.size == 0:
-                out.append(Aggregate(config, metric, 0, failed, *[None] * 6))
-                continue
-            point, interval = interval_estimates(scores, _mean_and_iqm, seed)
-            numbers = [point[0], *interval[:, 0], point[1], *interval[:, 1]]
-            out.append(Aggregate(config, metric, len(scores), failed, *map(float, numbers)))
+            scores, numbers = finished_scores(jobs, config, metric), [None] * 6
+            if scores.size:
+                point, interval = interval_estimates(scores, _mean_and_iqm, seed)
+                numbers = map(float, [point[0], *interval[:, 0], point[1], *interval[:, 1]])
+            out.append(Aggregate(config, metric, len(scores), failed, *numbers))
     return out
 
 
 def performance_profiles(
     jobs: Sequence[Job], taus: np.ndarray, seed: int = 0
-) -> dict[str, Estimate]:
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per configuration, the fraction of its runs with a success rate above each of ``taus``
     (rliable's score distribution) and its bootstrap interval."""
 
@@ -96,9 +92,5 @@ def performance_profiles(
         # rliable's score_distributions, every tau at once (it loops with np.vectorize)
         return (scores.reshape(1, -1) > taus.reshape(-1, 1)).mean(axis=1)
 
-    out = {}
-    for config in configs(jobs):
-        scores = finished_scores(jobs, config, "success_rate")
-        if scores.size:
-            out[config] = interval_estimates(scores, profile, seed)
-    return out
+    scores = {config: finished_scores(jobs, config, "success_rate") for config in configs(jobs)}
+    return {config: interval_estimates(s, profile, seed) for config, s in scores.items() if s.size}
