@@ -5,7 +5,7 @@ from __future__ import annotations
 import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 from tensordict import TensorDictBase
@@ -30,7 +30,7 @@ def can_step_finished(env: EnvBase) -> bool:
     class declares ``can_step_finished``, true, under StageTransforms only."""
     if isinstance(env, TransformedEnv):  # torchrl unwraps nested TransformedEnvs into one
         transform = env.transform
-        parts = list(transform) if isinstance(transform, Compose) else [transform]
+        parts = transform.transforms if isinstance(transform, Compose) else [transform]
         if not all(isinstance(t, StageTransform) for t in parts):
             return False
         env = env.base_env
@@ -74,8 +74,7 @@ def ended_well(td: TensorDictBase) -> torch.Tensor:
     return td.get(("next", "terminated")) if flag is None else flag.to(torch.bool)
 
 
-@dataclass
-class EpisodeStats:
+class EpisodeStats(NamedTuple):
     """Each batch element's first episode in a rollout."""
 
     success: torch.Tensor  # bool [B]: solved (ended_well) on its last step, not unfinished
@@ -96,9 +95,7 @@ class EpisodeStats:
 
     @classmethod
     def cat(cls, parts: list[EpisodeStats]) -> EpisodeStats:
-        return cls(
-            *(torch.cat([getattr(p, f) for p in parts]) for f in ("success", "length", "ret"))
-        )
+        return cls(*map(torch.cat, zip(*parts, strict=True)))
 
 
 def episode_stats(rollout: TensorDictBase) -> EpisodeStats:
@@ -156,14 +153,12 @@ def evaluate_greedy(
     stats, rollout = evaluate_policy(env, policy, max_steps)
     returns = discounted_return(rollout, stats.length, gamma)
     v0 = value(rollout[:, 0].clone()).get("state_value").reshape(-1)
-    errors = (v0 - returns).abs()
-    size = errors.numel() // groups
+    columns = (*stats, (v0 - returns).abs(), returns)
     summaries = []
-    for part in (slice(i * size, (i + 1) * size) for i in range(groups)):
-        summary = EpisodeStats(stats.success[part], stats.length[part], stats.ret[part]).summary()
-        err = errors[part]
+    for ok, length, ret, err, g in zip(*(c.tensor_split(groups) for c in columns), strict=True):
+        summary = EpisodeStats(ok, length, ret).summary()
         summary["value_error"] = (err.max() if reduce == "max" else err.mean()).item()
-        summary["discounted_return"] = returns[part].mean().item()
+        summary["discounted_return"] = g.mean().item()
         summaries.append(summary)
     return summaries
 
@@ -211,14 +206,14 @@ def evaluate_task(
         env = task.task_env(size)
         env.set_seed(seed + i)
         chunk, rollout = evaluate_policy(env, policy, int(getattr(env.base_env, "max_steps", 1000)))
-        steps = torch.arange(rollout.shape[-1], device=chunk.length.device)
-        in_episode = steps < chunk.length.unsqueeze(-1)
-        stage = one_hot(rollout.get("stage").squeeze(-1), task.num_stages).bool()
-        per_stage.append((stage & in_episode.unsqueeze(-1)).sum(1))
+        length = chunk.length
+        in_episode = torch.arange(rollout.shape[-1], device=length.device) < length.unsqueeze(-1)
+        stage = one_hot(rollout.get("stage").squeeze(-1), task.num_stages)
+        per_stage.append((stage * in_episode.unsqueeze(-1)).sum(1))
         chunks.append(chunk)
-        rows = torch.arange(rollout.shape[0], device=chunk.length.device)
-        final.append(rollout.get("next")[rows, chunk.length - 1])
-        handoffs.append(collect_handoffs(rollout, chunk.length, gammas))
+        rows = torch.arange(rollout.shape[0], device=length.device)
+        final.append(rollout.get("next")[rows, length - 1])
+        handoffs.append(collect_handoffs(rollout, length, gammas))
         first = rollout if first is None else first
         if one_start:  # every episode so far starts from the first one's observation
             starts = rollout[:, 0].select(*env.observation_spec.keys(True, True), strict=False)

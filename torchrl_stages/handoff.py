@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from contextlib import closing
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 from tensordict import TensorDictBase
@@ -23,8 +23,7 @@ OUTSIDE_WARNING = 0.25
 REFERENCE_STARTS, HELD_OUT_STARTS = 1024, 256
 
 
-@dataclass
-class Handoffs:
+class Handoffs(NamedTuple):
     """The handoff states of one boundary k -> k+1 over a set of episodes."""
 
     states: TensorDictBase | None  # the first state of stage k+1 of each episode that reached it
@@ -54,15 +53,12 @@ def collect_handoffs(
         rows = crossing.any(-1).nonzero().squeeze(-1)
         t = crossing.float().argmax(-1)[rows]  # the step that leaves stage k
         # the return from s' = s_{t+1}: sum_{j>t} r_j prod_{t<i<j} gamma(s_i)
-        base = cum[rows, t]
-        weights = cum[rows] / g[rows] / base.unsqueeze(-1)  # prod_{i<j} / prod_{i<=t}
-        after = (steps.unsqueeze(0) > t.unsqueeze(-1)) & in_episode[rows]
+        weights = cum[rows] / g[rows] / cum[rows, t].unsqueeze(-1)  # prod_{i<j} / prod_{i<=t}
+        after = (steps > t.unsqueeze(-1)) & in_episode[rows]
         returns = (reward[rows] * torch.where(after, weights, 0.0)).sum(-1)
-        states = None
-        if len(rows):  # s' is the "next" of the step that leaves stage k
-            nxt_td = rollout.get("next")[rows, t]
-            states = nxt_td.exclude("reward", "done", "terminated", "truncated")
-        out.append(Handoffs(states, returns))
+        # s' is the "next" of the step that leaves stage k
+        states = rollout.get("next")[rows, t].exclude("reward", "done", "terminated", "truncated")
+        out.append(Handoffs(states if len(rows) else None, returns))
     return out
 
 
@@ -72,10 +68,7 @@ def _features(td: TensorDictBase, keys: Sequence[Any]) -> torch.Tensor:
 
 @torch.no_grad()
 def handoff_diagnostics(
-    task: StagedTask,
-    learners: Sequence[Learner],
-    handoffs: Sequence[Handoffs],
-    seed: int,
+    task: StagedTask, learners: Sequence[Learner], handoffs: Sequence[Handoffs], seed: int
 ) -> list[dict[str, Any]]:
     """One record per boundary (``eval.json``'s ``"handoff"``): ``|V_{k+1}(s') - G|`` at the
     handoff states and their distance to stage k+1's training starts (a warning where they lie
@@ -120,18 +113,14 @@ def _distance_to_starts(
     wanted = REFERENCE_STARTS + HELD_OUT_STARTS
     # the stage's own training batch, reset until enough starts are drawn (a vector env of
     # worker processes is never built a thousand wide)
-    env = task.base_env(int(task.stage_cfg(stage).num_envs), start_stage=stage)
-    try:
+    drawn = []
+    with closing(task.base_env(int(task.stage_cfg(stage).num_envs), start_stage=stage)) as env:
         env.set_seed(seed)
-        drawn = []
         while sum(map(len, drawn)) < wanted:
             drawn.append(_features(env.reset().reshape(-1).cpu(), keys))
-    finally:
-        env.close()
     feats = torch.cat(drawn)[:wanted]
-    ref, held_out = feats[:REFERENCE_STARTS], feats[REFERENCE_STARTS:]
-    mean, std = ref.mean(0), ref.std(0).clamp_min(1e-6)
-    ref, held_out = (ref - mean) / std, (held_out - mean) / std
+    mean, std = feats[:REFERENCE_STARTS].mean(0), feats[:REFERENCE_STARTS].std(0).clamp_min(1e-6)
+    ref, held_out = ((feats - mean) / std).split([REFERENCE_STARTS, HELD_OUT_STARTS])
     handed = (_features(states.cpu(), keys) - mean) / std
     threshold = torch.quantile(torch.cdist(held_out, ref).min(-1).values, 0.95)
     distance = torch.cdist(handed, ref).min(-1).values
