@@ -96,17 +96,15 @@ class EpisodeReplay(gymnasium.Wrapper):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         kept = copy.deepcopy(options) if _is_plain(options) else None
         self._start = {"seed": seed, "rng_start": _rng_state(self.env.unwrapped), "options": kept}
-        self._actions = []
-        self._why_not = None
+        self._actions, self._why_not = [], None
         if seed is None and self._start["rng_start"] is None:
             self._why_not = "its np_random was never seeded"
         elif seed is not None and not isinstance(seed, int):
             self._why_not = f"its reset seed {seed!r} is no int"
         elif not _is_plain(options):
             self._why_not = "its reset options are not plain data"
-        obs, info = self.env.reset(seed=seed, options=options)
-        self._obs = obs
-        return obs, info
+        self._obs, info = self.env.reset(seed=seed, options=options)
+        return self._obs, info
 
     def step(self, action: Any):
         out = self.env.step(action)
@@ -127,15 +125,10 @@ class EpisodeReplay(gymnasium.Wrapper):
         actions = np.stack(self._actions) if self._actions and why_not is None else None
         if actions is not None and actions.dtype.kind not in "biuf":
             why_not = "its actions are not numeric"
-        if why_not is not None:
-            return {"why_not": why_not, "rng_now": rng_now}
-        return {
-            "why_not": None,
-            **self._start,
-            "actions": actions,
-            "rng_now": rng_now,
-            "obs": _digest(self._obs),
-        }
+        state = {"why_not": why_not, "rng_now": rng_now}
+        if why_not is None:
+            state.update(self._start, actions=actions, obs=_digest(self._obs))
+        return state
 
     def rebuild(self, state: Mapping[str, Any]) -> str | None:
         """Rebuilds the episode: ``None``, or why not (the generator then goes on as saved)."""
@@ -160,12 +153,12 @@ class EpisodeReplay(gymnasium.Wrapper):
         if state["seed"] is None:
             _set_rng_state(self.env.unwrapped, state["rng_start"])
         options = state["options"]
-        obs, _ = self.reset(seed=state["seed"], options=dict(options) if options else options)
+        self.reset(seed=state["seed"], options=dict(options) if options else options)
         actions = state["actions"]
         for action in () if actions is None else np.asarray(actions):
-            obs = self.step(action.copy())[0]
+            self.step(action.copy())
         if _rng_state(self.env.unwrapped) != _plain(state["rng_now"]):
             return "its np_random ends elsewhere than it was"
-        if _digest(obs) != state["obs"]:
+        if _digest(self._obs) != state["obs"]:
             return "the replayed observation differs from the saved one"
         return None

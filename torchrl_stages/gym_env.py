@@ -1,5 +1,4 @@
-"""Gymnasium envs as multi-stage tasks (``task=gym``): a batched TorchRL env from a gymnasium id
-and a stage function."""
+"""Gymnasium envs as multi-stage tasks (``task=gym``): a stage function over a vector env."""
 
 from __future__ import annotations
 
@@ -92,10 +91,8 @@ class SuccessReader(BaseInfoDictReader):
         device: str | torch.device = "cpu",
         patience: int = 100,
     ) -> None:
-        self.info_key = info_key
-        self.patience = patience
-        self._ended = 0  # episodes ended while the key was never reported
-        self._seen = False
+        self.info_key, self.patience = info_key, patience
+        self._ended, self._seen = 0, False  # episodes ended before the key was first reported
         self._spec = Composite(
             {SUCCESS_KEY: Categorical(2, shape=(*batch_size, 1), dtype=torch.bool, device=device)},
             shape=tuple(batch_size),
@@ -108,24 +105,21 @@ class SuccessReader(BaseInfoDictReader):
 
     def __call__(self, info_dict: dict[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
         value = info_dict.get(self.info_key)
-        if value is None:
-            done = tensordict.get("done", None)  # a step's (a reset has none)
-            if not self._seen and done is not None:
-                self._ended += int(done.sum())
-                if self._ended >= self.patience:
-                    raise SuccessKeyError(
-                        f"task.env.success_key={self.info_key!r}: {self._ended} episodes of "
-                        f"the env ended and none reported info[{self.info_key!r}], so every "
-                        "episode would count as failed. Fix: set task.env.success_key to the "
-                        "key the env's `info` carries on every episode's last step, or null to "
-                        "count terminations as successes"
-                    )
-            flag = torch.zeros(tensordict.batch_size, dtype=torch.bool)
-        else:
-            self._seen = True
-            flag = torch.as_tensor(np.asarray(value).astype(bool))
-        flag = flag.reshape(*tensordict.batch_size, 1).to(tensordict.device)
-        return tensordict.set(SUCCESS_KEY, flag)
+        self._seen |= value is not None
+        done = None if self._seen else tensordict.get("done", None)  # a step's (a reset has none)
+        if done is not None:
+            self._ended += int(done.sum())
+            if self._ended >= self.patience:
+                raise SuccessKeyError(
+                    f"task.env.success_key={self.info_key!r}: {self._ended} episodes of the env "
+                    f"ended and none reported info[{self.info_key!r}], so every episode would "
+                    "count as failed. Fix: set task.env.success_key to the key the env's `info` "
+                    "carries on every episode's last step, or null to count terminations as "
+                    "successes"
+                )
+        flag = np.zeros(tensordict.batch_size, bool) if value is None else np.asarray(value)
+        flag = torch.as_tensor(flag.astype(bool)).reshape(*tensordict.batch_size, 1)
+        return tensordict.set(SUCCESS_KEY, flag.to(tensordict.device))
 
 
 class GymStageEnv(GymWrapper):
@@ -174,15 +168,13 @@ class GymStageEnv(GymWrapper):
         made = gymnasium.make(env_id, **kwargs)
         for wrap in wrappers:
             made = wrap(made)
-        try:
+        with made:  # closed once read
             found = getattr(made, "num_stages", None)
             if found is None:
                 found = getattr(made.unwrapped, "num_stages", None)
             max_steps = made.spec.max_episode_steps if made.spec is not None else None
             if max_steps is None:  # an env that truncates its episodes itself (MiniGrid)
                 max_steps = getattr(made.unwrapped, "max_steps", None)
-        finally:
-            made.close()
         if num_stages is None and found is None:
             raise ValueError(
                 f"the gymnasium env {env_id!r} has no num_stages attribute. Fix: set "
@@ -233,13 +225,10 @@ class GymStageEnv(GymWrapper):
         }
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
-        copies = state.get("copies")
-        num = self.batch_size[0]
-        fix = ""
-        if copies is None:
-            failures = [(0, "the checkpoint holds none of its episodes")]
-        elif len(copies) != num:
-            failures = [(0, f"the checkpoint holds {len(copies)} copies for {num}")]
+        copies, num, fix = state.get("copies"), self.batch_size[0], ""
+        if copies is None or len(copies) != num:
+            held = "none of its episodes" if copies is None else f"{len(copies)} copies for {num}"
+            failures = [(0, f"the checkpoint holds {held}")]
         else:
             self._env.set_attr("pending_episode", list(copies))
             failures = [(i, why) for i, why in enumerate(self._env.call("rebuild_pending")) if why]
