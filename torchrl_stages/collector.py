@@ -67,13 +67,11 @@ class StageCollector:
         while self.frames < self.total_frames:
             if self._carrier is None:
                 self._carrier = self.env.reset()
-            random = self.frames < self.init_random_frames
+            act = self.env.rand_action if self.frames < self.init_random_frames else self.policy
             steps = []
             with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
                 for _ in range(steps_per_batch):
-                    td = self._carrier
-                    td = self.env.rand_action(td) if random else self.policy(td)
-                    td, self._carrier = self.env.step_and_maybe_reset(td)
+                    td, self._carrier = self.env.step_and_maybe_reset(act(self._carrier))
                     steps.append(td)
             batch = torch.stack(steps, dim=-1)
             self.frames += batch.numel()

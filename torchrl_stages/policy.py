@@ -76,8 +76,7 @@ class StackedPolicy(TensorDictModuleBase):
             for key in policy.out_keys:
                 value = out.get(key)
                 mask = rows.reshape(*rows.shape, *([1] * (value.ndim - rows.ndim)))
-                base = merged.get(key, torch.zeros_like(value))
-                merged[key] = torch.where(mask, value, base)
+                merged[key] = torch.where(mask, value, merged.get(key, torch.zeros_like(value)))
         if self._outputs is None:
             self._outputs = {k: (v.shape[stage.ndim :], v.dtype) for k, v in merged.items()}
         device = next(iter(merged.values())).device if merged else stage.device

@@ -31,10 +31,7 @@ def phase_seed(seed: int, stage: int) -> int:
 
 
 def seeded(
-    make: Callable[..., Learner],
-    seeds: Sequence[int],
-    offset: int,
-    envs: Callable[[], T],
+    make: Callable[..., Learner], seeds: Sequence[int], offset: int, envs: Callable[[], T]
 ) -> tuple[Learner, T]:
     """A stage's learner (``make``) and envs (``envs()``), after ``torch.manual_seed(seeds[0] +
     offset)``. Several seeds' learner is built first, row ``i`` holding what ``make()`` builds

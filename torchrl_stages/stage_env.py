@@ -31,7 +31,6 @@ class StageEnv(Protocol):
     def stage_fn(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The stage of each state, int64 ``[*batch, 1]``, never below the state before it
         (``stage_fn = None`` where the env writes its own ``"stage"`` entry)."""
-        ...
 
 
 @runtime_checkable
@@ -50,17 +49,13 @@ class StageEnvHooks(Protocol):
     def start_states(self, stage: int | None) -> dict[str, Any] | None:
         """Constructor arguments whose batch starts once at every start state of ``stage``
         (``None``: the task's own), or ``None``: evaluations then use random starts."""
-        ...
 
     def stage_observation_keys(self, stage: int) -> Sequence[NestedKey]:
         """What stage ``stage``'s learner reads (default: every observation but ``"stage"`` and
         the success flag)."""
-        ...
 
     def stage_action_key(self, stage: int) -> NestedKey:
         """What stage ``stage``'s policy writes (default: the env's ``action_key``)."""
-        ...
 
     def state_dict(self) -> dict[str, Any]:
         """The env's running state and generator, for a resume with the same episodes."""
-        ...

@@ -46,10 +46,8 @@ class StagedTask:
         self.device = torch.device(device)
         self.name = str(cfg.name)
         self.stage_names: list[str] = list(cfg.stages.keys())
-        # whether the env can start episodes inside a chosen stage
-        self.stage_starts = bool(cfg.get("stage_starts", True))
-        # the env whose specs the learners are built from
-        self.spec_env = self.base_env(batch_size=1)
+        self.stage_starts = bool(cfg.get("stage_starts", True))  # episodes may start in stage k
+        self.spec_env = self.base_env(batch_size=1)  # the env the learners' specs are read from
         self.num_stages = int(self.spec_env.num_stages)
 
     @staticmethod
@@ -67,8 +65,7 @@ class StagedTask:
     ) -> EnvBase:
         """The task's env without stage transform (``overrides`` go to its constructor)."""
         batch = (int(batch_size),) if isinstance(batch_size, int) else tuple(batch_size)
-        kwargs = OmegaConf.to_container(self.cfg.env, resolve=True)
-        kwargs.update(overrides)
+        kwargs = {**OmegaConf.to_container(self.cfg.env, resolve=True), **overrides}
         if self.stage_starts:  # an env without stage starts takes no start_stage argument
             kwargs.setdefault("start_stage", start_stage)
         elif start_stage is not None:

@@ -264,12 +264,6 @@ class StageRewardTransform(_StageView):
         ([1.0, 0.0], [True, False])
     """
 
-    ENV_ERR = (
-        "StageRewardTransform is a replay-buffer transform: append it to a replay buffer "
-        "(rb.append_transform). In an env, StageTransform(train_stage=k, next_value=...) gives "
-        "stage k's view as the steps happen."
-    )
-
     def __init__(
         self,
         stage: int,
@@ -299,10 +293,13 @@ class StageRewardTransform(_StageView):
         return tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase):
-        raise RuntimeError(self.ENV_ERR)
+        raise RuntimeError(
+            "StageRewardTransform is a replay-buffer transform: append it to a replay buffer "
+            "(rb.append_transform). In an env, StageTransform(train_stage=k, next_value=...) "
+            "gives stage k's view as the steps happen."
+        )
 
-    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase):
-        raise RuntimeError(self.ENV_ERR)
+    _step = _reset  # neither a reset nor a step of an env
 
 
 class StageDiscount(Transform):

@@ -51,8 +51,7 @@ class QMaxValue(TensorDictModuleBase):
         else:
             td = self.qvalue_net(tensordict.select(*self.in_keys).clone(False))
             q = td.get(self.action_value_key)
-        tensordict.set("state_value", q.max(-1, keepdim=True).values)
-        return tensordict
+        return tensordict.set("state_value", q.max(-1, keepdim=True).values)
 
     def _network(self) -> TensorDictModule | None:
         """A ``QValueActor``'s network module, when calling it is all the actor does."""
@@ -88,5 +87,4 @@ class ActorCriticValue(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         td = self.actor(tensordict.select(*self.in_keys).clone(False))
         values = [critic(td.clone(False)).get("state_action_value") for critic in self.critics]
-        tensordict.set("state_value", torch.stack(values).amin(0))
-        return tensordict
+        return tensordict.set("state_value", torch.stack(values).amin(0))
