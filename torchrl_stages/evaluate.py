@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
@@ -29,8 +28,7 @@ def can_step_finished(env: EnvBase) -> bool:
     """Whether :func:`rollout_first_episodes` may step ``env``'s finished elements on: its
     class declares ``can_step_finished``, true, under StageTransforms only."""
     if isinstance(env, TransformedEnv):  # torchrl unwraps nested TransformedEnvs into one
-        transform = env.transform
-        parts = transform.transforms if isinstance(transform, Compose) else [transform]
+        parts = env.transform.transforms if isinstance(env.transform, Compose) else [env.transform]
         if not all(isinstance(t, StageTransform) for t in parts):
             return False
         env = env.base_env
@@ -163,8 +161,7 @@ def evaluate_greedy(
     return summaries
 
 
-@dataclass
-class TaskEvaluation:
+class TaskEvaluation(NamedTuple):
     """Greedy whole-task episodes of a stacked policy (the first episode of every batch row)."""
 
     stats: EpisodeStats

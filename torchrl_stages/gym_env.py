@@ -131,12 +131,8 @@ class GymStageEnv(GymWrapper):
     ``module`` first; ``success_key``: the ``info`` flag (``None``: solved when terminated).
 
     Examples:
-        >>> env = GymStageEnv(
-        ...     "CartPole-v1",
-        ...     stage_fn=functools.partial(threshold_stage, thresholds=[0.0], index=2),
-        ...     num_stages=2,  # the pole leans left, then right
-        ...     batch_size=(4,),
-        ... )
+        >>> lean = functools.partial(threshold_stage, thresholds=[0.0], index=2)  # left, then right
+        >>> env = GymStageEnv("CartPole-v1", lean, num_stages=2, batch_size=(4,))
         >>> env.rollout(3, break_when_any_done=False)["observation"].shape, env.max_steps
         (torch.Size([4, 3, 4]), 500)
         >>> env.close()

@@ -56,7 +56,6 @@ def collect_handoffs(
         weights = cum[rows] / g[rows] / cum[rows, t].unsqueeze(-1)  # prod_{i<j} / prod_{i<=t}
         after = (steps > t.unsqueeze(-1)) & in_episode[rows]
         returns = (reward[rows] * torch.where(after, weights, 0.0)).sum(-1)
-        # s' is the "next" of the step that leaves stage k
         states = rollout.get("next")[rows, t].exclude("reward", "done", "terminated", "truncated")
         out.append(Handoffs(states if len(rows) else None, returns))
     return out
@@ -157,7 +156,6 @@ def plot_handoffs(records: Sequence[dict[str, Any]], out: str | Path) -> Path | 
             title += f", {r['outside_starts']:.0%} outside starts"
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("return after the handoff")
-        if i == 0:
-            ax.set_ylabel("V of the next stage")
+    fig.axes[0].set_ylabel("V of the next stage")
     fig.tight_layout()
     return save_figure(fig, out)

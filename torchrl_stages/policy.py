@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from itertools import compress
 
 import torch
 from tensordict import TensorDictBase
@@ -40,9 +41,7 @@ class StackedPolicy(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         self.policies = nn.ModuleList(policies)
-        self.stage_fn = stage_fn
-        self.stage_key = stage_key
-        self.skip_absent = skip_absent
+        self.stage_fn, self.stage_key, self.skip_absent = stage_fn, stage_key, skip_absent
         # each output's trailing shape and dtype, from the first call (every stage runs in it)
         self._outputs: dict[NestedKey, tuple[torch.Size, torch.dtype]] | None = None
         routing = [] if stage_fn is not None else [stage_key]
@@ -64,13 +63,11 @@ class StackedPolicy(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         stage = self.stage(tensordict)
-        present = None
+        present = [True] * len(self.policies)
         if self.skip_absent and self._outputs is not None:
             present = torch.bincount(stage.reshape(-1), minlength=len(self.policies)).tolist()
         merged: dict[NestedKey, torch.Tensor] = {}
-        for k, policy in enumerate(self.policies):
-            if present is not None and not present[k]:
-                continue
+        for k, policy in compress(enumerate(self.policies), present):
             rows = stage == k
             out = policy(tensordict.select(*policy.in_keys).clone(False))
             for key in policy.out_keys:

@@ -32,19 +32,15 @@ class StagedTask:
     arguments hold one copy of a batch per seed of a seed-stacked learner.
 
     Examples:
-        >>> task = StagedTask(OmegaConf.create({
-        ...     "name": "grid", "stages": {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}},
-        ...     "env": {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10,
-        ...             "num_stages": 2},
-        ... }))
+        >>> env = {"_target_": "torchrl_stages.envs.GridWorldEnv", "size": 10, "num_stages": 2}
+        >>> stages = {"a": {"gamma": 0.9}, "b": {"gamma": 0.9}}
+        >>> task = StagedTask(OmegaConf.create({"name": "grid", "stages": stages, "env": env}))
         >>> task.stage_env(1, batch_size=4).rollout(2, break_when_any_done=False)["stage"].shape
         torch.Size([4, 2, 1])
     """
 
     def __init__(self, cfg: DictConfig, device: str | torch.device = "cpu") -> None:
-        self.cfg = cfg
-        self.device = torch.device(device)
-        self.name = str(cfg.name)
+        self.cfg, self.device, self.name = cfg, torch.device(device), str(cfg.name)
         self.stage_names: list[str] = list(cfg.stages.keys())
         self.stage_starts = bool(cfg.get("stage_starts", True))  # episodes may start in stage k
         self.spec_env = self.base_env(batch_size=1)  # the env the learners' specs are read from

@@ -40,8 +40,7 @@ class QMaxValue(TensorDictModuleBase):
         self, qvalue_net: TensorDictModuleBase, *, action_value_key: NestedKey = "action_value"
     ) -> None:
         super().__init__()
-        self.qvalue_net = qvalue_net
-        self.action_value_key = action_value_key
+        self.qvalue_net, self.action_value_key = qvalue_net, action_value_key
         self.in_keys, self.out_keys = list(qvalue_net.in_keys), ["state_value"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
