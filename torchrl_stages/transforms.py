@@ -37,9 +37,7 @@ class NonFiniteInputError(NonFiniteValueError):
 
 def freeze(module: nn.Module) -> nn.Module:
     """A frozen snapshot of ``module``: a deep copy with no gradients, in eval mode."""
-    module = copy.deepcopy(module)
-    module.requires_grad_(False)
-    return module.eval()
+    return copy.deepcopy(module).requires_grad_(False).eval()
 
 
 class _StageView(Transform):
