@@ -143,18 +143,14 @@ def plot_handoffs(records: Sequence[dict[str, Any]], out: str | Path) -> Path | 
     from torchrl_stages.plots import save_figure
 
     fig = Figure(figsize=(3.2 * len(shown), 3.4))
-    for i, r in enumerate(shown):
-        ax = fig.add_subplot(1, len(shown), i + 1)
+    for ax, r in zip(fig.subplots(1, len(shown), squeeze=False)[0], shown, strict=True):
         g, v = r["returns"], r["values"]
-        color = "tab:red" if r.get("extrapolated") else "tab:blue"
-        ax.scatter(g, v, s=10, alpha=0.5, color=color)
+        ax.scatter(g, v, s=10, alpha=0.5, color="tab:red" if r.get("extrapolated") else "tab:blue")
         low, high = min(min(g), min(v)), max(max(g), max(v))
         pad = 0.05 * (high - low or 1.0)
         ax.plot([low - pad, high + pad], [low - pad, high + pad], color="gray", lw=0.8)
-        title = f"{r['boundary']}\n|V-G| {r['value_error_mean']:.3f}"
-        if "outside_starts" in r:
-            title += f", {r['outside_starts']:.0%} outside starts"
-        ax.set_title(title, fontsize=9)
+        outside = f", {r['outside_starts']:.0%} outside starts" if "outside_starts" in r else ""
+        ax.set_title(f"{r['boundary']}\n|V-G| {r['value_error_mean']:.3f}{outside}", fontsize=9)
         ax.set_xlabel("return after the handoff")
     fig.axes[0].set_ylabel("V of the next stage")
     fig.tight_layout()
