@@ -297,7 +297,7 @@ class StageRewardTransform(_StageView):
             "gives stage k's view as the steps happen."
         )
 
-    _step = _reset  # neither a reset nor a step of an env
+    _step = _reset  # an env step is refused the same way
 
 
 class StageDiscount(Transform):
