@@ -80,8 +80,7 @@ class StageCollector:
     def state_dict(self) -> dict[str, Any]:
         state: dict[str, Any] = {"frames": self.frames}
         if self.restorable and self._carrier is not None:
-            state["carrier"] = self._carrier.to_dict()
-            state["env"] = self._base.state_dict()
+            state.update(carrier=self._carrier.to_dict(), env=self._base.state_dict())
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

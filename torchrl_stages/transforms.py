@@ -74,11 +74,10 @@ class _StageView(Transform):
         self.stage, self.num_stages, self.gamma = stage, num_stages, gamma
 
     @torch.no_grad()
-    def _view(self, stage_t: torch.Tensor, next_td: TensorDictBase) -> None:
-        """In place on ``"next"``: a transition that leaves the stage is ``terminated`` and,
-        unless the task terminated on it, gains ``gamma * next_value(s_{t+1})``."""
+    def _view(self, leaving: torch.Tensor, next_td: TensorDictBase) -> None:
+        """In place on ``"next"``: a ``leaving`` transition is ``terminated`` and, unless the
+        task terminated on it, gains ``gamma * next_value(s_{t+1})``."""
         stage, next_value = self.stage, self.next_value
-        leaving = next_td.get("stage_transition") & (stage_t == stage)
         task_terminated = next_td.get("terminated")
         if next_value is not None and leaving.any():
             landed = next_td.get("stage")[leaving]
@@ -191,7 +190,7 @@ class StageTransform(_StageView):
             failed = next_td.get("terminated") & ~success
             next_td.set(SUCCESS_KEY, success | (leaving & ~failed))
         if self.rewrite_in_env:
-            self._view(stage_t, next_td)
+            self._view(leaving, next_td)
             return
         if success is None:
             next_td.set(SUCCESS_KEY, next_td.get("terminated") | leaving)
@@ -287,7 +286,8 @@ class StageRewardTransform(_StageView):
                 'store transitions collected through StageTransform (it writes "stage" and '
                 '("next", "stage_transition")), keeping those entries in the buffer.'
             )
-        self._view(tensordict.get("stage"), tensordict.get("next"))
+        nxt = tensordict.get("next")
+        self._view(nxt.get("stage_transition") & (tensordict.get("stage") == self.stage), nxt)
         return tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase):
