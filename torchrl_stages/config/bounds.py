@@ -98,19 +98,17 @@ def one_of(*choices: Any, default: Any) -> Any:
 positive = functools.partial(bound, low=0, low_open=True)
 non_negative = functools.partial(bound, low=0)
 flag = functools.partial(bound, choices=(True, False))
-torch_device = functools.partial(
-    bound, pattern=r"cpu|mps|cuda(:\d+)?", text="cpu, cuda, cuda:<index> or mps"
-)
 free = functools.partial(bound, free=True)  # any value of the field's type (a name, a mapping)
 
 
 def check_bounds(node: Any, schema: type, prefix: str, closed: bool = False) -> None:
     """Refuses every key of ``node`` (at ``prefix``) outside its ``schema`` field's bound; with
     ``closed``, every key the schema does not have too (Hydra lets ``+key=value`` add one)."""
+    known = [f.name for f in fields(schema)]
     given = OmegaConf.to_container(node, resolve=False) if closed else {}  # as given
     for name, value in given.items():
         key = f"{prefix}.{name}" if prefix else name
-        check_known(prefix, name, value, schema_keys(schema), "the config", f"drop {key}")
+        check_known(prefix, name, value, known, "the config", f"drop {key}")
     for f in fields(schema):
         if f.name not in node or OmegaConf.is_missing(node, f.name):
             continue
@@ -140,10 +138,6 @@ def check_known(
     dot = f"{prefix}." if prefix else ""
     hint = f"did you mean {dot}{close}?" if (close := nearest(name, known)) else fix
     raise ConfigError(f"{dot}{name}={value!r}: not {what} of {owner}. Fix: {hint}")
-
-
-def schema_keys(schema: type) -> list[str]:
-    return [f.name for f in fields(schema)]
 
 
 @dataclass

@@ -5,20 +5,13 @@ from __future__ import annotations
 import importlib.util
 import math
 from collections.abc import Callable, Collection
-from dataclasses import is_dataclass
+from dataclasses import fields, is_dataclass
 from typing import Any
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from torchrl_stages.config.bounds import (
-    ConfigError,
-    StageChecks,
-    check,
-    check_bounds,
-    check_known,
-    schema_keys,
-)
+from torchrl_stages.config.bounds import ConfigError, StageChecks, check, check_bounds, check_known
 from torchrl_stages.config.env_checks import check_env_keys, validate_env_protocol
 from torchrl_stages.config.expansion import leaves
 from torchrl_stages.config.schema import TrainConfig, TuneAppConfig
@@ -90,7 +83,8 @@ def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
         schema = stage_schema(typed)  # a template's stage: its own keys over the template
         if schema is None:
             continue
-        owner, known = getattr(schema, "algo", None) or schema.__name__, schema_keys(schema)
+        owner = getattr(schema, "algo", None) or schema.__name__
+        known = [f.name for f in fields(schema)]
         for name, value in OmegaConf.to_container(node, resolve=False).items():
             check_known(key, name, value, known, owner, f"drop it (its keys: {listing})")
 
@@ -103,21 +97,12 @@ def check_device(name: str) -> None:
     device = torch.device(name)
     if device.type != "cuda":
         return
-    check(
-        torch.cuda.is_available(),
-        "device",
-        name,
-        "names a CUDA device, but torch sees none on this machine",
-        "set device=cpu",
-    )
+    rule = "names a CUDA device, but torch sees none on this machine"
+    check(torch.cuda.is_available(), "device", name, rule, "set device=cpu")
     count = torch.cuda.device_count()
-    check(
-        device.index is None or device.index < count,
-        "device",
-        name,
-        f"names a GPU this machine does not have (it has {count})",
-        "set device=cuda (the first GPU) or a lower index",
-    )
+    rule = f"names a GPU this machine does not have (it has {count})"
+    fix = "set device=cuda (the first GPU) or a lower index"
+    check(device.index is None or device.index < count, "device", name, rule, fix)
 
 
 def validate_config(
@@ -134,13 +119,10 @@ def validate_config(
     check_env_keys(cfg)
     check_bounds(cfg, TuneAppConfig if "tune" in cfg else TrainConfig, "", closed=True)
     package = LOGGER_PACKAGES.get(cfg.logger.backend)
-    check(
-        package is None or importlib.util.find_spec(package) is not None,
-        "logger.backend",
-        cfg.logger.backend,
-        f"needs the '{package}' package, which is not installed",
-        f"pip install {package}, or use logger=csv",
-    )
+    installed = package is None or importlib.util.find_spec(package) is not None
+    rule = f"needs the '{package}' package, which is not installed"
+    fix = f"pip install {package}, or use logger=csv"
+    check(installed, "logger.backend", cfg.logger.backend, rule, fix)
     schedule.validate(cfg)
     for key in ("stage_store", "init_from"):
         check(
@@ -152,13 +134,8 @@ def validate_config(
             f"use schedule=backward, or drop {key}",
         )
     check_device(cfg.device)
-    check(
-        len(cfg.task.stages) > 0,
-        "task.stages",
-        dict(cfg.task.stages),
-        "lists no stage",
-        "pick a task with stages, e.g. task=gridworld",
-    )
+    fix = "pick a task with stages, e.g. task=gridworld"
+    check(len(cfg.task.stages) > 0, "task.stages", dict(cfg.task.stages), "lists no stage", fix)
     for name, stage in cfg.task.stages.items():
         _check_stage(f"task.stages.{name}", stage, learner_class)
 
@@ -167,24 +144,20 @@ def validate_task(cfg: DictConfig, task, schedule: Any, learner_class: LearnerCl
     """Checks the built env, the stage list and each stage's algorithm against its specs."""
     validate_env_protocol(cfg, task.spec_env)
     names = list(cfg.task.stages)
-    check(
-        len(names) == task.num_stages,
-        "task.stages",
-        names,
-        f"task '{cfg.task.name}' has {task.num_stages} stages but {len(names)} are configured",
+    rule = f"task '{cfg.task.name}' has {task.num_stages} stages but {len(names)} are configured"
+    fix = (
         f"configure exactly {task.num_stages} stages (add them with "
-        f"+algo@task.stages.NAME=<algo> or remove extra ones with ~task.stages.NAME)",
+        f"+algo@task.stages.NAME=<algo> or remove extra ones with ~task.stages.NAME)"
     )
+    check(len(names) == task.num_stages, "task.stages", names, rule, fix)
     schedule.validate_task(cfg, task)
     template = bool(cfg.task.get("stage_template"))
     for k, name in enumerate(names):
         stage = cfg.task.stages[name]
         problem = learner_class(stage).check_action_spec(task.specs(k).action_spec)
-        fix = (
-            "pick every stage's with algo@task.stage_template=<algo>"
-            if template
-            else f"override it with algo@task.stages.{name}=<algo>"
-        )
+        fix = f"override it with algo@task.stages.{name}=<algo>"
+        if template:
+            fix = "pick every stage's with algo@task.stage_template=<algo>"
         check(problem is None, f"task.stages.{name}.algo", stage.algo, str(problem), fix)
 
 
@@ -197,19 +170,14 @@ def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
     direction = None if sweeper is None else sweeper.get("direction")
     if direction is None:
         return
-    objective, key = cfg.objective, "hydra.sweeper.direction"
+    key, metric, wanted = "hydra.sweeper.direction", cfg.objective.metric, cfg.objective.direction
     if isinstance(direction, list | tuple | ListConfig):
-        names, fix = list(map(_direction_name, direction)), f"set {key}={objective.direction}"
-        rule = f"a run returns one number (objective.metric={objective.metric})"
-        check(False, key, names, rule, fix)
+        rule = f"a run returns one number (objective.metric={metric})"
+        check(False, key, list(map(_direction_name, direction)), rule, f"set {key}={wanted}")
     name = _direction_name(direction)
-    check(
-        name == objective.direction,
-        key,
-        name,
-        f"the sweeper would {name} objective.metric={objective.metric}, but "
-        f"objective.direction={objective.direction}",
-        f"add {key}={objective.direction} (Optuna's default is minimize), or "
-        f"set objective.direction={name} if a {'lower' if name == 'minimize' else 'higher'} "
-        f"{objective.metric} is better",
+    rule = f"the sweeper would {name} objective.metric={metric}, but objective.direction={wanted}"
+    fix = (
+        f"add {key}={wanted} (Optuna's default is minimize), or set objective.direction={name} "
+        f"if a {'lower' if name == 'minimize' else 'higher'} {metric} is better"
     )
+    check(name == wanted, key, name, rule, fix)

@@ -71,6 +71,8 @@ def check_env_arguments(cfg: DictConfig) -> None:
     named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
     known = [p.name for p in parameters if p.kind in named and p.name != "self"]
     task = cfg.task.get("name")
+    owner = f"{target} (the env of task '{task}')"
+    fix = f"drop it ({target} takes: {', '.join(known)})"
     for node_key in ("env", "eval_env"):
         node = cfg.task.get(node_key)
         values = OmegaConf.to_container(node, resolve=False) if node is not None else {}
@@ -83,33 +85,18 @@ def check_env_arguments(cfg: DictConfig) -> None:
                     f"takes no env id. Fix: did you mean task=gym? (task=gym "
                     f"task.env.env_id={value} task.env.stage_fn._target_=my_pkg.my_stage)"
                 )
-            check_known(
-                f"task.{node_key}",
-                name,
-                value,
-                known,
-                f"{target} (the env of task '{task}')",
-                f"drop it ({target} takes: {', '.join(known)})",
-                what="an argument",
-            )
+            check_known(f"task.{node_key}", name, value, known, owner, fix, what="an argument")
 
 
 def check_env_keys(cfg: DictConfig) -> None:
     """The env's keys: none left ``???``, every ``_target_`` of the task found (its module
     imported), each an argument of the env."""
     for key in missing_keys(cfg.task.get("env"), "task.env"):
-        check(
-            False,
-            key,
-            "???",
-            f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)",
-            f"set it on the command line: {key}=...",
-        )
+        rule = f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)"
+        check(False, key, "???", rule, f"set it on the command line: {key}=...")
     for key, target in targets(OmegaConf.to_container(cfg.task, resolve=False), "task"):
-        if not isinstance(target, str) or target == "???" or "${" in target:
-            continue
-        problem = target_problem(target)
-        if problem is not None:
+        given = isinstance(target, str) and target != "???" and "${" not in target
+        if given and (problem := target_problem(target)):
             raise TargetError(f"{key}={target}: {problem}")
     check_env_arguments(cfg)
 

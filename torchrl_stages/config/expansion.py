@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Iterable, Iterator
-from dataclasses import is_dataclass
+from dataclasses import fields, is_dataclass
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
-from torchrl_stages.config.bounds import ConfigError, nearest, schema_keys
+from torchrl_stages.config.bounds import ConfigError, nearest
 
 
 def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> DictConfig:
@@ -26,21 +26,19 @@ def apply_all_stages(cfg: DictConfig, keep: Iterable[tuple[str, str]] = ()) -> D
         stages["stage_template"] = cfg.task.stage_template
     for name, stage in stages.items():
         schema = OmegaConf.get_type(stage)
+        known = [f.name for f in fields(schema)] if is_dataclass(schema) else None
         for key, value in every.items():
             if (name, key) in kept:
                 continue
             try:
-                if is_dataclass(schema) and key not in schema_keys(schema):  # an open node
-                    raise ConfigKeyError(key)  # would take it: its schema does not
+                if known is not None and key not in known:  # an open node would take it
+                    raise ConfigKeyError(key)  # its schema does not
                 stage[key] = value
             except OmegaConfBaseException as err:
                 where = "task.stage_template" if name == "stage_template" else f"task.stages.{name}"
-                close = nearest(key, schema_keys(schema)) if is_dataclass(schema) else None
-                fix = (
-                    f"did you mean all_stages.{close}?"
-                    if close and close not in every
-                    else f"set it for the stages that have it (task.stages.<stage>.{key}=...)"
-                )
+                fix = f"set it for the stages that have it (task.stages.<stage>.{key}=...)"
+                if (close := nearest(key, known or ())) and close not in every:
+                    fix = f"did you mean all_stages.{close}?"
                 raise ConfigError(
                     f"all_stages.{key}={value!r}: {where} "
                     f"({getattr(schema, '__name__', schema)}) cannot take it "
@@ -55,8 +53,7 @@ def expand_stage_template(task: DictConfig, num_stages: int) -> DictConfig:
     if not task.get("stage_template"):
         return task
     names = [f"s{k}" for k in range(num_stages)]
-    extra = [name for name in task.stages if name not in names]
-    if extra:
+    if extra := [name for name in task.stages if name not in names]:
         raise ConfigError(
             f"task.stages.{extra[0]}: the env has {num_stages} stages, named "
             f"{', '.join(names)} (each task.stage_template with its own keys over it). Fix: "
@@ -86,12 +83,9 @@ def stage_keys_set(overrides: Iterable[str]) -> set[tuple[str, str]]:
         ...                        "algo@task.stages.s2=sac", "seed=1"]))
         [('s0', 'frames'), ('s1', 'lr')]
     """
-    out = set()
-    for key in map(override_key, overrides):
-        parts = key.split(".")
-        if len(parts) >= 4 and parts[:2] == ["task", "stages"] and "@" not in key:
-            out.add((parts[2], parts[3]))
-    return out
+    keys = [override_key(override) for override in overrides]
+    paths = [key.split(".") for key in keys if key.startswith("task.stages.") and "@" not in key]
+    return {(path[2], path[3]) for path in paths if len(path) >= 4}
 
 
 def override_key(override: str) -> str:

@@ -8,15 +8,7 @@ from typing import Any
 from omegaconf import II, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from torchrl_stages.config.bounds import (
-    flag,
-    free,
-    in_range,
-    non_negative,
-    one_of,
-    positive,
-    torch_device,
-)
+from torchrl_stages.config.bounds import bound, flag, free, in_range, non_negative, one_of, positive
 
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "mlflow", "none")
 
@@ -150,7 +142,10 @@ class TrainConfig:
     seed: int = non_negative(0)
     # several seeds in one process, networks stacked, run directories seed_<s>/ (null: `seed`)
     seeds: list[int] | None = non_negative(None)
-    device: str = torch_device("cpu")  # cpu | cuda | cuda:<index> | mps
+    # cpu | cuda | cuda:<index> | mps
+    device: str = bound(
+        "cpu", pattern=r"cpu|mps|cuda(:\d+)?", text="cpu, cuda, cuda:<index> or mps"
+    )
     # torch intra-op threads (default: task.threads); 1 per job when jobs share the cores
     threads: int = positive(II("task.threads"))
     progress: bool = flag(True)  # tqdm bar per stage (hidden anyway when stderr is not a TTY)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -140,12 +141,10 @@ class ParamSpec:
 def _flatten(params: Mapping, prefix: str = "") -> Iterable[tuple[str, Any]]:
     for key, value in params.items():
         path = f"{prefix}.{key}" if prefix else str(key)
-        is_spec = (  # a range has low, high or choices (and no mapping in it)
-            isinstance(value, Mapping)
-            and bool({"low", "high", "choices"} & set(value))
-            and not any(isinstance(v, Mapping) for v in value.values())
-        )
-        if isinstance(value, Mapping) and value and not is_spec:
+        mapping = isinstance(value, Mapping) and bool(value)
+        # a range has low, high or choices, and no mapping in it
+        nested = mapping and any(isinstance(item, Mapping) for item in value.values())
+        if mapping and (nested or not {"low", "high", "choices"} & set(value)):
             yield from _flatten(value, path)
         else:
             yield path, value
@@ -155,18 +154,12 @@ def search_space(params: Any) -> list[ParamSpec]:
     """``tune.params`` as specs, keys written with dots or nested alike."""
     if isinstance(params, DictConfig):
         params = OmegaConf.to_container(params, resolve=True)
-    check(
-        isinstance(params, Mapping) and bool(params),
-        "tune.params",
-        params,
-        "the search space is empty",
-        "add one range per key, e.g. 'tune.params={task.stages.s3.lr: {low: 1e-4, "
-        "high: 1e-2, log: true}}'",
-    )
+    example = "tune.params={task.stages.s3.lr: {low: 1e-4, high: 1e-2, log: true}}"
+    rule, fix = "the search space is empty", f"add one range per key, e.g. '{example}'"
+    check(isinstance(params, Mapping) and bool(params), "tune.params", params, rule, fix)
     space = [ParamSpec.parse(key, spec) for key, spec in _flatten(params)]
-    names = [p.name for p in space]
-    for name in names:
-        check(names.count(name) == 1, f"tune.params.{name}", "...", "given twice", "keep one")
+    for name, count in Counter(spec.name for spec in space).items():
+        check(count == 1, f"tune.params.{name}", "...", "given twice", "keep one")
     return space
 
 
@@ -180,13 +173,10 @@ def check_settings(tune: DictConfig) -> None:
     check_bounds(tune, TuneConfig, "tune")
     check(bool(tune.study_name), "tune.study_name", tune.study_name, "empty", "name the study")
     check(bool(tune.storage), "tune.storage", tune.storage, "empty", "set sqlite:///study.db")
-    check(
-        tune.pruner != "threshold" or tune.prune_below is not None,
-        "tune.prune_below",
-        tune.prune_below,
-        "the threshold pruner needs a success rate in (0, 1]",
-        "set tune.prune_below=0.1 (or another pruner)",
-    )
+    needed = tune.pruner == "threshold" and tune.prune_below is None
+    rule = "the threshold pruner needs a success rate in (0, 1]"
+    fix = "set tune.prune_below=0.1 (or another pruner)"
+    check(not needed, "tune.prune_below", tune.prune_below, rule, fix)
 
 
 def train_config(compose: Compose, overrides: list[str]) -> DictConfig:
@@ -201,9 +191,14 @@ def _fail(where: str, problem: str, fix: str) -> None:
     raise ConfigError(f"{where}: {problem}. Fix: {fix}")
 
 
-def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> None:
-    """Checks each entry of ``space`` against the config of the command's overrides ``base``:
-    the key or group exists, the command does not set it, each bound or choice is valid."""
+def checked_search(
+    tune: DictConfig, overrides: list[str], compose: Compose
+) -> tuple[list[ParamSpec], list[str]]:
+    """The search space and the command's overrides every trial starts from, checked: the
+    ``tune`` settings, then each entry's key or group exists, is not set by the command, and
+    each of its bounds or choices makes a valid config."""
+    check_settings(tune)
+    space, base = search_space(tune.params), train_overrides(overrides)
     try:
         cfg = train_config(compose, base)
     except (HydraException, OmegaConfBaseException) as err:
@@ -248,3 +243,4 @@ def check_space(space: list[ParamSpec], base: list[str], compose: Compose) -> No
             except ConfigError as err:
                 problem = f"{override} makes an invalid config ({str(err).split('. Fix: ')[0]})"
                 _fail(where, problem, "narrow the range to values the key accepts")
+    return space, base

@@ -3,7 +3,6 @@ its stage evaluations; the study directory gets the sweep summary and ``best.yam
 
 from __future__ import annotations
 
-import copy
 import traceback
 from collections import Counter
 from dataclasses import dataclass
@@ -12,7 +11,7 @@ from typing import Any
 
 import yaml
 from hydra.errors import HydraException
-from omegaconf import DictConfig, OmegaConf, open_dict, read_write
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from torchrl_stages.checkpoint import CheckpointDamagedError
@@ -28,17 +27,11 @@ from torchrl_stages.runs.evaluation import format_summary
 from torchrl_stages.runs.experiment import Experiment, seed_dir
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.sweeps import summarize_or_say
-from torchrl_stages.tune.space import (
-    Compose,
-    ParamSpec,
-    check_settings,
-    check_space,
-    hydra_value,
-    search_space,
-    train_overrides,
-)
+from torchrl_stages.tune.space import Compose, ParamSpec, checked_search, hydra_value
 
 BEST_FILE = "best.yaml"
+# a run's failures that say what went wrong: its trial fails, the study goes on
+RUN_ERRORS = (DivergenceError, EnvError, RunDirError, CheckpointDamagedError, DamagedFileError)
 
 
 class TrialFailed(RuntimeError):
@@ -85,11 +78,9 @@ class TrialPruning:
         self.evaluations = 0
 
     def __call__(self, metrics: dict[str, float], step: int) -> None:
-        for name, value in metrics.items():
-            if not is_loop_evaluation(name):
-                continue
+        for name in filter(is_loop_evaluation, metrics):
             index, self.evaluations = self.evaluations, self.evaluations + 1
-            success = float(value)
+            success = float(metrics[name])
             self.trial.report(1.0 - success if self.minimize else success, index)
             if self.trial.should_prune():
                 where = f"{name}={success:g} at {step} frames of the stage"
@@ -98,18 +89,16 @@ class TrialPruning:
 
 def make_pruner(tune: DictConfig, direction: str) -> Any:
     """The Optuna pruner ``tune.pruner`` names, over what :class:`TrialPruning` reports."""
-    import optuna
+    from optuna import pruners
 
-    warmup = int(tune.warmup_steps)
+    warmup, startup = int(tune.warmup_steps), int(tune.startup_trials)
     if tune.pruner == "median":
-        return optuna.pruners.MedianPruner(
-            n_startup_trials=int(tune.startup_trials), n_warmup_steps=warmup
-        )
+        return pruners.MedianPruner(n_startup_trials=startup, n_warmup_steps=warmup)
     if tune.pruner == "threshold":
         below = float(tune.prune_below)  # minimize: failure rates above 1 - below are pruned
         limit = {"upper": 1.0 - below} if direction == "minimize" else {"lower": below}
-        return optuna.pruners.ThresholdPruner(**limit, n_warmup_steps=warmup)
-    return optuna.pruners.NopPruner()
+        return pruners.ThresholdPruner(**limit, n_warmup_steps=warmup)
+    return pruners.NopPruner()
 
 
 def print_results(experiment: Experiment, results: list, run_dir: Path, cfg: DictConfig) -> float:
@@ -135,12 +124,9 @@ def _run_trial(
     try:
         run_cfg = apply_all_stages(context.compose(overrides), keep=stage_keys_set(overrides))
         files: dict[str, Any] = {"config.yaml": run_cfg, "overrides.yaml": overrides}
-        if context.hydra_cfg is not None:
-            hydra_cfg = copy.deepcopy(context.hydra_cfg)
-            with read_write(hydra_cfg), open_dict(hydra_cfg):
-                hydra_cfg.overrides.task = overrides
-                hydra_cfg.runtime.output_dir = str(run_dir)
-                hydra_cfg.job.num = trial.number
+        if context.hydra_cfg is not None:  # the command's, as this trial's job
+            job = {"overrides": {"task": overrides}, "runtime": {"output_dir": str(run_dir)}}
+            hydra_cfg = OmegaConf.merge(context.hydra_cfg, job, {"job": {"num": trial.number}})
             files["hydra.yaml"] = OmegaConf.create({"hydra": hydra_cfg})
         pruning = TrialPruning(trial, str(cfg.objective.direction))
         experiment = Experiment(run_cfg, run_dir, hydra_files=files, observers=[pruning])
@@ -161,13 +147,7 @@ def _run_trial(
         raise optuna.TrialPruned(str(err)) from None
     except Interrupted:
         raise
-    except (
-        DivergenceError,
-        EnvError,
-        RunDirError,
-        CheckpointDamagedError,
-        DamagedFileError,
-    ) as err:
+    except RUN_ERRORS as err:
         raise TrialFailed(str(err)) from None
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
@@ -194,15 +174,9 @@ def _load_study(cfg: DictConfig, location: str) -> Any:
     import optuna
 
     file = location if "://" not in location else _sqlite_file(location)
-    if file is not None:
-        folder = Path(file).parent
-        check(
-            folder.is_dir(),
-            "tune.storage",
-            cfg.tune.storage,
-            f"{folder} is not a directory",
-            "make that directory first, or name a file in one that exists",
-        )
+    if file is not None and not (folder := Path(file).parent).is_dir():
+        fix = "make that directory first, or name a file in one that exists"
+        check(False, "tune.storage", cfg.tune.storage, f"{folder} is not a directory", fix)
     storage: Any = location  # an RDB URL
     if "://" not in location:  # a journal file
         storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(file))
@@ -258,10 +232,7 @@ def run_study(cfg: DictConfig, context: StudyContext) -> int:
             "pip install 'optuna>=4,<6')"
         ) from None
     tune = cfg.tune
-    check_settings(tune)
-    space = search_space(tune.params)
-    base = train_overrides(context.overrides)
-    check_space(space, base, context.compose)
+    space, base = checked_search(tune, context.overrides, context.compose)
     location = storage_location(str(tune.storage), context.cwd)
     try:
         study = _load_study(cfg, location)
@@ -298,12 +269,11 @@ def run_study(cfg: DictConfig, context: StudyContext) -> int:
         f"({len(states) - failed - pruned} finished, {pruned} pruned, {failed} failed), "
         f"{len(trials)} in the study"
     )
-    if best["best"] is None:
+    if (top := best["best"]) is None:
         print("stages-tune: no trial of the study has finished yet")
     else:
-        b = best["best"]
-        params = " ".join(f"{k}={hydra_value(v)}" for k, v in b["params"].items())
-        print(f"Best trial {b['number']}: {cfg.objective.metric}={b['value']:g} with {params}")
-        print(f"  run directory: {b['run_dir']}")
+        params = " ".join(f"{k}={hydra_value(v)}" for k, v in top["params"].items())
+        print(f"Best trial {top['number']}: {cfg.objective.metric}={top['value']:g} with {params}")
+        print(f"  run directory: {top['run_dir']}")
     print(f"Best trial file: {context.study_dir / BEST_FILE}")
     return EXIT_FAILED if states and failed == len(states) else 0
