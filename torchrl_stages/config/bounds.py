@@ -108,7 +108,7 @@ def check_bounds(node: Any, schema: type, prefix: str, closed: bool = False) -> 
     given = OmegaConf.to_container(node, resolve=False) if closed else {}  # as given
     for name, value in given.items():
         key = f"{prefix}.{name}" if prefix else name
-        check_known(prefix, name, value, known, "the config", f"drop {key}")
+        check_known(prefix, name, value, known, "a key of the config", f"drop {key}")
     for f in fields(schema):
         if f.name not in node or OmegaConf.is_missing(node, f.name):
             continue
@@ -124,20 +124,14 @@ def nearest(name: str, known: Iterable[str]) -> str | None:
 
 
 def check_known(
-    prefix: str,
-    name: str,
-    value: object,
-    known: Collection[str],
-    owner: str,
-    fix: str,
-    what: str = "a key",
+    prefix: str, name: str, value: object, known: Collection[str], what: str, fix: str
 ) -> None:
-    """Refuses ``{prefix}.{name}`` (naming the nearest) unless ``name`` is in ``known``."""
+    """Refuses ``{prefix}.{name}``, not ``what`` (a key of dqn), unless ``name`` is in ``known``."""
     if name in known:
         return
     dot = f"{prefix}." if prefix else ""
     hint = f"did you mean {dot}{close}?" if (close := nearest(name, known)) else fix
-    raise ConfigError(f"{dot}{name}={value!r}: not {what} of {owner}. Fix: {hint}")
+    raise ConfigError(f"{dot}{name}={value!r}: not {what}. Fix: {hint}")
 
 
 @dataclass

@@ -30,31 +30,18 @@ def _check_stage(key: str, s: DictConfig, learner_class: LearnerClass) -> None:
     check_bounds(s, stage_schema(s) or learner.Config, key)
     checks = StageChecks(key, s)
     cnn = {field: list(s[field]) for field in ("cnn_channels", "cnn_kernels", "cnn_strides")}
-    checks(
-        len(set(map(len, cnn.values()))) == 1,
-        "cnn_channels",
-        f"needs one entry per conv layer, like {key}.cnn_kernels={cnn['cnn_kernels']} and "
-        f"{key}.cnn_strides={cnn['cnn_strides']}",
-        "give cnn_channels, cnn_kernels and cnn_strides the same length",
-    )
-    checks(
-        s.frames_per_batch % s.num_envs == 0,
-        "frames_per_batch",
-        f"must be a multiple of {key}.num_envs={s.num_envs}",
-        f"set {key}.frames_per_batch={max(1, s.frames_per_batch // s.num_envs) * s.num_envs}",
-    )
-    checks(
-        s.frames >= s.frames_per_batch,
-        "frames",
-        f"is smaller than one collector batch ({key}.frames_per_batch={s.frames_per_batch})",
-        f"raise {key}.frames or lower {key}.frames_per_batch",
-    )
-    checks(
-        s.batch_size <= s.buffer_size,
-        "batch_size",
-        f"exceeds {key}.buffer_size={s.buffer_size}",
-        f"lower {key}.batch_size",
-    )
+    like = f"{key}.cnn_kernels={cnn['cnn_kernels']} and {key}.cnn_strides={cnn['cnn_strides']}"
+    rule = f"needs one entry per conv layer, like {like}"
+    fix = "give cnn_channels, cnn_kernels and cnn_strides the same length"
+    checks(len(set(map(len, cnn.values()))) == 1, "cnn_channels", rule, fix)
+    rule = f"must be a multiple of {key}.num_envs={s.num_envs}"
+    fix = f"set {key}.frames_per_batch={max(1, s.frames_per_batch // s.num_envs) * s.num_envs}"
+    checks(s.frames_per_batch % s.num_envs == 0, "frames_per_batch", rule, fix)
+    rule = f"is smaller than one collector batch ({key}.frames_per_batch={s.frames_per_batch})"
+    fix = f"raise {key}.frames or lower {key}.frames_per_batch"
+    checks(s.frames >= s.frames_per_batch, "frames", rule, fix)
+    rule = f"exceeds {key}.buffer_size={s.buffer_size}"
+    checks(s.batch_size <= s.buffer_size, "batch_size", rule, f"lower {key}.batch_size")
     learner.validate(checks)
 
 
@@ -77,16 +64,15 @@ def check_stage_keys(cfg: DictConfig, algorithms: Collection[str]) -> None:
         task = f"task '{cfg.task.get('name')}' (its stages: {', '.join(named)})"
         add = f"+algo@task.stages.{name}=<algo> ({'|'.join(algorithms)})"
         fix = f"set a key of one of them, or add the stage with {add}"
-        check_known("task.stages", str(name), stage, named, task, fix, what="a stage")
+        check_known("task.stages", str(name), stage, named, f"a stage of {task}", fix)
     listing = f"stages-train task={cfg.task.get('name')} --cfg job"
     for key, (node, typed) in nodes.items():
-        schema = stage_schema(typed)  # a template's stage: its own keys over the template
-        if schema is None:
+        if (schema := stage_schema(typed)) is None:  # a template's stage: the template's schema
             continue
-        owner = getattr(schema, "algo", None) or schema.__name__
+        what = f"a key of {getattr(schema, 'algo', None) or schema.__name__}"
         known = [f.name for f in fields(schema)]
         for name, value in OmegaConf.to_container(node, resolve=False).items():
-            check_known(key, name, value, known, owner, f"drop it (its keys: {listing})")
+            check_known(key, name, value, known, what, f"drop it (its keys: {listing})")
 
 
 def _is_stage(stage: object) -> bool:
@@ -124,15 +110,11 @@ def validate_config(
     fix = f"pip install {package}, or use logger=csv"
     check(installed, "logger.backend", cfg.logger.backend, rule, fix)
     schedule.validate(cfg)
+    together = f"schedule={schedule.name} trains its stages together"
     for key in ("stage_store", "init_from"):
-        check(
-            not cfg.get(key) or schedule.reuses_stages,
-            key,
-            cfg.get(key),
-            f"schedule={schedule.name} trains its stages together, so a finished stage is not "
-            "reusable on its own",
-            f"use schedule=backward, or drop {key}",
-        )
+        rule = f"{together}, so a finished stage is not reusable on its own"
+        fix = f"use schedule=backward, or drop {key}"
+        check(not cfg.get(key) or schedule.reuses_stages, key, cfg.get(key), rule, fix)
     check_device(cfg.device)
     fix = "pick a task with stages, e.g. task=gridworld"
     check(len(cfg.task.stages) > 0, "task.stages", dict(cfg.task.stages), "lists no stage", fix)
@@ -145,15 +127,12 @@ def validate_task(cfg: DictConfig, task, schedule: Any, learner_class: LearnerCl
     validate_env_protocol(cfg, task.spec_env)
     names = list(cfg.task.stages)
     rule = f"task '{cfg.task.name}' has {task.num_stages} stages but {len(names)} are configured"
-    fix = (
-        f"configure exactly {task.num_stages} stages (add them with "
-        f"+algo@task.stages.NAME=<algo> or remove extra ones with ~task.stages.NAME)"
-    )
+    edit = "add them with +algo@task.stages.NAME=<algo> or remove extra ones with ~task.stages.NAME"
+    fix = f"configure exactly {task.num_stages} stages ({edit})"
     check(len(names) == task.num_stages, "task.stages", names, rule, fix)
     schedule.validate_task(cfg, task)
     template = bool(cfg.task.get("stage_template"))
-    for k, name in enumerate(names):
-        stage = cfg.task.stages[name]
+    for k, (name, stage) in enumerate(cfg.task.stages.items()):
         problem = learner_class(stage).check_action_spec(task.specs(k).action_spec)
         fix = f"override it with algo@task.stages.{name}=<algo>"
         if template:

@@ -38,19 +38,13 @@ def target_problem(path: str) -> str | None:
             if err.name != name:  # a module it imports is missing
                 return f"module `{name}` failed to import ({_first_line(err)}). Fix: install it"
             if index == 0:
-                return (
-                    f"module `{name}` is not importable. Fix: add its directory to PYTHONPATH "
-                    "or pip install it"
-                )
-            return (
-                f"module `{where}` has no `{part}`. Fix: check the name (it must be defined at "
-                "the top of the module)"
-            )
+                fix = "add its directory to PYTHONPATH or pip install it"
+                return f"module `{name}` is not importable. Fix: {fix}"
+            fix = "check the name (it must be defined at the top of the module)"
+            return f"module `{where}` has no `{part}`. Fix: {fix}"
         except Exception as err:  # noqa: BLE001 - the user's module fails on import
-            return (
-                f"module `{name}` failed to import ({_first_line(err)}). Fix: run "
-                f"`python -c 'import {name}'` to see why"
-            )
+            fix = f"run `python -c 'import {name}'` to see why"
+            return f"module `{name}` failed to import ({_first_line(err)}). Fix: {fix}"
     return None
 
 
@@ -71,8 +65,8 @@ def check_env_arguments(cfg: DictConfig) -> None:
     named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
     known = [p.name for p in parameters if p.kind in named and p.name != "self"]
     task = cfg.task.get("name")
-    owner = f"{target} (the env of task '{task}')"
-    fix = f"drop it ({target} takes: {', '.join(known)})"
+    what = f"an argument of {target} (the env of task '{task}')"
+    drop = f"drop it ({target} takes: {', '.join(known)})"
     for node_key in ("env", "eval_env"):
         node = cfg.task.get(node_key)
         values = OmegaConf.to_container(node, resolve=False) if node is not None else {}
@@ -80,17 +74,15 @@ def check_env_arguments(cfg: DictConfig) -> None:
             if name in HYDRA_KEYS or name in known:
                 continue
             if name == "env_id":  # a gymnasium id given to a task of another env
-                raise ConfigError(
-                    f"task.{node_key}.env_id={value!r}: task '{task}' builds {target}, which "
-                    f"takes no env id. Fix: did you mean task=gym? (task=gym "
-                    f"task.env.env_id={value} task.env.stage_fn._target_=my_pkg.my_stage)"
-                )
-            check_known(f"task.{node_key}", name, value, known, owner, fix, what="an argument")
+                rule = f"task '{task}' builds {target}, which takes no env id"
+                gym = f"task.env.env_id={value} task.env.stage_fn._target_=my_pkg.my_stage"
+                fix = f"did you mean task=gym? (task=gym {gym})"
+                check(False, f"task.{node_key}.env_id", value, rule, fix)
+            check_known(f"task.{node_key}", name, value, known, what, drop)
 
 
 def check_env_keys(cfg: DictConfig) -> None:
-    """The env's keys: none left ``???``, every ``_target_`` of the task found (its module
-    imported), each an argument of the env."""
+    """The env's keys: none left ``???``, each ``_target_`` found (imported), each an argument."""
     for key in missing_keys(cfg.task.get("env"), "task.env"):
         rule = f"task '{cfg.task.name}' leaves it to you (its YAML says what it is)"
         check(False, key, "???", rule, f"set it on the command line: {key}=...")
@@ -108,9 +100,7 @@ def missing_keys(node: object, prefix: str) -> list[str]:
         >>> missing_keys(OmegaConf.create({"env": {"id": "???", "n": 2}}), "task")
         ['task.env.id']
     """
-    if not isinstance(node, DictConfig):
-        return []
-    plain = OmegaConf.to_container(node, resolve=False)
+    plain = OmegaConf.to_container(node, resolve=False) if isinstance(node, DictConfig) else {}
     return [key for key, value in leaves(plain, prefix) if value == "???"]
 
 

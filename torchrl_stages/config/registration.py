@@ -27,13 +27,10 @@ def register_configs(algorithms: Mapping[str, Any]) -> None:
     cs.store(group="schedule", name="schedule_schema", node=ScheduleConfig)
     for name, learner in algorithms.items():
         cs.store(group="algo", name=f"{name}_schema", node=_open(learner.Config, ""))
-    resolvers = {
-        "stages_algorithms": lambda: "|".join(algorithms),
-        "stages_options": lambda group: "|".join(config_group_options(group)) or "?",
-        "stages_by_prefix": by_prefix,
-    }
-    for name, resolver in resolvers.items():
-        OmegaConf.register_new_resolver(name, resolver, replace=True)
+    register = functools.partial(OmegaConf.register_new_resolver, replace=True)
+    register("stages_algorithms", lambda: "|".join(algorithms))
+    register("stages_options", lambda group: "|".join(config_group_options(group)) or "?")
+    register("stages_by_prefix", by_prefix)
 
 
 def _open(schema: type, *keys: str) -> DictConfig:

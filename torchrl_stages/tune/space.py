@@ -105,10 +105,9 @@ class ParamSpec:
             rule = "must be a non-empty list of numbers, strings, booleans or nulls"
             check(bool(plain), f"{where}.choices", choices, rule, f"write it as {example}")
             return cls(key, "categorical", choices=tuple(choices))
+        rule, fix = "must be a finite number", f"write the range as {example}"
         for bound in ("low", "high"):
-            value = spec.get(bound)
-            rule, fix = "must be a finite number", f"write the range as {example}"
-            check(_is_number(value), f"{where}.{bound}", value, rule, fix)
+            check(_is_number(spec.get(bound)), f"{where}.{bound}", spec.get(bound), rule, fix)
         low, high, log, step = spec["low"], spec["high"], spec.get("log", False), spec.get("step")
         for ok, name, value, rule, fix in (
             (isinstance(log, bool), "log", log, "must be true or false", "set log: true"),
@@ -194,16 +193,14 @@ def _fail(where: str, problem: str, fix: str) -> None:
 def checked_search(
     tune: DictConfig, overrides: list[str], compose: Compose
 ) -> tuple[list[ParamSpec], list[str]]:
-    """The search space and the command's overrides every trial starts from, checked: the
-    ``tune`` settings, then each entry's key or group exists, is not set by the command, and
-    each of its bounds or choices makes a valid config."""
+    """The search space and the overrides every trial starts from, checked: the ``tune`` settings,
+    then each entry's key or group, not set by the command, and each bound or choice of it."""
     check_settings(tune)
     space, base = search_space(tune.params), train_overrides(overrides)
     try:
         cfg = train_config(compose, base)
     except (HydraException, OmegaConfBaseException) as err:
-        message = f"the command's overrides do not compose: {hydra_message(err)}"
-        raise ConfigError(message) from None
+        raise ConfigError(f"the command's overrides do not compose: {hydra_message(err)}") from None
     set_by_command = {override_key(o) for o in base}
     for spec in space:
         where = f"tune.params.{spec.key}"

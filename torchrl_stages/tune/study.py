@@ -253,9 +253,8 @@ def run_study(cfg: DictConfig, context: StudyContext) -> int:
     try:
         study.optimize(objective, n_trials=int(tune.n_trials), catch=(TrialFailed,))
     finally:
-        summary = summarize_or_say(
-            context.study_dir, bool(tune.plots), "stages-tune: no study summary"
-        )
+        failure = "stages-tune: no study summary"
+        summary = summarize_or_say(context.study_dir, bool(tune.plots), failure)
         if summary is not None:
             print(f"Study summary: {summary.files['summary.md']}")
         best = _best(study, cfg, location)
