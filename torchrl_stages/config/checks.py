@@ -79,18 +79,6 @@ def _is_stage(stage: object) -> bool:
     return isinstance(stage, DictConfig) and "algo" in stage
 
 
-def check_device(name: str) -> None:
-    device = torch.device(name)
-    if device.type != "cuda":
-        return
-    rule = "names a CUDA device, but torch sees none on this machine"
-    check(torch.cuda.is_available(), "device", name, rule, "set device=cpu")
-    count = torch.cuda.device_count()
-    rule = f"names a GPU this machine does not have (it has {count})"
-    fix = "set device=cuda (the first GPU) or a lower index"
-    check(device.index is None or device.index < count, "device", name, rule, fix)
-
-
 def validate_config(
     cfg: DictConfig, schedule: Any, learner_class: LearnerClass, algorithms: Collection[str]
 ) -> None:
@@ -115,7 +103,13 @@ def validate_config(
         rule = f"{together}, so a finished stage is not reusable on its own"
         fix = f"use schedule=backward, or drop {key}"
         check(not cfg.get(key) or schedule.reuses_stages, key, cfg.get(key), rule, fix)
-    check_device(cfg.device)
+    if (device := torch.device(cfg.device)).type == "cuda":
+        rule = "names a CUDA device, but torch sees none on this machine"
+        check(torch.cuda.is_available(), "device", cfg.device, rule, "set device=cpu")
+        count = torch.cuda.device_count()
+        rule = f"names a GPU this machine does not have (it has {count})"
+        fix = "set device=cuda (the first GPU) or a lower index"
+        check(device.index is None or device.index < count, "device", cfg.device, rule, fix)
     fix = "pick a task with stages, e.g. task=gridworld"
     check(len(cfg.task.stages) > 0, "task.stages", dict(cfg.task.stages), "lists no stage", fix)
     for name, stage in cfg.task.stages.items():
@@ -146,8 +140,7 @@ def _direction_name(direction: object) -> str:
 
 def validate_sweeper(sweeper: DictConfig | None, cfg: DictConfig) -> None:
     """Refuses a ``hydra.sweeper.direction`` other than ``objective.direction``."""
-    direction = None if sweeper is None else sweeper.get("direction")
-    if direction is None:
+    if sweeper is None or (direction := sweeper.get("direction")) is None:
         return
     key, metric, wanted = "hydra.sweeper.direction", cfg.objective.metric, cfg.objective.direction
     if isinstance(direction, list | tuple | ListConfig):

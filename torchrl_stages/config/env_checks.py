@@ -11,6 +11,8 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_stages.config.bounds import ConfigError, check, check_known
 from torchrl_stages.config.expansion import leaves, targets
 
+HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
+
 
 class TargetError(ConfigError):
     """A ``_target_`` of the config names code that cannot be found."""
@@ -46,9 +48,6 @@ def target_problem(path: str) -> str | None:
             fix = f"run `python -c 'import {name}'` to see why"
             return f"module `{name}` failed to import ({_first_line(err)}). Fix: {fix}"
     return None
-
-
-HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
 
 
 def check_env_arguments(cfg: DictConfig) -> None:

@@ -102,8 +102,7 @@ def make_pruner(tune: DictConfig, direction: str) -> Any:
 
 
 def print_results(experiment: Experiment, results: list, run_dir: Path, cfg: DictConfig) -> float:
-    """Prints each seed's summary; returns the mean of their ``objective.metric`` (NaN: a failed
-    Optuna trial)."""
+    """Prints each seed's summary; returns their mean ``objective.metric`` (NaN fails a trial)."""
     for seed, result in zip(experiment.seeds, results, strict=True):
         where = seed_dir(run_dir, seed) if experiment.stacked else run_dir
         print(format_summary(result, where), flush=True)
