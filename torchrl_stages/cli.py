@@ -52,7 +52,6 @@ from torchrl_stages.runs.seed_run import with_env_stages
 from torchrl_stages.runs.stage_store import SharedStageStore, StageEntry, StoreError
 from torchrl_stages.sweeps import find_jobs, summarize_sweep
 from torchrl_stages.tune import StudyContext, StudyError, run_study
-from torchrl_stages.tune.study import print_results
 
 
 class JobFailed(RuntimeError):
@@ -117,7 +116,7 @@ def _train_app(cfg: DictConfig) -> float:
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
         _fail(run_dir, one_line(err), EXIT_FAILED)
-    objective = print_results(experiment, results, run_dir, cfg)  # over seeds: their mean
+    objective = experiment.report(results)  # over seeds: their mean
     if experiment.stacked:
         print(f"Seeds' summary: {run_dir}")  # what summarize_sweep wrote over them
         for path in sorted(run_dir.glob("summary*")):

@@ -17,6 +17,7 @@ from torchrl_stages.learners import make_learner
 from torchrl_stages.loggers import Observer
 from torchrl_stages.preemption import handle_signals
 from torchrl_stages.runs.directory import drop_checkpoints, refuse_links, scope_checkpoints
+from torchrl_stages.runs.evaluation import format_summary
 from torchrl_stages.runs.layout import SEED_CHECKPOINTS, seed_dir
 from torchrl_stages.runs.seed_run import SeedRun, build_task, compile_mode
 from torchrl_stages.schedules import SCHEDULES, get_schedule
@@ -146,6 +147,15 @@ class Experiment:
             failure = f"the summary of {self.run_dir} was not written"
             summarize_or_say(self.run_dir, bool(cfg.eval.get("plots", True)), failure)
         return results
+
+    def report(self, results: list[dict[str, Any]]) -> float:
+        """Prints each seed's summary; returns their mean ``objective.metric`` (NaN fails a
+        trial)."""
+        for seed, result in zip(self.seeds, results, strict=True):
+            where = seed_dir(self.run_dir, seed) if self.stacked else self.run_dir
+            print(format_summary(result, where), flush=True)
+        values = [result.get(self.cfg.objective.metric, float("nan")) for result in results]
+        return sum(map(float, values)) / len(values)
 
     def _run(self) -> list[dict[str, Any]]:
         runs, cfg = self.runs, self.runs[0].cfg

@@ -23,8 +23,7 @@ from torchrl_stages.loggers import StopRun
 from torchrl_stages.metric_names import is_loop_evaluation
 from torchrl_stages.preemption import Interrupted
 from torchrl_stages.runs.directory import RunDir
-from torchrl_stages.runs.evaluation import format_summary
-from torchrl_stages.runs.experiment import Experiment, seed_dir
+from torchrl_stages.runs.experiment import Experiment
 from torchrl_stages.runs.layout import RunDirError
 from torchrl_stages.sweeps import summarize_or_say
 from torchrl_stages.tune.space import Compose, ParamSpec, checked_search, hydra_value
@@ -101,15 +100,6 @@ def make_pruner(tune: DictConfig, direction: str) -> Any:
     return pruners.NopPruner()
 
 
-def print_results(experiment: Experiment, results: list, run_dir: Path, cfg: DictConfig) -> float:
-    """Prints each seed's summary; returns their mean ``objective.metric`` (NaN fails a trial)."""
-    for seed, result in zip(experiment.seeds, results, strict=True):
-        where = seed_dir(run_dir, seed) if experiment.stacked else run_dir
-        print(format_summary(result, where), flush=True)
-    values = [result.get(cfg.objective.metric, float("nan")) for result in results]
-    return sum(map(float, values)) / len(values)
-
-
 def _run_trial(
     trial: Any, cfg: DictConfig, space: list[ParamSpec], base: list[str], context: StudyContext
 ) -> float:
@@ -151,7 +141,7 @@ def _run_trial(
     except Exception as err:  # the env's (or other user code's) own exception: its traceback
         traceback.print_exc()
         raise TrialFailed(one_line(err)) from None
-    return print_results(experiment, results, run_dir, cfg)
+    return experiment.report(results)
 
 
 def _sqlite_file(storage: str) -> str | None:
