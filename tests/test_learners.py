@@ -257,6 +257,13 @@ def test_updates_change_parameters_and_return_finite_losses(algo):
         assert all(torch.isfinite(t).all() for t in online.values(True, True)), name
 
 
+@pytest.mark.parametrize("algo", list(ALGOS))
+def test_a_learner_moves_like_any_module(algo):
+    learner = make(algo)
+    assert learner.to("cpu", torch.float32) is learner  # nn.Module.to, through nn.Module._apply
+    assert learner.update(batch_for(learner.specs))
+
+
 def test_td3_actor_and_targets_update_every_policy_update_delay():
     learner = make("td3", policy_update_delay=3)
     batch = batch_for(CONTINUOUS)
